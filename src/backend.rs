@@ -1,0 +1,73 @@
+//! Run-time choice of the Burn device: one model, three backends.
+
+use std::fmt;
+use std::str::FromStr;
+
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+/// The compute backend a job runs on (config key `backend`, CLI `--backend`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Backend {
+    /// Burn's pure-Rust CPU backend: the default and the fastest on CPU.
+    #[default]
+    Flex,
+    /// Burn's ndarray CPU backend (deprecated upstream; kept for parity tests).
+    Ndarray,
+    /// Burn's wgpu backend (GPU, or a software Vulkan device); needs the `wgpu` feature.
+    Wgpu,
+}
+
+impl Backend {
+    /// Every backend name, for error messages.
+    pub const NAMES: &'static str = "flex, ndarray, wgpu";
+
+    /// The plain (no-autodiff) device of this backend.
+    ///
+    /// Fails for `wgpu` when the binary was built without the `wgpu` feature.
+    pub fn device(self) -> anyhow::Result<Device> {
+        match self {
+            Backend::Flex => Ok(Device::flex()),
+            #[allow(deprecated)]
+            Backend::Ndarray => Ok(Device::ndarray()),
+            #[cfg(feature = "wgpu")]
+            Backend::Wgpu => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
+            #[cfg(not(feature = "wgpu"))]
+            Backend::Wgpu => anyhow::bail!(
+                "backend `wgpu` is not compiled in: rebuild with `cargo build --release --features wgpu`"
+            ),
+        }
+    }
+
+    /// The name used in configs and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Flex => "flex",
+            Backend::Ndarray => "ndarray",
+            Backend::Wgpu => "wgpu",
+        }
+    }
+}
+
+impl fmt::Display for Backend {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Backend {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "flex" => Ok(Backend::Flex),
+            "ndarray" => Ok(Backend::Ndarray),
+            "wgpu" => Ok(Backend::Wgpu),
+            other => Err(format!(
+                "unknown backend `{other}` (expected one of: {})",
+                Backend::NAMES
+            )),
+        }
+    }
+}

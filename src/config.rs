@@ -1,0 +1,234 @@
+//! Job configuration: one TOML file per job, `--set section.key=value` overrides, and
+//! validation whose errors name the key.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::backend::Backend;
+use crate::cloth::GridSpec;
+use crate::data::DataConfig;
+use crate::eval::EvalConfig;
+use crate::sim::SimConfig;
+use crate::source::SourceConfig;
+use crate::train::TrainConfig;
+
+/// The `[model]` section: the surrogate's initial parameters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// Initial stiffness of every spring, N/m.
+    pub k_init: f64,
+    /// Initial damping of every spring, N·s/m.
+    pub b_init: f64,
+}
+
+impl Default for ModelConfig {
+    /// A uniform guess between the paper's stiffness levels and below its damping.
+    fn default() -> Self {
+        Self {
+            k_init: 50.0,
+            b_init: 3.0,
+        }
+    }
+}
+
+/// A whole job: data, surrogate, training and evaluation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// Run name: the run directory is `runs/<name>` unless `--out` says otherwise.
+    pub name: String,
+    /// Compute backend.
+    pub backend: Backend,
+    /// Directory of runs.
+    pub runs_dir: PathBuf,
+    /// The surrogate's grid.
+    pub cloth: GridSpec,
+    /// Initial parameters.
+    pub model: ModelConfig,
+    /// Surrogate integration.
+    pub sim: SimConfig,
+    /// Rollout data.
+    pub data: DataConfig,
+    /// Synthetic data generator; `train` runs it when `data.dir` has no `index.json`.
+    pub source: Option<SourceConfig>,
+    /// Training curriculum.
+    pub train: TrainConfig,
+    /// Evaluation.
+    pub eval: EvalConfig,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            name: "run".into(),
+            backend: Backend::Flex,
+            runs_dir: PathBuf::from("runs"),
+            cloth: GridSpec::default(),
+            model: ModelConfig::default(),
+            sim: SimConfig::default(),
+            data: DataConfig::default(),
+            source: None,
+            train: TrainConfig::default(),
+            eval: EvalConfig::default(),
+        }
+    }
+}
+
+impl Config {
+    /// Reads a config file and applies `overrides` (`section.key=value`, the value in TOML
+    /// syntax or a bare string).
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read config {}", path.display()))?;
+        Self::parse(&text, overrides).with_context(|| format!("in config {}", path.display()))
+    }
+
+    /// Parses config text and applies `overrides`.
+    pub fn parse(text: &str, overrides: &[String]) -> Result<Self> {
+        let mut table: toml::Table = text
+            .parse()
+            .map_err(|e: toml::de::Error| anyhow::anyhow!("{e}"))?;
+        for o in overrides {
+            apply_override(&mut table, o)?;
+        }
+        let config: Config =
+            serde_path_to_error::deserialize(toml::Value::Table(table)).map_err(|e| {
+                let path = e.path().to_string();
+                let inner = e.into_inner();
+                if path == "." || path.is_empty() {
+                    anyhow::anyhow!("{inner}")
+                } else {
+                    anyhow::anyhow!("`{path}`: {inner}")
+                }
+            })?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks ranges; errors name the key.
+    pub fn validate(&self) -> Result<()> {
+        if self.name.is_empty() || self.name.contains('/') {
+            bail!("`name` must be a non-empty file name, is {:?}", self.name);
+        }
+        if self.cloth.nx < 2 || self.cloth.ny < 2 {
+            bail!("`cloth.nx` and `cloth.ny` must be at least 2");
+        }
+        if self.sim.substeps == 0 {
+            bail!("`sim.substeps` must be at least 1");
+        }
+        if !(self.sim.rayleigh >= 0.0) {
+            bail!("`sim.rayleigh` must be non-negative");
+        }
+        if !self.model.k_init.is_finite() || !self.model.b_init.is_finite() {
+            bail!("`model.k_init` and `model.b_init` must be finite");
+        }
+        let c = &self.data.clips;
+        if c.steps < 2 {
+            bail!("`data.clips.steps` must be at least 2");
+        }
+        for (key, v) in [
+            ("fraction", c.fraction),
+            ("low_velocity_fraction", c.low_velocity_fraction),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                bail!("`data.clips.{key}` must lie in [0, 1], is {v}");
+            }
+        }
+        if let Some(s) = &self.source {
+            s.validate().map_err(|e| anyhow::anyhow!("`{e}`"))?;
+        }
+        self.train.validate()?;
+        Ok(())
+    }
+
+    /// The run directory: `out` when given, else `runs_dir/name`.
+    pub fn run_dir(&self, out: Option<&Path>) -> PathBuf {
+        out.map_or_else(|| self.runs_dir.join(&self.name), Path::to_path_buf)
+    }
+
+    /// The config as TOML text.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("config serializes")
+    }
+}
+
+/// Sets `section.key=value` in a TOML table, creating sections as needed.
+fn apply_override(table: &mut toml::Table, assignment: &str) -> Result<()> {
+    let Some((key, value)) = assignment.split_once('=') else {
+        bail!("--set {assignment:?}: expected section.key=value");
+    };
+    let key = key.trim();
+    let parts: Vec<&str> = key.split('.').collect();
+    if parts.iter().any(|p| p.is_empty()) {
+        bail!("--set {assignment:?}: malformed key `{key}`");
+    }
+    let value = value.trim();
+    let parsed = format!("v = {value}")
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|mut t| t.remove("v"))
+        .unwrap_or_else(|| toml::Value::String(value.to_string()));
+    let mut node = table;
+    for p in &parts[..parts.len() - 1] {
+        let entry = node
+            .entry(p.to_string())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+        node = match entry {
+            toml::Value::Table(t) => t,
+            _ => bail!("--set {assignment:?}: `{p}` is not a section"),
+        };
+    }
+    node.insert(parts[parts.len() - 1].to_string(), parsed);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn overrides_and_unknown_keys() {
+        let c = Config::parse(
+            "name = \"a\"\n[data]\ndir = \"x\"\n",
+            &[
+                "data.dir=/my/rollouts".into(),
+                "train.stiffness.lr=0.5".into(),
+            ],
+        )
+        .unwrap();
+        assert_eq!(c.data.dir, PathBuf::from("/my/rollouts"));
+        assert_eq!(c.train.stiffness.lr, 0.5);
+        let err = Config::parse("[train.stiffness]\nlrr = 1\n", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("train.stiffness") && err.contains("lrr"),
+            "{err}"
+        );
+        let err = Config::parse("[sim]\nsubsteps = \"three\"\n", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("sim.substeps"), "{err}");
+        let err = Config::parse("", &["sim.substeps=0".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("sim.substeps"), "{err}");
+        let err = Config::parse("backend = \"cuda\"", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("backend"), "{err}");
+    }
+
+    #[test]
+    fn shipped_configs_parse() {
+        for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/configs")).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                Config::load(&path, &[]).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+            }
+        }
+    }
+}

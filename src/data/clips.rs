@@ -1,0 +1,534 @@
+//! Clip datasets (paper App. A): rollouts resampled to the surrogate's particles and cut into
+//! non-overlapping clips of `T` steps; a random fraction of them is kept, and the clips of the
+//! last second of every rollout form the low-velocity set of the stiffness pass.
+
+use std::collections::{HashMap, VecDeque};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Result, bail};
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use serde::{Deserialize, Serialize};
+
+use super::rollout::Rollout;
+use crate::cloth::{Resampler, Topology};
+
+/// How rollouts are cut into clips: part of the `[data]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ClipConfig {
+    /// Steps per clip `T` (the paper uses 500).
+    pub steps: usize,
+    /// Fraction of a rollout's regular clips that are kept (the paper keeps 6 %).
+    pub fraction: f64,
+    /// The low-velocity set: clips within this many seconds of a rollout's end.
+    pub low_velocity_seconds: f64,
+    /// Fraction of the low-velocity clips that are kept (the paper keeps 50 %).
+    pub low_velocity_fraction: f64,
+    /// Seed of the selection.
+    pub seed: u64,
+}
+
+impl Default for ClipConfig {
+    fn default() -> Self {
+        Self {
+            steps: 500,
+            fraction: 1.0,
+            low_velocity_seconds: 1.0,
+            low_velocity_fraction: 1.0,
+            seed: 0,
+        }
+    }
+}
+
+/// A clip chosen by [`ClipConfig::plan`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PlannedClip {
+    /// First frame on the rollout's timeline.
+    pub start: usize,
+    /// In the low-velocity set (else a regular clip).
+    pub low_velocity: bool,
+}
+
+impl ClipConfig {
+    /// The clips kept from a rollout called `name` whose timeline has `frames` frames, the first
+    /// usable one (with a known velocity) being `first`.
+    ///
+    /// Regular clips start at `first, first + T, …`; low-velocity clips end at the last frame
+    /// and go back in steps of `T` while they stay within the last `low_velocity_seconds`.
+    /// The choice is a deterministic function of the seed and the rollout's name, so the
+    /// generator can store exactly the windows that training will later cut.
+    pub fn plan(&self, name: &str, frames: usize, frame_dt: f64, first: usize) -> Vec<PlannedClip> {
+        let t = self.steps;
+        let mut rng = StdRng::seed_from_u64(self.seed ^ fnv1a(name));
+        let mut out = Vec::new();
+        let mut start = first;
+        while start + t < frames {
+            if rng.random::<f64>() < self.fraction {
+                out.push(PlannedClip {
+                    start,
+                    low_velocity: false,
+                });
+            }
+            start += t;
+        }
+        let last = frames.saturating_sub(1);
+        let window = (self.low_velocity_seconds / frame_dt).round() as usize;
+        let lowest = first.max(last.saturating_sub(window));
+        let mut end = last;
+        while end >= lowest + t && self.low_velocity_seconds > 0.0 {
+            if rng.random::<f64>() < self.low_velocity_fraction {
+                out.push(PlannedClip {
+                    start: end - t,
+                    low_velocity: true,
+                });
+            }
+            end -= t;
+        }
+        out
+    }
+}
+
+/// 64-bit FNV-1a of a string: a stable per-rollout seed.
+pub fn fnv1a(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
+    })
+}
+
+/// A rollout resampled to the surrogate's particles: positions and velocities per stored frame.
+#[derive(Debug, Clone)]
+pub struct Track {
+    /// Stored frames.
+    pub frames: usize,
+    /// Particles.
+    pub particles: usize,
+    /// Positions `[F, P, 3]`.
+    pub positions: Vec<f32>,
+    /// Velocities `[F, P, 3]` (stored, or backward differences; frame 0 of a window without
+    /// stored velocities is unusable as a clip start).
+    pub velocities: Vec<f32>,
+    /// Pinned particles.
+    pub pinned: Vec<bool>,
+}
+
+impl Track {
+    /// Resamples `rollout` to the particles of `resampler`.
+    pub fn new(rollout: &Rollout, resampler: &Resampler) -> Self {
+        let (f, n, p) = (rollout.frames, rollout.landmarks, resampler.num_particles());
+        let mut positions = vec![0f32; f * p * 3];
+        let mut velocities = vec![0f32; f * p * 3];
+        let mut buf = vec![0f64; p * 3];
+        for frame in 0..f {
+            resampler.apply3(
+                &rollout.positions[frame * n * 3..(frame + 1) * n * 3],
+                &mut buf,
+            );
+            for (dst, &v) in positions[frame * p * 3..(frame + 1) * p * 3]
+                .iter_mut()
+                .zip(&buf)
+            {
+                *dst = v as f32;
+            }
+        }
+        match &rollout.velocities {
+            Some(vel) => {
+                for frame in 0..f {
+                    resampler.apply3(&vel[frame * n * 3..(frame + 1) * n * 3], &mut buf);
+                    for (dst, &v) in velocities[frame * p * 3..(frame + 1) * p * 3]
+                        .iter_mut()
+                        .zip(&buf)
+                    {
+                        *dst = v as f32;
+                    }
+                }
+            }
+            None => {
+                // Backward differences: exact for a semi-implicit Euler source.
+                let inv = 1.0 / rollout.frame_dt;
+                for seg in &rollout.segments {
+                    for frame in seg.offset + 1..seg.offset + seg.len {
+                        for i in 0..p * 3 {
+                            let (a, b) = (
+                                positions[(frame - 1) * p * 3 + i],
+                                positions[frame * p * 3 + i],
+                            );
+                            velocities[frame * p * 3 + i] = ((b as f64 - a as f64) * inv) as f32;
+                        }
+                    }
+                }
+            }
+        }
+        Self {
+            frames: f,
+            particles: p,
+            positions,
+            velocities,
+            pinned: resampler.pinned(&rollout.pinned),
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        (self.positions.len() + self.velocities.len()) * 4
+    }
+}
+
+/// One clip: a window of `T + 1` stored frames of one rollout.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClipRef {
+    /// Index of the rollout in the set.
+    pub rollout: usize,
+    /// First stored frame.
+    pub offset: usize,
+    /// Its frame on the rollout's timeline.
+    pub start: usize,
+}
+
+/// A batch of clips as tensors.
+#[derive(Debug, Clone)]
+pub struct ClipBatch {
+    /// Target positions `[B, T + 1, P, 3]`.
+    pub positions: Tensor<4>,
+    /// Target velocities `[B, T + 1, P, 3]`.
+    pub velocities: Tensor<4>,
+    /// Target net forces per frame interval, `M (v̂_{j+1} − v̂_j) / Δt` (the corrected Eq. 8),
+    /// `[B, T, P, 3]`, computed in f64 on the host.
+    pub forces: Tensor<4>,
+    /// 1 for pinned particles, `[B, P, 1]`.
+    pub pinned: Tensor<3>,
+}
+
+/// The shared metadata of a set of rollouts.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SetInfo {
+    /// Time between frames, s.
+    pub frame_dt: f64,
+    /// Cloth mass, kg.
+    pub total_mass: f64,
+    /// Rest rectangle width, m.
+    pub width: f64,
+    /// Rest rectangle height, m.
+    pub height: f64,
+}
+
+struct Entry {
+    path: PathBuf,
+    name: String,
+}
+
+/// Rollout files cut into clips, loaded on demand with a bounded cache.
+pub struct ClipSet {
+    entries: Vec<Entry>,
+    /// Shared frame step, mass and size of every rollout.
+    pub info: SetInfo,
+    /// The surrogate's grid.
+    pub topology: Topology,
+    /// Regular clips (the damping pass and single-pass training).
+    pub regular: Vec<ClipRef>,
+    /// Low-velocity clips (the stiffness pass).
+    pub low_velocity: Vec<ClipRef>,
+    /// Steps per clip.
+    pub steps: usize,
+    resampler: Option<Resampler>,
+    cache: HashMap<usize, Arc<Track>>,
+    order: VecDeque<usize>,
+    cache_bytes: usize,
+    cache_limit: usize,
+}
+
+impl ClipSet {
+    /// Indexes `paths`: reads every file once to validate it and plan its clips.
+    ///
+    /// `grid` makes the surrogate topology from the rollouts' rest rectangle.
+    pub fn open(
+        paths: &[PathBuf],
+        clips: &ClipConfig,
+        grid: impl Fn(f64, f64) -> Topology,
+        cache_mib: usize,
+        mut progress: impl FnMut(usize),
+    ) -> Result<Self> {
+        if paths.is_empty() {
+            bail!("no rollout files to cut into clips");
+        }
+        let mut entries = Vec::new();
+        let (mut regular, mut low_velocity) = (Vec::new(), Vec::new());
+        let mut info: Option<SetInfo> = None;
+        let mut topology = None;
+        let mut resampler: Option<Resampler> = None;
+        let mut rest_uv: Option<Vec<[f64; 2]>> = None;
+        let mut cache = HashMap::new();
+        let mut order = VecDeque::new();
+        let mut cache_bytes = 0;
+        let cache_limit = cache_mib << 20;
+        for (i, path) in paths.iter().enumerate() {
+            let rollout = Rollout::load(path)?;
+            let this = SetInfo {
+                frame_dt: rollout.frame_dt,
+                total_mass: rollout.total_mass,
+                width: rollout.width,
+                height: rollout.height,
+            };
+            match info {
+                None => {
+                    let topo = grid(this.width, this.height);
+                    resampler = Some(Resampler::new(&rollout.rest_uv, &topo.rest_uv));
+                    topology = Some(topo);
+                    info = Some(this);
+                }
+                Some(first) => check_same(&first, &this, path, &paths[0])?,
+            }
+            let name = path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let first = if rollout.velocities.is_some() { 0 } else { 1 };
+            let plan = clips.plan(&name, rollout.timeline_frames(), this.frame_dt, first);
+            for c in plan {
+                let Some(offset) = stored_offset(&rollout, c.start, clips.steps, first) else {
+                    continue;
+                };
+                let r = ClipRef {
+                    rollout: i,
+                    offset,
+                    start: c.start,
+                };
+                if c.low_velocity {
+                    low_velocity.push(r);
+                } else {
+                    regular.push(r);
+                }
+            }
+            let resampler_ref = resampler.as_ref().expect("set on the first file");
+            let same_landmarks = rest_uv.as_ref().is_none_or(|uv: &Vec<[f64; 2]>| {
+                uv.len() == rollout.rest_uv.len()
+                    && uv.iter().zip(&rollout.rest_uv).all(|(a, b)| a == b)
+            });
+            if !same_landmarks {
+                bail!(
+                    "{}: key `rest_uv` differs from {}: all rollouts of a set must share their landmarks",
+                    path.display(),
+                    paths[0].display()
+                );
+            }
+            rest_uv.get_or_insert_with(|| rollout.rest_uv.clone());
+            let track = Track::new(&rollout, resampler_ref);
+            if cache_bytes + track.bytes() <= cache_limit {
+                cache_bytes += track.bytes();
+                cache.insert(i, Arc::new(track));
+                order.push_back(i);
+            }
+            entries.push(Entry {
+                path: path.clone(),
+                name,
+            });
+            progress(i + 1);
+        }
+        if regular.is_empty() && low_velocity.is_empty() {
+            bail!(
+                "the rollouts yield no clip of {} steps (they are too short, or `data.fraction` / \
+                 `data.low_velocity_fraction` kept none)",
+                clips.steps
+            );
+        }
+        Ok(Self {
+            entries,
+            info: info.expect("at least one file"),
+            topology: topology.expect("at least one file"),
+            regular,
+            low_velocity,
+            steps: clips.steps,
+            resampler,
+            cache,
+            order,
+            cache_bytes,
+            cache_limit,
+        })
+    }
+
+    /// Number of rollouts.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether the set holds no rollout.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// File name of rollout `i`.
+    pub fn name(&self, i: usize) -> &str {
+        &self.entries[i].name
+    }
+
+    /// Particle mass `ρA/P`.
+    pub fn particle_mass(&self) -> f64 {
+        self.info.total_mass / self.topology.num_particles() as f64
+    }
+
+    /// The resampled rollout `i` (from the cache or from disk).
+    pub fn track(&mut self, i: usize) -> Result<Arc<Track>> {
+        if let Some(t) = self.cache.get(&i) {
+            return Ok(t.clone());
+        }
+        let rollout = Rollout::load(&self.entries[i].path)?;
+        let track = Arc::new(Track::new(&rollout, self.resampler.as_ref().expect("set")));
+        while self.cache_bytes + track.bytes() > self.cache_limit {
+            let Some(old) = self.order.pop_front() else {
+                break;
+            };
+            if let Some(t) = self.cache.remove(&old) {
+                self.cache_bytes -= t.bytes();
+            }
+        }
+        if self.cache_bytes + track.bytes() <= self.cache_limit {
+            self.cache_bytes += track.bytes();
+            self.cache.insert(i, track.clone());
+            self.order.push_back(i);
+        }
+        Ok(track)
+    }
+
+    /// Assembles clips into tensors on `device`.
+    pub fn batch(&mut self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
+        let (t, p) = (self.steps, self.topology.num_particles());
+        let b = clips.len();
+        let frame = p * 3;
+        let mut pos = Vec::with_capacity(b * (t + 1) * frame);
+        let mut vel = Vec::with_capacity(b * (t + 1) * frame);
+        let mut force = Vec::with_capacity(b * t * frame);
+        let mut pinned = Vec::with_capacity(b * p);
+        let m_over_dt = self.particle_mass() / self.info.frame_dt;
+        for c in clips {
+            let track = self.track(c.rollout)?;
+            let range = c.offset * frame..(c.offset + t + 1) * frame;
+            pos.extend_from_slice(&track.positions[range.clone()]);
+            let v = &track.velocities[range];
+            vel.extend_from_slice(v);
+            for j in 0..t {
+                for i in 0..frame {
+                    let dv = v[(j + 1) * frame + i] as f64 - v[j * frame + i] as f64;
+                    force.push((m_over_dt * dv) as f32);
+                }
+            }
+            pinned.extend(track.pinned.iter().map(|&x| x as u8 as f32));
+        }
+        let t4 = |v: Vec<f32>, n: usize| {
+            Tensor::<4>::from_data(TensorData::new(v, [b, n, p, 3]), device)
+        };
+        Ok(ClipBatch {
+            positions: t4(pos, t + 1),
+            velocities: t4(vel, t + 1),
+            forces: t4(force, t),
+            pinned: Tensor::from_data(TensorData::new(pinned, [b, p, 1]), device),
+        })
+    }
+}
+
+/// Epoch-style sampler: a shuffled pass over a pool, reshuffled when exhausted.
+#[derive(Debug, Clone)]
+pub struct Sampler {
+    order: Vec<usize>,
+    at: usize,
+    rng: StdRng,
+}
+
+impl Sampler {
+    /// A sampler over `n` items.
+    pub fn new(n: usize, seed: u64) -> Self {
+        Self {
+            order: (0..n).collect(),
+            at: n,
+            rng: StdRng::seed_from_u64(seed),
+        }
+    }
+
+    /// The next `k` items (distinct when `k ≤ n`).
+    pub fn next(&mut self, k: usize) -> Vec<usize> {
+        let mut out = Vec::with_capacity(k);
+        while out.len() < k && !self.order.is_empty() {
+            if self.at == self.order.len() {
+                self.order.shuffle(&mut self.rng);
+                self.at = 0;
+            }
+            out.push(self.order[self.at]);
+            self.at += 1;
+        }
+        out
+    }
+}
+
+/// Stored index of timeline frame `start` if frames `start..=start + steps` lie in one stored
+/// window and `start` has a known velocity.
+fn stored_offset(rollout: &Rollout, start: usize, steps: usize, first: usize) -> Option<usize> {
+    rollout.segments.iter().find_map(|s| {
+        let usable = s.start + first;
+        (start >= usable && start + steps < s.start + s.len).then(|| s.offset + start - s.start)
+    })
+}
+
+fn check_same(a: &SetInfo, b: &SetInfo, path: &Path, first: &Path) -> Result<()> {
+    let close = |x: f64, y: f64| (x - y).abs() <= 1e-9 * x.abs().max(y.abs());
+    for (key, x, y) in [
+        ("frame_dt", a.frame_dt, b.frame_dt),
+        ("total_mass", a.total_mass, b.total_mass),
+        ("width", a.width, b.width),
+        ("height", a.height, b.height),
+    ] {
+        if !close(x, y) {
+            bail!(
+                "{}: key `{key}` = {y} differs from {} ({x}): all rollouts of a set must share \
+                 the frame step, mass and rest rectangle",
+                path.display(),
+                first.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plan_cuts_regular_and_low_velocity_clips() {
+        let cfg = ClipConfig {
+            steps: 500,
+            ..ClipConfig::default()
+        };
+        // 8 s at 1 ms: 8001 frames, velocities known from frame 0.
+        let plan = cfg.plan("a.npz", 8001, 1e-3, 0);
+        let regular: Vec<_> = plan
+            .iter()
+            .filter(|c| !c.low_velocity)
+            .map(|c| c.start)
+            .collect();
+        let low: Vec<_> = plan
+            .iter()
+            .filter(|c| c.low_velocity)
+            .map(|c| c.start)
+            .collect();
+        assert_eq!(regular.len(), 16);
+        assert_eq!(regular[1], 500);
+        assert_eq!(low, vec![7500, 7000]);
+        let sub = ClipConfig {
+            fraction: 0.25,
+            low_velocity_fraction: 0.5,
+            ..cfg.clone()
+        };
+        let a = sub.plan("a.npz", 8001, 1e-3, 0);
+        assert_eq!(a, sub.plan("a.npz", 8001, 1e-3, 0), "deterministic");
+        assert!(a.len() < plan.len());
+    }
+
+    #[test]
+    fn sampler_visits_every_item_once_per_epoch() {
+        let mut s = Sampler::new(10, 3);
+        let mut seen = s.next(4);
+        seen.extend(s.next(6));
+        seen.sort();
+        assert_eq!(seen, (0..10).collect::<Vec<_>>());
+    }
+}

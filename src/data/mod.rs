@@ -1,0 +1,134 @@
+//! Data: the rollout `.npz` format, the `index.json` beside it, and clip datasets.
+
+pub mod clips;
+pub mod npz;
+pub mod rollout;
+
+pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, Sampler, Track};
+pub use rollout::{MeshTruth, Rollout, Segment, SpringTruth};
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+
+/// The `[data]` section: where rollouts are and how they are cut.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct DataConfig {
+    /// Directory of rollout files (with an `index.json` listing the train and test split, or
+    /// plain `.npz` files that are all used for training).
+    pub dir: PathBuf,
+    /// Optional directory of test rollouts (every `.npz` in it); overrides the index's split.
+    pub test_dir: Option<PathBuf>,
+    /// Memory for resampled rollouts kept between batches, MiB.
+    pub cache_mib: usize,
+    /// How rollouts are cut into clips.
+    pub clips: ClipConfig,
+}
+
+impl Default for DataConfig {
+    fn default() -> Self {
+        Self {
+            dir: PathBuf::from("data/rollouts"),
+            test_dir: None,
+            cache_mib: 4096,
+            clips: ClipConfig::default(),
+        }
+    }
+}
+
+/// Format tag of `index.json`.
+pub const INDEX_FORMAT: &str = "springtime-rollouts/1";
+
+/// `index.json`: the files of a data directory and how they were made.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Index {
+    /// Always [`INDEX_FORMAT`].
+    pub format: String,
+    /// Training rollouts, relative to the directory.
+    pub train: Vec<String>,
+    /// Test rollouts, relative to the directory.
+    pub test: Vec<String>,
+    /// The generator and its parameters (free-form).
+    #[serde(default)]
+    pub generator: serde_json::Value,
+}
+
+impl Index {
+    /// Path of the index in `dir`.
+    pub fn path(dir: &Path) -> PathBuf {
+        dir.join("index.json")
+    }
+
+    /// Reads `dir/index.json`, if present.
+    pub fn read(dir: &Path) -> Result<Option<Self>> {
+        let path = Self::path(dir);
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let index: Index = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a valid index", path.display()))?;
+        if index.format != INDEX_FORMAT {
+            bail!(
+                "{}: unknown format `{}` (expected `{INDEX_FORMAT}`)",
+                path.display(),
+                index.format
+            );
+        }
+        Ok(Some(index))
+    }
+}
+
+/// The train and test files of a data configuration.
+#[derive(Debug, Clone)]
+pub struct Split {
+    /// Training rollouts.
+    pub train: Vec<PathBuf>,
+    /// Test rollouts (may be empty).
+    pub test: Vec<PathBuf>,
+}
+
+impl DataConfig {
+    /// Resolves the train and test files: from `index.json` when present, else every `.npz` of
+    /// `dir` is a training file; `test_dir` overrides the test files.
+    pub fn split(&self) -> Result<Split> {
+        let (train, mut test) = match Index::read(&self.dir)? {
+            Some(index) => (
+                index.train.iter().map(|f| self.dir.join(f)).collect(),
+                index.test.iter().map(|f| self.dir.join(f)).collect(),
+            ),
+            None => (npz_files(&self.dir)?, Vec::new()),
+        };
+        if let Some(dir) = &self.test_dir {
+            test = npz_files(dir)?;
+        }
+        for p in train.iter().chain(&test) {
+            if !p.exists() {
+                bail!(
+                    "{} is listed in {} but does not exist",
+                    p.display(),
+                    Index::path(&self.dir).display()
+                );
+            }
+        }
+        Ok(Split { train, test })
+    }
+}
+
+/// Every `.npz` file of `dir`, sorted.
+pub fn npz_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let rd = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read data directory {}", dir.display()))?;
+    let mut files: Vec<PathBuf> = rd
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "npz"))
+        .collect();
+    files.sort();
+    if files.is_empty() {
+        bail!("{} holds no .npz rollout files", dir.display());
+    }
+    Ok(files)
+}

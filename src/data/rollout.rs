@@ -1,0 +1,304 @@
+//! One recorded rollout: the `.npz` format that the sources write and users bring.
+//!
+//! | key | dtype | shape | meaning |
+//! |---|---|---|---|
+//! | `positions` | f32 | `[F, N, 3]` | landmark positions per frame, m |
+//! | `rest_uv` | f32 | `[N, 2]` | landmark positions in the unrolled rest rectangle, m |
+//! | `pinned` | bool | `[N]` | landmarks that follow a prescribed path |
+//! | `frame_dt` | f64 | scalar | time between frames, s |
+//! | `total_mass` | f64 | scalar | mass of the whole cloth, kg |
+//! | `width`, `height` | f64 | scalar | size of the rest rectangle, m |
+//! | `velocities` | f32 | `[F, N, 3]` | optional; landmark velocities per frame, m/s |
+//! | `segments` | i64 | `[K, 2]` | optional; `(first frame, frame count)` of each stored window of a longer rollout, in order (default: one window from frame 0) |
+//! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
+//! | `triangles`, `tri_stiffness` | i32, f32 | `[M, 3]`, `[M]` | optional mesh and stiffness map of an FEM source |
+//!
+//! Unknown keys are ignored. Loading validates shapes, dtypes, ranges and finiteness; every
+//! error names the file and the key.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Result, bail};
+
+use super::npz::{Array, Npz};
+
+/// A stored window of a rollout's timeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Segment {
+    /// Index of the window's first frame in the full rollout.
+    pub start: usize,
+    /// Index of the window's first frame in the stored arrays.
+    pub offset: usize,
+    /// Number of frames.
+    pub len: usize,
+}
+
+/// Ground-truth springs of a mass-spring source.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SpringTruth {
+    /// Endpoints, indices into the landmarks.
+    pub springs: Vec<[usize; 2]>,
+    /// Stiffness, N/m.
+    pub k: Vec<f64>,
+    /// Damping, N·s/m.
+    pub b: Vec<f64>,
+}
+
+/// Mesh and per-triangle stiffness of an FEM source.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeshTruth {
+    /// Triangles, indices into the landmarks.
+    pub triangles: Vec<[usize; 3]>,
+    /// Stiffness map value of every triangle.
+    pub stiffness: Vec<f64>,
+}
+
+/// One rollout as stored on disk.
+#[derive(Debug, Clone)]
+pub struct Rollout {
+    /// Where it was read from (or will be written to).
+    pub path: PathBuf,
+    /// Number of stored frames `F`.
+    pub frames: usize,
+    /// Number of landmarks `N`.
+    pub landmarks: usize,
+    /// Positions `[F, N, 3]`, row-major.
+    pub positions: Vec<f32>,
+    /// Velocities `[F, N, 3]` if recorded.
+    pub velocities: Option<Vec<f32>>,
+    /// Rest positions in the unrolled rectangle.
+    pub rest_uv: Vec<[f64; 2]>,
+    /// Pinned landmarks.
+    pub pinned: Vec<bool>,
+    /// Time between frames, s.
+    pub frame_dt: f64,
+    /// Mass of the cloth, kg.
+    pub total_mass: f64,
+    /// Rest rectangle width, m.
+    pub width: f64,
+    /// Rest rectangle height, m.
+    pub height: f64,
+    /// Stored windows of the timeline.
+    pub segments: Vec<Segment>,
+    /// Ground-truth springs, when the source is a mass-spring network.
+    pub springs: Option<SpringTruth>,
+    /// Mesh and stiffness map, when the source is an FEM mesh.
+    pub mesh: Option<MeshTruth>,
+}
+
+impl Rollout {
+    /// Reads and validates a rollout file.
+    pub fn load(path: &Path) -> Result<Self> {
+        let npz = Npz::read(path)?;
+        let shown = path.display();
+        let (positions, shape) = npz.f32("positions", &[None, None, Some(3)])?;
+        let (frames, n) = (shape[0], shape[1]);
+        if frames < 2 || n < 3 {
+            bail!(
+                "{shown}: key `positions` has shape {shape:?}: need at least 2 frames and 3 landmarks"
+            );
+        }
+        let velocities = if npz.has("velocities") {
+            Some(npz.f32("velocities", &[Some(frames), Some(n), Some(3)])?.0)
+        } else {
+            None
+        };
+        let (uv, _) = npz.f32("rest_uv", &[Some(n), Some(2)])?;
+        let rest_uv: Vec<[f64; 2]> = uv
+            .chunks_exact(2)
+            .map(|c| [c[0] as f64, c[1] as f64])
+            .collect();
+        let pinned = npz.bool("pinned", &[Some(n)])?;
+        let positive = |key: &str| -> Result<f64> {
+            let v = npz.scalar(key)?;
+            if v <= 0.0 {
+                bail!("{shown}: key `{key}` must be positive, is {v}");
+            }
+            Ok(v)
+        };
+        let frame_dt = positive("frame_dt")?;
+        let total_mass = positive("total_mass")?;
+        let width = positive("width")?;
+        let height = positive("height")?;
+        let tol = 1e-4 * width.max(height);
+        if let Some((i, p)) = rest_uv
+            .iter()
+            .enumerate()
+            .find(|(_, p)| p[0] < -tol || p[0] > width + tol || p[1] < -tol || p[1] > height + tol)
+        {
+            bail!(
+                "{shown}: key `rest_uv`: landmark {i} at ({}, {}) lies outside the {width} × {height} rest rectangle",
+                p[0],
+                p[1]
+            );
+        }
+        let segments = if npz.has("segments") {
+            let (seg, _) = npz.int("segments", &[None, Some(2)])?;
+            let mut out = Vec::new();
+            let (mut offset, mut end) = (0usize, 0usize);
+            for (i, w) in seg.chunks_exact(2).enumerate() {
+                if w[0] < 0 || w[1] < 1 || (w[0] as usize) < end {
+                    bail!(
+                        "{shown}: key `segments`: row {i} = ({}, {}) must start at or after frame {end} and hold at least one frame",
+                        w[0],
+                        w[1]
+                    );
+                }
+                out.push(Segment {
+                    start: w[0] as usize,
+                    offset,
+                    len: w[1] as usize,
+                });
+                offset += w[1] as usize;
+                end = (w[0] + w[1]) as usize;
+            }
+            if offset != frames {
+                bail!("{shown}: key `segments` covers {offset} frames, `positions` holds {frames}");
+            }
+            out
+        } else {
+            vec![Segment {
+                start: 0,
+                offset: 0,
+                len: frames,
+            }]
+        };
+        let springs = if npz.has("springs") {
+            let (ends, _) = npz.int("springs", &[None, Some(2)])?;
+            let s = ends.len() / 2;
+            check_indices(&shown, "springs", &ends, n)?;
+            let k = npz.f32("spring_k", &[Some(s)])?.0;
+            let b = npz.f32("spring_b", &[Some(s)])?.0;
+            Some(SpringTruth {
+                springs: ends
+                    .chunks_exact(2)
+                    .map(|c| [c[0] as usize, c[1] as usize])
+                    .collect(),
+                k: k.into_iter().map(f64::from).collect(),
+                b: b.into_iter().map(f64::from).collect(),
+            })
+        } else {
+            None
+        };
+        let mesh = if npz.has("triangles") {
+            let (tri, _) = npz.int("triangles", &[None, Some(3)])?;
+            let m = tri.len() / 3;
+            check_indices(&shown, "triangles", &tri, n)?;
+            let triangles: Vec<[usize; 3]> = tri
+                .chunks_exact(3)
+                .map(|c| [c[0] as usize, c[1] as usize, c[2] as usize])
+                .collect();
+            for (i, t) in triangles.iter().enumerate() {
+                let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
+                let area = 0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]));
+                if area.abs() <= 1e-12 * width * height {
+                    bail!(
+                        "{shown}: key `triangles`: triangle {i} {t:?} is degenerate (zero rest area)"
+                    );
+                }
+            }
+            let stiffness = npz.f32("tri_stiffness", &[Some(m)])?.0;
+            Some(MeshTruth {
+                triangles,
+                stiffness: stiffness.into_iter().map(f64::from).collect(),
+            })
+        } else {
+            None
+        };
+        Ok(Self {
+            path: path.to_path_buf(),
+            frames,
+            landmarks: n,
+            positions,
+            velocities,
+            rest_uv,
+            pinned,
+            frame_dt,
+            total_mass,
+            width,
+            height,
+            segments,
+            springs,
+            mesh,
+        })
+    }
+
+    /// Writes the rollout to `path` atomically.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let (f, n) = (self.frames, self.landmarks);
+        let mut npz = Npz::default();
+        npz.insert("positions", Array::f32(&[f, n, 3], &self.positions));
+        if let Some(v) = &self.velocities {
+            npz.insert("velocities", Array::f32(&[f, n, 3], v));
+        }
+        let uv: Vec<f32> = self
+            .rest_uv
+            .iter()
+            .flat_map(|p| [p[0] as f32, p[1] as f32])
+            .collect();
+        npz.insert("rest_uv", Array::f32(&[n, 2], &uv));
+        npz.insert("pinned", Array::bool(&[n], &self.pinned));
+        npz.insert("frame_dt", Array::scalar(self.frame_dt));
+        npz.insert("total_mass", Array::scalar(self.total_mass));
+        npz.insert("width", Array::scalar(self.width));
+        npz.insert("height", Array::scalar(self.height));
+        let whole = self.segments.len() == 1 && self.segments[0].start == 0;
+        if !whole {
+            let seg: Vec<i64> = self
+                .segments
+                .iter()
+                .flat_map(|s| [s.start as i64, s.len as i64])
+                .collect();
+            npz.insert("segments", Array::i64(&[self.segments.len(), 2], &seg));
+        }
+        if let Some(t) = &self.springs {
+            let s = t.springs.len();
+            let ends: Vec<i32> = t
+                .springs
+                .iter()
+                .flat_map(|e| [e[0] as i32, e[1] as i32])
+                .collect();
+            npz.insert("springs", Array::i32(&[s, 2], &ends));
+            let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
+            npz.insert("spring_k", Array::f32(&[s], &f32s(&t.k)));
+            npz.insert("spring_b", Array::f32(&[s], &f32s(&t.b)));
+        }
+        if let Some(m) = &self.mesh {
+            let tri: Vec<i32> = m
+                .triangles
+                .iter()
+                .flat_map(|t| t.map(|i| i as i32))
+                .collect();
+            npz.insert("triangles", Array::i32(&[m.triangles.len(), 3], &tri));
+            let st: Vec<f32> = m.stiffness.iter().map(|&x| x as f32).collect();
+            npz.insert("tri_stiffness", Array::f32(&[m.triangles.len()], &st));
+        }
+        npz.write(path)
+    }
+
+    /// Number of frames of the full timeline (the end of the last stored window).
+    pub fn timeline_frames(&self) -> usize {
+        self.segments.last().map_or(0, |s| s.start + s.len)
+    }
+
+    /// Position of landmark `i` at stored frame `f`.
+    pub fn position(&self, f: usize, i: usize) -> [f32; 3] {
+        let o = (f * self.landmarks + i) * 3;
+        [
+            self.positions[o],
+            self.positions[o + 1],
+            self.positions[o + 2],
+        ]
+    }
+}
+
+fn check_indices(shown: &std::path::Display<'_>, key: &str, idx: &[i64], n: usize) -> Result<()> {
+    if let Some((i, &v)) = idx
+        .iter()
+        .enumerate()
+        .find(|(_, v)| **v < 0 || **v as usize >= n)
+    {
+        bail!("{shown}: key `{key}`: entry {i} = {v} is not a landmark index (0..{n})");
+    }
+    Ok(())
+}

@@ -1,0 +1,57 @@
+//! springtime: learn simulatable mass-spring cloth models with per-spring stiffness and damping
+//! from observed motion (Chen et al. 2025, "Mass-Spring Net" / SpringTime).
+//!
+//! The pipeline, in the order of the paper: [`source`] generates rollouts, [`data`] reads them
+//! and cuts clips, [`cloth`] builds the surrogate grid and resamples landmarks to it, [`model`]
+//! holds the per-spring parameters and the spring forces, [`sim`] rolls the surrogate out,
+//! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it. See
+//! `ARCHITECTURE.md`.
+#![warn(missing_docs)]
+
+pub mod backend;
+pub mod cli;
+pub mod cloth;
+pub mod config;
+pub mod data;
+pub mod eval;
+pub mod io;
+pub mod model;
+pub mod progress;
+pub mod sim;
+pub mod source;
+pub mod train;
+
+use anyhow::{Result, bail};
+
+use config::Config;
+use progress::Progress;
+
+/// Makes sure `config.data.dir` holds rollouts: generates them from `config.source` when the
+/// directory has no `index.json` and no `.npz` files.
+pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
+    let dir = &config.data.dir;
+    if data::Index::path(dir).exists() {
+        return Ok(());
+    }
+    let has_files = dir.is_dir() && data::npz_files(dir).is_ok();
+    match (&config.source, has_files) {
+        (_, true) if config.source.is_none() => Ok(()),
+        (Some(source), _) => {
+            let total = (source.train_rollouts + source.test_rollouts) as u64;
+            progress.note(&format!(
+                "generating {total} rollouts into {}",
+                dir.display()
+            ));
+            let bar = progress.bar(total, "generate");
+            source::generate(source, &config.data.clips, dir, |n| {
+                bar.set_position(n as u64)
+            })?;
+            bar.finish();
+            Ok(())
+        }
+        (None, _) => bail!(
+            "{} holds no rollouts and the config has no [source] section to generate them",
+            dir.display()
+        ),
+    }
+}

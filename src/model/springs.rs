@@ -1,0 +1,141 @@
+//! The mass-spring surrogate: per-spring stiffness `k` and damping `b` (paper §3.2).
+
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use crate::cloth::Topology;
+
+/// The spring network's constant tensors: endpoints and rest lengths.
+#[derive(Module, Debug)]
+pub struct SpringGraph {
+    /// First endpoint `a` of every spring, `[S]`.
+    pub ia: Tensor<1, Int>,
+    /// Second endpoint `b` of every spring, `[S]`.
+    pub ib: Tensor<1, Int>,
+    /// `[ia, ib]`, `[2S]`: the signed incidence matrix of Eq. 2 as a scatter index
+    /// (`+f` goes to the first half, `-f` to the second).
+    pub ends: Tensor<1, Int>,
+    /// Rest length `l0` of every spring, `[S]`.
+    pub rest_length: Tensor<1>,
+    /// Number of particles `P`.
+    pub num_particles: usize,
+    /// Number of springs `S`.
+    pub num_springs: usize,
+}
+
+impl SpringGraph {
+    /// Uploads the topology's springs to `device`.
+    pub fn new(topology: &Topology, device: &Device) -> Self {
+        let s = topology.num_springs();
+        let ia: Vec<i64> = topology.springs.iter().map(|e| e[0] as i64).collect();
+        let ib: Vec<i64> = topology.springs.iter().map(|e| e[1] as i64).collect();
+        let ends: Vec<i64> = ia.iter().chain(&ib).copied().collect();
+        let l0: Vec<f32> = topology.rest_length.iter().map(|&l| l as f32).collect();
+        let int = |v: Vec<i64>| {
+            Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device)
+        };
+        Self {
+            ia: int(ia),
+            ib: int(ib),
+            ends: int(ends),
+            rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
+            num_particles: topology.num_particles(),
+            num_springs: s,
+        }
+    }
+}
+
+/// Internal spring forces on every particle: Eq. 4 for every spring, scattered to the
+/// particles through the signed incidence matrix (Eq. 2).
+///
+/// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
+/// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
+/// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
+/// to zero by construction (Newton's third law).
+///
+/// This is the one place the rollout spends its time; a fused kernel replaces it.
+pub fn spring_forces(
+    graph: &SpringGraph,
+    x: Tensor<3>,
+    v: Tensor<3>,
+    k: Tensor<1>,
+    b: Tensor<1>,
+) -> Tensor<3> {
+    let [batch, p, _] = x.dims();
+    let s = graph.num_springs;
+    let d = x.clone().select(1, graph.ib.clone()) - x.select(1, graph.ia.clone());
+    let w = v.clone().select(1, graph.ib.clone()) - v.select(1, graph.ia.clone());
+    let len2 = (d.clone() * d.clone()).sum_dim(2); // [B, S, 1]
+    let inv_len = len2.sqrt().recip();
+    let l0 = graph.rest_length.clone().reshape([1, s, 1]);
+    let elastic = k.reshape([1, s, 1]) * (l0 * inv_len.clone()).neg().add_scalar(1.0);
+    let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
+    let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
+    let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
+    Tensor::zeros([batch, p, 3], &both.device()).select_assign(
+        1,
+        graph.ends.clone(),
+        both,
+        burn::tensor::IndexingUpdateOp::Add,
+    )
+}
+
+/// The learnable surrogate: one stiffness and one damping per spring.
+#[derive(Module, Debug)]
+pub struct SpringNet {
+    /// Stiffness `k_s` in N/m, `[S]`.
+    pub k: Param<Tensor<1>>,
+    /// Damping `b_s` in N·s/m, `[S]`.
+    pub b: Param<Tensor<1>>,
+    /// Endpoints and rest lengths (constants).
+    pub graph: SpringGraph,
+}
+
+impl SpringNet {
+    /// A network over `topology` with the given per-spring `k` and `b`.
+    pub fn new(topology: &Topology, k: &[f64], b: &[f64], device: &Device) -> Self {
+        let s = topology.num_springs();
+        assert_eq!(k.len(), s, "one stiffness per spring");
+        assert_eq!(b.len(), s, "one damping per spring");
+        let t = |v: &[f64]| {
+            let v: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+            Param::from_tensor(Tensor::<1>::from_data(TensorData::new(v, [s]), device))
+        };
+        Self {
+            k: t(k),
+            b: t(b),
+            graph: SpringGraph::new(topology, device),
+        }
+    }
+
+    /// A network with the same `k` and `b` on every spring.
+    pub fn uniform(topology: &Topology, k: f64, b: f64, device: &Device) -> Self {
+        let s = topology.num_springs();
+        Self::new(topology, &vec![k; s], &vec![b; s], device)
+    }
+
+    /// Internal forces at state `(x, v)`, `[B, P, 3]` (see [`spring_forces`]).
+    pub fn forces(&self, x: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
+        spring_forces(&self.graph, x, v, self.k.val(), self.b.val())
+    }
+
+    /// Current stiffness values on the host.
+    pub fn k_values(&self) -> Vec<f64> {
+        to_f64(self.k.val())
+    }
+
+    /// Current damping values on the host.
+    pub fn b_values(&self) -> Vec<f64> {
+        to_f64(self.b.val())
+    }
+}
+
+/// Copies a float tensor to the host as `f64`.
+pub fn to_f64<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    t.into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor data")
+        .into_iter()
+        .map(f64::from)
+        .collect()
+}

@@ -1,0 +1,194 @@
+//! Forward dynamics: batched semi-implicit Euler rollouts as Burn tensor programs (Eq. 5), and
+//! the explicit-step stability guard.
+
+mod stability;
+
+pub use stability::Stability;
+
+use burn::tensor::Tensor;
+use serde::{Deserialize, Serialize};
+
+use crate::model::SpringNet;
+
+/// Standard gravity, m/s², along −z.
+pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];
+
+/// The `[sim]` section: how the surrogate is stepped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimConfig {
+    /// Integration steps per data frame (`frame_dt = substeps · sim_dt`).
+    pub substeps: usize,
+    /// Rayleigh damping constant `c` of the external force `−c ẋ`, N·s/m (paper: 0.1).
+    pub rayleigh: f64,
+    /// Gravity vector, m/s².
+    pub gravity: [f64; 3],
+    /// Run even when the stability guard predicts a blow-up.
+    pub allow_unstable: bool,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            substeps: 1,
+            rayleigh: 0.1,
+            gravity: GRAVITY,
+            allow_unstable: false,
+        }
+    }
+}
+
+/// The physical constants of one rollout.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Physics {
+    /// Time between data frames, s.
+    pub frame_dt: f64,
+    /// Integration steps per frame.
+    pub substeps: usize,
+    /// Mass of every particle, kg (`ρA/P`).
+    pub mass: f64,
+    /// Rayleigh damping constant, N·s/m.
+    pub rayleigh: f64,
+    /// Gravity, m/s².
+    pub gravity: [f64; 3],
+}
+
+impl Physics {
+    /// The integration step `frame_dt / substeps`.
+    pub fn sim_dt(&self) -> f64 {
+        self.frame_dt / self.substeps as f64
+    }
+
+    /// Net force at a state: spring forces plus gravity and Rayleigh damping, `[B, P, 3]`.
+    pub fn net_force(&self, model: &SpringNet, x: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
+        let device = x.device();
+        let g = Tensor::<1>::from_floats(
+            [
+                (self.mass * self.gravity[0]) as f32,
+                (self.mass * self.gravity[1]) as f32,
+                (self.mass * self.gravity[2]) as f32,
+            ],
+            &device,
+        )
+        .reshape([1, 1, 3]);
+        let mut f = model.forces(x, v.clone()) + g;
+        if self.rayleigh != 0.0 {
+            f = f - v.mul_scalar(self.rayleigh);
+        }
+        f
+    }
+}
+
+/// Prescribed motion of the pinned particles and the initial state of a batch of clips.
+#[derive(Debug, Clone)]
+pub struct Drive {
+    /// Initial positions `[B, P, 3]`.
+    pub x0: Tensor<3>,
+    /// Initial velocities `[B, P, 3]`.
+    pub v0: Tensor<3>,
+    /// 1 for pinned particles, 0 for free ones, `[B, P, 1]`.
+    pub pinned: Tensor<3>,
+    /// Observed positions at every frame `[B, F, P, 3]` (F ≥ frames + 1): pinned particles
+    /// follow them; free particles ignore them.
+    pub path: Tensor<4>,
+}
+
+/// A simulated batch of clips.
+#[derive(Debug, Clone)]
+pub struct Trajectory {
+    /// Positions at frames `0..=T`, `[B, T + 1, P, 3]`.
+    pub positions: Tensor<4>,
+    /// Mean net force over each frame interval `j → j + 1` (the force of step `j` when there
+    /// are no substeps), `[B, T, P, 3]`.
+    pub forces: Tensor<4>,
+}
+
+/// State of a batch of cloths between frames.
+#[derive(Debug, Clone)]
+pub struct State {
+    /// Positions `[B, P, 3]`.
+    pub x: Tensor<3>,
+    /// Velocities `[B, P, 3]`.
+    pub v: Tensor<3>,
+}
+
+/// Advances `state` by one data frame: `substeps` semi-implicit Euler steps (Eq. 5),
+/// `v ← v + dt/m · f(x, v)`, then `x ← x + dt · v`. Pinned particles (`pinned` = 1, `[B, P, 1]`)
+/// move from `here` to `next` (`[B, P, 3]`) along a straight line at constant velocity.
+/// Returns the new state and the mean net force over the frame.
+pub fn step_frame(
+    model: &SpringNet,
+    physics: &Physics,
+    state: State,
+    pinned: &Tensor<3>,
+    here: &Tensor<3>,
+    next: &Tensor<3>,
+) -> (State, Tensor<3>) {
+    let n = physics.substeps.max(1);
+    let h = physics.sim_dt();
+    let free = pinned.clone().neg().add_scalar(1.0);
+    let pin_v = (next.clone() - here.clone()).mul_scalar(1.0 / physics.frame_dt) * pinned.clone();
+    let State { mut x, mut v } = state;
+    let mut f_sum: Option<Tensor<3>> = None;
+    for sub in 0..n {
+        let f = physics.net_force(model, x.clone(), v.clone());
+        v = v + f.clone().mul_scalar(h / physics.mass);
+        x = x + v.clone().mul_scalar(h);
+        let target = if sub + 1 == n {
+            next.clone()
+        } else {
+            let t = (sub + 1) as f64 / n as f64;
+            here.clone().mul_scalar(1.0 - t) + next.clone().mul_scalar(t)
+        };
+        x = x * free.clone() + target * pinned.clone();
+        v = v * free.clone() + pin_v.clone();
+        f_sum = Some(match f_sum {
+            None => f,
+            Some(acc) => acc + f,
+        });
+    }
+    let f_sum = f_sum.expect("at least one substep");
+    let f_mean = if n == 1 {
+        f_sum
+    } else {
+        f_sum.div_scalar(n as f64)
+    };
+    (State { x, v }, f_mean)
+}
+
+/// Simulates `frames` data frames from `drive`'s initial state (see [`step_frame`]), keeping
+/// every frame's positions and mean force for the losses.
+pub fn rollout(model: &SpringNet, physics: &Physics, drive: &Drive, frames: usize) -> Trajectory {
+    let [batch, f_avail, p, _] = drive.path.dims();
+    assert!(
+        f_avail > frames,
+        "the drive path has {f_avail} frames, a {frames}-frame rollout needs {}",
+        frames + 1
+    );
+    let frame = |j: usize| {
+        drive
+            .path
+            .clone()
+            .slice([0..batch, j..j + 1, 0..p, 0..3])
+            .reshape([batch, p, 3])
+    };
+    let mut state = State {
+        x: drive.x0.clone(),
+        v: drive.v0.clone(),
+    };
+    let mut positions = vec![state.x.clone()];
+    let mut forces = Vec::with_capacity(frames);
+    let mut here = frame(0);
+    for j in 0..frames {
+        let next = frame(j + 1);
+        let (s, f) = step_frame(model, physics, state, &drive.pinned, &here, &next);
+        state = s;
+        forces.push(f);
+        positions.push(state.x.clone());
+        here = next;
+    }
+    Trajectory {
+        positions: Tensor::stack(positions, 1),
+        forces: Tensor::stack(forces, 1),
+    }
+}

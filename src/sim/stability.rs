@@ -1,0 +1,143 @@
+//! The explicit-step stability guard.
+//!
+//! Semi-implicit Euler on `ẍ = −ω² x − γ ẋ` is stable iff `dt²ω² + 2·dt·γ < 4`. For a spring
+//! network at rest the stiffest mode has `ω² = λ_max(Σ k_s u_s u_sᵀ)/m` and the fastest damping
+//! rate `γ = (λ_max(Σ b_s u_s u_sᵀ) + c)/m`, with `u_s` the unit rest direction of spring `s`
+//! (both found by power iteration on the grid). Using the two largest eigenvalues separately is
+//! an upper bound of the true joint mode, so the guard errs on the safe side.
+
+use crate::cloth::Topology;
+
+/// The stability estimate of a spring network at a time step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stability {
+    /// Integration step, s.
+    pub dt: f64,
+    /// Particle mass, kg.
+    pub mass: f64,
+    /// Largest `ω²` of the stiffness matrix, 1/s².
+    pub omega2: f64,
+    /// Largest damping rate `γ` including Rayleigh damping, 1/s.
+    pub gamma: f64,
+    /// Largest per-spring `k`, N/m (reported in messages).
+    pub k_max: f64,
+    /// Largest per-spring `b`, N·s/m (reported in messages).
+    pub b_max: f64,
+}
+
+impl Stability {
+    /// Estimates the stiffest mode of `topology` with per-spring `k`, `b` (negative values count
+    /// as zero), particle `mass` and Rayleigh constant `rayleigh`, at step `dt`.
+    pub fn estimate(
+        topology: &Topology,
+        k: &[f64],
+        b: &[f64],
+        mass: f64,
+        rayleigh: f64,
+        dt: f64,
+    ) -> Self {
+        let pos = |v: &[f64]| v.iter().map(|x| x.max(0.0)).collect::<Vec<_>>();
+        let (k, b) = (pos(k), pos(b));
+        let omega2 = topology.max_eigenvalue(&k) / mass;
+        let gamma = (topology.max_eigenvalue(&b) + rayleigh.max(0.0)) / mass;
+        let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        Self {
+            dt,
+            mass,
+            omega2,
+            gamma,
+            k_max: max(&k),
+            b_max: max(&b),
+        }
+    }
+
+    /// `dt²ω² + 2·dt·γ`: the step is stable while this is below 4.
+    pub fn number(&self) -> f64 {
+        self.dt * self.dt * self.omega2 + 2.0 * self.dt * self.gamma
+    }
+
+    /// Whether the step is stable.
+    pub fn is_stable(&self) -> bool {
+        self.number() < 4.0
+    }
+
+    /// The largest step with `dt²ω² + 2·dt·γ = 4`.
+    pub fn max_stable_dt(&self) -> f64 {
+        if self.omega2 <= 0.0 {
+            return if self.gamma > 0.0 {
+                2.0 / self.gamma
+            } else {
+                f64::INFINITY
+            };
+        }
+        (-self.gamma + (self.gamma * self.gamma + 4.0 * self.omega2).sqrt()) / self.omega2
+    }
+
+    /// A one-line account of the estimate.
+    pub fn describe(&self) -> String {
+        format!(
+            "dt = {:.3e} s, particle mass m = {:.4e} kg, largest k = {:.4} N/m (k/m = {:.4e}), \
+             largest b = {:.4} N·s/m (b/m = {:.4e}), stiffest mode ω² = {:.4e}/s², damping rate \
+             γ = {:.4e}/s: dt²ω² + 2·dt·γ = {:.3} (stable below 4; largest stable dt = {:.3e} s)",
+            self.dt,
+            self.mass,
+            self.k_max,
+            self.k_max / self.mass,
+            self.b_max,
+            self.b_max / self.mass,
+            self.omega2,
+            self.gamma,
+            self.number(),
+            self.max_stable_dt()
+        )
+    }
+
+    /// `Ok` when stable (or `allow` is set); otherwise an error that names the values, the
+    /// largest stable step and the override.
+    pub fn check(&self, what: &str, allow: bool) -> anyhow::Result<()> {
+        if self.is_stable() || allow {
+            return Ok(());
+        }
+        anyhow::bail!(
+            "{what}: the explicit step is unstable: {}. Use a smaller step (more `sim.substeps`), \
+             heavier particles (larger total mass) or smaller k/b; set `sim.allow_unstable = true` \
+             to run anyway",
+            self.describe()
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cloth::GridSpec;
+
+    #[test]
+    fn paper_values_need_heavy_particles() {
+        // 15.5 m sheet, 32 × 32, areal density 0.2 kg/m²: m ≈ 0.0469 kg, k ≤ 100, b = 6.
+        let topo = Topology::grid(&GridSpec::default(), 15.5, 15.5);
+        let s = topo.num_springs();
+        let m = 0.2 * 15.5 * 15.5 / 1024.0;
+        let st = Stability::estimate(&topo, &vec![100.0; s], &vec![6.0; s], m, 0.1, 1e-3);
+        assert!((st.number() - 2.6).abs() < 0.1, "{}", st.describe());
+        assert!(st.check("test", false).is_ok());
+        // The literal 0.1 kg sheet is far past the limit (the peer reports ≈ 1250).
+        let light = Stability::estimate(
+            &topo,
+            &vec![100.0; s],
+            &vec![6.0; s],
+            0.1 / 1024.0,
+            0.1,
+            1e-3,
+        );
+        assert!(light.number() > 1000.0);
+        let err = light.check("source", false).unwrap_err().to_string();
+        assert!(err.contains("largest stable dt"), "{err}");
+        assert!(light.max_stable_dt() < 1e-4);
+        let at_limit = Stability {
+            dt: light.max_stable_dt(),
+            ..light
+        };
+        assert!((at_limit.number() - 4.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,192 @@
+//! The force-and-impulse loss (paper Eqs. 6–12) and the position loss of the ablation.
+
+use burn::tensor::{Tensor, activation::relu};
+use serde::{Deserialize, Serialize};
+
+use crate::data::ClipBatch;
+use crate::model::SpringNet;
+use crate::sim::{self, Drive, Physics};
+
+/// Weights `λ` of the loss terms (Eq. 6).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossWeights {
+    /// `λ_f`: force loss (Eq. 7).
+    pub force: f64,
+    /// `λ_J`: impulse loss (Eq. 9).
+    pub impulse: f64,
+    /// Position loss `|x − x̂|²` (the ablation of App. C.2); 0 = off.
+    pub position: f64,
+    /// `λ_k neg.` (Eq. 11).
+    pub k_neg: f64,
+    /// `λ_b neg.` (Eq. 12).
+    pub b_neg: f64,
+}
+
+impl Default for LossWeights {
+    /// App. B for mass-spring data: `λ_f = 1`, `λ_J = 10`.
+    fn default() -> Self {
+        Self {
+            force: 1.0,
+            impulse: 10.0,
+            position: 0.0,
+            k_neg: 1.0,
+            b_neg: 1.0,
+        }
+    }
+}
+
+/// Where the simulated forces of the force and impulse losses are evaluated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ForceOn {
+    /// On the surrogate's own rollout from each clip's first frame (the paper).
+    #[default]
+    Simulated,
+    /// On the target states (teacher forcing): no rollout, every frame in parallel.
+    Target,
+}
+
+/// The loss and its terms, each a one-element tensor.
+#[derive(Debug, Clone)]
+pub struct LossTerms {
+    /// The weighted sum (Eq. 6).
+    pub total: Tensor<1>,
+    /// Force loss `L_f`.
+    pub force: Tensor<1>,
+    /// Impulse loss `L_J`.
+    pub impulse: Tensor<1>,
+    /// Position loss (zero unless weighted).
+    pub position: Tensor<1>,
+    /// `Σ ReLU(−k)`.
+    pub k_neg: Tensor<1>,
+    /// `Σ ReLU(−b)`.
+    pub b_neg: Tensor<1>,
+}
+
+/// Plain values of [`LossTerms`].
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize)]
+pub struct LossValues {
+    /// The weighted sum.
+    pub total: f64,
+    /// Force loss.
+    pub force: f64,
+    /// Impulse loss.
+    pub impulse: f64,
+    /// Position loss.
+    pub position: f64,
+    /// Negative-stiffness penalty.
+    pub k_neg: f64,
+    /// Negative-damping penalty.
+    pub b_neg: f64,
+}
+
+impl LossTerms {
+    /// Reads the terms back to the host.
+    pub fn values(&self) -> LossValues {
+        let v = |t: &Tensor<1>| t.clone().into_scalar::<f32>() as f64;
+        LossValues {
+            total: v(&self.total),
+            force: v(&self.force),
+            impulse: v(&self.impulse),
+            position: v(&self.position),
+            k_neg: v(&self.k_neg),
+            b_neg: v(&self.b_neg),
+        }
+    }
+}
+
+/// Evaluates the loss of `model` on a batch of clips.
+///
+/// With `T` steps per clip, `P` particles and pinned particles masked out:
+/// - `L_f = 1/(B·T·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
+/// - `J = Δt [Σ_j f_j − (f_0 + f_{T−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
+/// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (simulated forces only).
+pub fn loss(
+    model: &SpringNet,
+    physics: &Physics,
+    batch: &ClipBatch,
+    weights: &LossWeights,
+    on: ForceOn,
+) -> LossTerms {
+    let [b, frames, p, _] = batch.positions.dims();
+    let t = frames - 1;
+    let device = batch.positions.device();
+    let free = batch
+        .pinned
+        .clone()
+        .neg()
+        .add_scalar(1.0)
+        .reshape([b, 1, p, 1]);
+    let zero = || Tensor::<1>::zeros([1], &device);
+    let (forces, trajectory) = match on {
+        ForceOn::Simulated => {
+            let x0 = batch
+                .positions
+                .clone()
+                .slice([0..b, 0..1, 0..p, 0..3])
+                .reshape([b, p, 3]);
+            let v0 = batch
+                .velocities
+                .clone()
+                .slice([0..b, 0..1, 0..p, 0..3])
+                .reshape([b, p, 3]);
+            let drive = Drive {
+                x0,
+                v0,
+                pinned: batch.pinned.clone(),
+                path: batch.positions.clone(),
+            };
+            let traj = sim::rollout(model, physics, &drive, t);
+            (traj.forces.clone(), Some(traj))
+        }
+        ForceOn::Target => {
+            let x = batch
+                .positions
+                .clone()
+                .slice([0..b, 0..t, 0..p, 0..3])
+                .reshape([b * t, p, 3]);
+            let v = batch
+                .velocities
+                .clone()
+                .slice([0..b, 0..t, 0..p, 0..3])
+                .reshape([b * t, p, 3]);
+            (physics.net_force(model, x, v).reshape([b, t, p, 3]), None)
+        }
+    };
+    let diff = (forces.clone() - batch.forces.clone()) * free.clone();
+    let force = (diff.clone() * diff).sum().div_scalar((b * t * p) as f64);
+    let impulse_of = |f: Tensor<4>| {
+        let ends = f.clone().slice([0..b, 0..1, 0..p, 0..3])
+            + f.clone().slice([0..b, t - 1..t, 0..p, 0..3]);
+        (f.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt)
+    };
+    let dj = (impulse_of(forces) - impulse_of(batch.forces.clone())) * free.clone();
+    let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
+    let position = match (&trajectory, weights.position != 0.0) {
+        (Some(traj), true) => {
+            let dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
+                - batch.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3]))
+                * free;
+            (dx.clone() * dx).sum().div_scalar((b * t * p) as f64)
+        }
+        _ => zero(),
+    };
+    let k_neg = relu(model.k.val().neg()).sum();
+    let b_neg = relu(model.b.val().neg()).sum();
+    let mut total =
+        force.clone().mul_scalar(weights.force) + impulse.clone().mul_scalar(weights.impulse);
+    if weights.position != 0.0 {
+        total = total + position.clone().mul_scalar(weights.position);
+    }
+    total =
+        total + k_neg.clone().mul_scalar(weights.k_neg) + b_neg.clone().mul_scalar(weights.b_neg);
+    LossTerms {
+        total,
+        force,
+        impulse,
+        position,
+        k_neg,
+        b_neg,
+    }
+}

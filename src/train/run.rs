@@ -1,0 +1,244 @@
+//! A run directory: `runs/<name>/` with the resolved config, metrics, checkpoints and the
+//! trained surrogate. A finished run is never overwritten unless asked.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use burn::module::Module;
+use serde::{Deserialize, Serialize};
+
+use crate::cloth::Topology;
+use crate::data::npz::{Array, Npz};
+use crate::model::SpringNet;
+
+/// Status of a run (`run.json`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Status {
+    /// Training is under way or was interrupted.
+    Running,
+    /// Training stopped on an error (e.g. a non-finite loss).
+    Failed,
+    /// Training completed; `model.bpk` and `springs.npz` are written.
+    Finished,
+}
+
+/// `run.json`: the run's status and where training stands.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunState {
+    /// Status.
+    pub status: Status,
+    /// Iterations completed over all passes.
+    pub iteration: usize,
+    /// Iteration of the last checkpoint (0 = none).
+    pub checkpoint: usize,
+    /// Backend used.
+    pub backend: String,
+    /// Training wall time so far, s.
+    pub wall_seconds: f64,
+    /// Peak resident memory of the training process, MiB.
+    pub peak_rss_mib: f64,
+    /// Error message when failed.
+    #[serde(default)]
+    pub error: Option<String>,
+}
+
+/// Paths of a run directory.
+#[derive(Debug, Clone)]
+pub struct RunDir {
+    /// The directory.
+    pub dir: PathBuf,
+}
+
+/// Metrics columns, in order.
+pub const METRICS_HEADER: &str =
+    "iteration,pass,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b,seconds";
+
+impl RunDir {
+    /// A run directory at `dir` (not created yet).
+    pub fn new(dir: impl Into<PathBuf>) -> Self {
+        Self { dir: dir.into() }
+    }
+
+    /// `config.toml`: the resolved configuration.
+    pub fn config(&self) -> PathBuf {
+        self.dir.join("config.toml")
+    }
+    /// `run.json`.
+    pub fn state_path(&self) -> PathBuf {
+        self.dir.join("run.json")
+    }
+    /// `metrics.csv`.
+    pub fn metrics(&self) -> PathBuf {
+        self.dir.join("metrics.csv")
+    }
+    /// `model.bpk`: the trained module in Burn's burnpack format.
+    pub fn model(&self) -> PathBuf {
+        self.dir.join("model.bpk")
+    }
+    /// `springs.npz`: the exportable surrogate.
+    pub fn springs(&self) -> PathBuf {
+        self.dir.join("springs.npz")
+    }
+    /// `eval.json`.
+    pub fn eval(&self) -> PathBuf {
+        self.dir.join("eval.json")
+    }
+    /// Checkpoint of the module at `iteration`.
+    pub fn checkpoint(&self, iteration: usize) -> PathBuf {
+        self.dir
+            .join("checkpoints")
+            .join(format!("model_{iteration:06}.bpk"))
+    }
+    /// Optimizer state at `iteration`.
+    pub fn optimizer(&self, iteration: usize) -> PathBuf {
+        self.dir
+            .join("checkpoints")
+            .join(format!("optim_{iteration:06}.bpk"))
+    }
+
+    /// The run's state, if it has one.
+    pub fn state(&self) -> Result<Option<RunState>> {
+        let path = self.state_path();
+        if !path.exists() {
+            return Ok(None);
+        }
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        Ok(Some(serde_json::from_str(&text).with_context(|| {
+            format!("{} is not a valid run state", path.display())
+        })?))
+    }
+
+    /// Writes `run.json`.
+    pub fn write_state(&self, state: &RunState) -> Result<()> {
+        crate::io::write_json(&self.state_path(), state)
+    }
+
+    /// Prepares the directory for a fresh run: refuses to touch a finished or started run
+    /// unless `force`, in which case its contents are removed.
+    pub fn prepare_fresh(&self, force: bool) -> Result<()> {
+        if self.dir.exists() && std::fs::read_dir(&self.dir)?.next().is_some() {
+            let state = self.state().ok().flatten();
+            if !force {
+                match state.map(|s| s.status) {
+                    Some(Status::Finished) => bail!(
+                        "{} holds a finished run; pass --force to overwrite it or --out to train elsewhere",
+                        self.dir.display()
+                    ),
+                    Some(_) => bail!(
+                        "{} holds an unfinished run; pass --resume to continue it or --force to start over",
+                        self.dir.display()
+                    ),
+                    None => bail!(
+                        "{} exists and is not empty; pass --force to overwrite it or --out to train elsewhere",
+                        self.dir.display()
+                    ),
+                }
+            }
+            std::fs::remove_dir_all(&self.dir)
+                .with_context(|| format!("cannot clear {}", self.dir.display()))?;
+        }
+        std::fs::create_dir_all(self.dir.join("checkpoints"))
+            .with_context(|| format!("cannot create {}", self.dir.display()))?;
+        crate::io::write_text(&self.metrics(), &format!("{METRICS_HEADER}\n"))
+    }
+
+    /// Keeps the metrics rows up to `iteration` (used when resuming from a checkpoint).
+    pub fn truncate_metrics(&self, iteration: usize) -> Result<()> {
+        let path = self.metrics();
+        let text = std::fs::read_to_string(&path).unwrap_or_default();
+        let mut out = format!("{METRICS_HEADER}\n");
+        for line in text.lines().skip(1) {
+            let it: Option<usize> = line.split(',').next().and_then(|s| s.parse().ok());
+            if it.is_some_and(|it| it <= iteration) {
+                out.push_str(line);
+                out.push('\n');
+            }
+        }
+        crate::io::write_text(&path, &out)
+    }
+
+    /// Appends metrics rows.
+    pub fn append_metrics(&self, rows: &[String]) -> Result<()> {
+        if rows.is_empty() {
+            return Ok(());
+        }
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(self.metrics())
+            .with_context(|| format!("cannot append to {}", self.metrics().display()))?;
+        for r in rows {
+            writeln!(f, "{r}")?;
+        }
+        Ok(())
+    }
+
+    /// Saves a module to `path` atomically (burnpack).
+    pub fn save_module(model: &SpringNet, path: &Path) -> Result<()> {
+        crate::io::write_atomic_with_path(path, |tmp| {
+            model
+                .clone()
+                .into_record()
+                .save(tmp)
+                .map_err(|e| anyhow::anyhow!("cannot save the model: {e}"))
+        })
+    }
+}
+
+/// Writes the exportable surrogate: `springs` `[S, 2]`, `rest_length`, `k`, `b` `[S]`, and the
+/// grid (`rest_uv` `[P, 2]`, `grid` = `[nx, ny]`, `width`, `height`, `particle_mass`, `family`).
+pub fn write_springs(
+    path: &Path,
+    topology: &Topology,
+    k: &[f64],
+    b: &[f64],
+    particle_mass: f64,
+) -> Result<()> {
+    let s = topology.num_springs();
+    let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
+    let mut npz = Npz::default();
+    let ends: Vec<i32> = topology
+        .springs
+        .iter()
+        .flat_map(|e| [e[0] as i32, e[1] as i32])
+        .collect();
+    npz.insert("springs", Array::i32(&[s, 2], &ends));
+    npz.insert(
+        "rest_length",
+        Array::f32(&[s], &f32s(&topology.rest_length)),
+    );
+    npz.insert("k", Array::f32(&[s], &f32s(k)));
+    npz.insert("b", Array::f32(&[s], &f32s(b)));
+    let fam: Vec<i32> = topology.family.iter().map(|f| f.code()).collect();
+    npz.insert("family", Array::i32(&[s], &fam));
+    let uv: Vec<f32> = topology
+        .rest_uv
+        .iter()
+        .flat_map(|p| [p[0] as f32, p[1] as f32])
+        .collect();
+    npz.insert("rest_uv", Array::f32(&[topology.num_particles(), 2], &uv));
+    npz.insert(
+        "grid",
+        Array::i32(&[2], &[topology.nx as i32, topology.ny as i32]),
+    );
+    npz.insert("width", Array::scalar(topology.width));
+    npz.insert("height", Array::scalar(topology.height));
+    npz.insert("particle_mass", Array::scalar(particle_mass));
+    npz.write(path)
+}
+
+/// Peak resident set size of this process, MiB (`VmHWM`), or 0 where unknown.
+pub fn peak_rss_mib() -> f64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|kb| kb.parse::<f64>().ok())
+        })
+        .map_or(0.0, |kb| kb / 1024.0)
+}
