@@ -392,17 +392,45 @@ impl ClipSet {
 
     /// Assembles clips into tensors on `device`.
     pub fn batch(&mut self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
-        let (t, p) = (self.steps, self.topology.num_particles());
-        let b = clips.len();
+        let mut tracks = Vec::with_capacity(clips.len());
+        for c in clips {
+            tracks.push((self.track(c.rollout)?, c.offset));
+        }
+        let views: Vec<(&Track, usize)> = tracks.iter().map(|(t, o)| (t.as_ref(), *o)).collect();
+        Ok(ClipBatch::new(
+            &views,
+            self.steps,
+            self.particle_mass(),
+            self.info.frame_dt,
+            device,
+        ))
+    }
+}
+
+impl ClipBatch {
+    /// Stacks `steps`-step windows `(track, first stored frame)` into a batch; target forces
+    /// are `mass (v̂_{j+1} − v̂_j) / frame_dt`.
+    pub fn new(
+        clips: &[(&Track, usize)],
+        steps: usize,
+        mass: f64,
+        frame_dt: f64,
+        device: &Device,
+    ) -> Self {
+        let (t, b) = (steps, clips.len());
+        let p = clips.first().map_or(0, |c| c.0.particles);
         let frame = p * 3;
         let mut pos = Vec::with_capacity(b * (t + 1) * frame);
         let mut vel = Vec::with_capacity(b * (t + 1) * frame);
         let mut force = Vec::with_capacity(b * t * frame);
         let mut pinned = Vec::with_capacity(b * p);
-        let m_over_dt = self.particle_mass() / self.info.frame_dt;
-        for c in clips {
-            let track = self.track(c.rollout)?;
-            let range = c.offset * frame..(c.offset + t + 1) * frame;
+        let m_over_dt = mass / frame_dt;
+        for &(track, offset) in clips {
+            assert_eq!(
+                track.particles, p,
+                "clips of one batch share the particle count"
+            );
+            let range = offset * frame..(offset + t + 1) * frame;
             pos.extend_from_slice(&track.positions[range.clone()]);
             let v = &track.velocities[range];
             vel.extend_from_slice(v);
@@ -417,12 +445,12 @@ impl ClipSet {
         let t4 = |v: Vec<f32>, n: usize| {
             Tensor::<4>::from_data(TensorData::new(v, [b, n, p, 3]), device)
         };
-        Ok(ClipBatch {
+        ClipBatch {
             positions: t4(pos, t + 1),
             velocities: t4(vel, t + 1),
             forces: t4(force, t),
             pinned: Tensor::from_data(TensorData::new(pinned, [b, p, 1]), device),
-        })
+        }
     }
 }
 

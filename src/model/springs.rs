@@ -30,7 +30,7 @@ impl SpringGraph {
         let ia: Vec<i64> = topology.springs.iter().map(|e| e[0] as i64).collect();
         let ib: Vec<i64> = topology.springs.iter().map(|e| e[1] as i64).collect();
         let ends: Vec<i64> = ia.iter().chain(&ib).copied().collect();
-        let l0: Vec<f32> = topology.rest_length.iter().map(|&l| l as f32).collect();
+        let l0 = topology.rest_length.clone();
         let int = |v: Vec<i64>| {
             Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device)
         };
@@ -97,9 +97,12 @@ impl SpringNet {
         let s = topology.num_springs();
         assert_eq!(k.len(), s, "one stiffness per spring");
         assert_eq!(b.len(), s, "one damping per spring");
+        // f64 host data, stored in the device's float dtype.
         let t = |v: &[f64]| {
-            let v: Vec<f32> = v.iter().map(|&x| x as f32).collect();
-            Param::from_tensor(Tensor::<1>::from_data(TensorData::new(v, [s]), device))
+            Param::from_tensor(Tensor::<1>::from_data(
+                TensorData::new(v.to_vec(), [s]),
+                device,
+            ))
         };
         Self {
             k: t(k),
@@ -133,9 +136,6 @@ impl SpringNet {
 /// Copies a float tensor to the host as `f64`.
 pub fn to_f64<const D: usize>(t: Tensor<D>) -> Vec<f64> {
     t.into_data()
-        .try_into_vec_as::<f32>()
+        .try_into_vec_as::<f64>()
         .expect("float tensor data")
-        .into_iter()
-        .map(f64::from)
-        .collect()
 }

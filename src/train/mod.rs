@@ -213,6 +213,9 @@ pub struct TrainSummary {
     pub rmse_b: Option<f64>,
 }
 
+/// Ground-truth `k` and `b` per surrogate spring.
+pub type Truth = (Vec<f64>, Vec<f64>);
+
 /// Ground-truth `k`, `b` per surrogate spring, when the source's springs are the surrogate's.
 pub fn matching_truth(
     truth: &SpringTruth,
@@ -270,7 +273,7 @@ pub fn training_device(config: &Config) -> Result<Device> {
 pub fn open_training_clips(
     config: &Config,
     progress: &Progress,
-) -> Result<(ClipSet, Option<(Vec<f64>, Vec<f64>)>)> {
+) -> Result<(ClipSet, Option<Truth>)> {
     crate::ensure_data(config, progress)?;
     let split = config.data.split()?;
     let bar = progress.bar(split.train.len() as u64, "load");
@@ -308,11 +311,13 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
             _ => {}
         }
     } else {
-        run.prepare_fresh(options.force)?;
+        run.check_fresh(options.force)?;
+    }
+    let (mut clips, truth) = open_training_clips(config, progress)?;
+    if !options.resume {
+        run.create_fresh()?;
     }
     crate::io::write_text(&run.config(), &config.to_toml())?;
-
-    let (mut clips, truth) = open_training_clips(config, progress)?;
     let device = training_device(config)?;
     let physics = Physics {
         frame_dt: clips.info.frame_dt,
@@ -385,7 +390,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         let pool: Vec<ClipRef> = pool_of(&clips, pass.clips, name, progress)?;
         let mut sampler = Sampler::new(
             pool.len(),
-            config.train.seed ^ (pass_index as u64 + 1) * 0x5851_F42D,
+            config.train.seed ^ ((pass_index as u64 + 1) * 0x5851_F42D),
         );
         // Skip what was done before a resume, keeping the clip order reproducible.
         for _ in pass_start..start_iteration.max(pass_start) {

@@ -116,27 +116,32 @@ impl RunDir {
         crate::io::write_json(&self.state_path(), state)
     }
 
-    /// Prepares the directory for a fresh run: refuses to touch a finished or started run
-    /// unless `force`, in which case its contents are removed.
-    pub fn prepare_fresh(&self, force: bool) -> Result<()> {
-        if self.dir.exists() && std::fs::read_dir(&self.dir)?.next().is_some() {
-            let state = self.state().ok().flatten();
-            if !force {
-                match state.map(|s| s.status) {
-                    Some(Status::Finished) => bail!(
-                        "{} holds a finished run; pass --force to overwrite it or --out to train elsewhere",
-                        self.dir.display()
-                    ),
-                    Some(_) => bail!(
-                        "{} holds an unfinished run; pass --resume to continue it or --force to start over",
-                        self.dir.display()
-                    ),
-                    None => bail!(
-                        "{} exists and is not empty; pass --force to overwrite it or --out to train elsewhere",
-                        self.dir.display()
-                    ),
-                }
-            }
+    /// Refuses to start a fresh run over a finished or started one unless `force`.
+    pub fn check_fresh(&self, force: bool) -> Result<()> {
+        let occupied = self.dir.exists() && std::fs::read_dir(&self.dir)?.next().is_some();
+        if !occupied || force {
+            return Ok(());
+        }
+        match self.state().ok().flatten().map(|s| s.status) {
+            Some(Status::Finished) => bail!(
+                "{} holds a finished run; pass --force to overwrite it or --out to train elsewhere",
+                self.dir.display()
+            ),
+            Some(_) => bail!(
+                "{} holds an unfinished run; pass --resume to continue it or --force to start over",
+                self.dir.display()
+            ),
+            None => bail!(
+                "{} exists and is not empty; pass --force to overwrite it or --out to train elsewhere",
+                self.dir.display()
+            ),
+        }
+    }
+
+    /// Empties (after [`check_fresh`](Self::check_fresh)) and creates the directory with an
+    /// empty `metrics.csv`.
+    pub fn create_fresh(&self) -> Result<()> {
+        if self.dir.exists() {
             std::fs::remove_dir_all(&self.dir)
                 .with_context(|| format!("cannot clear {}", self.dir.display()))?;
         }

@@ -1,0 +1,129 @@
+//! The same rollout and gradients on every backend: ndarray and flex always, wgpu when the
+//! crate is built with `--features wgpu` (CI runs it on Mesa's software Vulkan).
+
+mod common;
+
+use burn::tensor::Device;
+use springtime::data::Rollout;
+use springtime::model::{SpringNet, springs::to_f64};
+use springtime::sim::{self, Drive, Physics};
+use springtime::train::{ForceOn, LossWeights, loss};
+
+struct Outcome {
+    positions: Vec<f64>,
+    loss: f64,
+    grad_k: Vec<f64>,
+    grad_b: Vec<f64>,
+}
+
+fn run(device: &Device, rollouts: &[Rollout], on: ForceOn) -> Outcome {
+    let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.3);
+    let topo = common::grid_of(&cfg);
+    let s = topo.num_springs();
+    let k: Vec<f64> = (0..s)
+        .map(|i| 40.0 + 20.0 * ((i as f64) * 0.37).sin())
+        .collect();
+    let b: Vec<f64> = (0..s).map(|i| 5.0 + ((i as f64) * 0.91).cos()).collect();
+    let ad = device.clone().autodiff();
+    let batch = common::batch(&cfg, rollouts, 100, 60, &ad);
+    let model = SpringNet::new(&topo, &k, &b, &ad);
+    let physics = Physics {
+        frame_dt: rollouts[0].frame_dt,
+        substeps: 1,
+        mass: rollouts[0].total_mass / topo.num_particles() as f64,
+        rayleigh: cfg.rayleigh,
+        gravity: cfg.gravity,
+    };
+    let [bsz, frames, p, _] = batch.positions.dims();
+    let drive = Drive {
+        x0: batch
+            .positions
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        v0: batch
+            .velocities
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        pinned: batch.pinned.clone(),
+        path: batch.positions.clone(),
+    };
+    let positions = to_f64(
+        sim::rollout(&model, &physics, &drive, frames - 1)
+            .positions
+            .detach(),
+    );
+    let terms = loss(&model, &physics, &batch, &LossWeights::default(), on);
+    let value = terms.total.clone().into_scalar::<f32>() as f64;
+    let grads = terms.total.backward();
+    Outcome {
+        positions,
+        loss: value,
+        grad_k: to_f64(model.k.val().grad(&grads).unwrap()),
+        grad_b: to_f64(model.b.val().grad(&grads).unwrap()),
+    }
+}
+
+fn assert_close(name: &str, a: &[f64], b: &[f64], rel: f64) {
+    assert_eq!(a.len(), b.len());
+    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let worst = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        worst <= rel * scale,
+        "{name}: largest difference {worst:e} against a scale of {scale:e}"
+    );
+}
+
+fn compare(reference: &Device, other: &Device, label: &str) {
+    let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.3);
+    let rollouts: Vec<Rollout> = (0..2).map(|s| common::rollout(&cfg, s).1).collect();
+    for on in [ForceOn::Simulated, ForceOn::Target] {
+        let a = run(reference, &rollouts, on);
+        let b = run(other, &rollouts, on);
+        assert_close(
+            &format!("{label} {on:?} positions"),
+            &a.positions,
+            &b.positions,
+            1e-5,
+        );
+        assert!(
+            (a.loss - b.loss).abs() <= 1e-4 * a.loss,
+            "{label} {on:?} loss: {} vs {}",
+            a.loss,
+            b.loss
+        );
+        assert_close(&format!("{label} {on:?} dL/dk"), &a.grad_k, &b.grad_k, 1e-4);
+        assert_close(&format!("{label} {on:?} dL/db"), &a.grad_b, &b.grad_b, 1e-4);
+    }
+}
+
+#[test]
+#[allow(deprecated)]
+fn ndarray_matches_flex() {
+    compare(&Device::flex(), &Device::ndarray(), "ndarray");
+}
+
+#[cfg(feature = "wgpu")]
+#[test]
+fn wgpu_matches_flex() {
+    let device = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+    let usable = std::panic::catch_unwind(|| {
+        burn::tensor::Tensor::<1>::from_floats([1.0, 2.0], &device)
+            .sum()
+            .into_scalar::<f32>()
+    });
+    if usable.is_err() {
+        assert!(
+            std::env::var_os("SPRINGTIME_REQUIRE_WGPU").is_none(),
+            "no wgpu adapter, and SPRINGTIME_REQUIRE_WGPU is set"
+        );
+        eprintln!("skipping: no wgpu adapter on this machine");
+        return;
+    }
+    compare(&Device::flex(), &device, "wgpu");
+}

@@ -1,0 +1,360 @@
+//! The command line end to end on a tiny cloth, and the errors bad input gets (never a panic).
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use springtime::data::Rollout;
+use springtime::data::npz::{Array, Npz};
+
+fn springtime(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_springtime"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .unwrap()
+}
+
+fn ok(out: &Output) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "command failed: {stderr}");
+    String::from_utf8_lossy(&out.stdout).into_owned() + &stderr
+}
+
+fn fails(out: &Output, needles: &[&str]) {
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "expected a failure, got success: {stderr}"
+    );
+    assert!(
+        !stderr.contains("panicked"),
+        "a panic instead of an error: {stderr}"
+    );
+    for n in needles {
+        assert!(stderr.contains(n), "error does not mention {n:?}: {stderr}");
+    }
+}
+
+const TINY: &str = r#"
+name = "tiny"
+[cloth]
+nx = 6
+ny = 6
+[data]
+dir = "data"
+[data.clips]
+steps = 50
+[source]
+nx = 6
+ny = 6
+width = 2.5
+height = 2.5
+seconds = 0.3
+train_rollouts = 4
+test_rollouts = 1
+[train]
+checkpoint_every = 5
+[train.stiffness]
+iterations = 10
+batch = 4
+[train.damping]
+iterations = 5
+batch = 4
+"#;
+
+/// The tiny config without its source, reading user data from `data_dir`.
+fn user_data_config(data_dir: &str) -> String {
+    let head = TINY.split("[source]").next().unwrap();
+    let tail = TINY.split("[train]").nth(1).unwrap();
+    format!(
+        "{}[train]{tail}",
+        head.replace("dir = \"data\"", &format!("dir = \"{data_dir}\""))
+    )
+}
+
+fn setup(name: &str) -> PathBuf {
+    let dir = common::temp_dir(name);
+    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    dir
+}
+
+#[test]
+fn train_eval_simulate_resume_and_refuse_to_overwrite() {
+    let dir = setup("cli-flow");
+    let out = ok(&springtime(&["train", "tiny.toml"], &dir));
+    assert!(
+        out.contains("rmse_k") && out.contains("motion RMSE"),
+        "{out}"
+    );
+    let run = dir.join("runs/tiny");
+    for f in [
+        "config.toml",
+        "run.json",
+        "metrics.csv",
+        "model.bpk",
+        "springs.npz",
+        "eval.json",
+    ] {
+        assert!(run.join(f).exists(), "missing {f}");
+    }
+    let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    assert_eq!(metrics.lines().count(), 1 + 15);
+    let eval: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    for key in [
+        "mean",
+        "std",
+        "mean_0_8s",
+        "std_0_8s",
+        "mean_8s",
+        "std_8s",
+        "per_frame",
+    ] {
+        assert!(
+            eval["motion_rmse"].get(key).is_some(),
+            "eval.json lacks motion_rmse.{key}"
+        );
+    }
+    assert!(eval["rmse_k"].as_f64().is_some());
+
+    // A finished run is not overwritten unless asked.
+    fails(
+        &springtime(&["train", "tiny.toml"], &dir),
+        &["finished run", "--force"],
+    );
+    fails(
+        &springtime(&["train", "tiny.toml", "--resume"], &dir),
+        &["already finished"],
+    );
+
+    // Resume: pretend the run stopped at its first checkpoint.
+    let state_path = run.join("run.json");
+    let mut state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&state_path).unwrap()).unwrap();
+    state["status"] = "running".into();
+    state["checkpoint"] = 5.into();
+    std::fs::write(&state_path, state.to_string()).unwrap();
+    ok(&springtime(
+        &["train", "tiny.toml", "--resume", "--no-eval"],
+        &dir,
+    ));
+    let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
+    let iterations: Vec<usize> = metrics
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(
+        iterations,
+        (1..=15).collect::<Vec<_>>(),
+        "each iteration once after resuming"
+    );
+
+    ok(&springtime(
+        &[
+            "train",
+            "tiny.toml",
+            "--force",
+            "--no-eval",
+            "--set",
+            "train.damping.iterations=1",
+        ],
+        &dir,
+    ));
+
+    // Simulate from a test rollout; the output is a valid rollout file.
+    let init = dir.join("data/test_0000.npz");
+    ok(&springtime(
+        &[
+            "simulate",
+            "runs/tiny",
+            "--init",
+            init.to_str().unwrap(),
+            "--seconds",
+            "0.1",
+            "--out",
+            "sim.npz",
+        ],
+        &dir,
+    ));
+    let sim = Rollout::load(&dir.join("sim.npz")).unwrap();
+    assert_eq!((sim.frames, sim.landmarks), (101, 36));
+    fails(
+        &springtime(
+            &[
+                "simulate",
+                "runs/tiny",
+                "--init",
+                init.to_str().unwrap(),
+                "--seconds",
+                "0.1",
+                "--out",
+                "sim.npz",
+            ],
+            &dir,
+        ),
+        &["sim.npz", "--force"],
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_configs_name_the_key() {
+    let dir = setup("cli-config");
+    std::fs::write(
+        dir.join("typo.toml"),
+        TINY.replace("[train]\n", "[train]\nlearning_rate = 1.0\n"),
+    )
+    .unwrap();
+    fails(
+        &springtime(&["train", "typo.toml"], &dir),
+        &["typo.toml", "train", "learning_rate"],
+    );
+    std::fs::write(
+        dir.join("type.toml"),
+        TINY.replace("steps = 50", "steps = \"fifty\""),
+    )
+    .unwrap();
+    fails(
+        &springtime(&["train", "type.toml"], &dir),
+        &["data.clips.steps"],
+    );
+    fails(
+        &springtime(
+            &["train", "tiny.toml", "--set", "train.stiffness.batch=0"],
+            &dir,
+        ),
+        &["train.stiffness.batch"],
+    );
+    fails(
+        &springtime(&["train", "missing.toml"], &dir),
+        &["missing.toml"],
+    );
+    fails(
+        &springtime(&["train", "tiny.toml", "--backend", "cuda"], &dir),
+        &["cuda"],
+    );
+    // A source that would blow up at its time step is refused with the largest stable step.
+    fails(
+        &springtime(
+            &[
+                "generate",
+                "tiny.toml",
+                "--set",
+                "source.areal_density=0.0001",
+            ],
+            &dir,
+        ),
+        &["unstable", "largest stable dt", "allow_unstable"],
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_rollout_files_name_the_file_and_key() {
+    let dir = setup("cli-data");
+    ok(&springtime(&["generate", "tiny.toml"], &dir));
+    let good = Npz::read(&dir.join("data/train_0000.npz")).unwrap();
+    let user = dir.join("user");
+    std::fs::create_dir_all(&user).unwrap();
+    type Edit = Box<dyn Fn(&mut Npz)>;
+    let cases: Vec<(&str, Edit, Vec<&str>)> = vec![
+        (
+            "nan",
+            Box::new(|n: &mut Npz| {
+                let (mut v, shape) = n.f32("positions", &[None, None, Some(3)]).unwrap();
+                v[40] = f32::NAN;
+                n.insert("positions", Array::f32(&shape, &v));
+            }),
+            vec!["nan.npz", "`positions`", "non-finite"],
+        ),
+        (
+            "shape",
+            Box::new(|n: &mut Npz| n.insert("rest_uv", Array::f32(&[36, 3], &[0.0; 108]))),
+            vec!["shape.npz", "`rest_uv`", "shape"],
+        ),
+        (
+            "missing",
+            Box::new(|n: &mut Npz| drop(n.arrays.remove("total_mass"))),
+            vec!["missing.npz", "`total_mass`"],
+        ),
+        (
+            "outside",
+            Box::new(|n: &mut Npz| {
+                let (mut v, _) = n.f32("rest_uv", &[None, Some(2)]).unwrap();
+                v[0] = -3.0;
+                n.insert("rest_uv", Array::f32(&[36, 2], &v));
+            }),
+            vec!["outside.npz", "`rest_uv`", "outside"],
+        ),
+        (
+            "dtype",
+            Box::new(|n: &mut Npz| n.insert("pinned", Array::f32(&[36], &[0.0; 36]))),
+            vec!["dtype.npz", "`pinned`", "dtype"],
+        ),
+    ];
+    for (name, edit, needles) in cases {
+        let case_dir = user.join(name);
+        std::fs::create_dir_all(&case_dir).unwrap();
+        let mut npz = good.clone();
+        edit(&mut npz);
+        npz.write(&case_dir.join(format!("{name}.npz"))).unwrap();
+        std::fs::write(
+            dir.join(format!("{name}.toml")),
+            user_data_config(&format!("user/{name}")),
+        )
+        .unwrap();
+        let out = springtime(&["train", &format!("{name}.toml"), "--no-eval"], &dir);
+        fails(&out, &needles);
+        assert!(
+            !dir.join("runs/tiny").exists(),
+            "a run that never started leaves no directory"
+        );
+    }
+    // Not a zip at all.
+    std::fs::create_dir_all(user.join("garbage")).unwrap();
+    std::fs::write(user.join("garbage/garbage.npz"), b"not a zip").unwrap();
+    std::fs::write(dir.join("garbage.toml"), user_data_config("user/garbage")).unwrap();
+    fails(
+        &springtime(&["train", "garbage.toml"], &dir),
+        &["garbage.npz", "zip"],
+    );
+    // A directory with no rollouts and no source to make them.
+    std::fs::create_dir_all(user.join("empty")).unwrap();
+    std::fs::write(dir.join("empty.toml"), user_data_config("user/empty")).unwrap();
+    fails(
+        &springtime(&["train", "empty.toml"], &dir),
+        &["user/empty", "no rollouts"],
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() {
+    let dir = setup("cli-diverge");
+    let out = springtime(
+        &[
+            "train",
+            "tiny.toml",
+            "--set",
+            "train.stiffness.lr=1e5",
+            "--set",
+            "train.checkpoint_every=1",
+        ],
+        &dir,
+    );
+    fails(&out, &["loss became", "stiffness pass", "checkpoint"]);
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("runs/tiny/run.json")).unwrap())
+            .unwrap();
+    assert_eq!(state["status"], "failed");
+    let ckpt = state["checkpoint"].as_u64().unwrap();
+    assert!(ckpt >= 1, "a good checkpoint was kept");
+    assert!(
+        dir.join(format!("runs/tiny/checkpoints/model_{ckpt:06}.bpk"))
+            .exists()
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

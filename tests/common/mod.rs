@@ -1,0 +1,74 @@
+//! Shared fixtures: tiny spring cloths simulated in memory, and temporary directories.
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+
+use burn::tensor::Device;
+use rand::{SeedableRng, rngs::StdRng};
+use springtime::cloth::{GridSpec, Resampler, Topology};
+use springtime::data::{ClipBatch, Rollout, Track};
+use springtime::source::{Layout, Scenario, SourceConfig, SpringCloth, simulate_rollout};
+
+/// A small source: `n × n` landmarks 0.5 m apart, stiffness stripes `levels`, b = 6.
+pub fn source(n: usize, levels: &[f64], seconds: f64) -> SourceConfig {
+    SourceConfig {
+        nx: n,
+        ny: n,
+        width: 0.5 * (n - 1) as f64,
+        height: 0.5 * (n - 1) as f64,
+        stiffness_levels: levels.to_vec(),
+        layout: Layout::Stripes,
+        seconds,
+        train_rollouts: 4,
+        test_rollouts: 1,
+        ..SourceConfig::default()
+    }
+}
+
+/// The surrogate grid matching a source (every spring family).
+pub fn grid_of(cfg: &SourceConfig) -> Topology {
+    let spec = GridSpec {
+        nx: cfg.nx,
+        ny: cfg.ny,
+        ..GridSpec::default()
+    };
+    Topology::grid(&spec, cfg.width, cfg.height)
+}
+
+/// One rollout of the source, simulated in memory.
+pub fn rollout(cfg: &SourceConfig, seed: u64) -> (SpringCloth, Rollout) {
+    let cloth = SpringCloth::from_config(cfg);
+    let scenario = Scenario::random(
+        &cloth.topology.rest_uv,
+        cfg.anchor_radius,
+        &mut StdRng::seed_from_u64(seed),
+    );
+    let r = simulate_rollout(&cloth, cfg, &scenario, None, "memory").expect("stable source");
+    (cloth, r)
+}
+
+/// A batch of `steps`-step clips starting at stored frame `offset` of each rollout.
+pub fn batch(
+    cfg: &SourceConfig,
+    rollouts: &[Rollout],
+    offset: usize,
+    steps: usize,
+    device: &Device,
+) -> ClipBatch {
+    let topo = grid_of(cfg);
+    let tracks: Vec<Track> = rollouts
+        .iter()
+        .map(|r| Track::new(r, &Resampler::new(&r.rest_uv, &topo.rest_uv)))
+        .collect();
+    let views: Vec<(&Track, usize)> = tracks.iter().map(|t| (t, offset)).collect();
+    let mass = rollouts[0].total_mass / topo.num_particles() as f64;
+    ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device)
+}
+
+/// A fresh, empty temporary directory for one test.
+pub fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("springtime-test-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
