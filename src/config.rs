@@ -22,6 +22,8 @@ pub struct ModelConfig {
     pub k_init: f64,
     /// Initial damping of every spring, N·s/m.
     pub b_init: f64,
+    /// Spring-force implementation: the fused kernel or the tensor-op reference.
+    pub kernel: crate::model::Kernel,
 }
 
 impl Default for ModelConfig {
@@ -30,6 +32,7 @@ impl Default for ModelConfig {
         Self {
             k_init: 50.0,
             b_init: 3.0,
+            kernel: crate::model::Kernel::Fused,
         }
     }
 }

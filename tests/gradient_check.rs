@@ -6,7 +6,7 @@
 mod common;
 
 use burn::tensor::{Device, FloatDType};
-use springtime::model::SpringNet;
+use springtime::model::{Kernel, SpringNet};
 use springtime::sim::Physics;
 use springtime::train::{ForceOn, LossWeights, loss};
 
@@ -43,10 +43,14 @@ fn autodiff_gradients_match_central_differences() {
         b_neg: 1.0,
     };
 
-    for on in [ForceOn::Simulated, ForceOn::Target] {
+    for (on, kernel) in [
+        (ForceOn::Simulated, Kernel::Fused),
+        (ForceOn::Target, Kernel::Fused),
+        (ForceOn::Simulated, Kernel::Reference),
+    ] {
         let eval = |k: &[f64], b: &[f64], device: &Device| {
             let batch = common::batch(&cfg, &[r1.clone(), r2.clone()], 30, 20, device);
-            let model = SpringNet::new(&topo, k, b, device);
+            let model = SpringNet::new(&topo, k, b, device).with_kernel(kernel);
             (model.clone(), loss(&model, &physics, &batch, &weights, on))
         };
         let (model, terms) = eval(&k0, &b0, &ad);
@@ -84,7 +88,7 @@ fn autodiff_gradients_match_central_differences() {
                 let err = (fd - g[i]).abs();
                 assert!(
                     err <= 1e-6 * scale + 1e-6 * fd.abs(),
-                    "{on:?}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
+                    "{on:?} {kernel:?}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
                     g[i]
                 );
             }

@@ -1,5 +1,6 @@
 //! Learnable cloth models. The mass-spring surrogate lives in [`springs`].
 
+pub mod kernels;
 pub mod springs;
 
-pub use springs::{SpringGraph, SpringNet, spring_forces};
+pub use springs::{Kernel, SpringGraph, SpringNet, spring_forces};

@@ -1,9 +1,24 @@
 //! The mass-spring surrogate: per-spring stiffness `k` and damping `b` (paper §3.2).
 
+use std::sync::Arc;
+
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
 
+use super::kernels::{self, HostGraph};
 use crate::cloth::Topology;
+
+/// Which implementation computes the spring forces.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Kernel {
+    /// One fused kernel with a hand-written backward ([`kernels::spring_forces`]).
+    #[default]
+    Fused,
+    /// Burn tensor ops ([`spring_forces_reference`]): gathers, Eq. 4, a scatter-add.
+    Reference,
+}
 
 /// The spring network's constant tensors: endpoints and rest lengths.
 #[derive(Module, Debug)]
@@ -21,6 +36,12 @@ pub struct SpringGraph {
     pub num_particles: usize,
     /// Number of springs `S`.
     pub num_springs: usize,
+    /// The same springs on the host, for the fused kernels.
+    #[module(skip)]
+    pub host: Arc<HostGraph>,
+    /// Which implementation [`spring_forces`] uses.
+    #[module(skip)]
+    pub kernel: Kernel,
 }
 
 impl SpringGraph {
@@ -41,6 +62,13 @@ impl SpringGraph {
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
             num_particles: topology.num_particles(),
             num_springs: s,
+            host: Arc::new(HostGraph {
+                ia: topology.springs.iter().map(|e| e[0] as u32).collect(),
+                ib: topology.springs.iter().map(|e| e[1] as u32).collect(),
+                rest_length: topology.rest_length.clone(),
+                particles: topology.num_particles(),
+            }),
+            kernel: Kernel::Fused,
         }
     }
 }
@@ -53,8 +81,24 @@ impl SpringGraph {
 /// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
 /// to zero by construction (Newton's third law).
 ///
-/// This is the one place the rollout spends its time; a fused kernel replaces it.
+/// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
+/// reference when `graph.kernel` says so.
 pub fn spring_forces(
+    graph: &SpringGraph,
+    x: Tensor<3>,
+    v: Tensor<3>,
+    k: Tensor<1>,
+    b: Tensor<1>,
+) -> Tensor<3> {
+    match graph.kernel {
+        Kernel::Fused => kernels::spring_forces(x, v, k, b, &graph.host),
+        Kernel::Reference => spring_forces_reference(graph, x, v, k, b),
+    }
+}
+
+/// [`spring_forces`] as Burn tensor ops: two gathers per state, Eq. 4, one scatter-add. The
+/// reference the fused kernel is tested against.
+pub fn spring_forces_reference(
     graph: &SpringGraph,
     x: Tensor<3>,
     v: Tensor<3>,
@@ -109,6 +153,12 @@ impl SpringNet {
             b: t(b),
             graph: SpringGraph::new(topology, device),
         }
+    }
+
+    /// The same network computing its forces with `kernel`.
+    pub fn with_kernel(mut self, kernel: Kernel) -> Self {
+        self.graph.kernel = kernel;
+        self
     }
 
     /// A network with the same `k` and `b` on every spring.

@@ -327,7 +327,8 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         gravity: config.sim.gravity,
     };
     let topo = clips.topology.clone();
-    let mut model = SpringNet::uniform(&topo, config.model.k_init, config.model.b_init, &device);
+    let mut model = SpringNet::uniform(&topo, config.model.k_init, config.model.b_init, &device)
+        .with_kernel(config.model.kernel);
     let mut start_iteration = 0;
     if let Some(state) = &previous {
         if state.checkpoint > 0 {
@@ -596,6 +597,6 @@ pub fn load_surrogate(
         .into_iter()
         .map(f64::from)
         .collect();
-    let model = SpringNet::new(&topo, &k, &b, device);
+    let model = SpringNet::new(&topo, &k, &b, device).with_kernel(config.model.kernel);
     Ok((config, topo, model, mass))
 }
