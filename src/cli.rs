@@ -72,6 +72,27 @@ pub enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Time the training workload of ../shared/bench/peer_torch.py; prints one JSON line.
+    Bench {
+        /// Clips per iteration.
+        #[arg(long, default_value_t = 8)]
+        batch: usize,
+        /// Steps per clip.
+        #[arg(long, default_value_t = 500)]
+        steps: usize,
+        /// Compute backend.
+        #[arg(long, default_value = "flex")]
+        backend: Backend,
+        /// Timed iterations.
+        #[arg(long, default_value_t = 3)]
+        iters: usize,
+        /// Spring-force implementation: fused or reference.
+        #[arg(long, default_value = "fused", value_parser = parse_kernel)]
+        kernel: crate::model::Kernel,
+        /// Particles per side.
+        #[arg(long, default_value_t = 32)]
+        n: usize,
+    },
     /// Simulate a trained surrogate from the first frame of a rollout file.
     Simulate {
         /// Run directory.
@@ -143,6 +164,25 @@ pub fn run(cli: Cli) -> Result<()> {
             print_eval(&report);
             Ok(())
         }
+        Command::Bench {
+            batch,
+            steps,
+            backend,
+            iters,
+            kernel,
+            n,
+        } => {
+            let report = crate::bench::run(&crate::bench::BenchOptions {
+                batch,
+                steps,
+                backend,
+                iters,
+                kernel,
+                n,
+            })?;
+            println!("{}", serde_json::to_string(&report)?);
+            Ok(())
+        }
         Command::Simulate {
             run_dir,
             init,
@@ -154,6 +194,14 @@ pub fn run(cli: Cli) -> Result<()> {
         } => simulate(
             &run_dir, &init, seconds, &out, backend, force, &set, &progress,
         ),
+    }
+}
+
+fn parse_kernel(s: &str) -> std::result::Result<crate::model::Kernel, String> {
+    match s {
+        "fused" => Ok(crate::model::Kernel::Fused),
+        "reference" => Ok(crate::model::Kernel::Reference),
+        other => Err(format!("unknown kernel `{other}` (expected fused or reference)")),
     }
 }
 

@@ -11,6 +11,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod backend;
+pub mod bench;
 pub mod cli;
 pub mod cloth;
 pub mod config;

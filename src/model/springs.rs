@@ -62,12 +62,7 @@ impl SpringGraph {
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
             num_particles: topology.num_particles(),
             num_springs: s,
-            host: Arc::new(HostGraph {
-                ia: topology.springs.iter().map(|e| e[0] as u32).collect(),
-                ib: topology.springs.iter().map(|e| e[1] as u32).collect(),
-                rest_length: topology.rest_length.clone(),
-                particles: topology.num_particles(),
-            }),
+            host: Arc::new(HostGraph::new(&topology.springs, &topology.rest_length, topology.num_particles())),
             kernel: Kernel::Fused,
         }
     }

@@ -22,16 +22,46 @@ use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
 use burn::tensor::{DType, Tensor, TensorData};
 
 /// The spring network on the host, shared by every call of the fused op.
+///
+/// Built only through [`HostGraph::new`], which checks every endpoint, so that the kernels
+/// may index without bounds checks.
 #[derive(Debug, Clone, PartialEq)]
 pub struct HostGraph {
-    /// First endpoint of every spring.
-    pub ia: Vec<u32>,
-    /// Second endpoint of every spring.
-    pub ib: Vec<u32>,
-    /// Rest lengths.
-    pub rest_length: Vec<f64>,
+    ends: Vec<(u32, u32)>,
+    rest_length: Vec<f64>,
+    particles: usize,
+}
+
+impl HostGraph {
+    /// The springs `ends` with their rest lengths over `particles` particles.
+    ///
+    /// Panics if an endpoint is not a particle index or the lengths disagree.
+    pub fn new(ends: &[[usize; 2]], rest_length: &[f64], particles: usize) -> Self {
+        assert_eq!(ends.len(), rest_length.len(), "one rest length per spring");
+        assert!(particles <= u32::MAX as usize);
+        let ends = ends
+            .iter()
+            .map(|&[a, b]| {
+                assert!(a < particles && b < particles, "spring ({a}, {b}) outside {particles} particles");
+                (a as u32, b as u32)
+            })
+            .collect();
+        Self {
+            ends,
+            rest_length: rest_length.to_vec(),
+            particles,
+        }
+    }
+
+    /// Number of springs.
+    pub fn num_springs(&self) -> usize {
+        self.ends.len()
+    }
+
     /// Number of particles.
-    pub particles: usize,
+    pub fn num_particles(&self) -> usize {
+        self.particles
+    }
 }
 
 /// Backends that run the fused spring-force op.
@@ -163,7 +193,7 @@ fn cpu_backward<B: Backend>(
 ) -> SpringGrads<B> {
     let shape = x.shape().to_vec();
     let device = x.device();
-    let s = graph.ia.len();
+    let s = graph.num_springs();
     let f64s = x.dtype() == DType::F64;
     let h = |t| host_as::<B>(t, f64s);
     macro_rules! run {
