@@ -11,12 +11,16 @@ use springtime::model::{Kernel, SpringNet};
 fn state(topo: &Topology, batch: usize) -> (Vec<f32>, Vec<f32>) {
     let rest = topo.rest_positions();
     let x: Vec<f32> = (0..batch)
-        .flat_map(|c| rest.iter().enumerate().flat_map(move |(i, p)| {
-            let j = (i * 7 + c * 13) as f64;
-            [p[0] * 1.02 + 0.01 * j.sin(), p[1] * 0.98, 0.02 * j.cos()].map(|v| v as f32)
-        }))
+        .flat_map(|c| {
+            rest.iter().enumerate().flat_map(move |(i, p)| {
+                let j = (i * 7 + c * 13) as f64;
+                [p[0] * 1.02 + 0.01 * j.sin(), p[1] * 0.98, 0.02 * j.cos()].map(|v| v as f32)
+            })
+        })
         .collect();
-    let v: Vec<f32> = (0..x.len()).map(|i| ((i as f64) * 0.37).sin() as f32).collect();
+    let v: Vec<f32> = (0..x.len())
+        .map(|i| ((i as f64) * 0.37).sin() as f32)
+        .collect();
     (x, v)
 }
 
@@ -34,9 +38,18 @@ fn bench(c: &mut Criterion) {
         group.bench_with_input(BenchmarkId::new("cpu_forward", batch), &batch, |bch, _| {
             bch.iter(|| cpu::forces(&graph, &x, &v, &k, &b, &mut out))
         });
-        let (mut gx, mut gv, mut gk, mut gb) = (vec![0f32; x.len()], vec![0f32; x.len()], vec![0f32; s], vec![0f32; s]);
+        let (mut gx, mut gv, mut gk, mut gb) = (
+            vec![0f32; x.len()],
+            vec![0f32; x.len()],
+            vec![0f32; s],
+            vec![0f32; s],
+        );
         group.bench_with_input(BenchmarkId::new("cpu_backward", batch), &batch, |bch, _| {
-            bch.iter(|| cpu::forces_backward(&graph, &x, &v, &k, &b, &out, &mut gx, &mut gv, &mut gk, &mut gb))
+            bch.iter(|| {
+                cpu::forces_backward(
+                    &graph, &x, &v, &k, &b, &out, &mut gx, &mut gv, &mut gk, &mut gb,
+                )
+            })
         });
         let device = Device::flex().autodiff();
         let kk: Vec<f64> = k.iter().map(|&v| v as f64).collect();
@@ -45,12 +58,16 @@ fn bench(c: &mut Criterion) {
             let model = SpringNet::new(&topo, &kk, &bb, &device).with_kernel(kernel);
             let xt = Tensor::<3>::from_data(TensorData::new(x.clone(), [batch, p, 3]), &device);
             let vt = Tensor::<3>::from_data(TensorData::new(v.clone(), [batch, p, 3]), &device);
-            group.bench_with_input(BenchmarkId::new(format!("burn_{kernel:?}_fwd_bwd"), batch), &batch, |bch, _| {
-                bch.iter(|| {
-                    let f = model.forces(xt.clone(), vt.clone());
-                    f.sum().backward()
-                })
-            });
+            group.bench_with_input(
+                BenchmarkId::new(format!("burn_{kernel:?}_fwd_bwd"), batch),
+                &batch,
+                |bch, _| {
+                    bch.iter(|| {
+                        let f = model.forces(xt.clone(), vt.clone());
+                        f.sum().backward()
+                    })
+                },
+            );
         }
     }
     group.finish();

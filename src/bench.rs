@@ -140,15 +140,33 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let fwd_model = model.valid().to_device(&plain);
     let plain_batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &plain);
     let pinned = plain_batch.pinned.clone();
-    let frame = |j: usize| plain_batch.positions.clone().slice([0..b, j..j + 1, 0..p, 0..3]).reshape([b, p, 3]);
+    let frame = |j: usize| {
+        plain_batch
+            .positions
+            .clone()
+            .slice([0..b, j..j + 1, 0..p, 0..3])
+            .reshape([b, p, 3])
+    };
     let frames: Vec<_> = (0..=t).map(frame).collect();
     let forward = || {
         let mut state = State {
             x: frames[0].clone(),
-            v: plain_batch.velocities.clone().slice([0..b, 0..1, 0..p, 0..3]).reshape([b, p, 3]),
+            v: plain_batch
+                .velocities
+                .clone()
+                .slice([0..b, 0..1, 0..p, 0..3])
+                .reshape([b, p, 3]),
         };
         for j in 0..t {
-            state = sim::step_frame(&fwd_model, &physics, state, &pinned, &frames[j], &frames[j + 1]).0;
+            state = sim::step_frame(
+                &fwd_model,
+                &physics,
+                state,
+                &pinned,
+                &frames[j],
+                &frames[j + 1],
+            )
+            .0;
         }
         state.x.sum().into_scalar::<f32>()
     };

@@ -201,7 +201,9 @@ fn parse_kernel(s: &str) -> std::result::Result<crate::model::Kernel, String> {
     match s {
         "fused" => Ok(crate::model::Kernel::Fused),
         "reference" => Ok(crate::model::Kernel::Reference),
-        other => Err(format!("unknown kernel `{other}` (expected fused or reference)")),
+        other => Err(format!(
+            "unknown kernel `{other}` (expected fused or reference)"
+        )),
     }
 }
 

@@ -83,3 +83,79 @@ fn fused_kernel_matches_tensor_ops() {
         }
     }
 }
+
+/// The fused rollout-and-loss op against the tensor-op rollout and losses: loss terms and their
+/// gradients with respect to k and b, with and without substeps and checkpointing.
+#[test]
+fn fused_rollout_loss_matches_tensor_ops() {
+    use springtime::sim::Physics;
+    use springtime::train::{ForceOn, LossWeights, loss_with_budget};
+    let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
+    let topo = common::grid_of(&cfg);
+    let s = topo.num_springs();
+    let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
+    let k: Vec<f64> = (0..s)
+        .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
+        .collect();
+    let b: Vec<f64> = (0..s).map(|i| 4.0 + ((i as f64) * 0.91).cos()).collect();
+    let weights = LossWeights {
+        force: 1.0,
+        impulse: 10.0,
+        position: 30.0,
+        k_neg: 1.0,
+        b_neg: 1.0,
+    };
+    let device = Device::flex().autodiff();
+    for (substeps, budget) in [(1, 1024), (1, 0), (3, 1024), (3, 0)] {
+        let batch = common::batch(&cfg, &rollouts, 150, 90, &device);
+        let physics = Physics {
+            frame_dt: rollouts[0].frame_dt,
+            substeps,
+            mass: rollouts[0].total_mass / topo.num_particles() as f64,
+            rayleigh: cfg.rayleigh,
+            gravity: cfg.gravity,
+        };
+        let run = |kernel: Kernel| {
+            let model = SpringNet::new(&topo, &k, &b, &device).with_kernel(kernel);
+            let terms = loss_with_budget(
+                &model,
+                &physics,
+                &batch,
+                &weights,
+                ForceOn::Simulated,
+                budget,
+            );
+            let values = terms.values();
+            let grads = terms.total.backward();
+            (
+                values,
+                to_f64(model.k.val().grad(&grads).unwrap()),
+                to_f64(model.b.val().grad(&grads).unwrap()),
+            )
+        };
+        let (rv, rk, rb) = run(Kernel::Reference);
+        let (fv, fk, fb) = run(Kernel::Fused);
+        // The position loss squares differences of millimetres between positions of metres, so
+        // f32 rounding (the reference sums spring forces in another order) shows at 1e-5.
+        for (name, r, f, tol) in [
+            ("force", rv.force, fv.force, 1e-5),
+            ("impulse", rv.impulse, fv.impulse, 1e-5),
+            ("position", rv.position, fv.position, 1e-4),
+        ] {
+            assert!(
+                r > 0.0 && (r - f).abs() <= tol * r,
+                "substeps {substeps}: {name} loss {r} vs {f}"
+            );
+        }
+        assert_close(
+            &format!("substeps {substeps} budget {budget} dL/dk"),
+            &rk,
+            &fk,
+        );
+        assert_close(
+            &format!("substeps {substeps} budget {budget} dL/db"),
+            &rb,
+            &fb,
+        );
+    }
+}

@@ -8,7 +8,7 @@ mod common;
 use burn::tensor::{Device, FloatDType};
 use springtime::model::{Kernel, SpringNet};
 use springtime::sim::Physics;
-use springtime::train::{ForceOn, LossWeights, loss};
+use springtime::train::{ForceOn, LossWeights, loss_with_budget};
 
 #[test]
 fn autodiff_gradients_match_central_differences() {
@@ -43,15 +43,20 @@ fn autodiff_gradients_match_central_differences() {
         b_neg: 1.0,
     };
 
-    for (on, kernel) in [
-        (ForceOn::Simulated, Kernel::Fused),
-        (ForceOn::Target, Kernel::Fused),
-        (ForceOn::Simulated, Kernel::Reference),
+    // The fused rollout keeps every state (budget 1 GiB) or recomputes from checkpoints (0).
+    for (on, kernel, budget) in [
+        (ForceOn::Simulated, Kernel::Fused, 1024),
+        (ForceOn::Simulated, Kernel::Fused, 0),
+        (ForceOn::Target, Kernel::Fused, 1024),
+        (ForceOn::Simulated, Kernel::Reference, 1024),
     ] {
         let eval = |k: &[f64], b: &[f64], device: &Device| {
             let batch = common::batch(&cfg, &[r1.clone(), r2.clone()], 30, 20, device);
             let model = SpringNet::new(&topo, k, b, device).with_kernel(kernel);
-            (model.clone(), loss(&model, &physics, &batch, &weights, on))
+            (
+                model.clone(),
+                loss_with_budget(&model, &physics, &batch, &weights, on, budget),
+            )
         };
         let (model, terms) = eval(&k0, &b0, &ad);
         let base = terms.total.clone().into_scalar::<f64>();
@@ -88,7 +93,7 @@ fn autodiff_gradients_match_central_differences() {
                 let err = (fd - g[i]).abs();
                 assert!(
                     err <= 1e-6 * scale + 1e-6 * fd.abs(),
-                    "{on:?} {kernel:?}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
+                    "{on:?} {kernel:?} budget {budget}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
                     g[i]
                 );
             }

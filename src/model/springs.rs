@@ -62,7 +62,11 @@ impl SpringGraph {
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
             num_particles: topology.num_particles(),
             num_springs: s,
-            host: Arc::new(HostGraph::new(&topology.springs, &topology.rest_length, topology.num_particles())),
+            host: Arc::new(HostGraph::new(
+                &topology.springs,
+                &topology.rest_length,
+                topology.num_particles(),
+            )),
             kernel: Kernel::Fused,
         }
     }

@@ -8,7 +8,8 @@ pub use stability::Stability;
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::model::SpringNet;
+use crate::model::kernels::{self, StepParams};
+use crate::model::{Kernel, SpringNet};
 
 /// Standard gravity, m/s², along −z.
 pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];
@@ -130,18 +131,42 @@ pub fn step_frame(
     let pin_v = (next.clone() - here.clone()).mul_scalar(1.0 / physics.frame_dt) * pinned.clone();
     let State { mut x, mut v } = state;
     let mut f_sum: Option<Tensor<3>> = None;
+    let fused = model.graph.kernel == Kernel::Fused;
+    let params = StepParams {
+        h,
+        mass: physics.mass,
+        rayleigh: physics.rayleigh,
+        gravity: physics.gravity,
+    };
     for sub in 0..n {
-        let f = physics.net_force(model, x.clone(), v.clone());
-        v = v + f.clone().mul_scalar(h / physics.mass);
-        x = x + v.clone().mul_scalar(h);
         let target = if sub + 1 == n {
             next.clone()
         } else {
             let t = (sub + 1) as f64 / n as f64;
             here.clone().mul_scalar(1.0 - t) + next.clone().mul_scalar(t)
         };
-        x = x * free.clone() + target * pinned.clone();
-        v = v * free.clone() + pin_v.clone();
+        let f = if fused {
+            let (xn, vn, f) = kernels::cloth_step(
+                x,
+                v,
+                model.k.val(),
+                model.b.val(),
+                pinned.clone(),
+                target,
+                pin_v.clone(),
+                &model.graph.host,
+                params,
+            );
+            (x, v) = (xn, vn);
+            f
+        } else {
+            let f = physics.net_force(model, x.clone(), v.clone());
+            v = v + f.clone().mul_scalar(h / physics.mass);
+            x = x + v.clone().mul_scalar(h);
+            x = x * free.clone() + target * pinned.clone();
+            v = v * free.clone() + pin_v.clone();
+            f
+        };
         f_sum = Some(match f_sum {
             None => f,
             Some(acc) => acc + f,

@@ -4,8 +4,13 @@ use burn::tensor::{Tensor, activation::relu};
 use serde::{Deserialize, Serialize};
 
 use crate::data::ClipBatch;
-use crate::model::SpringNet;
+use crate::model::kernels::{self, RolloutParams};
+use crate::model::{Kernel, SpringNet};
 use crate::sim::{self, Drive, Physics};
+
+/// Memory the fused rollout may keep between its forward and backward passes by default, MiB
+/// (beyond it, states are checkpointed and recomputed).
+pub const DEFAULT_STATE_BUDGET_MIB: usize = 1024;
 
 /// Weights `λ` of the loss terms (Eq. 6).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -109,6 +114,25 @@ pub fn loss(
     weights: &LossWeights,
     on: ForceOn,
 ) -> LossTerms {
+    loss_with_budget(model, physics, batch, weights, on, DEFAULT_STATE_BUDGET_MIB)
+}
+
+/// [`loss`] with the fused rollout's memory budget for stored states, MiB.
+///
+/// With the fused kernel and simulated forces, the rollout and the three loss terms are one op
+/// ([`kernels::rollout_loss`]) whose backward is the adjoint of the integrator; otherwise the
+/// loss is built from tensor ops around [`sim::rollout`].
+pub fn loss_with_budget(
+    model: &SpringNet,
+    physics: &Physics,
+    batch: &ClipBatch,
+    weights: &LossWeights,
+    on: ForceOn,
+    budget_mib: usize,
+) -> LossTerms {
+    if on == ForceOn::Simulated && model.graph.kernel == Kernel::Fused {
+        return fused_loss(model, physics, batch, weights, budget_mib);
+    }
     let [b, frames, p, _] = batch.positions.dims();
     let t = frames - 1;
     let device = batch.positions.device();
@@ -181,6 +205,62 @@ pub fn loss(
     }
     total =
         total + k_neg.clone().mul_scalar(weights.k_neg) + b_neg.clone().mul_scalar(weights.b_neg);
+    LossTerms {
+        total,
+        force,
+        impulse,
+        position,
+        k_neg,
+        b_neg,
+    }
+}
+
+fn fused_loss(
+    model: &SpringNet,
+    physics: &Physics,
+    batch: &ClipBatch,
+    weights: &LossWeights,
+    budget_mib: usize,
+) -> LossTerms {
+    let [b, _, p, _] = batch.positions.dims();
+    let x0 = batch
+        .positions
+        .clone()
+        .slice([0..b, 0..1, 0..p, 0..3])
+        .reshape([b, p, 3]);
+    let v0 = batch
+        .velocities
+        .clone()
+        .slice([0..b, 0..1, 0..p, 0..3])
+        .reshape([b, p, 3]);
+    let params = RolloutParams {
+        frame_dt: physics.frame_dt,
+        substeps: physics.substeps,
+        mass: physics.mass,
+        rayleigh: physics.rayleigh,
+        gravity: physics.gravity,
+        state_budget: budget_mib << 20,
+    };
+    let terms = kernels::rollout_loss(
+        x0,
+        v0,
+        model.k.val(),
+        model.b.val(),
+        batch.pinned.clone(),
+        batch.positions.clone(),
+        batch.forces.clone(),
+        &model.graph.host,
+        params,
+    );
+    let term = |i: usize| terms.clone().slice([i..i + 1]);
+    let (force, impulse, position) = (term(0), term(1), term(2));
+    let k_neg = relu(model.k.val().neg()).sum();
+    let b_neg = relu(model.b.val().neg()).sum();
+    let total = force.clone().mul_scalar(weights.force)
+        + impulse.clone().mul_scalar(weights.impulse)
+        + position.clone().mul_scalar(weights.position)
+        + k_neg.clone().mul_scalar(weights.k_neg)
+        + b_neg.clone().mul_scalar(weights.b_neg);
     LossTerms {
         total,
         force,

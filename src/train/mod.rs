@@ -6,7 +6,7 @@
 pub mod losses;
 pub mod run;
 
-pub use losses::{ForceOn, LossTerms, LossValues, LossWeights, loss};
+pub use losses::{ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget};
 pub use run::{RunDir, RunState, Status};
 
 use std::path::{Path, PathBuf};
@@ -90,8 +90,11 @@ pub struct TrainConfig {
     pub checkpoint_every: usize,
     /// Seed of the clip order.
     pub seed: u64,
-    /// Recompute activations in the backward pass instead of storing them.
+    /// Recompute activations in the backward pass instead of storing them (tensor-op path).
     pub gradient_checkpointing: bool,
+    /// Memory the fused rollout may keep for its backward pass, MiB; beyond it, states are
+    /// checkpointed every ⌈√T⌉ frames and recomputed.
+    pub state_budget_mib: usize,
     /// The stiffness pass.
     pub stiffness: PassConfig,
     /// The damping pass.
@@ -109,6 +112,7 @@ impl Default for TrainConfig {
             checkpoint_every: 16,
             seed: 0,
             gradient_checkpointing: false,
+            state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
             stiffness: PassConfig {
                 lr: 2.0,
                 clips: ClipPool::LowVelocity,

@@ -1,7 +1,9 @@
-//! CPU kernels of the fused spring-force op: plain Rust over slices, clips in parallel.
+//! CPU kernels of the fused ops: plain Rust over slices, SIMD across clips.
 //!
-//! Layouts are row-major: states `[B, P, 3]`, per-spring values `[S]`. For spring
-//! `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`, `L = |d|`:
+//! Tensors arrive row-major, states `[B, P, 3]` and per-spring values `[S]`. Each kernel
+//! works on chunks of `L` clips re-laid out as `[P·3][L]` ("lanes"), so that one pass over the
+//! springs computes `L` clips at once in SIMD registers (L = 8 with AVX2, 4 otherwise); chunks
+//! run in parallel. For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`, `L = |d|`:
 //!
 //! forward (Eq. 4, Eq. 2): `f_s = c_s d`, `c_s = k_s (1 − l0_s/L) + b_s (w·d)/L²`;
 //! `F_a += f_s`, `F_b −= f_s`.
@@ -11,97 +13,384 @@
 //! - `∂ℓ/∂d = c g + (g·d) ∂c/∂d`, `∂c/∂d = k l0 d/L³ + b (w/L² − 2 (w·d) d/L⁴)`;
 //! - `∂ℓ/∂w = (g·d) b d/L²`;
 //! - `∂ℓ/∂x_b += ∂ℓ/∂d`, `∂ℓ/∂x_a −= ∂ℓ/∂d`, and the same for `v` with `∂ℓ/∂w`.
+//!
+//! The fused step adds semi-implicit Euler (Eq. 5) and the pins:
+//! `f = S(x, v) + m g − c v`, `v'' = v + h/m f`, `x'' = x + h v''`, then pinned particles take
+//! their prescribed `x̂`, `v̂`. Its backward, given `(∂ℓ/∂x', ∂ℓ/∂v', ∂ℓ/∂f)`:
+//! `ḡx'' = free ∂ℓ/∂x'`, `ḡv'' = free ∂ℓ/∂v' + h ḡx''`, `G = ∂ℓ/∂f + h/m ḡv''`, then
+//! `∂ℓ/∂x = ḡx'' + S_xᵀ G`, `∂ℓ/∂v = ḡv'' − c G + S_vᵀ G`, and `∂ℓ/∂k`, `∂ℓ/∂b` from `G`.
 
 use num_traits::Float;
 use rayon::prelude::*;
 
 use super::HostGraph;
 
-type V3<T> = [T; 3];
-
-#[inline(always)]
-fn sub<T: Float>(a: V3<T>, b: V3<T>) -> V3<T> {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-#[inline(always)]
-fn dot<T: Float>(a: V3<T>, b: V3<T>) -> T {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-/// Views a `[P·3]` slice as `P` points.
-#[inline(always)]
-fn points<T>(s: &[T]) -> &[V3<T>] {
-    let (pts, rest) = s.as_chunks::<3>();
-    debug_assert!(rest.is_empty());
-    pts
-}
-
-#[inline(always)]
-fn points_mut<T>(s: &mut [T]) -> &mut [V3<T>] {
-    let (pts, rest) = s.as_chunks_mut::<3>();
-    debug_assert!(rest.is_empty());
-    pts
+/// Constants of one integration step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepParams {
+    /// Step `h`, s.
+    pub h: f64,
+    /// Particle mass `m`, kg.
+    pub mass: f64,
+    /// Rayleigh constant `c`, N·s/m.
+    pub rayleigh: f64,
+    /// Gravity, m/s².
+    pub gravity: [f64; 3],
 }
 
 /// The springs with checked indices, so that the loops can skip bounds checks.
-struct Springs<'a, T> {
+pub(super) struct Springs<'a, T> {
     ends: &'a [(u32, u32)],
     l0: Vec<T>,
-    particles: usize,
 }
 
 impl<'a, T: Float> Springs<'a, T> {
-    fn new(g: &'a HostGraph) -> Self {
+    pub(super) fn new(g: &'a HostGraph) -> Self {
         Self {
             ends: &g.ends,
-            l0: g.rest_length.iter().map(|&l| T::from(l).expect("float")).collect(),
-            particles: g.particles,
+            l0: g
+                .rest_length
+                .iter()
+                .map(|&l| T::from(l).expect("float"))
+                .collect(),
         }
     }
+}
 
-    /// `(a, b, l0)` of spring `s`. Endpoints were checked against `particles` when the graph
-    /// was built, and every state slice is checked to hold `particles` points.
-    #[inline(always)]
-    fn get(&self, s: usize) -> (usize, usize, T) {
-        let (a, b) = self.ends[s];
-        (a as usize, b as usize, self.l0[s])
+pub(super) type Lane<T, const L: usize> = [T; L];
+
+/// `[B, P·3]` rows of clips `first..first + L` as `[P·3][L]` (clips past the batch repeat the
+/// last one, and their results are dropped).
+pub(super) fn interleave<T: Copy, const L: usize>(
+    src: &[T],
+    stride: usize,
+    first: usize,
+    batch: usize,
+    dst: &mut Vec<Lane<T, L>>,
+) {
+    dst.clear();
+    dst.reserve(stride);
+    let rows: [&[T]; L] = std::array::from_fn(|l| {
+        let c = (first + l).min(batch - 1);
+        &src[c * stride..(c + 1) * stride]
+    });
+    for i in 0..stride {
+        dst.push(std::array::from_fn(|l| rows[l][i]));
+    }
+}
+
+/// Writes the valid lanes of `[P·3][L]` back to `[n, P·3]` rows.
+pub(super) fn deinterleave<T: Copy, const L: usize>(
+    src: &[Lane<T, L>],
+    stride: usize,
+    dst: &mut [T],
+) {
+    for (l, row) in dst.chunks_mut(stride).enumerate() {
+        for (i, out) in row.iter_mut().enumerate() {
+            *out = src[i][l];
+        }
+    }
+}
+
+/// Accumulates the spring forces of one chunk into `out` (`[P·3][L]`).
+///
+/// # Safety
+/// `x`, `v` and `out` hold `3 · sp.particles` lanes, `k` and `b` one value per spring.
+#[inline(always)]
+unsafe fn chunk_forces<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    out: &mut [Lane<T, L>],
+) {
+    for (s, &(a, bb)) in sp.ends.iter().enumerate() {
+        let (a, bb) = (3 * a as usize, 3 * bb as usize);
+        // SAFETY: endpoints < particles (HostGraph::new) and the caller's length contract.
+        unsafe {
+            let (ks, bs, l0) = (
+                *k.get_unchecked(s),
+                *b.get_unchecked(s),
+                *sp.l0.get_unchecked(s),
+            );
+            let mut d = [[T::zero(); L]; 3];
+            let mut w = [[T::zero(); L]; 3];
+            for c in 0..3 {
+                let (xa, xb) = (x.get_unchecked(a + c), x.get_unchecked(bb + c));
+                let (va, vb) = (v.get_unchecked(a + c), v.get_unchecked(bb + c));
+                for l in 0..L {
+                    d[c][l] = xb[l] - xa[l];
+                    w[c][l] = vb[l] - va[l];
+                }
+            }
+            let mut coef = [T::zero(); L];
+            for l in 0..L {
+                let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
+                let wd = w[0][l] * d[0][l] + w[1][l] * d[1][l] + w[2][l] * d[2][l];
+                let inv = T::one() / len2.sqrt();
+                coef[l] = ks * (T::one() - l0 * inv) + bs * wd * inv * inv;
+            }
+            for c in 0..3 {
+                let fa = out.get_unchecked_mut(a + c);
+                for l in 0..L {
+                    fa[l] = fa[l] + coef[l] * d[c][l];
+                }
+                let fb = out.get_unchecked_mut(bb + c);
+                for l in 0..L {
+                    fb[l] = fb[l] - coef[l] * d[c][l];
+                }
+            }
+        }
+    }
+}
+
+/// Back-propagates `gf` (`[P·3][L]`) through the spring forces of one chunk: adds `S_xᵀ gf`
+/// to `gx`, `S_vᵀ gf` to `gv`, and the lane sums of `∂ℓ/∂k`, `∂ℓ/∂b` to `gk`, `gb`.
+///
+/// # Safety
+/// As [`chunk_forces`], and `gk`, `gb` hold one value per spring.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn chunk_backward<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    gf: &[Lane<T, L>],
+    gx: &mut [Lane<T, L>],
+    gv: &mut [Lane<T, L>],
+    gk: &mut [T],
+    gb: &mut [T],
+) {
+    let two = T::one() + T::one();
+    for (s, &(a, bb)) in sp.ends.iter().enumerate() {
+        let (a, bb) = (3 * a as usize, 3 * bb as usize);
+        // SAFETY: as in `chunk_forces`.
+        unsafe {
+            let (ks, bs, l0) = (
+                *k.get_unchecked(s),
+                *b.get_unchecked(s),
+                *sp.l0.get_unchecked(s),
+            );
+            let mut d = [[T::zero(); L]; 3];
+            let mut w = [[T::zero(); L]; 3];
+            let mut g = [[T::zero(); L]; 3];
+            for c in 0..3 {
+                let (xa, xb) = (x.get_unchecked(a + c), x.get_unchecked(bb + c));
+                let (va, vb) = (v.get_unchecked(a + c), v.get_unchecked(bb + c));
+                let (ga, gbb) = (gf.get_unchecked(a + c), gf.get_unchecked(bb + c));
+                for l in 0..L {
+                    d[c][l] = xb[l] - xa[l];
+                    w[c][l] = vb[l] - va[l];
+                    g[c][l] = ga[l] - gbb[l];
+                }
+            }
+            let (mut coef, mut gd, mut a1, mut a2) = (
+                [T::zero(); L],
+                [T::zero(); L],
+                [T::zero(); L],
+                [T::zero(); L],
+            );
+            let (mut dk, mut db) = (T::zero(), T::zero());
+            for l in 0..L {
+                let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
+                let wd = w[0][l] * d[0][l] + w[1][l] * d[1][l] + w[2][l] * d[2][l];
+                let gdl = g[0][l] * d[0][l] + g[1][l] * d[1][l] + g[2][l] * d[2][l];
+                let inv = T::one() / len2.sqrt();
+                let inv2 = inv * inv;
+                let stretch = T::one() - l0 * inv;
+                coef[l] = ks * stretch + bs * wd * inv2;
+                gd[l] = gdl;
+                dk = dk + gdl * stretch;
+                db = db + gdl * wd * inv2;
+                a1[l] = ks * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
+                a2[l] = bs * inv2;
+            }
+            *gk.get_unchecked_mut(s) = *gk.get_unchecked(s) + dk;
+            *gb.get_unchecked_mut(s) = *gb.get_unchecked(s) + db;
+            for c in 0..3 {
+                // ∂ℓ/∂d = c g + (g·d)(a1 d + a2 w); ∂ℓ/∂w = (g·d) a2 d.
+                let mut dd = [T::zero(); L];
+                let mut dw = [T::zero(); L];
+                for l in 0..L {
+                    dd[l] = coef[l] * g[c][l] + gd[l] * (a1[l] * d[c][l] + a2[l] * w[c][l]);
+                    dw[l] = gd[l] * a2[l] * d[c][l];
+                }
+                let gxb = gx.get_unchecked_mut(bb + c);
+                for l in 0..L {
+                    gxb[l] = gxb[l] + dd[l];
+                }
+                let gxa = gx.get_unchecked_mut(a + c);
+                for l in 0..L {
+                    gxa[l] = gxa[l] - dd[l];
+                }
+                let gvb = gv.get_unchecked_mut(bb + c);
+                for l in 0..L {
+                    gvb[l] = gvb[l] + dw[l];
+                }
+                let gva = gv.get_unchecked_mut(a + c);
+                for l in 0..L {
+                    gva[l] = gva[l] - dw[l];
+                }
+            }
+        }
+    }
+}
+
+/// Whether the 8-lane AVX2 kernels may run.
+pub(super) fn wide() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+macro_rules! dispatch_lanes {
+    ($batch:expr, $t:ty, $f:ident, ($($arg:expr),*)) => {{
+        // 8 lanes with AVX2 when there are enough clips to keep both cores busy.
+        if std::mem::size_of::<$t>() == 4 && wide() && $batch >= 16 {
+            $f::<$t, 8>($($arg),*)
+        } else {
+            $f::<$t, 4>($($arg),*)
+        }
+    }};
+}
+
+/// [`chunk_forces`] compiled with AVX2 (used for 8 lanes, after `wide()` said yes).
+///
+/// # Safety
+/// As [`chunk_forces`], and the CPU supports AVX2.
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
+unsafe fn chunk_forces_wide<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    out: &mut [Lane<T, L>],
+) {
+    // SAFETY: forwarded contract.
+    unsafe { chunk_forces(sp, x, v, k, b, out) }
+}
+
+/// [`chunk_backward`] compiled with AVX2.
+///
+/// # Safety
+/// As [`chunk_backward`], and the CPU supports AVX2.
+#[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
+#[allow(clippy::too_many_arguments)]
+unsafe fn chunk_backward_wide<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    gf: &[Lane<T, L>],
+    gx: &mut [Lane<T, L>],
+    gv: &mut [Lane<T, L>],
+    gk: &mut [T],
+    gb: &mut [T],
+) {
+    // SAFETY: forwarded contract.
+    unsafe { chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb) }
+}
+
+/// Spring forces of one chunk, with the AVX2 build of the loop for 8 lanes.
+///
+/// # Safety
+/// As [`chunk_forces`]; `L == 8` only after `wide()` returned true.
+pub(super) unsafe fn run_forces<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    out: &mut [Lane<T, L>],
+) {
+    // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
+    unsafe {
+        if L == 8 {
+            chunk_forces_wide(sp, x, v, k, b, out)
+        } else {
+            chunk_forces(sp, x, v, k, b, out)
+        }
+    }
+}
+
+/// Spring backward of one chunk, with the AVX2 build of the loop for 8 lanes.
+///
+/// # Safety
+/// As [`chunk_backward`]; `L == 8` only after `wide()` returned true.
+#[allow(clippy::too_many_arguments)]
+pub(super) unsafe fn run_backward<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    gf: &[Lane<T, L>],
+    gx: &mut [Lane<T, L>],
+    gv: &mut [Lane<T, L>],
+    gk: &mut [T],
+    gb: &mut [T],
+) {
+    // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
+    unsafe {
+        if L == 8 {
+            chunk_backward_wide(sp, x, v, k, b, gf, gx, gv, gk, gb)
+        } else {
+            chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
+        }
     }
 }
 
 /// Spring forces `[B, P, 3]` into `out` (overwritten).
-pub fn forces<T: Float + Send + Sync>(g: &HostGraph, x: &[T], v: &[T], k: &[T], b: &[T], out: &mut [T]) {
-    let springs = Springs::<T>::new(g);
+pub fn forces<T: Float + Send + Sync>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
+    k: &[T],
+    b: &[T],
+    out: &mut [T],
+) {
     let stride = g.particles * 3;
-    assert!(x.len() == out.len() && v.len() == out.len() && out.len() % stride == 0);
-    assert!(k.len() == g.ends.len() && b.len() == g.ends.len());
-    out.par_chunks_mut(stride)
-        .zip(x.par_chunks(stride).zip(v.par_chunks(stride)))
-        .for_each(|(out, (x, v))| clip_forces(&springs, points(x), points(v), k, b, points_mut(out)));
+    assert!(
+        x.len() == out.len() && v.len() == out.len() && out.len() % stride == 0 && !out.is_empty()
+    );
+    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    let batch = out.len() / stride;
+    dispatch_lanes!(batch, T, forces_lanes, (g, x, v, k, b, out))
 }
 
-fn clip_forces<T: Float>(sp: &Springs<T>, x: &[V3<T>], v: &[V3<T>], k: &[T], b: &[T], out: &mut [V3<T>]) {
-    assert!(x.len() == sp.particles && v.len() == sp.particles && out.len() == sp.particles);
-    out.fill([T::zero(); 3]);
-    for s in 0..sp.ends.len() {
-        let (ia, ib, l0) = sp.get(s);
-        // SAFETY: ia, ib < particles (checked at graph construction) and every slice holds
-        // `particles` points (asserted above).
-        unsafe {
-            let d = sub(*x.get_unchecked(ib), *x.get_unchecked(ia));
-            let w = sub(*v.get_unchecked(ib), *v.get_unchecked(ia));
-            let inv = T::one() / dot(d, d).sqrt();
-            let c = *k.get_unchecked(s) * (T::one() - l0 * inv) + *b.get_unchecked(s) * dot(w, d) * inv * inv;
-            let fa = out.get_unchecked_mut(ia);
-            for i in 0..3 {
-                fa[i] = fa[i] + c * d[i];
-            }
-            let fb = out.get_unchecked_mut(ib);
-            for i in 0..3 {
-                fb[i] = fb[i] - c * d[i];
-            }
-        }
-    }
+#[inline(always)]
+fn forces_lanes<T: Float + Send + Sync, const L: usize>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
+    k: &[T],
+    b: &[T],
+    out: &mut [T],
+) {
+    let sp = Springs::<T>::new(g);
+    let stride = g.particles * 3;
+    let batch = out.len() / stride;
+    out.par_chunks_mut(L * stride)
+        .enumerate()
+        .for_each(|(ch, out)| {
+            let (mut xs, mut vs) = (Vec::new(), Vec::new());
+            interleave::<T, L>(x, stride, ch * L, batch, &mut xs);
+            interleave::<T, L>(v, stride, ch * L, batch, &mut vs);
+            let mut acc = vec![[T::zero(); L]; stride];
+            // SAFETY: every lane buffer holds `stride` = 3P lanes; k, b hold S values (asserted).
+            unsafe { run_forces(&sp, &xs, &vs, k, b, &mut acc) };
+            deinterleave(&acc, stride, out);
+        });
 }
 
 /// Gradients of the spring forces: `gx`, `gv` `[B, P, 3]` (overwritten) and `gk`, `gb` `[S]`
@@ -119,94 +408,263 @@ pub fn forces_backward<T: Float + Send + Sync>(
     gk: &mut [T],
     gb: &mut [T],
 ) {
-    let springs = Springs::<T>::new(g);
     let stride = g.particles * 3;
-    let s_count = g.ends.len();
-    assert!(x.len() == gx.len() && v.len() == gx.len() && grad.len() == gx.len() && gv.len() == gx.len());
-    assert!(gx.len() % stride == 0 && k.len() == s_count && b.len() == s_count);
-    assert!(gk.len() == s_count && gb.len() == s_count);
-    let partial = gx
-        .par_chunks_mut(stride)
-        .zip(gv.par_chunks_mut(stride))
-        .zip(x.par_chunks(stride).zip(v.par_chunks(stride)).zip(grad.par_chunks(stride)))
-        .fold(
-            || vec![T::zero(); 2 * s_count],
-            |mut acc, ((gx, gv), ((x, v), grad))| {
-                let (pk, pb) = acc.split_at_mut(s_count);
-                let states = (points(x), points(v), points(grad));
-                clip_backward(&springs, states, k, b, points_mut(gx), points_mut(gv), pk, pb);
-                acc
-            },
-        )
-        .reduce(
-            || vec![T::zero(); 2 * s_count],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(b) {
-                    *x = *x + y;
-                }
-                a
-            },
-        );
-    gk.copy_from_slice(&partial[..s_count]);
-    gb.copy_from_slice(&partial[s_count..]);
+    let n = gx.len();
+    assert!(
+        x.len() == n
+            && v.len() == n
+            && grad.len() == n
+            && gv.len() == n
+            && n % stride == 0
+            && n > 0
+    );
+    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    assert!(gk.len() == g.num_springs() && gb.len() == g.num_springs());
+    let no_step = None;
+    dispatch_lanes!(
+        n / stride,
+        T,
+        backward_lanes,
+        (g, x, v, k, b, no_step, grad, gx, gv, gk, gb)
+    )
 }
 
-type States<'a, T> = (&'a [V3<T>], &'a [V3<T>], &'a [V3<T>]);
+/// Step inputs that are data, not parameters: pin flags `[B, P]` (1 = pinned) and the pinned
+/// particles' prescribed positions and velocities `[B, P, 3]`.
+#[derive(Clone, Copy)]
+pub struct Pins<'a, T> {
+    /// 1 for pinned particles, `[B, P]`.
+    pub pinned: &'a [T],
+    /// Prescribed positions `[B, P, 3]`.
+    pub x: &'a [T],
+    /// Prescribed velocities `[B, P, 3]`.
+    pub v: &'a [T],
+}
 
+/// One fused semi-implicit Euler step: writes `x'`, `v'` and the net force `f` `[B, P, 3]`.
 #[allow(clippy::too_many_arguments)]
-fn clip_backward<T: Float>(
-    sp: &Springs<T>,
-    (x, v, grad): States<T>,
+pub fn step<T: Float + Send + Sync>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
     k: &[T],
     b: &[T],
-    gx: &mut [V3<T>],
-    gv: &mut [V3<T>],
+    pins: Pins<T>,
+    params: StepParams,
+    out: &mut [T],
+) {
+    let stride = g.particles * 3;
+    let n = x.len();
+    assert!(v.len() == n && pins.x.len() == n && pins.v.len() == n && pins.pinned.len() * 3 == n);
+    assert!(out.len() == 3 * n && n % stride == 0 && n > 0);
+    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    dispatch_lanes!(
+        n / stride,
+        T,
+        step_lanes,
+        (g, x, v, k, b, pins, params, out)
+    )
+}
+
+pub(super) fn cast<T: Float>(v: f64) -> T {
+    T::from(v).expect("float")
+}
+
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn step_lanes<T: Float + Send + Sync, const L: usize>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
+    k: &[T],
+    b: &[T],
+    pins: Pins<T>,
+    params: StepParams,
+    out: &mut [T],
+) {
+    let sp = Springs::<T>::new(g);
+    let stride = g.particles * 3;
+    let n = x.len();
+    let batch = n / stride;
+    let (h, hm, c) = (
+        cast::<T>(params.h),
+        cast::<T>(params.h / params.mass),
+        cast::<T>(params.rayleigh),
+    );
+    let mg: [T; 3] = params.gravity.map(|a| cast::<T>(a * params.mass));
+    let (ox, rest) = out.split_at_mut(n);
+    let (ov, of) = rest.split_at_mut(n);
+    ox.par_chunks_mut(L * stride)
+        .zip(
+            ov.par_chunks_mut(L * stride)
+                .zip(of.par_chunks_mut(L * stride)),
+        )
+        .enumerate()
+        .for_each(|(ch, (ox, (ov, of)))| {
+            let (mut xs, mut vs) = (Vec::new(), Vec::new());
+            interleave::<T, L>(x, stride, ch * L, batch, &mut xs);
+            interleave::<T, L>(v, stride, ch * L, batch, &mut vs);
+            let mut f = vec![[T::zero(); L]; stride];
+            // SAFETY: lane buffers hold 3P lanes; k, b hold S values (asserted by `step`).
+            unsafe { run_forces(&sp, &xs, &vs, k, b, &mut f) };
+            let clips = ox.len() / stride;
+            for l in 0..clips {
+                let clip = ch * L + l;
+                let row = clip * stride;
+                for i in 0..stride {
+                    let fi = f[i][l] + mg[i % 3] - c * vs[i][l];
+                    let vn = vs[i][l] + hm * fi;
+                    let xn = xs[i][l] + h * vn;
+                    let pinned = pins.pinned[clip * g.particles + i / 3] > T::zero();
+                    let o = l * stride + i;
+                    of[o] = fi;
+                    if pinned {
+                        ox[o] = pins.x[row + i];
+                        ov[o] = pins.v[row + i];
+                    } else {
+                        ox[o] = xn;
+                        ov[o] = vn;
+                    }
+                }
+            }
+        });
+}
+
+/// Gradients of [`step`]: given `gout = (∂ℓ/∂x', ∂ℓ/∂v', ∂ℓ/∂f)` stacked `[3, B, P, 3]`, writes
+/// `∂ℓ/∂x`, `∂ℓ/∂v` `[B, P, 3]` and `∂ℓ/∂k`, `∂ℓ/∂b` `[S]`.
+#[allow(clippy::too_many_arguments)]
+pub fn step_backward<T: Float + Send + Sync>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
+    k: &[T],
+    b: &[T],
+    pinned: &[T],
+    params: StepParams,
+    gout: &[T],
+    gx: &mut [T],
+    gv: &mut [T],
     gk: &mut [T],
     gb: &mut [T],
 ) {
-    let n = sp.particles;
-    assert!(x.len() == n && v.len() == n && grad.len() == n && gx.len() == n && gv.len() == n);
-    assert!(gk.len() == sp.ends.len() && gb.len() == sp.ends.len());
-    gx.fill([T::zero(); 3]);
-    gv.fill([T::zero(); 3]);
-    let two = T::one() + T::one();
-    for s in 0..sp.ends.len() {
-        let (ia, ib, l0) = sp.get(s);
-        // SAFETY: as in `clip_forces`; s < S = k.len() = b.len() = gk.len() = gb.len().
-        unsafe {
-            let d = sub(*x.get_unchecked(ib), *x.get_unchecked(ia));
-            let w = sub(*v.get_unchecked(ib), *v.get_unchecked(ia));
-            let gs = sub(*grad.get_unchecked(ia), *grad.get_unchecked(ib));
-            let (ks, bs) = (*k.get_unchecked(s), *b.get_unchecked(s));
-            let inv = T::one() / dot(d, d).sqrt();
-            let inv2 = inv * inv;
-            let wd = dot(w, d);
-            let gd = dot(gs, d);
-            let stretch = T::one() - l0 * inv;
-            let c = ks * stretch + bs * wd * inv2;
-            *gk.get_unchecked_mut(s) = *gk.get_unchecked(s) + gd * stretch;
-            *gb.get_unchecked_mut(s) = *gb.get_unchecked(s) + gd * wd * inv2;
-            let a1 = ks * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
-            let a2 = bs * inv2;
-            // ∂ℓ/∂d = c g + (g·d)(a1 d + a2 w); ∂ℓ/∂w = (g·d) a2 d.
-            let dd = [0, 1, 2].map(|i| c * gs[i] + gd * (a1 * d[i] + a2 * w[i]));
-            let dw = [0, 1, 2].map(|i| gd * a2 * d[i]);
-            let gxb = gx.get_unchecked_mut(ib);
-            for i in 0..3 {
-                gxb[i] = gxb[i] + dd[i];
+    let stride = g.particles * 3;
+    let n = x.len();
+    assert!(
+        v.len() == n
+            && gx.len() == n
+            && gv.len() == n
+            && pinned.len() * 3 == n
+            && gout.len() == 3 * n
+    );
+    assert!(n % stride == 0 && n > 0);
+    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    assert!(gk.len() == g.num_springs() && gb.len() == g.num_springs());
+    let step = Some((pinned, params));
+    dispatch_lanes!(
+        n / stride,
+        T,
+        backward_lanes,
+        (g, x, v, k, b, step, gout, gx, gv, gk, gb)
+    )
+}
+
+type StepInfo<'a, T> = Option<(&'a [T], StepParams)>;
+
+/// The backward of the spring forces (`step = None`, `grad` = `∂ℓ/∂F` `[B, P, 3]`) or of a
+/// whole step (`step = Some((pinned, params))`, `grad` = `[3, B, P, 3]`).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn backward_lanes<T: Float + Send + Sync, const L: usize>(
+    g: &HostGraph,
+    x: &[T],
+    v: &[T],
+    k: &[T],
+    b: &[T],
+    step: StepInfo<T>,
+    grad: &[T],
+    gx: &mut [T],
+    gv: &mut [T],
+    gk: &mut [T],
+    gb: &mut [T],
+) {
+    let sp = Springs::<T>::new(g);
+    let stride = g.particles * 3;
+    let n = x.len();
+    let batch = n / stride;
+    let s_count = g.num_springs();
+    let partials: Vec<Vec<T>> = gx
+        .par_chunks_mut(L * stride)
+        .zip(gv.par_chunks_mut(L * stride))
+        .enumerate()
+        .map(|(ch, (gx, gv))| {
+            let (mut xs, mut vs, mut gfs) = (Vec::new(), Vec::new(), Vec::new());
+            interleave::<T, L>(x, stride, ch * L, batch, &mut xs);
+            interleave::<T, L>(v, stride, ch * L, batch, &mut vs);
+            let clips = gx.len() / stride;
+            let mut acc_x = vec![[T::zero(); L]; stride];
+            let mut acc_v = vec![[T::zero(); L]; stride];
+            match step {
+                None => interleave::<T, L>(grad, stride, ch * L, batch, &mut gfs),
+                Some((pinned, params)) => {
+                    // ḡx'' = free ∂ℓ/∂x', ḡv'' = free ∂ℓ/∂v' + h ḡx'', G = ∂ℓ/∂f + h/m ḡv''.
+                    let (h, hm) = (cast::<T>(params.h), cast::<T>(params.h / params.mass));
+                    let (gxo, rest) = grad.split_at(n);
+                    let (gvo, gfo) = rest.split_at(n);
+                    gfs.resize(stride, [T::zero(); L]);
+                    for l in 0..clips {
+                        let clip = ch * L + l;
+                        let row = clip * stride;
+                        for i in 0..stride {
+                            let free = pinned[clip * g.particles + i / 3] <= T::zero();
+                            let (gxx, gvv) = if free {
+                                let gxx = gxo[row + i];
+                                (gxx, gvo[row + i] + h * gxx)
+                            } else {
+                                (T::zero(), T::zero())
+                            };
+                            gfs[i][l] = gfo[row + i] + hm * gvv;
+                            acc_x[i][l] = gxx;
+                            acc_v[i][l] = gvv;
+                        }
+                    }
+                }
             }
-            let gxa = gx.get_unchecked_mut(ia);
-            for i in 0..3 {
-                gxa[i] = gxa[i] - dd[i];
+            let mut pk = vec![T::zero(); 2 * s_count];
+            let (pk_k, pk_b) = pk.split_at_mut(s_count);
+            if clips < L {
+                // Padding lanes repeat the last clip: zero their upstream gradient.
+                for lane in gfs.iter_mut() {
+                    for value in lane.iter_mut().skip(clips) {
+                        *value = T::zero();
+                    }
+                }
             }
-            let gvb = gv.get_unchecked_mut(ib);
-            for i in 0..3 {
-                gvb[i] = gvb[i] + dw[i];
+            // SAFETY: lane buffers hold 3P lanes; k, b, pk_k, pk_b hold S values.
+            unsafe {
+                run_backward(
+                    &sp, &xs, &vs, k, b, &gfs, &mut acc_x, &mut acc_v, pk_k, pk_b,
+                )
+            };
+            if let Some((_, params)) = step {
+                // ∂ℓ/∂v gets −c G from the Rayleigh force.
+                let c = cast::<T>(params.rayleigh);
+                for i in 0..stride {
+                    for l in 0..L {
+                        acc_v[i][l] = acc_v[i][l] - c * gfs[i][l];
+                    }
+                }
             }
-            let gva = gv.get_unchecked_mut(ia);
-            for i in 0..3 {
-                gva[i] = gva[i] - dw[i];
-            }
+            deinterleave(&acc_x, stride, gx);
+            deinterleave(&acc_v, stride, gv);
+            pk
+        })
+        .collect();
+    gk.fill(T::zero());
+    gb.fill(T::zero());
+    for p in partials {
+        for s in 0..s_count {
+            gk[s] = gk[s] + p[s];
+            gb[s] = gb[s] + p[s_count + s];
         }
     }
 }

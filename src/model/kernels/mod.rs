@@ -2,24 +2,31 @@
 //! every clip in one kernel, with a hand-written backward registered with Burn's autodiff
 //! through a backend extension.
 //!
-//! Backends: `Flex` and `NdArray` run the CPU kernels of [`cpu`] (clips in parallel);
-//! `Autodiff<B>` records one node whose backward is the fused backward kernel of `B`. The
-//! reference implementation made of Burn tensor ops is [`super::springs::spring_forces_reference`];
-//! the tests compare the two.
+//! Three ops, from small to whole: [`spring_forces`] (Eqs. 2, 4), [`cloth_step`] (one
+//! semi-implicit Euler step, Eq. 5, with pins) and [`rollout_loss`] (a batch of clips rolled out
+//! and scored by Eqs. 7–10, with the adjoint of the integrator as its backward).
+//!
+//! Backends: `Flex` and `NdArray` run the CPU kernels of [`cpu`] and [`rollout`] (SIMD across
+//! clips, chunks of clips in parallel; `host.rs`); `Autodiff<B>` records one node per op whose
+//! backward is the matching hand-written kernel of `B` (`autodiff.rs`). The tensor-op versions
+//! ([`super::springs::spring_forces_reference`], [`crate::sim::rollout`] with
+//! [`super::Kernel::Reference`]) are the references the tests compare against.
 // The NdArray backend is deprecated upstream; the design card keeps it for tests.
 #![allow(deprecated)]
 
+mod autodiff;
 pub mod cpu;
+mod host;
+pub mod rollout;
+
+pub use cpu::StepParams;
+pub use rollout::RolloutParams;
 
 use std::sync::Arc;
 
-use burn::backend::autodiff::Autodiff;
-use burn::backend::autodiff::checkpoint::{base::Checkpointer, strategy::CheckpointStrategy};
-use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
-use burn::tensor::{DType, Tensor, TensorData};
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
 
 /// The spring network on the host, shared by every call of the fused op.
 ///
@@ -42,7 +49,10 @@ impl HostGraph {
         let ends = ends
             .iter()
             .map(|&[a, b]| {
-                assert!(a < particles && b < particles, "spring ({a}, {b}) outside {particles} particles");
+                assert!(
+                    a < particles && b < particles,
+                    "spring ({a}, {b}) outside {particles} particles"
+                );
                 (a as u32, b as u32)
             })
             .collect();
@@ -87,6 +97,54 @@ pub trait SpringBackend: Backend {
         grad: FloatTensor<Self>,
         graph: Arc<HostGraph>,
     ) -> SpringGrads<Self>;
+
+    /// One semi-implicit Euler step with spring forces, gravity, Rayleigh damping and pins
+    /// (see [`cpu`]): returns `x'`, `v'` and the net force `f` stacked as `[3, B, P, 3]`.
+    /// `pinned` is `[B, P, 1]` (1 = pinned), `pin_x`, `pin_v` `[B, P, 3]` are the pinned
+    /// particles' prescribed state after the step; they are data (no gradient flows to them).
+    #[allow(clippy::too_many_arguments)]
+    fn cloth_step(
+        x: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        pinned: FloatTensor<Self>,
+        pin_x: FloatTensor<Self>,
+        pin_v: FloatTensor<Self>,
+        graph: Arc<HostGraph>,
+        params: StepParams,
+    ) -> FloatTensor<Self>;
+
+    /// A whole batch of clips rolled out and scored in one op (see [`rollout`]): returns
+    /// `[L_f, L_J, L_x]`. `x0`, `v0`: `[B, P, 3]`; `pinned`: `[B, P, 1]`; `path`: target
+    /// positions `[B, T + 1, P, 3]`; `target`: target forces `[B, T, P, 3]`. Only `k` and `b`
+    /// receive gradients; the rest is data.
+    #[allow(clippy::too_many_arguments)]
+    fn rollout_loss(
+        x0: FloatTensor<Self>,
+        v0: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        pinned: FloatTensor<Self>,
+        path: FloatTensor<Self>,
+        target: FloatTensor<Self>,
+        graph: Arc<HostGraph>,
+        params: RolloutParams,
+    ) -> FloatTensor<Self>;
+
+    /// The vector-Jacobian product of [`cloth_step`](Self::cloth_step) for `x`, `v`, `k`, `b`,
+    /// given `grad = ∂ℓ/∂(x', v', f)` `[3, B, P, 3]`.
+    #[allow(clippy::too_many_arguments)]
+    fn cloth_step_backward(
+        x: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        pinned: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        graph: Arc<HostGraph>,
+        params: StepParams,
+    ) -> SpringGrads<Self>;
 }
 
 /// Gradients of the fused op.
@@ -119,246 +177,101 @@ pub fn spring_forces(
     ))
 }
 
-/// Host data of a float tensor primitive, as `f32` or `f64` values.
-enum HostData {
-    F32(Vec<f32>),
-    F64(Vec<f64>),
-}
-
-fn host<B: Backend>(t: FloatTensor<B>) -> HostData {
-    let data: TensorData =
-        burn::tensor::read_sync(B::float_into_data(t)).expect("tensor data is readable");
-    match data.dtype() {
-        DType::F64 => HostData::F64(data.try_into_vec_as::<f64>().expect("f64 data")),
-        _ => HostData::F32(data.try_into_vec_as::<f32>().expect("f32 data")),
-    }
-}
-
-fn host_as<B: Backend>(t: FloatTensor<B>, f64s: bool) -> HostData {
-    match (host::<B>(t), f64s) {
-        (HostData::F32(v), true) => HostData::F64(v.into_iter().map(f64::from).collect()),
-        (HostData::F64(v), false) => HostData::F32(v.into_iter().map(|x| x as f32).collect()),
-        (d, _) => d,
-    }
-}
-
-fn upload<B: Backend>(data: HostData, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
-    let data = match data {
-        HostData::F32(v) => TensorData::new(v, shape),
-        HostData::F64(v) => TensorData::new(v, shape),
+/// One fused integration step (see [`SpringBackend::cloth_step`]): returns `(x', v', f)`.
+#[allow(clippy::too_many_arguments)]
+pub fn cloth_step(
+    x: Tensor<3>,
+    v: Tensor<3>,
+    k: Tensor<1>,
+    b: Tensor<1>,
+    pinned: Tensor<3>,
+    pin_x: Tensor<3>,
+    pin_v: Tensor<3>,
+    graph: &Arc<HostGraph>,
+    params: StepParams,
+) -> (Tensor<3>, Tensor<3>, Tensor<3>) {
+    let [bsz, p, _] = x.dims();
+    let out: Tensor<4> = Tensor::from_dispatch(<Dispatch as SpringBackend>::cloth_step(
+        x.into_dispatch(),
+        v.into_dispatch(),
+        k.into_dispatch(),
+        b.into_dispatch(),
+        pinned.into_dispatch(),
+        pin_x.into_dispatch(),
+        pin_v.into_dispatch(),
+        graph.clone(),
+        params,
+    ));
+    let part = |i: usize| {
+        out.clone()
+            .slice([i..i + 1, 0..bsz, 0..p, 0..3])
+            .reshape([bsz, p, 3])
     };
-    B::float_from_data(data, device)
+    (part(0), part(1), part(2))
 }
 
-/// The fused forward on any CPU backend, through host slices.
-fn cpu_forces<B: Backend>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
+/// The fused rollout and loss (see [`SpringBackend::rollout_loss`]): `[L_f, L_J, L_x]`.
+#[allow(clippy::too_many_arguments)]
+pub fn rollout_loss(
+    x0: Tensor<3>,
+    v0: Tensor<3>,
+    k: Tensor<1>,
+    b: Tensor<1>,
+    pinned: Tensor<3>,
+    path: Tensor<4>,
+    target: Tensor<4>,
+    graph: &Arc<HostGraph>,
+    params: RolloutParams,
+) -> Tensor<1> {
+    Tensor::from_dispatch(<Dispatch as SpringBackend>::rollout_loss(
+        x0.into_dispatch(),
+        v0.into_dispatch(),
+        k.into_dispatch(),
+        b.into_dispatch(),
+        pinned.into_dispatch(),
+        path.into_dispatch(),
+        target.into_dispatch(),
+        graph.clone(),
+        params,
+    ))
+}
+
+/// The forward tape of a fused rollout, in the precision it ran in.
+#[derive(Debug, Clone)]
+pub enum RolloutTape {
+    /// An f32 rollout.
+    F32(Arc<rollout::Tape<f32>>),
+    /// An f64 rollout.
+    F64(Arc<rollout::Tape<f64>>),
+}
+
+/// The inputs of a fused rollout, kept for its backward.
+#[derive(Debug, Clone)]
+pub struct RolloutInputs<B: Backend> {
+    x0: FloatTensor<B>,
+    v0: FloatTensor<B>,
     k: FloatTensor<B>,
     b: FloatTensor<B>,
-    graph: &HostGraph,
-) -> FloatTensor<B> {
-    let shape = x.shape().to_vec();
-    let device = x.device();
-    let f64s = x.dtype() == DType::F64;
-    let out = match (
-        host_as::<B>(x, f64s),
-        host_as::<B>(v, f64s),
-        host_as::<B>(k, f64s),
-        host_as::<B>(b, f64s),
-    ) {
-        (HostData::F32(x), HostData::F32(v), HostData::F32(k), HostData::F32(b)) => {
-            let mut out = vec![0f32; x.len()];
-            cpu::forces(graph, &x, &v, &k, &b, &mut out);
-            HostData::F32(out)
-        }
-        (HostData::F64(x), HostData::F64(v), HostData::F64(k), HostData::F64(b)) => {
-            let mut out = vec![0f64; x.len()];
-            cpu::forces(graph, &x, &v, &k, &b, &mut out);
-            HostData::F64(out)
-        }
-        _ => unreachable!("inputs converted to one precision"),
-    };
-    upload::<B>(out, shape, &device)
+    pinned: FloatTensor<B>,
+    path: FloatTensor<B>,
+    target: FloatTensor<B>,
 }
 
-/// The fused backward on any CPU backend, through host slices.
-fn cpu_backward<B: Backend>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    grad: FloatTensor<B>,
-    graph: &HostGraph,
-) -> SpringGrads<B> {
-    let shape = x.shape().to_vec();
-    let device = x.device();
-    let s = graph.num_springs();
-    let f64s = x.dtype() == DType::F64;
-    let h = |t| host_as::<B>(t, f64s);
-    macro_rules! run {
-        ($x:expr, $v:expr, $k:expr, $b:expr, $g:expr, $ty:ty, $wrap:ident) => {{
-            let (mut gx, mut gv) = (vec![0 as $ty; $x.len()], vec![0 as $ty; $x.len()]);
-            let (mut gk, mut gb) = (vec![0 as $ty; s], vec![0 as $ty; s]);
-            cpu::forces_backward(
-                graph, &$x, &$v, &$k, &$b, &$g, &mut gx, &mut gv, &mut gk, &mut gb,
-            );
-            (
-                HostData::$wrap(gx),
-                HostData::$wrap(gv),
-                HostData::$wrap(gk),
-                HostData::$wrap(gb),
-            )
-        }};
-    }
-    let (gx, gv, gk, gb) = match (h(x), h(v), h(k), h(b), h(grad)) {
-        (
-            HostData::F32(x),
-            HostData::F32(v),
-            HostData::F32(k),
-            HostData::F32(b),
-            HostData::F32(g),
-        ) => {
-            run!(x, v, k, b, g, f32, F32)
-        }
-        (
-            HostData::F64(x),
-            HostData::F64(v),
-            HostData::F64(k),
-            HostData::F64(b),
-            HostData::F64(g),
-        ) => {
-            run!(x, v, k, b, g, f64, F64)
-        }
-        _ => unreachable!("inputs converted to one precision"),
-    };
-    SpringGrads {
-        x: upload::<B>(gx, shape.clone(), &device),
-        v: upload::<B>(gv, shape, &device),
-        k: upload::<B>(gk, vec![s], &device),
-        b: upload::<B>(gb, vec![s], &device),
-    }
-}
+/// Host-side halves of the fused rollout, which the autodiff wrapper calls separately.
+pub trait RolloutKernels: Backend {
+    /// Forward: the losses `[3]` and the tape for the backward.
+    fn rollout_forward(
+        inputs: &RolloutInputs<Self>,
+        graph: &HostGraph,
+        params: RolloutParams,
+    ) -> (FloatTensor<Self>, RolloutTape);
 
-impl SpringBackend for burn::backend::Flex {
-    fn spring_forces(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> FloatTensor<Self> {
-        cpu_forces::<Self>(x, v, k, b, &graph)
-    }
-
-    fn spring_forces_backward(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> SpringGrads<Self> {
-        cpu_backward::<Self>(x, v, k, b, grad, &graph)
-    }
-}
-
-#[allow(deprecated)]
-impl SpringBackend for burn::backend::NdArray {
-    fn spring_forces(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> FloatTensor<Self> {
-        cpu_forces::<Self>(x, v, k, b, &graph)
-    }
-
-    fn spring_forces_backward(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> SpringGrads<Self> {
-        cpu_backward::<Self>(x, v, k, b, grad, &graph)
-    }
-}
-
-#[derive(Debug)]
-struct SpringForcesBackward;
-
-impl<B: SpringBackend> Backward<B, 4> for SpringForcesBackward {
-    type State = (
-        FloatTensor<B>,
-        FloatTensor<B>,
-        FloatTensor<B>,
-        FloatTensor<B>,
-        Arc<HostGraph>,
-    );
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, 4>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let [node_x, node_v, node_k, node_b] = ops.parents;
-        let grad = grads.consume::<B>(&ops.node);
-        let (x, v, k, b, graph) = ops.state;
-        let g = B::spring_forces_backward(x, v, k, b, grad, graph);
-        for (node, value) in [(node_x, g.x), (node_v, g.v), (node_k, g.k), (node_b, g.b)] {
-            if let Some(node) = node {
-                grads.register::<B>(node.id, value);
-            }
-        }
-    }
-}
-
-impl<B: SpringBackend, C: CheckpointStrategy> SpringBackend for Autodiff<B, C> {
-    fn spring_forces(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> FloatTensor<Self> {
-        match SpringForcesBackward
-            .prepare::<C>([x.node(), v.node(), k.node(), b.node()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let (x, v, k, b) = (
-                    x.into_primitive(),
-                    v.into_primitive(),
-                    k.into_primitive(),
-                    b.into_primitive(),
-                );
-                let out =
-                    B::spring_forces(x.clone(), v.clone(), k.clone(), b.clone(), graph.clone());
-                prep.finish((x, v, k, b, graph), out)
-            }
-            OpsKind::UnTracked(prep) => prep.finish(B::spring_forces(
-                x.into_primitive(),
-                v.into_primitive(),
-                k.into_primitive(),
-                b.into_primitive(),
-                graph,
-            )),
-        }
-    }
-
-    fn spring_forces_backward(
-        _x: FloatTensor<Self>,
-        _v: FloatTensor<Self>,
-        _k: FloatTensor<Self>,
-        _b: FloatTensor<Self>,
-        _grad: FloatTensor<Self>,
-        _graph: Arc<HostGraph>,
-    ) -> SpringGrads<Self> {
-        unimplemented!("the backward of the fused op is not itself differentiable")
-    }
+    /// Backward: `(∂ℓ/∂k, ∂ℓ/∂b)` for `ℓ = w · losses`.
+    fn rollout_backward(
+        inputs: &RolloutInputs<Self>,
+        graph: &HostGraph,
+        params: RolloutParams,
+        tape: &RolloutTape,
+        w: [f64; 3],
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
