@@ -42,6 +42,9 @@ pub struct SpringGraph {
     /// Which implementation [`spring_forces`] uses.
     #[module(skip)]
     pub kernel: Kernel,
+    /// Whether the device runs the host (CPU) kernels: the fused step and rollout exist there.
+    #[module(skip)]
+    pub on_host: bool,
 }
 
 impl SpringGraph {
@@ -68,6 +71,7 @@ impl SpringGraph {
                 topology.num_particles(),
             )),
             kernel: Kernel::Fused,
+            on_host: runs_host_kernels(device),
         }
     }
 }
@@ -80,8 +84,29 @@ impl SpringGraph {
 /// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
 /// to zero by construction (Newton's third law).
 ///
+/// Whether `device` (with or without autodiff) is a CPU backend with the host kernels.
+pub fn runs_host_kernels(device: &Device) -> bool {
+    use burn::backend::DispatchDevice;
+    matches!(
+        device.clone().inner().as_dispatch(),
+        DispatchDevice::Flex(_) | DispatchDevice::NdArray(_)
+    )
+}
+
+impl SpringGraph {
+    /// Whether the fused spring-force op runs here.
+    pub fn fused_forces(&self) -> bool {
+        self.kernel == Kernel::Fused && self.on_host
+    }
+
+    /// Whether the fused step and rollout ops run here.
+    pub fn fused_rollout(&self) -> bool {
+        self.kernel == Kernel::Fused && self.on_host
+    }
+}
+
 /// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
-/// reference when `graph.kernel` says so.
+/// reference when `graph.kernel` says so (or the device has no fused kernel).
 pub fn spring_forces(
     graph: &SpringGraph,
     x: Tensor<3>,
@@ -89,9 +114,10 @@ pub fn spring_forces(
     k: Tensor<1>,
     b: Tensor<1>,
 ) -> Tensor<3> {
-    match graph.kernel {
-        Kernel::Fused => kernels::spring_forces(x, v, k, b, &graph.host),
-        Kernel::Reference => spring_forces_reference(graph, x, v, k, b),
+    if graph.fused_forces() {
+        kernels::spring_forces(x, v, k, b, &graph.host)
+    } else {
+        spring_forces_reference(graph, x, v, k, b)
     }
 }
 

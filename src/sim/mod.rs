@@ -8,8 +8,8 @@ pub use stability::Stability;
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
+use crate::model::SpringNet;
 use crate::model::kernels::{self, StepParams};
-use crate::model::{Kernel, SpringNet};
 
 /// Standard gravity, m/s², along −z.
 pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];
@@ -131,7 +131,7 @@ pub fn step_frame(
     let pin_v = (next.clone() - here.clone()).mul_scalar(1.0 / physics.frame_dt) * pinned.clone();
     let State { mut x, mut v } = state;
     let mut f_sum: Option<Tensor<3>> = None;
-    let fused = model.graph.kernel == Kernel::Fused;
+    let fused = model.graph.fused_rollout();
     let params = StepParams {
         h,
         mass: physics.mass,

@@ -4,8 +4,8 @@ use burn::tensor::{Tensor, activation::relu};
 use serde::{Deserialize, Serialize};
 
 use crate::data::ClipBatch;
+use crate::model::SpringNet;
 use crate::model::kernels::{self, RolloutParams};
-use crate::model::{Kernel, SpringNet};
 use crate::sim::{self, Drive, Physics};
 
 /// Memory the fused rollout may keep between its forward and backward passes by default, MiB
@@ -130,7 +130,7 @@ pub fn loss_with_budget(
     on: ForceOn,
     budget_mib: usize,
 ) -> LossTerms {
-    if on == ForceOn::Simulated && model.graph.kernel == Kernel::Fused {
+    if on == ForceOn::Simulated && model.graph.fused_rollout() {
         return fused_loss(model, physics, batch, weights, budget_mib);
     }
     let [b, frames, p, _] = batch.positions.dims();
