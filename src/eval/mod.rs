@@ -105,7 +105,8 @@ pub fn motion_curves(
         let first = if r.velocities.is_some() { 0 } else { 1 };
         tracks.push((f.clone(), Track::new(&r, &res), first, r.frame_dt));
     }
-    let total_frames: usize = tracks.iter().map(|t| t.1.frames).sum();
+    // Every rollout is stepped from its first usable frame to its last.
+    let total_frames: usize = tracks.iter().map(|t| t.1.frames - 1 - t.2).sum();
     let bar = progress.bar(total_frames as u64, "eval");
     let mut curves = vec![Vec::new(); tracks.len()];
     let p = topology.num_particles();

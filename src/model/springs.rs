@@ -76,14 +76,6 @@ impl SpringGraph {
     }
 }
 
-/// Internal spring forces on every particle: Eq. 4 for every spring, scattered to the
-/// particles through the signed incidence matrix (Eq. 2).
-///
-/// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
-/// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
-/// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
-/// to zero by construction (Newton's third law).
-///
 /// Whether `device` (with or without autodiff) is a CPU backend with the host kernels.
 pub fn runs_host_kernels(device: &Device) -> bool {
     use burn::backend::DispatchDevice;
@@ -105,6 +97,14 @@ impl SpringGraph {
     }
 }
 
+/// Internal spring forces on every particle: Eq. 4 for every spring, scattered to the
+/// particles through the signed incidence matrix (Eq. 2).
+///
+/// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
+/// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
+/// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
+/// to zero by construction (Newton's third law).
+///
 /// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
 /// reference when `graph.kernel` says so (or the device has no fused kernel).
 pub fn spring_forces(

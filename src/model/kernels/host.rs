@@ -18,6 +18,8 @@ use super::{HostGraph, RolloutInputs, RolloutKernels, RolloutTape, SpringBackend
 trait HostFloat: Float + Element + Send + Sync + 'static {
     /// A zero-copy view of a contiguous flex tensor of this type.
     fn flex_slice(t: &burn::backend::flex::FlexTensor) -> Option<&[Self]>;
+    /// A zero-copy view of a standard-layout ndarray tensor of this type.
+    fn ndarray_slice(t: &burn::backend::ndarray::NdArrayTensor) -> Option<&[Self]>;
     /// The values of any tensor data, converted to this type.
     fn from_data(data: TensorData) -> Vec<Self>;
     /// The tape variant of a rollout in this type.
@@ -31,6 +33,12 @@ macro_rules! host_float {
         impl HostFloat for $t {
             fn flex_slice(t: &burn::backend::flex::FlexTensor) -> Option<&[Self]> {
                 t.as_slice::<$t>()
+            }
+            fn ndarray_slice(t: &burn::backend::ndarray::NdArrayTensor) -> Option<&[Self]> {
+                match t {
+                    burn::backend::ndarray::NdArrayTensor::$variant(s) => s.view().to_slice(),
+                    _ => None,
+                }
             }
             fn from_data(data: TensorData) -> Vec<Self> {
                 data.try_into_vec_as::<$t>().expect("float tensor data")
@@ -75,7 +83,12 @@ impl HostAccess for burn::backend::Flex {
 #[allow(deprecated)]
 impl HostAccess for burn::backend::NdArray {
     fn read<T: HostFloat>(t: &FloatTensor<Self>) -> Cow<'_, [T]> {
-        Cow::Owned(read_copy::<Self, T>(t))
+        // Reading through `TensorData` walks the array element by element: ten times the cost of
+        // the whole kernel on a rollout's worth of states.
+        match T::ndarray_slice(t) {
+            Some(s) => Cow::Borrowed(s),
+            None => Cow::Owned(read_copy::<Self, T>(t)),
+        }
     }
 }
 
