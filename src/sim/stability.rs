@@ -9,7 +9,7 @@
 use crate::cloth::Topology;
 
 /// The stability estimate of a spring network at a time step.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Stability {
     /// Integration step, s.
     pub dt: f64,
@@ -19,10 +19,8 @@ pub struct Stability {
     pub omega2: f64,
     /// Largest damping rate `γ` including Rayleigh damping, 1/s.
     pub gamma: f64,
-    /// Largest per-spring `k`, N/m (reported in messages).
-    pub k_max: f64,
-    /// Largest per-spring `b`, N·s/m (reported in messages).
-    pub b_max: f64,
+    /// The material behind `ω²` and `γ`, in words (reported in messages).
+    pub parameters: String,
 }
 
 impl Stability {
@@ -41,13 +39,18 @@ impl Stability {
         let omega2 = topology.max_eigenvalue(&k) / mass;
         let gamma = (topology.max_eigenvalue(&b) + rayleigh.max(0.0)) / mass;
         let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
+        let (k_max, b_max) = (max(&k), max(&b));
         Self {
             dt,
             mass,
             omega2,
             gamma,
-            k_max: max(&k),
-            b_max: max(&b),
+            parameters: format!(
+                "largest k = {k_max:.4} N/m (k/m = {:.4e}), largest b = {b_max:.4} N·s/m \
+                 (b/m = {:.4e})",
+                k_max / mass,
+                b_max / mass
+            ),
         }
     }
 
@@ -76,15 +79,12 @@ impl Stability {
     /// A one-line account of the estimate.
     pub fn describe(&self) -> String {
         format!(
-            "dt = {:.3e} s, particle mass m = {:.4e} kg, largest k = {:.4} N/m (k/m = {:.4e}), \
-             largest b = {:.4} N·s/m (b/m = {:.4e}), stiffest mode ω² = {:.4e}/s², damping rate \
-             γ = {:.4e}/s: dt²ω² + 2·dt·γ = {:.3} (stable below 4; largest stable dt = {:.3e} s)",
+            "dt = {:.3e} s, particle mass m = {:.4e} kg, {}, stiffest mode ω² = {:.4e}/s², \
+             damping rate γ = {:.4e}/s: dt²ω² + 2·dt·γ = {:.3} (stable below 4; largest stable \
+             dt = {:.3e} s)",
             self.dt,
             self.mass,
-            self.k_max,
-            self.k_max / self.mass,
-            self.b_max,
-            self.b_max / self.mass,
+            self.parameters,
             self.omega2,
             self.gamma,
             self.number(),

@@ -2,9 +2,11 @@
 //! (paper §4.1). Each rollout pins two random anchor neighbourhoods and starts from the flat
 //! sheet under a random rotation (Fig. 6); the cloth falls under gravity and Rayleigh damping.
 
+pub mod fem;
 pub mod mass_spring;
 pub mod stiffness;
 
+pub use fem::{Diagonal, FemCloth, FemConfig};
 pub use mass_spring::SpringCloth;
 pub use stiffness::{Layout, StiffnessMap};
 
@@ -27,6 +29,8 @@ pub enum SourceKind {
     /// A ground-truth spring network (§4.1 (i)).
     #[default]
     MassSpring,
+    /// A triangle mesh with an FEM membrane and dihedral bending (§4.1 (ii), [`fem`]).
+    Fem,
 }
 
 /// What the generator writes for each training rollout.
@@ -57,11 +61,12 @@ pub struct SourceConfig {
     pub height: f64,
     /// Areal density ρ, kg/m²; particle mass is ρ·W·H / (nx·ny).
     pub areal_density: f64,
-    /// Stiffness levels, N/m.
+    /// Stiffness levels, N/m: spring stiffness (`mass_spring`) or surface Young's modulus
+    /// (`fem`).
     pub stiffness_levels: Vec<f64>,
     /// Where the levels go.
     pub layout: Layout,
-    /// Damping of every spring, N·s/m.
+    /// Damping of every spring, N·s/m (`mass_spring` only; see `fem.strain_damping`).
     pub damping: f64,
     /// Rayleigh damping constant, N·s/m.
     pub rayleigh: f64,
@@ -87,6 +92,8 @@ pub struct SourceConfig {
     pub seed: u64,
     /// Generate even when the stability guard predicts a blow-up.
     pub allow_unstable: bool,
+    /// Material and mesh of the FEM source.
+    pub fem: FemConfig,
 }
 
 impl Default for SourceConfig {
@@ -116,6 +123,7 @@ impl Default for SourceConfig {
             storage: Storage::Full,
             seed: 0,
             allow_unstable: false,
+            fem: FemConfig::default(),
         }
     }
 }
@@ -149,7 +157,7 @@ impl SourceConfig {
         if self.train_rollouts == 0 {
             bail!("source.train_rollouts must be at least 1");
         }
-        Ok(())
+        self.fem.validate()
     }
 
     /// Time between stored frames, s.
@@ -368,6 +376,7 @@ pub fn simulate_rollout(
 pub fn build(cfg: &SourceConfig) -> Box<dyn ClothSim> {
     match cfg.kind {
         SourceKind::MassSpring => Box::new(SpringCloth::from_config(cfg)),
+        SourceKind::Fem => Box::new(FemCloth::from_config(cfg)),
     }
 }
 
