@@ -44,6 +44,17 @@ impl Resampler {
         self.weight.iter().all(|w| w[0] == 1.0)
     }
 
+    /// Whether particle `p` copies landmark `p` for every `p` of `landmarks` landmarks.
+    pub fn is_identity(&self, landmarks: usize) -> bool {
+        self.index.len() == landmarks
+            && self
+                .index
+                .iter()
+                .zip(&self.weight)
+                .enumerate()
+                .all(|(p, (i, w))| i[0] == p && w[0] == 1.0)
+    }
+
     /// Number of particles.
     pub fn num_particles(&self) -> usize {
         self.index.len()
@@ -153,7 +164,8 @@ mod tests {
     fn identity_when_landmarks_are_the_particles() {
         let g = grid(5, 4, 2.0, 1.5);
         let r = Resampler::new(&g, &g);
-        assert!(r.is_exact());
+        assert!(r.is_exact() && r.is_identity(g.len()));
+        assert!(!Resampler::new(&g, &g[1..]).is_identity(g.len() - 1));
         for (p, idx) in r.index.iter().enumerate() {
             assert_eq!(idx[0], p);
         }

@@ -4,7 +4,7 @@
 
 use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -117,6 +117,28 @@ pub struct Track {
 impl Track {
     /// Resamples `rollout` to the particles of `resampler`.
     pub fn new(rollout: &Rollout, resampler: &Resampler) -> Self {
+        if resampler.is_identity(rollout.landmarks) && rollout.velocities.is_some() {
+            return Self::from_rollout(rollout.clone(), resampler);
+        }
+        Self::resampled(rollout, resampler)
+    }
+
+    /// [`Track::new`] taking the rollout by value: when the particles are the landmarks and the
+    /// velocities are stored, the arrays are moved, not copied.
+    pub fn from_rollout(rollout: Rollout, resampler: &Resampler) -> Self {
+        if !resampler.is_identity(rollout.landmarks) || rollout.velocities.is_none() {
+            return Self::resampled(&rollout, resampler);
+        }
+        Self {
+            frames: rollout.frames,
+            particles: rollout.landmarks,
+            pinned: resampler.pinned(&rollout.pinned),
+            velocities: rollout.velocities.expect("checked above"),
+            positions: rollout.positions,
+        }
+    }
+
+    fn resampled(rollout: &Rollout, resampler: &Resampler) -> Self {
         let (f, n, p) = (rollout.frames, rollout.landmarks, resampler.num_particles());
         let mut positions = vec![0f32; f * p * 3];
         let mut velocities = vec![0f32; f * p * 3];
@@ -219,6 +241,9 @@ struct Entry {
 }
 
 /// Rollout files cut into clips, loaded on demand with a bounded cache.
+///
+/// `Sync`: batches may be assembled on another thread while the current one trains
+/// ([`ClipSet::host_batch`]).
 pub struct ClipSet {
     entries: Vec<Entry>,
     /// Shared frame step, mass and size of every rollout.
@@ -232,10 +257,35 @@ pub struct ClipSet {
     /// Steps per clip.
     pub steps: usize,
     resampler: Option<Resampler>,
-    cache: HashMap<usize, Arc<Track>>,
+    cache: Mutex<Cache>,
+}
+
+/// Resampled rollouts kept in memory, oldest evicted first.
+struct Cache {
+    tracks: HashMap<usize, Arc<Track>>,
     order: VecDeque<usize>,
-    cache_bytes: usize,
-    cache_limit: usize,
+    bytes: usize,
+    limit: usize,
+}
+
+impl Cache {
+    /// Keeps `track` if it fits after evicting older entries (never more than `limit` bytes).
+    fn insert(&mut self, i: usize, track: &Arc<Track>) {
+        if track.bytes() > self.limit {
+            return;
+        }
+        while self.bytes + track.bytes() > self.limit {
+            let Some(old) = self.order.pop_front() else {
+                break;
+            };
+            if let Some(t) = self.tracks.remove(&old) {
+                self.bytes -= t.bytes();
+            }
+        }
+        self.bytes += track.bytes();
+        self.tracks.insert(i, track.clone());
+        self.order.push_back(i);
+    }
 }
 
 impl ClipSet {
@@ -258,10 +308,12 @@ impl ClipSet {
         let mut topology = None;
         let mut resampler: Option<Resampler> = None;
         let mut rest_uv: Option<Vec<[f64; 2]>> = None;
-        let mut cache = HashMap::new();
-        let mut order = VecDeque::new();
-        let mut cache_bytes = 0;
-        let cache_limit = cache_mib << 20;
+        let mut cache = Cache {
+            tracks: HashMap::new(),
+            order: VecDeque::new(),
+            bytes: 0,
+            limit: cache_mib << 20,
+        };
         for (i, path) in paths.iter().enumerate() {
             let rollout = Rollout::load(path)?;
             let this = SetInfo {
@@ -313,11 +365,8 @@ impl ClipSet {
                 );
             }
             rest_uv.get_or_insert_with(|| rollout.rest_uv.clone());
-            let track = Track::new(&rollout, resampler_ref);
-            if cache_bytes + track.bytes() <= cache_limit {
-                cache_bytes += track.bytes();
-                cache.insert(i, Arc::new(track));
-                order.push_back(i);
+            if cache.bytes < cache.limit {
+                cache.insert(i, &Arc::new(Track::from_rollout(rollout, resampler_ref)));
             }
             entries.push(Entry {
                 path: path.clone(),
@@ -340,10 +389,7 @@ impl ClipSet {
             low_velocity,
             steps: clips.steps,
             resampler,
-            cache,
-            order,
-            cache_bytes,
-            cache_limit,
+            cache: Mutex::new(cache),
         })
     }
 
@@ -368,55 +414,56 @@ impl ClipSet {
     }
 
     /// The resampled rollout `i` (from the cache or from disk).
-    pub fn track(&mut self, i: usize) -> Result<Arc<Track>> {
-        if let Some(t) = self.cache.get(&i) {
+    pub fn track(&self, i: usize) -> Result<Arc<Track>> {
+        if let Some(t) = self.cache.lock().expect("cache lock").tracks.get(&i) {
             return Ok(t.clone());
         }
         let rollout = Rollout::load(&self.entries[i].path)?;
-        let track = Arc::new(Track::new(&rollout, self.resampler.as_ref().expect("set")));
-        while self.cache_bytes + track.bytes() > self.cache_limit {
-            let Some(old) = self.order.pop_front() else {
-                break;
-            };
-            if let Some(t) = self.cache.remove(&old) {
-                self.cache_bytes -= t.bytes();
-            }
-        }
-        if self.cache_bytes + track.bytes() <= self.cache_limit {
-            self.cache_bytes += track.bytes();
-            self.cache.insert(i, track.clone());
-            self.order.push_back(i);
-        }
+        let track = Arc::new(Track::from_rollout(
+            rollout,
+            self.resampler.as_ref().expect("set"),
+        ));
+        self.cache.lock().expect("cache lock").insert(i, &track);
         Ok(track)
     }
 
-    /// Assembles clips into tensors on `device`.
-    pub fn batch(&mut self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
+    /// Assembles clips on the host (reading rollouts that are not cached).
+    pub fn host_batch(&self, clips: &[ClipRef]) -> Result<HostBatch> {
         let mut tracks = Vec::with_capacity(clips.len());
         for c in clips {
             tracks.push((self.track(c.rollout)?, c.offset));
         }
         let views: Vec<(&Track, usize)> = tracks.iter().map(|(t, o)| (t.as_ref(), *o)).collect();
-        Ok(ClipBatch::new(
+        Ok(HostBatch::new(
             &views,
             self.steps,
             self.particle_mass(),
             self.info.frame_dt,
-            device,
         ))
+    }
+
+    /// Assembles clips into tensors on `device`.
+    pub fn batch(&self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
+        Ok(self.host_batch(clips)?.to_device(device))
     }
 }
 
-impl ClipBatch {
-    /// Stacks `steps`-step windows `(track, first stored frame)` into a batch; target forces
-    /// are `mass (v̂_{j+1} − v̂_j) / frame_dt`.
-    pub fn new(
-        clips: &[(&Track, usize)],
-        steps: usize,
-        mass: f64,
-        frame_dt: f64,
-        device: &Device,
-    ) -> Self {
+/// A batch of clips on the host, before it becomes a [`ClipBatch`] on a device.
+#[derive(Debug, Clone)]
+pub struct HostBatch {
+    positions: Vec<f32>,
+    velocities: Vec<f32>,
+    forces: Vec<f32>,
+    pinned: Vec<f32>,
+    clips: usize,
+    steps: usize,
+    particles: usize,
+}
+
+impl HostBatch {
+    /// Stacks `steps`-step windows `(track, first stored frame)`; target forces are
+    /// `mass (v̂_{j+1} − v̂_j) / frame_dt`, computed in f64.
+    pub fn new(clips: &[(&Track, usize)], steps: usize, mass: f64, frame_dt: f64) -> Self {
         let (t, b) = (steps, clips.len());
         let p = clips.first().map_or(0, |c| c.0.particles);
         let frame = p * 3;
@@ -434,23 +481,51 @@ impl ClipBatch {
             pos.extend_from_slice(&track.positions[range.clone()]);
             let v = &track.velocities[range];
             vel.extend_from_slice(v);
-            for j in 0..t {
-                for i in 0..frame {
-                    let dv = v[(j + 1) * frame + i] as f64 - v[j * frame + i] as f64;
-                    force.push((m_over_dt * dv) as f32);
-                }
-            }
+            force.extend(
+                v[frame..]
+                    .iter()
+                    .zip(&v[..t * frame])
+                    .map(|(&next, &here)| (m_over_dt * (next as f64 - here as f64)) as f32),
+            );
             pinned.extend(track.pinned.iter().map(|&x| x as u8 as f32));
         }
+        Self {
+            positions: pos,
+            velocities: vel,
+            forces: force,
+            pinned,
+            clips: b,
+            steps: t,
+            particles: p,
+        }
+    }
+
+    /// Uploads the batch to `device`.
+    pub fn to_device(self, device: &Device) -> ClipBatch {
+        let (b, t, p) = (self.clips, self.steps, self.particles);
         let t4 = |v: Vec<f32>, n: usize| {
             Tensor::<4>::from_data(TensorData::new(v, [b, n, p, 3]), device)
         };
         ClipBatch {
-            positions: t4(pos, t + 1),
-            velocities: t4(vel, t + 1),
-            forces: t4(force, t),
-            pinned: Tensor::from_data(TensorData::new(pinned, [b, p, 1]), device),
+            positions: t4(self.positions, t + 1),
+            velocities: t4(self.velocities, t + 1),
+            forces: t4(self.forces, t),
+            pinned: Tensor::from_data(TensorData::new(self.pinned, [b, p, 1]), device),
         }
+    }
+}
+
+impl ClipBatch {
+    /// Stacks `steps`-step windows `(track, first stored frame)` into a batch on `device` (see
+    /// [`HostBatch::new`]).
+    pub fn new(
+        clips: &[(&Track, usize)],
+        steps: usize,
+        mass: f64,
+        frame_dt: f64,
+        device: &Device,
+    ) -> Self {
+        HostBatch::new(clips, steps, mass, frame_dt).to_device(device)
     }
 }
 

@@ -4,7 +4,7 @@ pub mod clips;
 pub mod npz;
 pub mod rollout;
 
-pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, Sampler, Track};
+pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, Track};
 pub use rollout::{MeshTruth, Rollout, Segment, SpringTruth};
 
 use std::path::{Path, PathBuf};

@@ -10,6 +10,7 @@ pub use losses::{ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_bu
 pub use run::{RunDir, RunState, Status};
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -20,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::{Resampler, Topology};
 use crate::config::Config;
-use crate::data::{ClipRef, ClipSet, Rollout, Sampler, SpringTruth};
+use crate::data::{ClipRef, ClipSet, HostBatch, Rollout, Sampler, SpringTruth};
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::{Physics, Stability};
@@ -317,7 +318,8 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     } else {
         run.check_fresh(options.force)?;
     }
-    let (mut clips, truth) = open_training_clips(config, progress)?;
+    let (clips, truth) = open_training_clips(config, progress)?;
+    let clips = Arc::new(clips);
     if !options.resume {
         run.create_fresh()?;
     }
@@ -415,13 +417,28 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
             .into_iter()
             .filter_map(|(t, id)| t.then_some(id))
             .collect();
-        for it in start_iteration.max(pass_start)..global {
-            let refs: Vec<ClipRef> = sampler
+        // The next batch is read and assembled on another thread while this one trains.
+        let next_refs = |sampler: &mut Sampler| -> Vec<ClipRef> {
+            sampler
                 .next(pass.batch)
                 .into_iter()
                 .map(|i| pool[i])
-                .collect();
-            let batch = clips.batch(&refs, &device)?;
+                .collect()
+        };
+        let prefetch = |refs: Vec<ClipRef>| {
+            let clips = Arc::clone(&clips);
+            std::thread::spawn(move || clips.host_batch(&refs))
+        };
+        let mut upcoming = None;
+        for it in start_iteration.max(pass_start)..global {
+            let host = match upcoming.take() {
+                Some(handle) => join_batch(handle)?,
+                None => clips.host_batch(&next_refs(&mut sampler))?,
+            };
+            if it + 1 < global {
+                upcoming = Some(prefetch(next_refs(&mut sampler)));
+            }
+            let batch = host.to_device(&device);
             let terms = loss(
                 &model,
                 &physics,
@@ -534,6 +551,13 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         rmse_k: rmse_now.map(|r| r.0),
         rmse_b: rmse_now.map(|r| r.1),
     })
+}
+
+/// The batch a prefetch thread assembled.
+fn join_batch(handle: std::thread::JoinHandle<Result<HostBatch>>) -> Result<HostBatch> {
+    handle
+        .join()
+        .map_err(|_| anyhow::anyhow!("the batch-loading thread panicked"))?
 }
 
 fn pool_of(
