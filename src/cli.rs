@@ -303,9 +303,14 @@ pub fn evaluate(
         ),
         None => (None, None),
     };
+    let stiffness_map_corr = first
+        .mesh
+        .as_ref()
+        .and_then(|mesh| eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh));
     let report = EvalReport {
         rmse_k,
         rmse_b,
+        stiffness_map_corr,
         motion_rmse: motion,
         test_rollouts: files,
         backend: config.backend.to_string(),
@@ -319,6 +324,11 @@ fn print_eval(r: &EvalReport) {
     let m = &r.motion_rmse;
     if let (Some(k), Some(b)) = (r.rmse_k, r.rmse_b) {
         println!("rmse_k {k:.4} N/m, rmse_b {b:.4} N·s/m");
+    }
+    if let Some(c) = r.stiffness_map_corr {
+        println!(
+            "stiffness map: Spearman correlation {c:.4} (structural springs vs the source's triangles)"
+        );
     }
     println!(
         "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ 0.8 s: {:.4e} ± {:.4e}; ≤ 8 s: {:.4e} ± {:.4e})",

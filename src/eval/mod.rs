@@ -7,7 +7,8 @@ use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::{Resampler, Topology};
+use crate::cloth::{Resampler, SpringFamily, Topology};
+use crate::data::MeshTruth;
 use crate::data::{Rollout, Track};
 use crate::model::SpringNet;
 use crate::progress::Progress;
@@ -68,6 +69,10 @@ pub struct EvalReport {
     pub rmse_k: Option<f64>,
     /// RMSE of `b`, when known.
     pub rmse_b: Option<f64>,
+    /// Spearman correlation between the learned `k` of the structural springs and the FEM
+    /// source's `tri_stiffness` at each spring's rest midpoint, when the data has a mesh.
+    #[serde(default)]
+    pub stiffness_map_corr: Option<f64>,
     /// Motion RMSE over the test rollouts.
     pub motion_rmse: MotionRmse,
     /// Test rollout files.
@@ -239,5 +244,171 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
         per_frame,
         frame_dt,
         rollouts: curves.len(),
+    }
+}
+
+/// The source's stiffness map at every structural spring's rest midpoint, with the spring's
+/// index: the value of the mesh triangle that contains the midpoint (the nearest triangle
+/// centroid when none does, e.g. on the boundary in floating point).
+pub fn map_at_structural_springs(
+    topology: &Topology,
+    rest_uv: &[[f64; 2]],
+    mesh: &MeshTruth,
+) -> Vec<(usize, f64)> {
+    let corners = |t: &[usize; 3]| t.map(|i| rest_uv[i]);
+    let contains = |t: &[usize; 3], p: [f64; 2]| {
+        let [a, b, c] = corners(t);
+        let d = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]);
+        let u = ((p[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (p[1] - a[1])) / d;
+        let v = ((b[0] - a[0]) * (p[1] - a[1]) - (p[0] - a[0]) * (b[1] - a[1])) / d;
+        let tol = -1e-9;
+        u >= tol && v >= tol && 1.0 - u - v >= tol
+    };
+    let centroid = |t: &[usize; 3]| {
+        let [a, b, c] = corners(t);
+        [(a[0] + b[0] + c[0]) / 3.0, (a[1] + b[1] + c[1]) / 3.0]
+    };
+    (0..topology.num_springs())
+        .filter(|&s| topology.family[s] == SpringFamily::Structural)
+        .map(|s| {
+            let m = topology.midpoint(s);
+            let tri = mesh
+                .triangles
+                .iter()
+                .position(|t| contains(t, m))
+                .unwrap_or_else(|| {
+                    let d = |t: &[usize; 3]| {
+                        let c = centroid(t);
+                        (c[0] - m[0]).powi(2) + (c[1] - m[1]).powi(2)
+                    };
+                    (0..mesh.triangles.len())
+                        .min_by(|&i, &j| d(&mesh.triangles[i]).total_cmp(&d(&mesh.triangles[j])))
+                        .expect("a mesh has triangles")
+                });
+            (s, mesh.stiffness[tri])
+        })
+        .collect()
+}
+
+/// Spearman's rank correlation of `a` and `b` (ties get their average rank); `None` when
+/// either is constant or they have fewer than two values.
+pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
+    assert_eq!(a.len(), b.len());
+    let ranks = |v: &[f64]| {
+        let mut order: Vec<usize> = (0..v.len()).collect();
+        order.sort_by(|&i, &j| v[i].total_cmp(&v[j]));
+        let mut r = vec![0.0; v.len()];
+        let mut i = 0;
+        while i < order.len() {
+            let mut j = i;
+            while j + 1 < order.len() && v[order[j + 1]] == v[order[i]] {
+                j += 1;
+            }
+            let avg = (i + j) as f64 / 2.0;
+            for &k in &order[i..=j] {
+                r[k] = avg;
+            }
+            i = j + 1;
+        }
+        r
+    };
+    let (ra, rb) = (ranks(a), ranks(b));
+    let n = a.len() as f64;
+    let mean = (n - 1.0) / 2.0;
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in ra.iter().zip(&rb) {
+        sab += (x - mean) * (y - mean);
+        saa += (x - mean).powi(2);
+        sbb += (y - mean).powi(2);
+    }
+    (a.len() >= 2 && saa > 0.0 && sbb > 0.0).then(|| sab / (saa * sbb).sqrt())
+}
+
+/// Spearman correlation between the learned stiffness `k` of the structural springs and the
+/// FEM source's stiffness map at their rest midpoints (Table 2's `stiffness_map_corr`).
+pub fn stiffness_map_corr(
+    topology: &Topology,
+    k: &[f64],
+    rest_uv: &[[f64; 2]],
+    mesh: &MeshTruth,
+) -> Option<f64> {
+    let pairs = map_at_structural_springs(topology, rest_uv, mesh);
+    let learned: Vec<f64> = pairs.iter().map(|&(s, _)| k[s]).collect();
+    let truth: Vec<f64> = pairs.iter().map(|&(_, v)| v).collect();
+    spearman(&learned, &truth)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cloth::GridSpec;
+    use crate::source::{Diagonal, fem::grid_triangles};
+
+    #[test]
+    fn spearman_handles_ties_and_monotone_maps() {
+        assert_eq!(spearman(&[1.0, 2.0, 3.0], &[10.0, 20.0, 30.0]), Some(1.0));
+        assert_eq!(spearman(&[1.0, 2.0, 3.0], &[3.0, 2.0, 1.0]), Some(-1.0));
+        // Any monotone transform keeps the value; ties share their rank.
+        let a = [1.0, 5.0, 5.0, 9.0, 2.0];
+        let b = [1.0f64, 25.0, 25.0, 81.0, 4.0];
+        assert!((spearman(&a, &b).unwrap() - 1.0).abs() < 1e-12);
+        assert_eq!(spearman(&a, &[2.0; 5]), None);
+        // With ties: ranks (0, 2.5, 2.5, 4, 1) against (0, 1, 2, 3, 4) give 3.5 / √(9.5 · 10).
+        let r = spearman(&a, &[0.0, 1.0, 2.0, 3.0, 4.0]).unwrap();
+        assert!((r - 3.5 / 95f64.sqrt()).abs() < 1e-12, "{r}");
+    }
+
+    #[test]
+    fn map_lookup_finds_the_triangle_under_each_midpoint() {
+        // A 4 × 4 mesh whose first cell column is soft and the rest stiff, read at a 5 × 5 grid.
+        let (w, h) = (3.0, 3.0);
+        let uv: Vec<[f64; 2]> = (0..4)
+            .flat_map(|r| (0..4).map(move |c| [c as f64, r as f64]))
+            .collect();
+        let triangles = grid_triangles(4, 4, Diagonal::Alternating);
+        let stiffness = triangles
+            .iter()
+            .map(|t| {
+                if t.iter().map(|&i| uv[i][0]).sum::<f64>() / 3.0 < 1.0 {
+                    1.0
+                } else {
+                    9.0
+                }
+            })
+            .collect();
+        let mesh = MeshTruth {
+            triangles,
+            stiffness,
+        };
+        let topo = Topology::grid(
+            &GridSpec {
+                nx: 5,
+                ny: 5,
+                ..GridSpec::default()
+            },
+            w,
+            h,
+        );
+        let pairs = map_at_structural_springs(&topo, &uv, &mesh);
+        assert_eq!(pairs.len(), 2 * 5 * 4);
+        for &(s, v) in &pairs {
+            let m = topo.midpoint(s);
+            if m[0] < 0.95 {
+                assert_eq!(v, 1.0, "{m:?}");
+            } else if m[0] > 1.05 {
+                assert_eq!(v, 9.0, "{m:?}");
+            }
+        }
+        // A surrogate whose stiffness follows the map correlates perfectly.
+        let k: Vec<f64> = (0..topo.num_springs())
+            .map(|s| {
+                if topo.midpoint(s)[0] < 1.0 {
+                    10.0
+                } else {
+                    90.0
+                }
+            })
+            .collect();
+        assert!(stiffness_map_corr(&topo, &k, &uv, &mesh).unwrap() > 0.95);
     }
 }
