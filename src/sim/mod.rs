@@ -8,8 +8,8 @@ pub use stability::Stability;
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::model::SpringNet;
-use crate::model::kernels::{self, StepParams};
+use crate::model::ForceModel;
+use crate::model::kernels::StepParams;
 
 /// Standard gravity, m/s², along −z.
 pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];
@@ -60,8 +60,15 @@ impl Physics {
         self.frame_dt / self.substeps as f64
     }
 
-    /// Net force at a state: spring forces plus gravity and Rayleigh damping, `[B, P, 3]`.
-    pub fn net_force(&self, model: &SpringNet, x: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
+    /// Net force at a state: the model's internal forces plus gravity and Rayleigh damping,
+    /// `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
+    pub fn net_force(
+        &self,
+        model: &dyn ForceModel,
+        x: Tensor<3>,
+        v: Tensor<3>,
+        pinned: &Tensor<3>,
+    ) -> Tensor<3> {
         let device = x.device();
         let g = Tensor::<1>::from_floats(
             [
@@ -72,7 +79,7 @@ impl Physics {
             &device,
         )
         .reshape([1, 1, 3]);
-        let mut f = model.forces(x, v.clone()) + g;
+        let mut f = model.internal_forces(x, v.clone(), pinned) + g;
         if self.rayleigh != 0.0 {
             f = f - v.mul_scalar(self.rayleigh);
         }
@@ -118,7 +125,7 @@ pub struct State {
 /// move from `here` to `next` (`[B, P, 3]`) along a straight line at constant velocity.
 /// Returns the new state and the mean net force over the frame.
 pub fn step_frame(
-    model: &SpringNet,
+    model: &dyn ForceModel,
     physics: &Physics,
     state: State,
     pinned: &Tensor<3>,
@@ -131,7 +138,6 @@ pub fn step_frame(
     let pin_v = (next.clone() - here.clone()).mul_scalar(1.0 / physics.frame_dt) * pinned.clone();
     let State { mut x, mut v } = state;
     let mut f_sum: Option<Tensor<3>> = None;
-    let fused = model.graph.fused_rollout();
     let params = StepParams {
         h,
         mass: physics.mass,
@@ -145,27 +151,27 @@ pub fn step_frame(
             let t = (sub + 1) as f64 / n as f64;
             here.clone().mul_scalar(1.0 - t) + next.clone().mul_scalar(t)
         };
-        let f = if fused {
-            let (xn, vn, f) = kernels::cloth_step(
-                x,
-                v,
-                model.k.val(),
-                model.b.val(),
-                pinned.clone(),
-                target,
-                pin_v.clone(),
-                &model.graph.host,
-                params,
-            );
-            (x, v) = (xn, vn);
-            f
-        } else {
-            let f = physics.net_force(model, x.clone(), v.clone());
-            v = v + f.clone().mul_scalar(h / physics.mass);
-            x = x + v.clone().mul_scalar(h);
-            x = x * free.clone() + target * pinned.clone();
-            v = v * free.clone() + pin_v.clone();
-            f
+        let fused = model.fused_step(
+            x.clone(),
+            v.clone(),
+            pinned,
+            target.clone(),
+            pin_v.clone(),
+            params,
+        );
+        let f = match fused {
+            Some((xn, vn, f)) => {
+                (x, v) = (xn, vn);
+                f
+            }
+            None => {
+                let f = physics.net_force(model, x.clone(), v.clone(), pinned);
+                v = v + f.clone().mul_scalar(h / physics.mass);
+                x = x + v.clone().mul_scalar(h);
+                x = x * free.clone() + target * pinned.clone();
+                v = v * free.clone() + pin_v.clone();
+                f
+            }
         };
         f_sum = Some(match f_sum {
             None => f,
@@ -183,7 +189,12 @@ pub fn step_frame(
 
 /// Simulates `frames` data frames from `drive`'s initial state (see [`step_frame`]), keeping
 /// every frame's positions and mean force for the losses.
-pub fn rollout(model: &SpringNet, physics: &Physics, drive: &Drive, frames: usize) -> Trajectory {
+pub fn rollout(
+    model: &dyn ForceModel,
+    physics: &Physics,
+    drive: &Drive,
+    frames: usize,
+) -> Trajectory {
     let [batch, f_avail, p, _] = drive.path.dims();
     assert!(
         f_avail > frames,

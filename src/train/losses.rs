@@ -4,8 +4,8 @@ use burn::tensor::{Tensor, activation::relu};
 use serde::{Deserialize, Serialize};
 
 use crate::data::ClipBatch;
-use crate::model::SpringNet;
 use crate::model::kernels::{self, RolloutParams};
+use crate::model::{ForceModel, SpringNet};
 use crate::sim::{self, Drive, Physics};
 
 /// Memory the fused rollout may keep between its forward and backward passes by default, MiB
@@ -101,12 +101,8 @@ impl LossTerms {
     }
 }
 
-/// Evaluates the loss of `model` on a batch of clips.
-///
-/// With `T` steps per clip, `P` particles and pinned particles masked out:
-/// - `L_f = 1/(B·T·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
-/// - `J = Δt [Σ_j f_j − (f_0 + f_{T−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
-/// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (simulated forces only).
+/// Evaluates the loss of the spring network `model` on a batch of clips: the terms of
+/// [`motion_loss`] plus the penalties on negative `k` and `b` (Eqs. 11, 12).
 pub fn loss(
     model: &SpringNet,
     physics: &Physics,
@@ -121,7 +117,7 @@ pub fn loss(
 ///
 /// With the fused kernel and simulated forces, the rollout and the three loss terms are one op
 /// ([`kernels::rollout_loss`]) whose backward is the adjoint of the integrator; otherwise the
-/// loss is built from tensor ops around [`sim::rollout`].
+/// loss is built from tensor ops around [`sim::rollout`] ([`motion_loss`]).
 pub fn loss_with_budget(
     model: &SpringNet,
     physics: &Physics,
@@ -133,6 +129,31 @@ pub fn loss_with_budget(
     if on == ForceOn::Simulated && model.graph.fused_rollout() {
         return fused_loss(model, physics, batch, weights, budget_mib);
     }
+    let mut terms = motion_loss(model, physics, batch, weights, on);
+    let k_neg = relu(model.k.val().neg()).sum();
+    let b_neg = relu(model.b.val().neg()).sum();
+    terms.total = terms.total
+        + k_neg.clone().mul_scalar(weights.k_neg)
+        + b_neg.clone().mul_scalar(weights.b_neg);
+    terms.k_neg = k_neg;
+    terms.b_neg = b_neg;
+    terms
+}
+
+/// The force, impulse and position losses of any [`ForceModel`] on a batch of clips, built
+/// from tensor ops (the penalty terms are zero).
+///
+/// With `T` steps per clip, `P` particles and pinned particles masked out:
+/// - `L_f = 1/(B·T·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
+/// - `J = Δt [Σ_j f_j − (f_0 + f_{T−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
+/// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (simulated forces only).
+pub fn motion_loss(
+    model: &dyn ForceModel,
+    physics: &Physics,
+    batch: &ClipBatch,
+    weights: &LossWeights,
+    on: ForceOn,
+) -> LossTerms {
     let [b, frames, p, _] = batch.positions.dims();
     let t = frames - 1;
     let device = batch.positions.device();
@@ -175,7 +196,18 @@ pub fn loss_with_budget(
                 .clone()
                 .slice([0..b, 0..t, 0..p, 0..3])
                 .reshape([b * t, p, 3]);
-            (physics.net_force(model, x, v).reshape([b, t, p, 3]), None)
+            let pinned = batch
+                .pinned
+                .clone()
+                .reshape([b, 1, p, 1])
+                .repeat_dim(1, t)
+                .reshape([b * t, p, 1]);
+            (
+                physics
+                    .net_force(model, x, v, &pinned)
+                    .reshape([b, t, p, 3]),
+                None,
+            )
         }
     };
     let diff = (forces.clone() - batch.forces.clone()) * free.clone();
@@ -196,22 +228,18 @@ pub fn loss_with_budget(
         }
         _ => zero(),
     };
-    let k_neg = relu(model.k.val().neg()).sum();
-    let b_neg = relu(model.b.val().neg()).sum();
     let mut total =
         force.clone().mul_scalar(weights.force) + impulse.clone().mul_scalar(weights.impulse);
     if weights.position != 0.0 {
         total = total + position.clone().mul_scalar(weights.position);
     }
-    total =
-        total + k_neg.clone().mul_scalar(weights.k_neg) + b_neg.clone().mul_scalar(weights.b_neg);
     LossTerms {
         total,
         force,
         impulse,
         position,
-        k_neg,
-        b_neg,
+        k_neg: zero(),
+        b_neg: zero(),
     }
 }
 
