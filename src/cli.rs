@@ -13,7 +13,7 @@ use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
 use crate::sim::{self, Physics, Stability, State};
-use crate::train::{self, RunDir, TrainOptions};
+use crate::train::{self, RunDir, TrainOptions, Trained};
 
 /// Learn simulatable mass-spring cloth models from motion.
 #[derive(Debug, Parser)]
@@ -242,16 +242,24 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let start = Instant::now();
     let run = RunDir::new(run_dir);
-    let mut config = Config::load(&run.config(), set)
-        .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
+    let mut overrides = set.to_vec();
     if let Some(b) = backend {
-        config.backend = b;
+        overrides.push(format!("backend={b}"));
     }
+    let device = match backend {
+        Some(b) => b.device()?,
+        None => Config::load(&run.config(), set)
+            .with_context(|| format!("{} is not a run directory", run_dir.display()))?
+            .backend
+            .device()?,
+    };
+    let loaded = train::load_run(run_dir, &overrides, &device)?;
+    let mut config = loaded.config;
     if let Some(d) = data {
         config.data.test_dir = Some(d.to_path_buf());
     }
-    let device = config.backend.device()?;
-    let (_, topo, model, mass) = train::load_surrogate(run_dir, &device)?;
+    let topo = loaded.topology;
+    let mass = loaded.meta.particle_mass;
     let split = config.data.split()?;
     let mut files = split.test;
     if files.is_empty() {
@@ -268,45 +276,74 @@ pub fn evaluate(
         rayleigh: config.sim.rayleigh,
         gravity: config.sim.gravity,
     };
-    Stability::estimate(
-        &topo,
-        &model.k_values(),
-        &model.b_values(),
-        mass,
-        physics.rayleigh,
-        physics.sim_dt(),
-    )
-    .check("the trained surrogate", config.sim.allow_unstable)?;
-    let curves = eval::motion_curves(
-        &model,
-        &physics,
-        &topo,
-        &files,
-        config.eval.batch,
-        &device,
-        progress,
-    )?;
+    let (curves, frame_dt) = match &loaded.model {
+        Trained::Springs(model) => {
+            Stability::estimate(
+                &topo,
+                &model.k_values(),
+                &model.b_values(),
+                mass,
+                physics.rayleigh,
+                physics.sim_dt(),
+            )
+            .check("the trained surrogate", config.sim.allow_unstable)?;
+            let c = eval::motion_curves(
+                model,
+                &physics,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt)
+        }
+        Trained::NeuralOde(model) => {
+            let c = eval::motion_curves(
+                model,
+                &physics,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt)
+        }
+        Trained::Gnn(model) => {
+            let ds = config.model.gnn.downsample;
+            let c = eval::gnn_motion_curves(
+                model,
+                ds,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt * ds as f64)
+        }
+    };
     let motion = eval::summarize(
         &curves,
-        first.frame_dt,
+        frame_dt,
         config.eval.short_seconds,
         config.eval.long_seconds,
     );
-    let truth = first.springs.as_ref().and_then(|t| {
-        let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
-        train::matching_truth(t, &topo, &res)
-    });
-    let (rmse_k, rmse_b) = match truth {
-        Some((k, b)) => (
-            Some(train::rmse(&model.k_values(), &k)),
-            Some(train::rmse(&model.b_values(), &b)),
-        ),
-        None => (None, None),
-    };
-    let stiffness_map_corr = first
-        .mesh
-        .as_ref()
-        .and_then(|mesh| eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh));
+    let (mut rmse_k, mut rmse_b, mut stiffness_map_corr) = (None, None, None);
+    if let Trained::Springs(model) = &loaded.model {
+        let truth = first.springs.as_ref().and_then(|t| {
+            let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
+            train::matching_truth(t, &topo, &res)
+        });
+        if let Some((k, b)) = truth {
+            rmse_k = Some(train::rmse(&model.k_values(), &k));
+            rmse_b = Some(train::rmse(&model.b_values(), &b));
+        }
+        stiffness_map_corr = first.mesh.as_ref().and_then(|mesh| {
+            eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh)
+        });
+    }
     let report = EvalReport {
         rmse_k,
         rmse_b,

@@ -10,32 +10,10 @@ use crate::backend::Backend;
 use crate::cloth::GridSpec;
 use crate::data::DataConfig;
 use crate::eval::EvalConfig;
+use crate::model::ModelConfig;
 use crate::sim::SimConfig;
 use crate::source::SourceConfig;
 use crate::train::TrainConfig;
-
-/// The `[model]` section: the surrogate's initial parameters.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ModelConfig {
-    /// Initial stiffness of every spring, N/m.
-    pub k_init: f64,
-    /// Initial damping of every spring, N·s/m.
-    pub b_init: f64,
-    /// Spring-force implementation: the fused kernel or the tensor-op reference.
-    pub kernel: crate::model::Kernel,
-}
-
-impl Default for ModelConfig {
-    /// A uniform guess between the paper's stiffness levels and below its damping.
-    fn default() -> Self {
-        Self {
-            k_init: 50.0,
-            b_init: 3.0,
-            kernel: crate::model::Kernel::Fused,
-        }
-    }
-}
 
 /// A whole job: data, surrogate, training and evaluation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -125,9 +103,7 @@ impl Config {
         if !(self.sim.rayleigh >= 0.0) {
             bail!("`sim.rayleigh` must be non-negative");
         }
-        if !self.model.k_init.is_finite() || !self.model.b_init.is_finite() {
-            bail!("`model.k_init` and `model.b_init` must be finite");
-        }
+        self.model.validate()?;
         let c = &self.data.clips;
         if c.steps < 2 {
             bail!("`data.clips.steps` must be at least 2");

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::cloth::{Resampler, SpringFamily, Topology};
 use crate::data::MeshTruth;
 use crate::data::{Rollout, Track};
-use crate::model::SpringNet;
+use crate::model::{ForceModel, Gnn};
 use crate::progress::Progress;
 use crate::sim::{self, Physics, State};
 
@@ -54,8 +54,11 @@ pub struct MotionRmse {
     pub mean_8s: f64,
     /// Its standard deviation.
     pub std_8s: f64,
-    /// Mean over rollouts at each frame after the start, m.
+    /// Mean over rollouts at each simulated frame, m.
     pub per_frame: Vec<f64>,
+    /// Time since the start of each entry of `per_frame`, s.
+    #[serde(default)]
+    pub times: Vec<f64>,
     /// Time between frames, s.
     pub frame_dt: f64,
     /// Rollouts evaluated.
@@ -89,7 +92,7 @@ pub type Curve = Vec<(f64, f64)>;
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
 /// particles following the data, and returns the per-frame motion RMSE of each.
 pub fn motion_curves(
-    model: &SpringNet,
+    model: &dyn ForceModel,
     physics_template: &Physics,
     topology: &Topology,
     files: &[PathBuf],
@@ -207,6 +210,115 @@ pub fn motion_curves(
     Ok(curves)
 }
 
+/// [`motion_curves`] for the GNN: each test rollout starts from its first `C + 1` GNN frames
+/// (every `downsample`-th data frame) and is rolled out autoregressively, pinned particles
+/// following the data; the curve holds the error of every predicted GNN frame.
+pub fn gnn_motion_curves(
+    model: &Gnn,
+    downsample: usize,
+    topology: &Topology,
+    files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+    progress: &Progress,
+) -> Result<Vec<Curve>> {
+    let c = model.history;
+    let mut tracks = Vec::new();
+    for f in files {
+        let r = Rollout::load(f)?;
+        if r.segments.len() != 1 {
+            bail!(
+                "{}: a test rollout must be stored in full (it has `segments`)",
+                f.display()
+            );
+        }
+        let res = Resampler::new(&r.rest_uv, &topology.rest_uv);
+        let first = if r.velocities.is_some() { 0 } else { 1 };
+        if r.frames <= first + (c + 1) * downsample {
+            bail!(
+                "{}: {} frames are too few for the GNN's {} input frames {} apart",
+                f.display(),
+                r.frames,
+                c + 1,
+                downsample
+            );
+        }
+        tracks.push((Track::new(&r, &res), first, r.frame_dt));
+    }
+    let p = topology.num_particles();
+    let frame_at = |t: &Track, j: usize| -> Vec<[f32; 3]> {
+        t.positions[j * p * 3..(j + 1) * p * 3]
+            .chunks_exact(3)
+            .map(|q| [q[0], q[1], q[2]])
+            .collect()
+    };
+    let steps_of = |t: &(Track, usize, f64)| (t.0.frames - 1 - t.1) / downsample - c;
+    let total: usize = tracks.iter().map(steps_of).sum();
+    let bar = progress.bar(total as u64, "eval");
+    let mut curves = vec![Vec::new(); tracks.len()];
+    let order: Vec<usize> = (0..tracks.len()).collect();
+    for chunk in order.chunks(batch.max(1)) {
+        let mut hist: Vec<Vec<Vec<[f32; 3]>>> = chunk
+            .iter()
+            .map(|&i| {
+                let (t, first, _) = &tracks[i];
+                (0..=c)
+                    .map(|k| frame_at(t, first + k * downsample))
+                    .collect()
+            })
+            .collect();
+        let pinned: Vec<Vec<bool>> = chunk.iter().map(|&i| tracks[i].0.pinned.clone()).collect();
+        let steps = chunk
+            .iter()
+            .map(|&i| steps_of(&tracks[i]))
+            .max()
+            .unwrap_or(0);
+        for k in 0..steps {
+            // Rollouts of different lengths: the shorter ones stop, the rest go on.
+            let live: Vec<usize> = (0..chunk.len())
+                .filter(|&s| k < steps_of(&tracks[chunk[s]]))
+                .collect();
+            let targets: Vec<Vec<[f32; 3]>> = live
+                .iter()
+                .map(|&s| {
+                    let (t, first, _) = &tracks[chunk[s]];
+                    frame_at(t, first + (c + 1 + k) * downsample)
+                })
+                .collect();
+            let live_hist: Vec<Vec<Vec<[f32; 3]>>> =
+                live.iter().map(|&s| hist[s].clone()).collect();
+            let live_pins: Vec<Vec<bool>> = live.iter().map(|&s| pinned[s].clone()).collect();
+            let target_refs: Vec<&[[f32; 3]]> = targets.iter().map(|t| t.as_slice()).collect();
+            let next = model.step(&live_hist, &live_pins, &target_refs, device);
+            for ((&s, x), target) in live.iter().zip(next).zip(&targets) {
+                let i = chunk[s];
+                let (_, first, dt) = tracks[i];
+                let frame = first + (c + 1 + k) * downsample;
+                let err = (x
+                    .iter()
+                    .zip(target)
+                    .map(|(a, b)| (0..3).map(|d| ((a[d] - b[d]) as f64).powi(2)).sum::<f64>())
+                    .sum::<f64>()
+                    / p as f64)
+                    .sqrt();
+                if !err.is_finite() {
+                    bail!(
+                        "{}: the GNN's rollout diverged at frame {frame} (t = {:.3} s)",
+                        files[i].display(),
+                        frame as f64 * dt
+                    );
+                }
+                curves[i].push(((frame - first) as f64 * dt, err));
+                hist[s].remove(0);
+                hist[s].push(x);
+            }
+            bar.inc(live.len() as u64);
+        }
+    }
+    bar.finish();
+    Ok(curves)
+}
+
 /// Summarises per-frame curves into Table 2's statistics.
 pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> MotionRmse {
     let stats = |limit: f64| {
@@ -225,6 +337,11 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
     let (mean_0_8s, std_0_8s) = stats(short);
     let (mean_8s, std_8s) = stats(long);
     let longest = curves.iter().map(Vec::len).max().unwrap_or(0);
+    let times = curves
+        .iter()
+        .find(|c| c.len() == longest)
+        .map(|c| c.iter().map(|e| e.0).collect())
+        .unwrap_or_default();
     let per_frame = (0..longest)
         .map(|j| {
             let v: Vec<f64> = curves
@@ -242,6 +359,7 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
         mean_8s,
         std_8s,
         per_frame,
+        times,
         frame_dt,
         rollouts: curves.len(),
     }

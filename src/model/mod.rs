@@ -1,14 +1,89 @@
 //! Learnable cloth models: the mass-spring surrogate ([`springs`]) and the neural baselines
 //! the paper compares it with ([`neural_ode`], [`gnn`]).
 
+pub mod gnn;
 pub mod kernels;
+pub mod neural_ode;
 pub mod springs;
 
+pub use gnn::{Gnn, GnnConfig};
+pub use neural_ode::{NeuralOde, NeuralOdeConfig};
 pub use springs::{Kernel, SpringGraph, SpringNet, spring_forces};
 
 use burn::tensor::Tensor;
+use serde::{Deserialize, Serialize};
 
 use kernels::StepParams;
+
+/// The model families: the paper's surrogate and its two baselines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelKind {
+    /// The mass-spring surrogate ([`SpringNet`]).
+    #[default]
+    Springs,
+    /// The Neural ODE baseline ([`NeuralOde`]).
+    NeuralOde,
+    /// The graph-network baseline ([`Gnn`]).
+    Gnn,
+}
+
+impl ModelKind {
+    /// Every kind, in the order of the paper's Table 2.
+    pub const ALL: [ModelKind; 3] = [ModelKind::Springs, ModelKind::Gnn, ModelKind::NeuralOde];
+
+    /// The name used in configs and tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Springs => "springs",
+            ModelKind::NeuralOde => "neural_ode",
+            ModelKind::Gnn => "gnn",
+        }
+    }
+}
+
+/// The `[model]` section: which model, and its initial parameters or architecture.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// The model family.
+    pub kind: ModelKind,
+    /// Initial stiffness of every spring, N/m (springs).
+    pub k_init: f64,
+    /// Initial damping of every spring, N·s/m (springs).
+    pub b_init: f64,
+    /// Spring-force implementation: the fused kernel or the tensor-op reference (springs).
+    pub kernel: Kernel,
+    /// The Neural ODE's architecture.
+    pub neural_ode: NeuralOdeConfig,
+    /// The GNN's architecture.
+    pub gnn: GnnConfig,
+}
+
+impl Default for ModelConfig {
+    /// Springs with a uniform guess between the paper's stiffness levels and below its damping.
+    fn default() -> Self {
+        Self {
+            kind: ModelKind::Springs,
+            k_init: 50.0,
+            b_init: 3.0,
+            kernel: Kernel::Fused,
+            neural_ode: NeuralOdeConfig::default(),
+            gnn: GnnConfig::default(),
+        }
+    }
+}
+
+impl ModelConfig {
+    /// Checks ranges; errors name the key.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        if !self.k_init.is_finite() || !self.b_init.is_finite() {
+            anyhow::bail!("`model.k_init` and `model.b_init` must be finite");
+        }
+        self.neural_ode.validate()?;
+        self.gnn.validate()
+    }
+}
 
 /// A model of the internal forces of a cloth, stepped by the shared integrator
 /// ([`crate::sim::step_frame`]): the spring network, or the Neural ODE baseline.

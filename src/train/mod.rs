@@ -6,23 +6,27 @@
 pub mod losses;
 pub mod run;
 
-pub use losses::{ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget};
-pub use run::{RunDir, RunState, Status};
+pub use losses::{
+    ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget, motion_loss,
+};
+pub use run::{ModelMeta, RunDir, RunState, Status};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use burn::module::Module;
+use burn::module::{Module, ParamId};
 use burn::optim::{AdamConfig, GradientsParams};
-use burn::tensor::Device;
+use burn::tensor::{Device, Tensor};
+use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
 use crate::cloth::{Resampler, Topology};
 use crate::config::Config;
-use crate::data::{ClipRef, ClipSet, HostBatch, Rollout, Sampler, SpringTruth};
-use crate::model::SpringNet;
+use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, SpringTruth};
+use crate::model::neural_ode::OdeScales;
+use crate::model::{Gnn, GnnConfig, ModelKind, NeuralOde, SpringNet, gnn};
 use crate::progress::Progress;
 use crate::sim::{Physics, Stability};
 
@@ -100,8 +104,10 @@ pub struct TrainConfig {
     pub stiffness: PassConfig,
     /// The damping pass.
     pub damping: PassConfig,
-    /// The single pass.
+    /// The single pass (also the Neural ODE's only pass).
     pub single: PassConfig,
+    /// The GNN's one-step training.
+    pub gnn: PassConfig,
 }
 
 impl Default for TrainConfig {
@@ -128,6 +134,13 @@ impl Default for TrainConfig {
                 clips: ClipPool::All,
                 ..PassConfig::default()
             },
+            gnn: PassConfig {
+                iterations: 2000,
+                batch: 8,
+                lr: 1e-4,
+                clips: ClipPool::All,
+                ..PassConfig::default()
+            },
         }
     }
 }
@@ -139,6 +152,7 @@ impl TrainConfig {
             ("stiffness", &self.stiffness),
             ("damping", &self.damping),
             ("single", &self.single),
+            ("gnn", &self.gnn),
         ] {
             if p.batch == 0 {
                 bail!("`train.{name}.batch` must be at least 1");
@@ -171,20 +185,25 @@ impl TrainConfig {
         Ok(())
     }
 
-    /// The passes to run: name, config, whether `k` and `b` are trained.
-    pub fn passes(&self) -> Vec<(&'static str, &PassConfig, bool, bool)> {
-        match self.mode {
-            Mode::Dual => vec![
+    /// The passes to run for a model family: name, config, whether `k` and `b` are trained.
+    /// Spring networks follow `mode`; the Neural ODE trains in one pass (`train.single`), the
+    /// GNN in its own (`train.gnn`).
+    pub fn passes(&self, kind: ModelKind) -> Vec<(&'static str, &PassConfig, bool, bool)> {
+        match (kind, self.mode) {
+            (ModelKind::Springs, Mode::Dual) => vec![
                 ("stiffness", &self.stiffness, true, false),
                 ("damping", &self.damping, false, true),
             ],
-            Mode::Single => vec![("single", &self.single, true, true)],
+            (ModelKind::Springs, Mode::Single) | (ModelKind::NeuralOde, _) => {
+                vec![("single", &self.single, true, true)]
+            }
+            (ModelKind::Gnn, _) => vec![("gnn", &self.gnn, true, true)],
         }
     }
 
-    /// Total iterations over all passes.
-    pub fn total_iterations(&self) -> usize {
-        self.passes().iter().map(|p| p.1.iterations).sum()
+    /// Total iterations over all passes of a model family.
+    pub fn total_iterations(&self, kind: ModelKind) -> usize {
+        self.passes(kind).iter().map(|p| p.1.iterations).sum()
     }
 }
 
@@ -300,7 +319,8 @@ pub fn open_training_clips(
     Ok((set, truth))
 }
 
-/// Runs the training job of `config`.
+/// Runs the training job of `config`: the model family of `config.model.kind` on the clips
+/// of `config.data`.
 pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Result<TrainSummary> {
     let run = RunDir::new(config.run_dir(options.out.as_deref()));
     let previous = if options.resume { run.state()? } else { None };
@@ -333,224 +353,476 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         gravity: config.sim.gravity,
     };
     let topo = clips.topology.clone();
-    let mut model = SpringNet::uniform(&topo, config.model.k_init, config.model.b_init, &device)
-        .with_kernel(config.model.kernel);
-    let mut start_iteration = 0;
-    if let Some(state) = &previous {
-        if state.checkpoint > 0 {
-            let record = burn::store::ModuleRecord::load(run.checkpoint(state.checkpoint))
-                .map_err(|e| {
-                    anyhow::anyhow!(
-                        "cannot read checkpoint {}: {e}",
-                        run.checkpoint(state.checkpoint).display()
-                    )
-                })?;
+    let job = Job {
+        config,
+        physics,
+        topology: &topo,
+        truth: truth.as_ref(),
+        device: &device,
+    };
+    // The model's constants: new ones, or those of the run being resumed.
+    let meta = match (&previous, ModelMeta::read(&run.meta())) {
+        (Some(_), Ok(meta)) => {
+            if meta.kind != config.model.kind {
+                bail!(
+                    "--resume: {} holds a `{}` run, the config asks for `{}`",
+                    run.dir.display(),
+                    meta.kind.name(),
+                    config.model.kind.name()
+                );
+            }
+            meta
+        }
+        _ => ModelMeta::new(config, &clips, &physics, progress)?,
+    };
+    crate::io::write_json(&run.meta(), &meta)?;
+    let fit = Fit {
+        run: &run,
+        job: &job,
+        clips: &clips,
+        previous: previous.as_ref(),
+        progress,
+    };
+    let summary = match config.model.kind {
+        ModelKind::Springs => {
+            let model =
+                SpringNet::uniform(&topo, config.model.k_init, config.model.b_init, &device)
+                    .with_kernel(config.model.kernel);
+            let (summary, model) = fit.run(model)?;
+            run::write_springs(
+                &run.springs(),
+                &topo,
+                &model.k_values(),
+                &model.b_values(),
+                physics.mass,
+            )?;
+            summary
+        }
+        ModelKind::NeuralOde => fit.run(meta.neural_ode(config, &device))?.0,
+        ModelKind::Gnn => fit.run(meta.gnn(config, &device)?)?.0,
+    };
+    let mut state = run.state()?.expect("written by the fit");
+    state.status = Status::Finished;
+    run.write_state(&state)?;
+    Ok(summary)
+}
+
+/// A trained model of any family.
+#[derive(Debug)]
+pub enum Trained {
+    /// The spring network.
+    Springs(SpringNet),
+    /// The Neural ODE.
+    NeuralOde(NeuralOde),
+    /// The GNN.
+    Gnn(Gnn),
+}
+
+/// What a loss needs besides the model and the batch.
+pub struct Job<'a> {
+    /// The job's configuration.
+    pub config: &'a Config,
+    /// Constants of the integrator.
+    pub physics: Physics,
+    /// The particles' grid.
+    pub topology: &'a Topology,
+    /// Ground-truth `k`, `b` per spring, when known.
+    pub truth: Option<&'a Truth>,
+    /// The training device.
+    pub device: &'a Device,
+}
+
+/// A model family the clip-training loop can fit.
+pub trait Trainable: Module + Sized {
+    /// The loss on a batch of clips at global iteration `iteration` (0-based).
+    fn batch_loss(
+        &self,
+        job: &Job,
+        batch: &ClipBatch,
+        pass: &PassConfig,
+        iteration: usize,
+    ) -> LossTerms;
+
+    /// Readies the model for a pass that trains `k` and/or `b` (spring networks); returns the
+    /// parameters the optimizer updates (`None`: all of them).
+    fn begin_pass(self, _train_k: bool, _train_b: bool) -> (Self, Option<Vec<ParamId>>) {
+        (self, None)
+    }
+
+    /// RMSE of `k` and `b` against the ground truth, when the model has springs and it is known.
+    fn parameter_rmse(&self, _truth: Option<&Truth>) -> Option<(f64, f64)> {
+        None
+    }
+
+    /// Refuses to start when the model would blow up the integrator (spring networks).
+    fn check_start(&self, _job: &Job) -> Result<()> {
+        Ok(())
+    }
+
+    /// What to say when the loss stops being finite.
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the surrogate's rollout diverged".into()
+    }
+}
+
+impl Trainable for SpringNet {
+    fn batch_loss(&self, job: &Job, batch: &ClipBatch, pass: &PassConfig, _: usize) -> LossTerms {
+        loss_with_budget(
+            self,
+            &job.physics,
+            batch,
+            &pass.weights,
+            job.config.train.force_on,
+            job.config.train.state_budget_mib,
+        )
+    }
+
+    fn begin_pass(mut self, train_k: bool, train_b: bool) -> (Self, Option<Vec<ParamId>>) {
+        self.k = self.k.clone().set_require_grad(train_k);
+        self.b = self.b.clone().set_require_grad(train_b);
+        let ids = [(train_k, self.k.id), (train_b, self.b.id)]
+            .into_iter()
+            .filter_map(|(t, id)| t.then_some(id))
+            .collect();
+        (self, Some(ids))
+    }
+
+    fn parameter_rmse(&self, truth: Option<&Truth>) -> Option<(f64, f64)> {
+        truth.map(|(k, b)| (rmse(&self.k_values(), k), rmse(&self.b_values(), b)))
+    }
+
+    fn check_start(&self, job: &Job) -> Result<()> {
+        self.stability(job).check(
+            "the surrogate at its initial k and b",
+            job.config.sim.allow_unstable,
+        )
+    }
+
+    fn divergence_hint(&self, job: &Job) -> String {
+        format!(
+            "the rollout likely diverged: {}",
+            self.stability(job).describe()
+        )
+    }
+}
+
+impl SpringNet {
+    fn stability(&self, job: &Job) -> Stability {
+        Stability::estimate(
+            job.topology,
+            &self.k_values(),
+            &self.b_values(),
+            job.physics.mass,
+            job.physics.rayleigh,
+            job.physics.sim_dt(),
+        )
+    }
+}
+
+impl Trainable for NeuralOde {
+    fn batch_loss(&self, job: &Job, batch: &ClipBatch, pass: &PassConfig, _: usize) -> LossTerms {
+        motion_loss(
+            self,
+            &job.physics,
+            batch,
+            &pass.weights,
+            job.config.train.force_on,
+        )
+    }
+
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the Neural ODE's rollout diverged (its learned forces blew up); lower \
+         `train.single.lr`"
+            .into()
+    }
+}
+
+impl Trainable for Gnn {
+    fn batch_loss(
+        &self,
+        job: &Job,
+        batch: &ClipBatch,
+        _: &PassConfig,
+        iteration: usize,
+    ) -> LossTerms {
+        let mut rng = StdRng::seed_from_u64(
+            job.config.train.seed ^ (iteration as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let host = gnn_windows(batch, &job.config.model.gnn, &mut rng);
+        let windows: Vec<gnn::Window> = host.iter().map(|w| w.view()).collect();
+        let value = self.loss(&windows, &mut rng, job.device);
+        let zero = || Tensor::<1>::zeros([1], job.device);
+        LossTerms {
+            total: value.clone(),
+            force: zero(),
+            impulse: zero(),
+            position: zero(),
+            k_neg: zero(),
+            b_neg: zero(),
+        }
+    }
+
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the GNN's one-step loss is not finite; lower `train.gnn.lr`".into()
+    }
+}
+
+/// One training window of the GNN on the host: `C + 2` GNN frames of one clip.
+pub struct HostWindow {
+    frames: Vec<Vec<[f32; 3]>>,
+    pinned: Vec<bool>,
+}
+
+impl HostWindow {
+    /// The window as the GNN reads it.
+    pub fn view(&self) -> gnn::Window<'_> {
+        gnn::Window {
+            frames: self.frames.iter().map(|f| f.as_slice()).collect(),
+            pinned: &self.pinned,
+        }
+    }
+}
+
+/// One random window of `C + 2` GNN frames (`downsample` data frames apart) from every clip.
+pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> Vec<HostWindow> {
+    let [b, frames, p, _] = batch.positions.dims();
+    let span = config.window_frames();
+    assert!(
+        frames >= span,
+        "GNN windows span {span} data frames, the clips have {frames}: raise `data.clips.steps` or \
+         lower `model.gnn.history` / `model.gnn.downsample`"
+    );
+    let pinned: Vec<f32> = batch
+        .pinned
+        .clone()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor");
+    (0..b)
+        .map(|i| {
+            let start = rng.random_range(0..=frames - span);
+            let data: Vec<f32> = batch
+                .positions
+                .clone()
+                .slice([i..i + 1, start..start + span, 0..p, 0..3])
+                .into_data()
+                .try_into_vec_as::<f32>()
+                .expect("float tensor");
+            let frames = (0..=config.history + 1)
+                .map(|k| {
+                    let f = k * config.downsample;
+                    (0..p)
+                        .map(|q| {
+                            let o = (f * p + q) * 3;
+                            [data[o], data[o + 1], data[o + 2]]
+                        })
+                        .collect()
+                })
+                .collect();
+            HostWindow {
+                frames,
+                pinned: pinned[i * p..(i + 1) * p]
+                    .iter()
+                    .map(|&v| v > 0.5)
+                    .collect(),
+            }
+        })
+        .collect()
+}
+
+/// The training loop shared by every model family: passes of Adam over clip batches, metrics,
+/// checkpoints, resume and a clear stop on a non-finite loss.
+struct Fit<'a> {
+    run: &'a RunDir,
+    job: &'a Job<'a>,
+    clips: &'a Arc<ClipSet>,
+    previous: Option<&'a RunState>,
+    progress: &'a Progress,
+}
+
+impl Fit<'_> {
+    fn run<M: Trainable>(&self, mut model: M) -> Result<(TrainSummary, M)> {
+        let (run, job, config) = (self.run, self.job, self.job.config);
+        let clips = self.clips;
+        let mut start_iteration = 0;
+        if let Some(state) = self.previous
+            && state.checkpoint > 0
+        {
+            let path = run.checkpoint(state.checkpoint);
+            let record = burn::store::ModuleRecord::load(&path)
+                .map_err(|e| anyhow::anyhow!("cannot read checkpoint {}: {e}", path.display()))?;
             model = model
                 .try_load_record(record)
                 .map_err(|e| anyhow::anyhow!("checkpoint does not fit this config: {e}"))?;
             start_iteration = state.checkpoint;
         }
-        run.truncate_metrics(start_iteration)?;
-    }
-    Stability::estimate(
-        &topo,
-        &model.k_values(),
-        &model.b_values(),
-        physics.mass,
-        physics.rayleigh,
-        physics.sim_dt(),
-    )
-    .check(
-        "the surrogate at its initial k and b",
-        config.sim.allow_unstable,
-    )?;
-
-    let total = config.train.total_iterations();
-    let started = Instant::now();
-    let prior_wall = previous.as_ref().map_or(0.0, |s| s.wall_seconds);
-    let mut state = RunState {
-        status: Status::Running,
-        iteration: start_iteration,
-        checkpoint: start_iteration,
-        backend: config.backend.to_string(),
-        wall_seconds: prior_wall,
-        peak_rss_mib: 0.0,
-        error: None,
-    };
-    run.write_state(&state)?;
-    let bar = progress.bar(total as u64, "train");
-    bar.set_position(start_iteration as u64);
-    let mut last = LossValues::default();
-    let mut rmse_now = truth
-        .as_ref()
-        .map(|(k, b)| (rmse(&model.k_values(), k), rmse(&model.b_values(), b)));
-    let mut global = 0;
-    let mut pending = Vec::new();
-    for (pass_index, (name, pass, train_k, train_b)) in
-        config.train.passes().into_iter().enumerate()
-    {
-        let pass_start = global;
-        global += pass.iterations;
-        if start_iteration >= global {
-            continue;
+        if self.previous.is_some() {
+            run.truncate_metrics(start_iteration)?;
         }
-        let pool: Vec<ClipRef> = pool_of(&clips, pass.clips, name, progress)?;
-        let mut sampler = Sampler::new(
-            pool.len(),
-            config.train.seed ^ ((pass_index as u64 + 1) * 0x5851_F42D),
-        );
-        // Skip what was done before a resume, keeping the clip order reproducible.
-        for _ in pass_start..start_iteration.max(pass_start) {
-            sampler.next(pass.batch);
-        }
-        let mut optim = AdamConfig::new()
-            .with_epsilon(config.train.adam_epsilon as f32)
-            .init();
-        if start_iteration > pass_start && run.optimizer(start_iteration).exists() {
-            optim = optim
-                .load(run.optimizer(start_iteration))
-                .map_err(|e| anyhow::anyhow!("cannot read optimizer state: {e}"))?;
-        }
-        model.k = model.k.clone().set_require_grad(train_k);
-        model.b = model.b.clone().set_require_grad(train_b);
-        let trained: Vec<_> = [(train_k, model.k.id), (train_b, model.b.id)]
-            .into_iter()
-            .filter_map(|(t, id)| t.then_some(id))
-            .collect();
-        // The next batch is read and assembled on another thread while this one trains.
-        let next_refs = |sampler: &mut Sampler| -> Vec<ClipRef> {
-            sampler
-                .next(pass.batch)
-                .into_iter()
-                .map(|i| pool[i])
-                .collect()
+        model.check_start(job)?;
+        let passes = config.train.passes(config.model.kind);
+        let total: usize = passes.iter().map(|p| p.1.iterations).sum();
+        let started = Instant::now();
+        let prior_wall = self.previous.map_or(0.0, |s| s.wall_seconds);
+        let mut state = RunState {
+            status: Status::Running,
+            iteration: start_iteration,
+            checkpoint: start_iteration,
+            backend: config.backend.to_string(),
+            wall_seconds: prior_wall,
+            peak_rss_mib: 0.0,
+            error: None,
         };
-        let prefetch = |refs: Vec<ClipRef>| {
-            let clips = Arc::clone(&clips);
-            std::thread::spawn(move || clips.host_batch(&refs))
-        };
-        let mut upcoming = None;
-        for it in start_iteration.max(pass_start)..global {
-            let host = match upcoming.take() {
-                Some(handle) => join_batch(handle)?,
-                None => clips.host_batch(&next_refs(&mut sampler))?,
-            };
-            if it + 1 < global {
-                upcoming = Some(prefetch(next_refs(&mut sampler)));
+        run.write_state(&state)?;
+        let bar = self.progress.bar(total as u64, "train");
+        bar.set_position(start_iteration as u64);
+        let mut last = LossValues::default();
+        let mut rmse_now = model.parameter_rmse(job.truth);
+        let mut global = 0;
+        let mut pending = Vec::new();
+        for (pass_index, (name, pass, train_k, train_b)) in passes.into_iter().enumerate() {
+            let pass_start = global;
+            global += pass.iterations;
+            if start_iteration >= global {
+                continue;
             }
-            let batch = host.to_device(&device);
-            let terms = loss(
-                &model,
-                &physics,
-                &batch,
-                &pass.weights,
-                config.train.force_on,
+            let pool: Vec<ClipRef> = pool_of(clips, pass.clips, name, self.progress)?;
+            let mut sampler = Sampler::new(
+                pool.len(),
+                config.train.seed ^ ((pass_index as u64 + 1) * 0x5851_F42D),
             );
-            let values = terms.values();
-            if !values.total.is_finite() {
-                let message = format!(
-                    "training stopped: the loss became {} at iteration {} ({name} pass; force {:.4e}, impulse {:.4e}). \
-                     The rollout likely diverged: {}. The last good model is checkpoint {} in {}; lower \
-                     `train.{name}.lr`, use more `sim.substeps`, or resume from the checkpoint",
-                    values.total,
+            // Skip what was done before a resume, keeping the clip order reproducible.
+            for _ in pass_start..start_iteration.max(pass_start) {
+                sampler.next(pass.batch);
+            }
+            let mut optim = AdamConfig::new()
+                .with_epsilon(config.train.adam_epsilon as f32)
+                .init();
+            if start_iteration > pass_start && run.optimizer(start_iteration).exists() {
+                optim = optim
+                    .load(run.optimizer(start_iteration))
+                    .map_err(|e| anyhow::anyhow!("cannot read optimizer state: {e}"))?;
+            }
+            let (prepared, trained) = model.begin_pass(train_k, train_b);
+            model = prepared;
+            // The next batch is read and assembled on another thread while this one trains.
+            let next_refs = |sampler: &mut Sampler| -> Vec<ClipRef> {
+                sampler
+                    .next(pass.batch)
+                    .into_iter()
+                    .map(|i| pool[i])
+                    .collect()
+            };
+            let prefetch = |refs: Vec<ClipRef>| {
+                let clips = Arc::clone(clips);
+                std::thread::spawn(move || clips.host_batch(&refs))
+            };
+            let mut upcoming = None;
+            for it in start_iteration.max(pass_start)..global {
+                let host = match upcoming.take() {
+                    Some(handle) => join_batch(handle)?,
+                    None => clips.host_batch(&next_refs(&mut sampler))?,
+                };
+                if it + 1 < global {
+                    upcoming = Some(prefetch(next_refs(&mut sampler)));
+                }
+                let batch = host.to_device(job.device);
+                let terms = model.batch_loss(job, &batch, pass, it);
+                let values = terms.values();
+                if !values.total.is_finite() {
+                    let message = format!(
+                        "training stopped: the loss became {} at iteration {} ({name} pass; force \
+                         {:.4e}, impulse {:.4e}). {}. The last good model is checkpoint {} in {}; \
+                         lower `train.{name}.lr`, use more `sim.substeps`, or resume from the \
+                         checkpoint",
+                        values.total,
+                        it + 1,
+                        values.force,
+                        values.impulse,
+                        model.divergence_hint(job),
+                        state.checkpoint,
+                        run.dir.display(),
+                    );
+                    run.append_metrics(&pending)?;
+                    state.status = Status::Failed;
+                    state.error = Some(message.clone());
+                    run.write_state(&state)?;
+                    bar.abandon();
+                    bail!(message);
+                }
+                let mut grads = terms.total.backward();
+                let grads = match &trained {
+                    Some(ids) => GradientsParams::from_params(&mut grads, &model, ids),
+                    None => GradientsParams::from_grads(grads, &model),
+                };
+                model = optim.step(pass.lr, model, grads);
+                last = values;
+                if job.truth.is_some() {
+                    rmse_now = model.parameter_rmse(job.truth);
+                }
+                let elapsed = prior_wall + started.elapsed().as_secs_f64();
+                let (rk, rb) = rmse_now.map_or((String::new(), String::new()), |(k, b)| {
+                    (format!("{k:.6}"), format!("{b:.6}"))
+                });
+                pending.push(format!(
+                    "{},{name},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{rk},{rb},{elapsed:.3}",
                     it + 1,
+                    values.total,
                     values.force,
                     values.impulse,
-                    Stability::estimate(
-                        &topo,
-                        &model.k_values(),
-                        &model.b_values(),
-                        physics.mass,
-                        physics.rayleigh,
-                        physics.sim_dt()
-                    )
-                    .describe(),
-                    state.checkpoint,
-                    run.dir.display(),
-                );
-                run.append_metrics(&pending)?;
-                state.status = Status::Failed;
-                state.error = Some(message.clone());
-                run.write_state(&state)?;
-                bar.abandon();
-                bail!(message);
-            }
-            let mut grads = terms.total.backward();
-            let grads = GradientsParams::from_params(&mut grads, &model, &trained);
-            model = optim.step(pass.lr, model, grads);
-            last = values;
-            if let Some((k, b)) = &truth {
-                rmse_now = Some((rmse(&model.k_values(), k), rmse(&model.b_values(), b)));
-            }
-            let elapsed = prior_wall + started.elapsed().as_secs_f64();
-            let (rk, rb) = rmse_now.map_or((String::new(), String::new()), |(k, b)| {
-                (format!("{k:.6}"), format!("{b:.6}"))
-            });
-            pending.push(format!(
-                "{},{name},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{rk},{rb},{elapsed:.3}",
-                it + 1,
-                values.total,
-                values.force,
-                values.impulse,
-                values.position,
-                values.k_neg,
-                values.b_neg
-            ));
-            bar.set_message(match rmse_now {
-                Some((k, b)) => format!(
-                    "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
-                    values.total
-                ),
-                None => format!("{name} loss {:.3e}", values.total),
-            });
-            bar.inc(1);
-            state.iteration = it + 1;
-            if (it + 1) % config.train.checkpoint_every == 0 || it + 1 == global {
-                run.append_metrics(&pending)?;
-                pending.clear();
-                RunDir::save_module(&model, &run.checkpoint(it + 1))?;
-                let optim_path = run.optimizer(it + 1);
-                crate::io::write_atomic_with_path(&optim_path, |tmp| {
-                    optim
-                        .save(tmp)
-                        .map_err(|e| anyhow::anyhow!("cannot save optimizer state: {e}"))
-                })?;
-                let old = state.checkpoint;
-                state.checkpoint = it + 1;
-                state.wall_seconds = elapsed;
-                state.peak_rss_mib = run::peak_rss_mib();
-                run.write_state(&state)?;
-                if old > 0 && old != state.checkpoint {
-                    let _ = std::fs::remove_file(run.optimizer(old));
+                    values.position,
+                    values.k_neg,
+                    values.b_neg
+                ));
+                bar.set_message(match rmse_now {
+                    Some((k, b)) => format!(
+                        "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
+                        values.total
+                    ),
+                    None => format!("{name} loss {:.3e}", values.total),
+                });
+                bar.inc(1);
+                state.iteration = it + 1;
+                if (it + 1) % config.train.checkpoint_every == 0 || it + 1 == global {
+                    run.append_metrics(&pending)?;
+                    pending.clear();
+                    RunDir::save_module(&model, &run.checkpoint(it + 1))?;
+                    let optim_path = run.optimizer(it + 1);
+                    crate::io::write_atomic_with_path(&optim_path, |tmp| {
+                        optim
+                            .save(tmp)
+                            .map_err(|e| anyhow::anyhow!("cannot save optimizer state: {e}"))
+                    })?;
+                    let old = state.checkpoint;
+                    state.checkpoint = it + 1;
+                    state.wall_seconds = elapsed;
+                    state.peak_rss_mib = run::peak_rss_mib();
+                    run.write_state(&state)?;
+                    if old > 0 && old != state.checkpoint {
+                        let _ = std::fs::remove_file(run.optimizer(old));
+                    }
                 }
             }
+            start_iteration = global;
         }
-        start_iteration = global;
+        bar.finish();
+        run.append_metrics(&pending)?;
+        let model = model.valid();
+        RunDir::save_module(&model, &run.model())?;
+        state.wall_seconds = prior_wall + started.elapsed().as_secs_f64();
+        state.peak_rss_mib = run::peak_rss_mib();
+        run.write_state(&state)?;
+        let summary = TrainSummary {
+            run_dir: run.dir.clone(),
+            iterations: total,
+            wall_seconds: state.wall_seconds,
+            peak_rss_mib: state.peak_rss_mib,
+            last,
+            rmse_k: rmse_now.map(|r| r.0),
+            rmse_b: rmse_now.map(|r| r.1),
+        };
+        Ok((summary, model))
     }
-    bar.finish();
-    run.append_metrics(&pending)?;
-    let model = model.valid();
-    RunDir::save_module(&model, &run.model())?;
-    run::write_springs(
-        &run.springs(),
-        &topo,
-        &model.k_values(),
-        &model.b_values(),
-        physics.mass,
-    )?;
-    state.status = Status::Finished;
-    state.wall_seconds = prior_wall + started.elapsed().as_secs_f64();
-    state.peak_rss_mib = run::peak_rss_mib();
-    run.write_state(&state)?;
-    Ok(TrainSummary {
-        run_dir: run.dir.clone(),
-        iterations: total,
-        wall_seconds: state.wall_seconds,
-        peak_rss_mib: state.peak_rss_mib,
-        last,
-        rmse_k: rmse_now.map(|r| r.0),
-        rmse_b: rmse_now.map(|r| r.1),
-    })
 }
 
 /// The batch a prefetch thread assembled.
@@ -592,6 +864,143 @@ fn pool_of(
         "warning: the {name} pass asks for {pool:?} clips and the data has none; using every clip"
     ));
     Ok(all)
+}
+
+impl ModelMeta {
+    /// The constants of a new model of `config.model.kind` for the clips of a training set:
+    /// the Neural ODE's scales, the GNN's normalisation (from up to 64 clips).
+    pub fn new(
+        config: &Config,
+        clips: &ClipSet,
+        physics: &Physics,
+        progress: &Progress,
+    ) -> Result<Self> {
+        let topo = &clips.topology;
+        let (width, height) = (clips.info.width, clips.info.height);
+        let kind = config.model.kind;
+        let particles = topo.num_particles();
+        let mut meta = ModelMeta {
+            kind,
+            particles,
+            width,
+            height,
+            particle_mass: physics.mass,
+            frame_dt: physics.frame_dt,
+            parameters: 0,
+            ode_scales: None,
+            gnn_stats: None,
+        };
+        match kind {
+            ModelKind::Springs => meta.parameters = 2 * topo.num_springs(),
+            ModelKind::NeuralOde => {
+                meta.ode_scales =
+                    Some(OdeScales::new(width, height, physics.mass, physics.gravity));
+                meta.parameters = config.model.neural_ode.parameter_count(particles);
+            }
+            ModelKind::Gnn => {
+                let cfg = &config.model.gnn;
+                let pool: Vec<ClipRef> = clips
+                    .regular
+                    .iter()
+                    .chain(&clips.low_velocity)
+                    .copied()
+                    .collect();
+                let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0057_A75);
+                let refs: Vec<ClipRef> = sampler.next(64).into_iter().map(|i| pool[i]).collect();
+                progress.note(&format!("GNN: normalisation from {} clips", refs.len()));
+                let plain = config.backend.device()?;
+                let batch = clips.batch(&refs, &plain)?;
+                let mut rng = StdRng::seed_from_u64(config.train.seed);
+                let host = gnn_windows(&batch, cfg, &mut rng);
+                let windows: Vec<gnn::Window> = host.iter().map(|w| w.view()).collect();
+                let spacing = (width / (topo.nx - 1) as f64).min(height / (topo.ny - 1) as f64);
+                meta.gnn_stats = Some(gnn::statistics(&windows, cfg, spacing));
+                meta.parameters = cfg.parameter_count();
+            }
+        }
+        Ok(meta)
+    }
+
+    /// A new Neural ODE with these constants.
+    pub fn neural_ode(&self, config: &Config, device: &Device) -> NeuralOde {
+        NeuralOde::new(
+            &config.model.neural_ode,
+            self.particles,
+            self.ode_scales.expect("a Neural ODE run has scales"),
+            device,
+        )
+    }
+
+    /// A new GNN with these constants.
+    pub fn gnn(&self, config: &Config, device: &Device) -> Result<Gnn> {
+        let stats = self
+            .gnn_stats
+            .ok_or_else(|| anyhow::anyhow!("model.json of a GNN run has no `gnn_stats`"))?;
+        Ok(Gnn::new(&config.model.gnn, stats, device))
+    }
+}
+
+/// A trained run: its configuration, grid, model, particle mass and constants.
+pub struct LoadedRun {
+    /// The run's configuration (with `--set` overrides).
+    pub config: Config,
+    /// The particles' grid.
+    pub topology: Topology,
+    /// The model.
+    pub model: Trained,
+    /// The model's constants.
+    pub meta: ModelMeta,
+}
+
+/// Loads the trained model of a run directory (`model.json` + `model.bpk`; spring networks
+/// from `springs.npz`).
+pub fn load_run(run_dir: &Path, set: &[String], device: &Device) -> Result<LoadedRun> {
+    let run = RunDir::new(run_dir);
+    let config = Config::load(&run.config(), set)
+        .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
+    if !run.meta().exists() {
+        bail!(
+            "{} has no model.json: the run is not finished (or was trained by an older springtime)",
+            run_dir.display()
+        );
+    }
+    let meta = ModelMeta::read(&run.meta())?;
+    let topology = topology(&config, meta.width, meta.height);
+    let model = match meta.kind {
+        ModelKind::Springs => {
+            let (_, _, model, _) = load_surrogate(run_dir, device)?;
+            Trained::Springs(model)
+        }
+        kind => {
+            let path = run.model();
+            let record = burn::store::ModuleRecord::load(&path).map_err(|e| {
+                anyhow::anyhow!(
+                    "{} has no trained model (is the run finished?): {e}",
+                    path.display()
+                )
+            })?;
+            let load_err =
+                |e| anyhow::anyhow!("{} does not fit the run's config: {e}", path.display());
+            match kind {
+                ModelKind::NeuralOde => Trained::NeuralOde(
+                    meta.neural_ode(&config, device)
+                        .try_load_record(record)
+                        .map_err(load_err)?,
+                ),
+                _ => Trained::Gnn(
+                    meta.gnn(&config, device)?
+                        .try_load_record(record)
+                        .map_err(load_err)?,
+                ),
+            }
+        }
+    };
+    Ok(LoadedRun {
+        config,
+        topology,
+        model,
+        meta,
+    })
 }
 
 /// Loads the trained surrogate of a run directory from its `springs.npz`.

@@ -10,7 +10,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::Topology;
 use crate::data::npz::{Array, Npz};
-use crate::model::SpringNet;
+use crate::model::ModelKind;
+use crate::model::gnn::GnnStats;
+use crate::model::neural_ode::OdeScales;
 
 /// Status of a run (`run.json`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -80,6 +82,10 @@ impl RunDir {
     /// `springs.npz`: the exportable surrogate.
     pub fn springs(&self) -> PathBuf {
         self.dir.join("springs.npz")
+    }
+    /// `model.json`: the model's family, size and constants ([`ModelMeta`]).
+    pub fn meta(&self) -> PathBuf {
+        self.dir.join("model.json")
     }
     /// `eval.json`.
     pub fn eval(&self) -> PathBuf {
@@ -182,7 +188,7 @@ impl RunDir {
     }
 
     /// Saves a module to `path` atomically (burnpack).
-    pub fn save_module(model: &SpringNet, path: &Path) -> Result<()> {
+    pub fn save_module<M: Module>(model: &M, path: &Path) -> Result<()> {
         crate::io::write_atomic_with_path(path, |tmp| {
             model
                 .clone()
@@ -190,6 +196,41 @@ impl RunDir {
                 .save(tmp)
                 .map_err(|e| anyhow::anyhow!("cannot save the model: {e}"))
         })
+    }
+}
+
+/// `model.json`: what a run's `model.bpk` needs besides its config to be rebuilt.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelMeta {
+    /// The model family.
+    pub kind: ModelKind,
+    /// Particles the model simulates.
+    pub particles: usize,
+    /// Rest rectangle, m.
+    pub width: f64,
+    /// Rest rectangle, m.
+    pub height: f64,
+    /// Mass of every particle, kg.
+    pub particle_mass: f64,
+    /// Time between data frames, s.
+    pub frame_dt: f64,
+    /// Learnable parameters.
+    pub parameters: usize,
+    /// The Neural ODE's input and output scales.
+    #[serde(default)]
+    pub ode_scales: Option<OdeScales>,
+    /// The GNN's normalisation.
+    #[serde(default)]
+    pub gnn_stats: Option<GnnStats>,
+}
+
+impl ModelMeta {
+    /// Reads `model.json`.
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a valid model.json", path.display()))
     }
 }
 
