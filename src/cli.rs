@@ -12,8 +12,8 @@ use crate::config::Config;
 use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
-use crate::sim::{self, Physics, Stability, State};
-use crate::train::{self, RunDir, TrainOptions, Trained};
+use crate::sim::{Physics, Stability};
+use crate::train::{self, RunDir, TrainOptions};
 
 /// Learn simulatable mass-spring cloth models from motion.
 #[derive(Debug, Parser)]
@@ -54,6 +54,9 @@ pub enum Command {
         /// Skip the evaluation after training.
         #[arg(long)]
         no_eval: bool,
+        /// Skip the report after training.
+        #[arg(long)]
+        no_report: bool,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -68,6 +71,66 @@ pub enum Command {
         /// Compute backend.
         #[arg(long)]
         backend: Option<Backend>,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Draw a finished run's figures and write <run-dir>/report/report.html (self-contained).
+    Report {
+        /// Run directory.
+        run_dir: PathBuf,
+        /// Directory of test rollouts (every .npz in it), instead of the run's test split.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Compute backend for the simulations.
+        #[arg(long)]
+        backend: Option<Backend>,
+    },
+    /// Export a finished run: rest mesh, a simulated rollout as OBJ/PLY frames, the surrogate
+    /// as JSON and .npz.
+    Export {
+        /// Run directory.
+        run_dir: PathBuf,
+        /// Mesh format: obj or ply.
+        #[arg(long, default_value = "obj", value_parser = parse_format)]
+        format: crate::export::Format,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Rollout file that starts the simulated rollout (default: the run's first test
+        /// rollout).
+        #[arg(long)]
+        init: Option<PathBuf>,
+        /// Directory of test rollouts to take the first of.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Seconds to simulate (default: the length of the initial rollout).
+        #[arg(long)]
+        seconds: Option<f64>,
+        /// Frames per second of the exported sequence.
+        #[arg(long, default_value_t = 30.0)]
+        fps: f64,
+        /// Compute backend.
+        #[arg(long)]
+        backend: Option<Backend>,
+        /// Overwrite existing files.
+        #[arg(long)]
+        force: bool,
+    },
+    /// Train (or reuse) the spring surrogate, the Neural ODE and the GNN on the same data and
+    /// write comparison.md, comparison.csv and comparison_rmse.png (paper Table 2).
+    Compare {
+        /// Config file (TOML); its `model.kind` is ignored, every family is trained.
+        config: PathBuf,
+        /// Output directory (default runs/<name>); runs go to its springs/, gnn/, neural_ode/.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Compute backend for every model.
+        #[arg(long)]
+        backend: Option<Backend>,
+        /// Retrain every model even where a finished run exists.
+        #[arg(long)]
+        force: bool,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -130,6 +193,7 @@ pub fn run(cli: Cli) -> Result<()> {
             resume,
             force,
             no_eval,
+            no_report,
             set,
         } => {
             let mut cfg = Config::load(&config, &set)?;
@@ -149,19 +213,93 @@ pub fn run(cli: Cli) -> Result<()> {
             );
             println!("run: {}", summary.run_dir.display());
             if !no_eval {
-                let report = evaluate(&summary.run_dir, None, None, &[], &progress)?;
+                let report = eval::evaluate(&summary.run_dir, None, None, &[], &progress)?;
                 print_eval(&report);
+            }
+            if !no_report && cfg.model.kind == crate::model::ModelKind::Springs {
+                report(&summary.run_dir, None, None, &progress)
+                    .context("training finished, but its report failed")?;
             }
             Ok(())
         }
+        Command::Report {
+            run_dir,
+            data,
+            backend,
+        } => report(&run_dir, data, backend, &progress),
+        Command::Export {
+            run_dir,
+            format,
+            out,
+            init,
+            data,
+            seconds,
+            fps,
+            backend,
+            force,
+        } => export(
+            &run_dir,
+            &crate::export::ExportOptions {
+                format,
+                out,
+                init,
+                data,
+                seconds,
+                fps,
+                force,
+                backend,
+            },
+            &progress,
+        ),
         Command::Eval {
             run_dir,
             data,
             backend,
             set,
         } => {
-            let report = evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
+            let report = eval::evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
             print_eval(&report);
+            Ok(())
+        }
+        Command::Compare {
+            config,
+            out,
+            backend,
+            force,
+            set,
+        } => {
+            let cfg = Config::load(&config, &set)?;
+            let c = crate::compare::compare(
+                &cfg,
+                &crate::compare::CompareOptions {
+                    out,
+                    force,
+                    backend,
+                },
+                &progress,
+            )?;
+            println!(
+                "{:<16} {:>22} {:>22} {:>12} {:>10} {:>14}",
+                "model", "RMSE ≤ short (m)", "RMSE ≤ long (m)", "train (s)", "params", "µs/step"
+            );
+            for r in &c.rows {
+                let m = &r.eval.motion_rmse;
+                println!(
+                    "{:<16} {:>10.3e} ± {:<9.2e} {:>10.3e} ± {:<9.2e} {:>12.1} {:>10} {:>14.1}",
+                    r.kind.name(),
+                    m.mean_0_8s,
+                    m.std_0_8s,
+                    m.mean_8s,
+                    m.std_8s,
+                    r.train_seconds,
+                    r.parameters,
+                    r.eval
+                        .inference
+                        .as_ref()
+                        .map_or(f64::NAN, |i| i.us_per_step)
+                );
+            }
+            println!("comparison: {}", c.files[0].display());
             Ok(())
         }
         Command::Bench {
@@ -195,6 +333,52 @@ pub fn run(cli: Cli) -> Result<()> {
             &run_dir, &init, seconds, &out, backend, force, &set, &progress,
         ),
     }
+}
+
+fn parse_format(s: &str) -> std::result::Result<crate::export::Format, String> {
+    s.parse()
+}
+
+fn report(
+    run_dir: &Path,
+    data: Option<PathBuf>,
+    backend: Option<Backend>,
+    progress: &Progress,
+) -> Result<()> {
+    let options = crate::report::ReportOptions { data, backend };
+    let summary = crate::report::build(run_dir, &options, progress)?;
+    for note in &summary.notes {
+        eprintln!("note: {note}");
+    }
+    println!("report: {}", summary.html.display());
+    Ok(())
+}
+
+fn export(
+    run_dir: &Path,
+    options: &crate::export::ExportOptions,
+    progress: &Progress,
+) -> Result<()> {
+    let s = crate::export::export_run(run_dir, options, progress)?;
+    if let Some(note) = &s.note {
+        eprintln!("note: no rollout exported: {note}; pass --init <rollout.npz>");
+    }
+    match &s.rollout {
+        Some(r) => println!(
+            "wrote {} files to {}: rest mesh, {} frames at {:.1} fps simulated from {}, surrogate.json, surrogate.npz",
+            s.files.len(),
+            options.out.display(),
+            s.frames,
+            s.fps,
+            r.display()
+        ),
+        None => println!(
+            "wrote {} files to {}: rest mesh, surrogate.json, surrogate.npz",
+            s.files.len(),
+            options.out.display()
+        ),
+    }
+    Ok(())
 }
 
 fn parse_kernel(s: &str) -> std::result::Result<crate::model::Kernel, String> {
@@ -232,131 +416,6 @@ fn generate(config: &Path, set: &[String], progress: &Progress) -> Result<()> {
     Ok(())
 }
 
-/// Evaluates a run and writes its `eval.json`.
-pub fn evaluate(
-    run_dir: &Path,
-    data: Option<&Path>,
-    backend: Option<Backend>,
-    set: &[String],
-    progress: &Progress,
-) -> Result<EvalReport> {
-    let start = Instant::now();
-    let run = RunDir::new(run_dir);
-    let mut overrides = set.to_vec();
-    if let Some(b) = backend {
-        overrides.push(format!("backend={b}"));
-    }
-    let device = match backend {
-        Some(b) => b.device()?,
-        None => Config::load(&run.config(), set)
-            .with_context(|| format!("{} is not a run directory", run_dir.display()))?
-            .backend
-            .device()?,
-    };
-    let loaded = train::load_run(run_dir, &overrides, &device)?;
-    let mut config = loaded.config;
-    if let Some(d) = data {
-        config.data.test_dir = Some(d.to_path_buf());
-    }
-    let topo = loaded.topology;
-    let mass = loaded.meta.particle_mass;
-    let split = config.data.split()?;
-    let mut files = split.test;
-    if files.is_empty() {
-        bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
-    }
-    if config.eval.max_rollouts > 0 {
-        files.truncate(config.eval.max_rollouts);
-    }
-    let first = Rollout::load(&files[0])?;
-    let physics = Physics {
-        frame_dt: first.frame_dt,
-        substeps: config.sim.substeps,
-        mass,
-        rayleigh: config.sim.rayleigh,
-        gravity: config.sim.gravity,
-    };
-    let (curves, frame_dt) = match &loaded.model {
-        Trained::Springs(model) => {
-            Stability::estimate(
-                &topo,
-                &model.k_values(),
-                &model.b_values(),
-                mass,
-                physics.rayleigh,
-                physics.sim_dt(),
-            )
-            .check("the trained surrogate", config.sim.allow_unstable)?;
-            let c = eval::motion_curves(
-                model,
-                &physics,
-                &topo,
-                &files,
-                config.eval.batch,
-                &device,
-                progress,
-            )?;
-            (c, first.frame_dt)
-        }
-        Trained::NeuralOde(model) => {
-            let c = eval::motion_curves(
-                model,
-                &physics,
-                &topo,
-                &files,
-                config.eval.batch,
-                &device,
-                progress,
-            )?;
-            (c, first.frame_dt)
-        }
-        Trained::Gnn(model) => {
-            let ds = config.model.gnn.downsample;
-            let c = eval::gnn_motion_curves(
-                model,
-                ds,
-                &topo,
-                &files,
-                config.eval.batch,
-                &device,
-                progress,
-            )?;
-            (c, first.frame_dt * ds as f64)
-        }
-    };
-    let motion = eval::summarize(
-        &curves,
-        frame_dt,
-        config.eval.short_seconds,
-        config.eval.long_seconds,
-    );
-    let (mut rmse_k, mut rmse_b, mut stiffness_map_corr) = (None, None, None);
-    if let Trained::Springs(model) = &loaded.model {
-        let truth = first.springs.as_ref().and_then(|t| {
-            let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
-            train::matching_truth(t, &topo, &res)
-        });
-        if let Some((k, b)) = truth {
-            rmse_k = Some(train::rmse(&model.k_values(), &k));
-            rmse_b = Some(train::rmse(&model.b_values(), &b));
-        }
-        stiffness_map_corr = first.mesh.as_ref().and_then(|mesh| {
-            eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh)
-        });
-    }
-    let report = EvalReport {
-        rmse_k,
-        rmse_b,
-        stiffness_map_corr,
-        motion_rmse: motion,
-        test_rollouts: files,
-        backend: config.backend.to_string(),
-        seconds: start.elapsed().as_secs_f64(),
-    };
-    crate::io::write_json(&run.eval(), &report)?;
-    Ok(report)
-}
-
 fn print_eval(r: &EvalReport) {
     let m = &r.motion_rmse;
     if let (Some(k), Some(b)) = (r.rmse_k, r.rmse_b) {
@@ -371,6 +430,15 @@ fn print_eval(r: &EvalReport) {
         "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ 0.8 s: {:.4e} ± {:.4e}; ≤ 8 s: {:.4e} ± {:.4e})",
         m.rollouts, m.mean, m.std, m.mean_0_8s, m.std_0_8s, m.mean_8s, m.std_8s
     );
+    if let Some(i) = &r.inference {
+        println!(
+            "inference: {:.1} µs per rollout·step of {} ms (batch {}), {:.3} s per simulated second",
+            i.us_per_step,
+            i.step_dt * 1e3,
+            i.batch,
+            i.seconds_per_second
+        );
+    }
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -418,64 +486,25 @@ fn simulate(
     .check("the trained surrogate", config.sim.allow_unstable)?;
     let p = topo.num_particles();
     let frames = (seconds / rollout.frame_dt).round() as usize;
-    let t3 = |v: &[f32]| {
-        burn::tensor::Tensor::<3>::from_data(
-            burn::tensor::TensorData::new(v.to_vec(), [1, p, 3]),
-            &device,
-        )
-    };
-    // Pinned particles follow the file's path while it lasts, then stay at its last frame.
-    let observed = |j: usize| {
-        let j = (first + j).min(track.frames - 1);
-        &track.positions[j * p * 3..(j + 1) * p * 3]
-    };
-    let pinned_host: Vec<f32> = track.pinned.iter().map(|&x| x as u8 as f32).collect();
-    let pinned = burn::tensor::Tensor::<3>::from_data(
-        burn::tensor::TensorData::new(pinned_host, [1, p, 1]),
-        &device,
-    );
-    let mut state = State {
-        x: t3(observed(0)),
-        v: t3(&track.velocities[first * p * 3..(first + 1) * p * 3]),
-    };
-    let mut positions: Vec<f32> = observed(0).to_vec();
-    let mut velocities: Vec<f32> = track.velocities[first * p * 3..(first + 1) * p * 3].to_vec();
     let bar = progress.bar(frames as u64, "simulate");
-    for j in 0..frames {
-        let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
-        let (s, _) = sim::step_frame(&model, &physics, state, &pinned, &here, &next);
-        state = s;
-        let x: Vec<f32> = state
-            .x
-            .clone()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-        if x.iter().any(|c| !c.is_finite()) {
-            bail!(
-                "the surrogate diverged at frame {} (t = {:.3} s)",
-                j + 1,
-                (j + 1) as f64 * physics.frame_dt
-            );
-        }
-        positions.extend_from_slice(&x);
-        velocities.extend(
-            state
-                .v
-                .clone()
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?,
-        );
-        bar.inc(1);
-    }
+    let keep: Vec<usize> = (0..=frames).collect();
+    let sim = eval::simulate_track(
+        &model,
+        &physics,
+        &track,
+        first,
+        frames,
+        &keep,
+        &device,
+        |_| bar.inc(1),
+    )?;
     bar.finish();
     let out_rollout = Rollout {
         path: out.to_path_buf(),
         frames: frames + 1,
         landmarks: p,
-        positions,
-        velocities: Some(velocities),
+        positions: sim.positions,
+        velocities: Some(sim.velocities),
         rest_uv: topo.rest_uv.clone(),
         pinned: track.pinned.clone(),
         frame_dt: physics.frame_dt,

@@ -4,8 +4,8 @@
 //! The pipeline, in the order of the paper: [`source`] generates rollouts, [`data`] reads them
 //! and cuts clips, [`cloth`] builds the surrogate grid and resamples landmarks to it, [`model`]
 //! holds the per-spring parameters and the spring forces, [`sim`] rolls the surrogate out,
-//! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it. See
-//! `ARCHITECTURE.md`.
+//! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it; [`report`]
+//! draws a run's figures and [`export`] writes it for other tools. See `ARCHITECTURE.md`.
 #![warn(missing_docs)]
 // `!(x >= 0.0)` is deliberate: it rejects NaN along with negative values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -14,12 +14,15 @@ pub mod backend;
 pub mod bench;
 pub mod cli;
 pub mod cloth;
+pub mod compare;
 pub mod config;
 pub mod data;
 pub mod eval;
+pub mod export;
 pub mod io;
 pub mod model;
 pub mod progress;
+pub mod report;
 pub mod sim;
 pub mod source;
 pub mod train;

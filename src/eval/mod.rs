@@ -1,7 +1,12 @@
 //! Evaluation (paper §4.2): parameter RMSE (Eq. 13) and motion RMSE over test rollouts
 //! (Eq. 14).
 
+mod run;
+
+pub use run::evaluate;
+
 use std::path::PathBuf;
+use std::time::Instant;
 
 use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -65,6 +70,19 @@ pub struct MotionRmse {
     pub rollouts: usize,
 }
 
+/// Inference cost measured while evaluating: the model's steps only, batched as `eval.batch`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Inference {
+    /// Wall time per rollout·step, µs.
+    pub us_per_step: f64,
+    /// Simulated time one step advances, s (a data frame; the GNN's step spans `downsample`).
+    pub step_dt: f64,
+    /// Rollouts stepped together.
+    pub batch: usize,
+    /// Wall time per simulated second of one rollout, s.
+    pub seconds_per_second: f64,
+}
+
 /// `eval.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvalReport {
@@ -78,6 +96,9 @@ pub struct EvalReport {
     pub stiffness_map_corr: Option<f64>,
     /// Motion RMSE over the test rollouts.
     pub motion_rmse: MotionRmse,
+    /// What the model's steps cost during this evaluation.
+    #[serde(default)]
+    pub inference: Option<Inference>,
     /// Test rollout files.
     pub test_rollouts: Vec<PathBuf>,
     /// Backend used.
@@ -99,7 +120,7 @@ pub fn motion_curves(
     batch: usize,
     device: &Device,
     progress: &Progress,
-) -> Result<Vec<Curve>> {
+) -> Result<MotionCurves> {
     let mut tracks = Vec::new();
     for f in files {
         let r = Rollout::load(f)?;
@@ -118,6 +139,7 @@ pub fn motion_curves(
     let bar = progress.bar(total_frames as u64, "eval");
     let mut curves = vec![Vec::new(); tracks.len()];
     let p = topology.num_particles();
+    let (mut step_seconds, mut steps) = (0.0, 0);
     let mut order: Vec<usize> = (0..tracks.len()).collect();
     order.sort_by_key(|&i| (tracks[i].1.frames, tracks[i].2));
     for group in order
@@ -148,6 +170,7 @@ pub fn motion_curves(
                 .flat_map(|&i| tracks[i].1.pinned.iter().map(|&x| x as u8 as f32))
                 .collect();
             let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [b, p, 1]), device);
+            let clock = Instant::now();
             let mut state = State {
                 x: frame_of(first, false),
                 v: frame_of(first, true),
@@ -204,10 +227,16 @@ pub fn motion_curves(
             let left = errs.len();
             flush(&mut errs, frames - 2, &mut curves)?;
             bar.inc((left * b) as u64);
+            step_seconds += clock.elapsed().as_secs_f64();
+            steps += (frames - 1 - first) * b;
         }
     }
     bar.finish();
-    Ok(curves)
+    Ok(MotionCurves {
+        curves,
+        step_seconds,
+        steps,
+    })
 }
 
 /// [`motion_curves`] for the GNN: each test rollout starts from its first `C + 1` GNN frames
@@ -221,7 +250,7 @@ pub fn gnn_motion_curves(
     batch: usize,
     device: &Device,
     progress: &Progress,
-) -> Result<Vec<Curve>> {
+) -> Result<MotionCurves> {
     let c = model.history;
     let mut tracks = Vec::new();
     for f in files {
@@ -256,6 +285,7 @@ pub fn gnn_motion_curves(
     let total: usize = tracks.iter().map(steps_of).sum();
     let bar = progress.bar(total as u64, "eval");
     let mut curves = vec![Vec::new(); tracks.len()];
+    let (mut step_seconds, mut done) = (0.0, 0);
     let order: Vec<usize> = (0..tracks.len()).collect();
     for chunk in order.chunks(batch.max(1)) {
         let mut hist: Vec<Vec<Vec<[f32; 3]>>> = chunk
@@ -289,7 +319,10 @@ pub fn gnn_motion_curves(
                 live.iter().map(|&s| hist[s].clone()).collect();
             let live_pins: Vec<Vec<bool>> = live.iter().map(|&s| pinned[s].clone()).collect();
             let target_refs: Vec<&[[f32; 3]]> = targets.iter().map(|t| t.as_slice()).collect();
+            let clock = Instant::now();
             let next = model.step(&live_hist, &live_pins, &target_refs, device);
+            step_seconds += clock.elapsed().as_secs_f64();
+            done += live.len();
             for ((&s, x), target) in live.iter().zip(next).zip(&targets) {
                 let i = chunk[s];
                 let (_, first, dt) = tracks[i];
@@ -316,7 +349,29 @@ pub fn gnn_motion_curves(
         }
     }
     bar.finish();
-    Ok(curves)
+    Ok(MotionCurves {
+        curves,
+        step_seconds,
+        steps: done,
+    })
+}
+
+/// Per-rollout motion curves and what simulating them cost.
+#[derive(Debug, Clone, Default)]
+pub struct MotionCurves {
+    /// One curve per test rollout, in the order of the files.
+    pub curves: Vec<Curve>,
+    /// Wall time of the model's steps (data loading and resampling excluded), s.
+    pub step_seconds: f64,
+    /// Rollout·steps simulated (a batch of `B` rollouts stepped once counts `B`).
+    pub steps: usize,
+}
+
+impl MotionCurves {
+    /// Inference cost per rollout·step, µs (batched as the evaluation was).
+    pub fn us_per_step(&self) -> f64 {
+        1e6 * self.step_seconds / self.steps.max(1) as f64
+    }
 }
 
 /// Summarises per-frame curves into Table 2's statistics.
@@ -454,6 +509,150 @@ pub fn stiffness_map_corr(
     let learned: Vec<f64> = pairs.iter().map(|&(s, _)| k[s]).collect();
     let truth: Vec<f64> = pairs.iter().map(|&(_, v)| v).collect();
     spearman(&learned, &truth)
+}
+
+/// Simulates the surrogate for `frames` data frames from frame `first` of `track` (a rollout
+/// resampled to the particles), pinned particles following the track's path while it lasts and
+/// then holding its last frame, and keeps the frames listed in `keep` (sorted, `0..=frames`).
+///
+/// `on_frame(j)` is called after each simulated frame (for progress). Fails, naming the time,
+/// when the simulation diverges.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_track(
+    model: &dyn ForceModel,
+    physics: &Physics,
+    track: &Track,
+    first: usize,
+    frames: usize,
+    keep: &[usize],
+    device: &Device,
+    mut on_frame: impl FnMut(usize),
+) -> Result<FreeRollout> {
+    let p = track.particles;
+    if first >= track.frames {
+        bail!(
+            "the rollout has {} frames; cannot start at frame {first}",
+            track.frames
+        );
+    }
+    let t3 = |v: &[f32]| Tensor::<3>::from_data(TensorData::new(v.to_vec(), [1, p, 3]), device);
+    let observed = |j: usize| {
+        let j = (first + j).min(track.frames - 1);
+        &track.positions[j * p * 3..(j + 1) * p * 3]
+    };
+    let host = |t: &Tensor<3>| -> Result<Vec<f32>> {
+        t.clone()
+            .into_data()
+            .try_into_vec_as::<f32>()
+            .map_err(|e| anyhow::anyhow!("{e:?}"))
+    };
+    let pinned: Vec<f32> = track.pinned.iter().map(|&x| x as u8 as f32).collect();
+    let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [1, p, 1]), device);
+    let v0 = &track.velocities[first * p * 3..(first + 1) * p * 3];
+    let mut state = State {
+        x: t3(observed(0)),
+        v: t3(v0),
+    };
+    let mut out = FreeRollout {
+        frames: Vec::new(),
+        positions: Vec::new(),
+        velocities: Vec::new(),
+    };
+    let mut keep = keep.iter().copied().filter(|&j| j <= frames).peekable();
+    let record = |j: usize, x: Vec<f32>, v: Vec<f32>, out: &mut FreeRollout| -> Result<()> {
+        if x.iter().chain(&v).any(|c| !c.is_finite()) {
+            bail!(
+                "the surrogate diverged by frame {j} (t = {:.3} s)",
+                j as f64 * physics.frame_dt
+            );
+        }
+        out.frames.push(j);
+        out.positions.extend_from_slice(&x);
+        out.velocities.extend_from_slice(&v);
+        Ok(())
+    };
+    if keep.next_if_eq(&0).is_some() {
+        record(0, observed(0).to_vec(), v0.to_vec(), &mut out)?;
+    }
+    for j in 0..frames {
+        let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
+        let (s, _) = sim::step_frame(model, physics, state, &pinned, &here, &next);
+        state = s;
+        if keep.next_if_eq(&(j + 1)).is_some() {
+            record(j + 1, host(&state.x)?, host(&state.v)?, &mut out)?;
+        }
+        on_frame(j + 1);
+    }
+    if out.frames.last() != Some(&frames) {
+        // A divergence leaves non-finite values behind: check the end state too.
+        let x = host(&state.x)?;
+        if x.iter().any(|c| !c.is_finite()) {
+            bail!(
+                "the surrogate diverged within {:.3} s",
+                frames as f64 * physics.frame_dt
+            );
+        }
+    }
+    Ok(out)
+}
+
+/// Writes per-rollout motion RMSE curves as CSV: `time,rollout_0,…` (empty where a rollout
+/// is shorter than the longest).
+pub fn write_curves_csv(path: &std::path::Path, curves: &[Curve]) -> Result<()> {
+    use std::fmt::Write;
+    let mut s = String::from("time");
+    for i in 0..curves.len() {
+        write!(s, ",rollout_{i}")?;
+    }
+    s.push('\n');
+    let longest = curves.iter().max_by_key(|c| c.len());
+    for (j, &(t, _)) in longest.into_iter().flatten().enumerate() {
+        write!(s, "{t:.6}")?;
+        for c in curves {
+            match c.get(j) {
+                Some(&(_, e)) => write!(s, ",{e:.6e}")?,
+                None => s.push(','),
+            }
+        }
+        s.push('\n');
+    }
+    crate::io::write_text(path, &s)
+}
+
+/// Reads the curves that [`write_curves_csv`] wrote.
+pub fn read_curves_csv(path: &std::path::Path) -> Result<Vec<Curve>> {
+    use anyhow::Context;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut lines = text.lines();
+    let header = lines
+        .next()
+        .with_context(|| format!("{} is empty", path.display()))?;
+    let n = header.split(',').count().saturating_sub(1);
+    let mut curves = vec![Vec::new(); n];
+    for (row, line) in lines.enumerate() {
+        let mut cells = line.split(',');
+        let bad = || anyhow::anyhow!("{}: row {} is malformed", path.display(), row + 2);
+        let t: f64 = cells.next().and_then(|c| c.parse().ok()).ok_or_else(bad)?;
+        for curve in curves.iter_mut() {
+            let cell = cells.next().ok_or_else(bad)?;
+            if !cell.is_empty() {
+                curve.push((t, cell.parse().map_err(|_| bad())?));
+            }
+        }
+    }
+    Ok(curves)
+}
+
+/// A free rollout of the surrogate (see [`simulate_track`]): the kept frames, `[K, P, 3]` each.
+#[derive(Debug, Clone)]
+pub struct FreeRollout {
+    /// Frames kept, counted from the start (0 = the initial state).
+    pub frames: Vec<usize>,
+    /// Positions of the kept frames, `[K, P, 3]`, row-major.
+    pub positions: Vec<f32>,
+    /// Velocities of the kept frames, `[K, P, 3]`.
+    pub velocities: Vec<f32>,
 }
 
 #[cfg(test)]

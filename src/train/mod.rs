@@ -1011,6 +1011,14 @@ pub fn load_surrogate(
     let run = RunDir::new(run_dir);
     let config = Config::load(&run.config(), &[])
         .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
+    if config.model.kind != ModelKind::Springs {
+        bail!(
+            "{} holds a {} model, not a spring surrogate: only `springtime eval` and `compare` \
+             take baseline runs",
+            run_dir.display(),
+            config.model.kind.name()
+        );
+    }
     let npz = crate::data::npz::Npz::read(&run.springs()).with_context(|| {
         format!(
             "{} has no trained surrogate (is the run finished?)",

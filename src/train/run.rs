@@ -91,6 +91,10 @@ impl RunDir {
     pub fn eval(&self) -> PathBuf {
         self.dir.join("eval.json")
     }
+    /// `motion_rmse.csv`: per-frame motion RMSE of every test rollout (written by eval).
+    pub fn motion_curves(&self) -> PathBuf {
+        self.dir.join("motion_rmse.csv")
+    }
     /// Checkpoint of the module at `iteration`.
     pub fn checkpoint(&self, iteration: usize) -> PathBuf {
         self.dir
@@ -243,6 +247,11 @@ pub fn write_springs(
     b: &[f64],
     particle_mass: f64,
 ) -> Result<()> {
+    springs_npz(topology, k, b, particle_mass).write(path)
+}
+
+/// The arrays of [`write_springs`], to write or to extend.
+pub fn springs_npz(topology: &Topology, k: &[f64], b: &[f64], particle_mass: f64) -> Npz {
     let s = topology.num_springs();
     let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
     let mut npz = Npz::default();
@@ -273,7 +282,7 @@ pub fn write_springs(
     npz.insert("width", Array::scalar(topology.width));
     npz.insert("height", Array::scalar(topology.height));
     npz.insert("particle_mass", Array::scalar(particle_mass));
-    npz.write(path)
+    npz
 }
 
 /// Peak resident set size of this process, MiB (`VmHWM`), or 0 where unknown.

@@ -1,0 +1,147 @@
+//! Evaluating a finished run of any model family: `eval.json` and `motion_rmse.csv`.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+
+use crate::backend::Backend;
+use crate::cloth::Resampler;
+use crate::config::Config;
+use crate::data::Rollout;
+use crate::eval::{self, EvalReport};
+use crate::progress::Progress;
+use crate::sim::{Physics, Stability};
+use crate::train::{self, RunDir, Trained};
+
+/// Evaluates a run and writes its `eval.json`.
+pub fn evaluate(
+    run_dir: &Path,
+    data: Option<&Path>,
+    backend: Option<Backend>,
+    set: &[String],
+    progress: &Progress,
+) -> Result<EvalReport> {
+    let start = Instant::now();
+    let run = RunDir::new(run_dir);
+    let mut overrides = set.to_vec();
+    if let Some(b) = backend {
+        overrides.push(format!("backend={b}"));
+    }
+    let device = match backend {
+        Some(b) => b.device()?,
+        None => Config::load(&run.config(), set)
+            .with_context(|| format!("{} is not a run directory", run_dir.display()))?
+            .backend
+            .device()?,
+    };
+    let loaded = train::load_run(run_dir, &overrides, &device)?;
+    let mut config = loaded.config;
+    if let Some(d) = data {
+        config.data.test_dir = Some(d.to_path_buf());
+    }
+    let topo = loaded.topology;
+    let mass = loaded.meta.particle_mass;
+    let split = config.data.split()?;
+    let mut files = split.test;
+    if files.is_empty() {
+        bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
+    }
+    if config.eval.max_rollouts > 0 {
+        files.truncate(config.eval.max_rollouts);
+    }
+    let first = Rollout::load(&files[0])?;
+    let physics = Physics {
+        frame_dt: first.frame_dt,
+        substeps: config.sim.substeps,
+        mass,
+        rayleigh: config.sim.rayleigh,
+        gravity: config.sim.gravity,
+    };
+    let (curves, frame_dt) = match &loaded.model {
+        Trained::Springs(model) => {
+            Stability::estimate(
+                &topo,
+                &model.k_values(),
+                &model.b_values(),
+                mass,
+                physics.rayleigh,
+                physics.sim_dt(),
+            )
+            .check("the trained surrogate", config.sim.allow_unstable)?;
+            let c = eval::motion_curves(
+                model,
+                &physics,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt)
+        }
+        Trained::NeuralOde(model) => {
+            let c = eval::motion_curves(
+                model,
+                &physics,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt)
+        }
+        Trained::Gnn(model) => {
+            let ds = config.model.gnn.downsample;
+            let c = eval::gnn_motion_curves(
+                model,
+                ds,
+                &topo,
+                &files,
+                config.eval.batch,
+                &device,
+                progress,
+            )?;
+            (c, first.frame_dt * ds as f64)
+        }
+    };
+    let motion = eval::summarize(
+        &curves.curves,
+        frame_dt,
+        config.eval.short_seconds,
+        config.eval.long_seconds,
+    );
+    let (mut rmse_k, mut rmse_b, mut stiffness_map_corr) = (None, None, None);
+    if let Trained::Springs(model) = &loaded.model {
+        let truth = first.springs.as_ref().and_then(|t| {
+            let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
+            train::matching_truth(t, &topo, &res)
+        });
+        if let Some((k, b)) = truth {
+            rmse_k = Some(train::rmse(&model.k_values(), &k));
+            rmse_b = Some(train::rmse(&model.b_values(), &b));
+        }
+        stiffness_map_corr = first.mesh.as_ref().and_then(|mesh| {
+            eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh)
+        });
+    }
+    let report = EvalReport {
+        rmse_k,
+        rmse_b,
+        stiffness_map_corr,
+        motion_rmse: motion,
+        inference: Some(eval::Inference {
+            us_per_step: curves.us_per_step(),
+            step_dt: frame_dt,
+            batch: config.eval.batch.max(1).min(files.len()),
+            seconds_per_second: curves.us_per_step() * 1e-6 / frame_dt,
+        }),
+        test_rollouts: files,
+        backend: config.backend.to_string(),
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    crate::io::write_json(&run.eval(), &report)?;
+    eval::write_curves_csv(&run.motion_curves(), &curves.curves)?;
+    Ok(report)
+}

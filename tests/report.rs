@@ -1,0 +1,425 @@
+//! `report` and `export` end to end on a tiny trained run: every file is written, images
+//! decode at their size, the HTML embeds everything, meshes read back with the right counts.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use springtime::cloth::{GridSpec, Topology};
+use springtime::data::{MeshTruth, Rollout};
+
+fn springtime(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_springtime"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .unwrap()
+}
+
+fn ok(out: &Output) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "command failed: {stderr}");
+    String::from_utf8_lossy(&out.stdout).into_owned() + &stderr
+}
+
+fn fails(out: &Output, needles: &[&str]) {
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success(),
+        "expected a failure, got success: {stderr}"
+    );
+    assert!(
+        !stderr.contains("panicked"),
+        "a panic instead of an error: {stderr}"
+    );
+    for n in needles {
+        assert!(stderr.contains(n), "error does not mention {n:?}: {stderr}");
+    }
+}
+
+const TINY: &str = r#"
+name = "tiny"
+[cloth]
+nx = 6
+ny = 6
+[data]
+dir = "data"
+[data.clips]
+steps = 50
+[source]
+nx = 6
+ny = 6
+width = 2.5
+height = 2.5
+seconds = 0.3
+train_rollouts = 4
+test_rollouts = 2
+[train]
+checkpoint_every = 5
+[train.stiffness]
+iterations = 6
+batch = 4
+[train.damping]
+iterations = 4
+batch = 4
+"#;
+
+/// Trains the tiny run in a fresh directory (with its report) and returns the directory.
+fn trained(name: &str) -> (PathBuf, String) {
+    let dir = common::temp_dir(name);
+    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    let out = ok(&springtime(&["train", "tiny.toml"], &dir));
+    (dir, out)
+}
+
+/// Width and height of a PNG, decoding the whole image.
+fn png_size(path: &Path) -> (u32, u32) {
+    let file = std::fs::File::open(path).unwrap();
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .unwrap_or_else(|e| panic!("{} is not a PNG: {e}", path.display()));
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!(info.color_type, png::ColorType::Rgb);
+    // Not a blank canvas: some pixels are dark (text, axes).
+    let px = &buf[..info.buffer_size()];
+    assert!(
+        px.chunks_exact(3).any(|p| p.iter().all(|&c| c < 80)),
+        "{} has no dark pixels",
+        path.display()
+    );
+    (info.width, info.height)
+}
+
+#[test]
+fn train_writes_a_report_with_every_figure_embedded() {
+    let (dir, out) = trained("report-train");
+    let report = dir.join("runs/tiny/report");
+    assert!(
+        out.contains("report: runs/tiny/report/report.html"),
+        "train does not say where the report is: {out}"
+    );
+    // Every figure, with the expected pixel size.
+    for (file, size) in [
+        ("training_curves.png", (3 * 560, 400)),
+        ("stiffness_map.png", (3 * 360 + 110, 30 + 2 * 360)),
+        ("damping_map.png", (3 * 360 + 110, 30 + 2 * 360)),
+        ("fig7.png", (3 * 560, 30 + 400)),
+        ("rollout_frames.png", (5 * 270, 30 + 2 * 250)),
+    ] {
+        let path = report.join(file);
+        assert!(path.exists(), "missing {file}");
+        assert_eq!(png_size(&path), size, "{file}");
+    }
+    // The animation: a looping GIF of at most 80 frames of one size.
+    let gif_file = std::fs::File::open(report.join("rollout.gif")).unwrap();
+    let mut options = gif::DecodeOptions::new();
+    options.set_color_output(gif::ColorOutput::RGBA);
+    let mut decoder = options.read_info(gif_file).unwrap();
+    assert_eq!((decoder.width(), decoder.height()), (760, 430));
+    let mut frames = 0;
+    while let Some(frame) = decoder.read_next_frame().unwrap() {
+        assert!(frame.delay >= 2);
+        frames += 1;
+    }
+    assert!((2..=80).contains(&frames), "{frames} frames");
+    // The HTML is self-contained: every image a data: URI, nothing fetched from elsewhere.
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    let imgs: Vec<&str> = html.split("<img ").skip(1).collect();
+    assert_eq!(imgs.len(), 6, "one <img> per figure");
+    for img in &imgs {
+        assert!(
+            img.starts_with("src=\"data:image/png;base64,")
+                || img.starts_with("src=\"data:image/gif;base64,"),
+            "an image that is not embedded: {}",
+            &img[..img.len().min(80)]
+        );
+    }
+    for external in [
+        "src=\"http",
+        "href=\"http",
+        "src='http",
+        "url(",
+        "<script",
+        "<link",
+        "@import",
+    ] {
+        assert!(!html.contains(external), "the report contains {external}");
+    }
+    // eval wrote the per-rollout curves the motion panel draws.
+    let csv = std::fs::read_to_string(dir.join("runs/tiny/motion_rmse.csv")).unwrap();
+    assert!(csv.starts_with("time,rollout_0,rollout_1\n"), "{csv:.80}");
+    // A second report over the first, with --data naming test rollouts elsewhere that carry
+    // an FEM mesh and stiffness map: the report adds the triangle map.
+    let test_dir = dir.join("fem_tests");
+    std::fs::create_dir_all(&test_dir).unwrap();
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("data/index.json")).unwrap())
+            .unwrap();
+    for f in index["test"].as_array().unwrap() {
+        let f = f.as_str().unwrap();
+        let mut r = Rollout::load(&dir.join("data").join(f)).unwrap();
+        let topo = Topology::grid(
+            &GridSpec {
+                nx: 6,
+                ny: 6,
+                ..GridSpec::default()
+            },
+            r.width,
+            r.height,
+        );
+        let triangles = springtime::export::grid_triangles(&topo);
+        let stiffness = (0..triangles.len())
+            .map(|t| if (t / 2) % 5 < 2 { 1e4 } else { 1e3 })
+            .collect();
+        r.mesh = Some(MeshTruth {
+            triangles,
+            stiffness,
+        });
+        r.save(&test_dir.join(f)).unwrap();
+    }
+    let out = ok(&springtime(
+        &["report", "runs/tiny", "--data", "fem_tests"],
+        &dir,
+    ));
+    assert!(out.contains("report.html"), "{out}");
+    assert_eq!(
+        png_size(&report.join("fem_stiffness.png")),
+        (2 * (360 + 110), 30 + 360)
+    );
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    assert_eq!(html.matches("<img src=\"data:").count(), 7);
+    // --data that does not exist is an error naming it.
+    fails(
+        &springtime(&["report", "runs/tiny", "--data", "no_such_dir"], &dir),
+        &["no_such_dir"],
+    );
+}
+
+#[test]
+fn report_without_data_leaves_out_what_needs_rollouts() {
+    let dir = common::temp_dir("report-nodata");
+    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
+    assert!(
+        !dir.join("runs/tiny/report").exists(),
+        "--no-report wrote a report"
+    );
+    std::fs::remove_dir_all(dir.join("data")).unwrap();
+    let out = ok(&springtime(&["report", "runs/tiny"], &dir));
+    assert!(out.contains("not available"), "{out}");
+    let report = dir.join("runs/tiny/report");
+    for f in [
+        "training_curves.png",
+        "stiffness_map.png",
+        "fig7.png",
+        "report.html",
+    ] {
+        assert!(report.join(f).exists(), "missing {f}");
+    }
+    assert!(!report.join("rollout.gif").exists());
+    let html = std::fs::read_to_string(report.join("report.html")).unwrap();
+    assert!(html.contains("Left out"));
+}
+
+#[test]
+fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
+    let dir = common::temp_dir("export");
+    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
+    // 6 × 6 particles: 36 vertices, 5 × 5 cells of 2 triangles.
+    let (verts, faces) = (36, 50);
+    for format in ["obj", "ply"] {
+        let out_dir = format!("export_{format}");
+        let out = ok(&springtime(
+            &[
+                "export",
+                "runs/tiny",
+                "--format",
+                format,
+                "--out",
+                &out_dir,
+                "--fps",
+                "100",
+            ],
+            &dir,
+        ));
+        let out_dir = dir.join(out_dir);
+        assert!(out.contains("frames"), "{out}");
+        let rest = out_dir.join(format!("rest.{format}"));
+        assert_eq!(
+            springtime::export::count_mesh(&rest).unwrap(),
+            (verts, faces)
+        );
+        let frames: Vec<PathBuf> = std::fs::read_dir(out_dir.join("rollout"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        // 0.3 s at 100 fps: frames 0, 0.01, …, 0.3 s (the first frame has velocities).
+        assert_eq!(frames.len(), 31, "{frames:?}");
+        for f in &frames {
+            assert_eq!(springtime::export::count_mesh(f).unwrap(), (verts, faces));
+        }
+        // An independent parse of one frame: every face indexes an existing vertex.
+        let text =
+            std::fs::read_to_string(out_dir.join(format!("rollout/frame_0030.{format}"))).unwrap();
+        let max_index = if format == "obj" {
+            text.lines()
+                .filter_map(|l| l.strip_prefix("f "))
+                .flat_map(|l| l.split_whitespace())
+                .map(|v| v.split('/').next().unwrap().parse::<usize>().unwrap())
+                .max()
+                .unwrap()
+        } else {
+            let body = text.split("end_header\n").nth(1).unwrap();
+            body.lines()
+                .skip(verts)
+                .flat_map(|l| l.split_whitespace().skip(1))
+                .map(|v| v.parse::<usize>().unwrap() + 1)
+                .max()
+                .unwrap()
+        };
+        assert_eq!(max_index, verts);
+        // The surrogate as JSON and .npz.
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out_dir.join("surrogate.json")).unwrap())
+                .unwrap();
+        let s = json["springs"].as_array().unwrap().len();
+        for key in ["k", "b", "rest_length", "family"] {
+            assert_eq!(json[key].as_array().unwrap().len(), s, "{key}");
+        }
+        assert_eq!(json["masses"].as_array().unwrap().len(), verts);
+        assert!(!json["pinned"].as_array().unwrap().is_empty());
+        let npz = springtime::data::npz::Npz::read(&out_dir.join("surrogate.npz")).unwrap();
+        for key in [
+            "springs",
+            "rest_length",
+            "k",
+            "b",
+            "mass",
+            "pinned",
+            "rest_positions",
+        ] {
+            assert!(npz.has(key), "surrogate.npz lacks {key}");
+        }
+    }
+    // Existing files are not overwritten without --force.
+    fails(
+        &springtime(&["export", "runs/tiny", "--out", "export_obj"], &dir),
+        &["rest.obj", "exists", "--force"],
+    );
+    ok(&springtime(
+        &[
+            "export",
+            "runs/tiny",
+            "--out",
+            "export_obj",
+            "--force",
+            "--seconds",
+            "0.05",
+        ],
+        &dir,
+    ));
+    let n = std::fs::read_dir(dir.join("export_obj/rollout"))
+        .unwrap()
+        .count();
+    assert_eq!(n, 2, "--force left stale frames behind"); // 0.05 s at 30 fps: frames 0 and 1
+}
+
+#[test]
+fn report_and_export_refuse_unfinished_or_missing_runs() {
+    let dir = common::temp_dir("report-errors");
+    fails(
+        &springtime(&["report", "no_such_run"], &dir),
+        &["no_such_run/run.json", "not a run directory"],
+    );
+    fails(
+        &springtime(&["export", "no_such_run", "--out", "x"], &dir),
+        &["no_such_run/run.json"],
+    );
+    // An interrupted run.
+    let run = dir.join("runs/half");
+    std::fs::create_dir_all(&run).unwrap();
+    std::fs::write(
+        run.join("run.json"),
+        r#"{"status":"running","iteration":3,"checkpoint":0,"backend":"flex","wall_seconds":1.0,"peak_rss_mib":10.0}"#,
+    )
+    .unwrap();
+    fails(
+        &springtime(&["report", "runs/half"], &dir),
+        &["not finished", "running"],
+    );
+    // Finished but missing its surrogate.
+    std::fs::write(
+        run.join("run.json"),
+        r#"{"status":"finished","iteration":3,"checkpoint":0,"backend":"flex","wall_seconds":1.0,"peak_rss_mib":10.0}"#,
+    )
+    .unwrap();
+    std::fs::write(run.join("config.toml"), "name = \"half\"\n").unwrap();
+    fails(
+        &springtime(&["report", "runs/half"], &dir),
+        &["springs.npz", "incomplete"],
+    );
+    fails(
+        &springtime(
+            &["export", "runs/half", "--format", "stl", "--out", "x"],
+            &dir,
+        ),
+        &["stl"],
+    );
+}
+
+#[test]
+fn plotting_primitives_write_pngs_of_their_size() {
+    use springtime::cloth::SpringFamily;
+    use springtime::report::plot;
+    let dir = common::temp_dir("plot-primitives");
+    let topo = Topology::grid(
+        &GridSpec {
+            nx: 5,
+            ny: 4,
+            ..GridSpec::default()
+        },
+        2.0,
+        1.5,
+    );
+    let values: Vec<f64> = (0..topo.num_springs()).map(|s| s as f64).collect();
+    let range = plot::value_range(&[&values]);
+    let map = dir.join("map.png");
+    plot::spring_map_png(
+        &map,
+        &topo,
+        &values,
+        "k",
+        range,
+        "k (N/m)",
+        Some(SpringFamily::Bending),
+    )
+    .unwrap();
+    assert_eq!(
+        png_size(&map),
+        (plot::MAP_PANEL.0 + plot::COLORBAR_WIDTH, plot::MAP_PANEL.1)
+    );
+    let tris = springtime::export::grid_triangles(&topo);
+    let tv: Vec<f64> = (0..tris.len()).map(|t| (t % 3) as f64).collect();
+    let tmap = dir.join("tri.png");
+    plot::triangle_map_png(&tmap, &topo.rest_uv, &tris, &tv, "FEM", (0.0, 2.0), "E").unwrap();
+    assert_eq!(
+        png_size(&tmap),
+        (plot::MAP_PANEL.0 + plot::COLORBAR_WIDTH, plot::MAP_PANEL.1)
+    );
+    let curves = dir.join("curves.png");
+    let series = vec![
+        plot::Series::new("a", (1..50).map(|i| (i as f64, 1.0 / i as f64)).collect()),
+        plot::Series::new("b", (1..50).map(|i| (i as f64, 0.0)).collect()),
+    ];
+    plot::curves_png(&curves, "curves", "x", "y", &series, true).unwrap();
+    assert_eq!(png_size(&curves), plot::PLOT_PANEL);
+    // Mismatched lengths are errors, not panics.
+    assert!(plot::spring_map_png(&map, &topo, &[1.0], "k", range, "k", None).is_err());
+    assert!(
+        plot::triangle_map_png(&tmap, &topo.rest_uv, &[[0, 1, 99]], &[1.0], "t", range, "E")
+            .is_err()
+    );
+}
