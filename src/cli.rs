@@ -12,7 +12,7 @@ use crate::config::Config;
 use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
-use crate::sim::{Physics, Stability};
+use crate::sim::Physics;
 use crate::train::{self, RunDir, TrainOptions};
 
 /// Learn simulatable mass-spring cloth models from motion.
@@ -468,22 +468,8 @@ fn simulate(
     let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
     let track = Track::new(&rollout, &res);
     let first = if rollout.velocities.is_some() { 0 } else { 1 };
-    let physics = Physics {
-        frame_dt: rollout.frame_dt,
-        substeps: config.sim.substeps,
-        mass,
-        rayleigh: config.sim.rayleigh,
-        gravity: config.sim.gravity,
-    };
-    Stability::estimate(
-        &topo,
-        &model.k_values(),
-        &model.b_values(),
-        mass,
-        physics.rayleigh,
-        physics.sim_dt(),
-    )
-    .check("the trained surrogate", config.sim.allow_unstable)?;
+    let physics = Physics::new(&config.sim, rollout.frame_dt, mass);
+    physics.check_surrogate(&topo, &model, config.sim.allow_unstable)?;
     let p = topo.num_particles();
     let frames = (seconds / rollout.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");

@@ -281,7 +281,8 @@ fn markdown(config: &Config, rows: &[Row]) -> String {
         "\nMotion RMSE (Eq. 14) is over every frame of every test rollout, on the surrogate's \
          particles (the source resampled to them); the GNN steps every `model.gnn.downsample` \
          frames, so its curve has fewer points. Inference is the model's steps only, batched as \
-         `eval.batch`, on the backend above.\n\n![motion RMSE over time](comparison_rmse.png)"
+         `eval.batch`, on the backend above. Peak memory is the training process's: models \
+         trained by one `compare` share a process, so a row includes the rows above it.\n\n![motion RMSE over time](comparison_rmse.png)"
     );
     s
 }

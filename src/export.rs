@@ -24,7 +24,7 @@ use crate::data::npz::Array;
 use crate::data::{Rollout, Track};
 use crate::eval;
 use crate::progress::Progress;
-use crate::sim::{Physics, Stability};
+use crate::sim::Physics;
 use crate::train::{self, RunDir};
 
 /// Mesh file format.
@@ -324,22 +324,8 @@ pub fn export_run(
         let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
         let track = Track::new(r, &res);
         let first = if r.velocities.is_some() { 0 } else { 1 };
-        let physics = Physics {
-            frame_dt: r.frame_dt,
-            substeps: config.sim.substeps,
-            mass,
-            rayleigh: config.sim.rayleigh,
-            gravity: config.sim.gravity,
-        };
-        Stability::estimate(
-            &topo,
-            &model.k_values(),
-            &model.b_values(),
-            mass,
-            physics.rayleigh,
-            physics.sim_dt(),
-        )
-        .check("the trained surrogate", config.sim.allow_unstable)?;
+        let physics = Physics::new(&config.sim, r.frame_dt, mass);
+        physics.check_surrogate(&topo, &model, config.sim.allow_unstable)?;
         let seconds = options
             .seconds
             .unwrap_or((r.frames - 1 - first) as f64 * r.frame_dt);

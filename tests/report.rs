@@ -3,40 +3,12 @@
 
 mod common;
 
+use common::{fails, ok, springtime};
+
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use springtime::cloth::{GridSpec, Topology};
 use springtime::data::{MeshTruth, Rollout};
-
-fn springtime(args: &[&str], cwd: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_springtime"))
-        .args(args)
-        .current_dir(cwd)
-        .output()
-        .unwrap()
-}
-
-fn ok(out: &Output) -> String {
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "command failed: {stderr}");
-    String::from_utf8_lossy(&out.stdout).into_owned() + &stderr
-}
-
-fn fails(out: &Output, needles: &[&str]) {
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        !out.status.success(),
-        "expected a failure, got success: {stderr}"
-    );
-    assert!(
-        !stderr.contains("panicked"),
-        "a panic instead of an error: {stderr}"
-    );
-    for n in needles {
-        assert!(stderr.contains(n), "error does not mention {n:?}: {stderr}");
-    }
-}
 
 const TINY: &str = r#"
 name = "tiny"

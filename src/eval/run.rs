@@ -11,7 +11,7 @@ use crate::config::Config;
 use crate::data::Rollout;
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
-use crate::sim::{Physics, Stability};
+use crate::sim::Physics;
 use crate::train::{self, RunDir, Trained};
 
 /// Evaluates a run and writes its `eval.json`.
@@ -51,24 +51,10 @@ pub fn evaluate(
         files.truncate(config.eval.max_rollouts);
     }
     let first = Rollout::load(&files[0])?;
-    let physics = Physics {
-        frame_dt: first.frame_dt,
-        substeps: config.sim.substeps,
-        mass,
-        rayleigh: config.sim.rayleigh,
-        gravity: config.sim.gravity,
-    };
+    let physics = Physics::new(&config.sim, first.frame_dt, mass);
     let (curves, frame_dt) = match &loaded.model {
         Trained::Springs(model) => {
-            Stability::estimate(
-                &topo,
-                &model.k_values(),
-                &model.b_values(),
-                mass,
-                physics.rayleigh,
-                physics.sim_dt(),
-            )
-            .check("the trained surrogate", config.sim.allow_unstable)?;
+            physics.check_surrogate(&topo, model, config.sim.allow_unstable)?;
             let c = eval::motion_curves(
                 model,
                 &physics,

@@ -345,13 +345,7 @@ pub fn build(
 }
 
 fn physics_for(inputs: &Inputs, frame_dt: f64) -> Physics {
-    Physics {
-        frame_dt,
-        substeps: inputs.config.sim.substeps,
-        mass: inputs.mass,
-        rayleigh: inputs.config.sim.rayleigh,
-        gravity: inputs.config.sim.gravity,
-    }
+    Physics::new(&inputs.config.sim, frame_dt, inputs.mass)
 }
 
 fn simulate_curves(inputs: &Inputs, progress: &Progress) -> Result<Vec<Curve>> {

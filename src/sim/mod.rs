@@ -55,6 +55,37 @@ pub struct Physics {
 }
 
 impl Physics {
+    /// The constants of data recorded every `frame_dt` on particles of `mass`, with the
+    /// integrator settings of `sim`.
+    pub fn new(sim: &SimConfig, frame_dt: f64, mass: f64) -> Self {
+        Self {
+            frame_dt,
+            substeps: sim.substeps,
+            mass,
+            rayleigh: sim.rayleigh,
+            gravity: sim.gravity,
+        }
+    }
+
+    /// Refuses (unless `allow_unstable`) to simulate a spring surrogate past the explicit
+    /// stability limit at this step.
+    pub fn check_surrogate(
+        &self,
+        topology: &crate::cloth::Topology,
+        model: &crate::model::SpringNet,
+        allow_unstable: bool,
+    ) -> anyhow::Result<()> {
+        Stability::estimate(
+            topology,
+            &model.k_values(),
+            &model.b_values(),
+            self.mass,
+            self.rayleigh,
+            self.sim_dt(),
+        )
+        .check("the trained surrogate", allow_unstable)
+    }
+
     /// The integration step `frame_dt / substeps`.
     pub fn sim_dt(&self) -> f64 {
         self.frame_dt / self.substeps as f64

@@ -285,6 +285,8 @@ pub fn topology(config: &Config, width: f64, height: f64) -> Topology {
 /// The training device of a config.
 pub fn training_device(config: &Config) -> Result<Device> {
     let device = config.backend.device()?.autodiff();
+    // Fresh parameters (the baselines' layers) are drawn from the device's generator.
+    device.seed(config.train.seed);
     Ok(if config.train.gradient_checkpointing {
         device.gradient_checkpointing()
     } else {
@@ -345,13 +347,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     }
     crate::io::write_text(&run.config(), &config.to_toml())?;
     let device = training_device(config)?;
-    let physics = Physics {
-        frame_dt: clips.info.frame_dt,
-        substeps: config.sim.substeps,
-        mass: clips.particle_mass(),
-        rayleigh: config.sim.rayleigh,
-        gravity: config.sim.gravity,
-    };
+    let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
     let topo = clips.topology.clone();
     let job = Job {
         config,
