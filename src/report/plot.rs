@@ -338,8 +338,11 @@ pub fn draw_spring_map(
     let px_per_m = x_px as f64 / (xr.end - xr.start);
     let h = (topology.width / (topology.nx - 1).max(1) as f64)
         .min(topology.height / (topology.ny - 1).max(1) as f64);
+    // Structural springs alone do not overlap: they can be drawn wide enough to read on fine
+    // grids; with the diagonals in the same panel, thinner.
     let width = match family {
         Some(SpringFamily::Bending) => (0.10 * h * px_per_m).clamp(1.0, 4.0),
+        Some(SpringFamily::Structural) => (0.35 * h * px_per_m).clamp(2.0, 10.0),
         _ => (0.13 * h * px_per_m).clamp(1.0, 5.0),
     } as u32;
     let (lo, hi) = widen(range);
