@@ -53,20 +53,15 @@ pub fn evaluate(
     let first = Rollout::load(&files[0])?;
     let physics = Physics::new(&config.sim, first.frame_dt, mass);
     let (curves, frame_dt) = match &loaded.model {
-        Trained::Springs(model) => {
-            physics.check_surrogate(&topo, model, config.sim.allow_unstable)?;
-            let c = eval::motion_curves(
-                model,
-                &physics,
-                &topo,
-                &files,
-                config.eval.batch,
-                &device,
-                progress,
-            )?;
-            (c, first.frame_dt)
-        }
-        Trained::NeuralOde(model) => {
+        Trained::Springs(_) | Trained::NeuralOde(_) => {
+            let model: &dyn crate::model::ForceModel = match &loaded.model {
+                Trained::Springs(springs) => {
+                    physics.check_surrogate(&topo, springs, config.sim.allow_unstable)?;
+                    springs
+                }
+                Trained::NeuralOde(ode) => ode,
+                Trained::Gnn(_) => unreachable!("matched above"),
+            };
             let c = eval::motion_curves(
                 model,
                 &physics,
