@@ -203,7 +203,7 @@ pub struct Gnn {
 }
 
 /// A batch of graphs on the host: nodes of every graph one after the other.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct Graph {
     /// Node features `[N, F]`, row-major.
     pub nodes: Vec<f32>,
@@ -360,18 +360,6 @@ impl Gnn {
             out.push(x);
         }
         out
-    }
-}
-
-impl Default for Graph {
-    fn default() -> Self {
-        Self {
-            nodes: Vec::new(),
-            edges: Vec::new(),
-            senders: Vec::new(),
-            receivers: Vec::new(),
-            num_nodes: 0,
-        }
     }
 }
 

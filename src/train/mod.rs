@@ -901,7 +901,7 @@ impl ModelMeta {
                     .chain(&clips.low_velocity)
                     .copied()
                     .collect();
-                let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0057_A75);
+                let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0005_7A75);
                 let refs: Vec<ClipRef> = sampler.next(64).into_iter().map(|i| pool[i]).collect();
                 progress.note(&format!("GNN: normalisation from {} clips", refs.len()));
                 let plain = config.backend.device()?;

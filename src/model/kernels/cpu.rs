@@ -361,7 +361,10 @@ pub fn forces<T: Float + Send + Sync>(
 ) {
     let stride = g.particles * 3;
     assert!(
-        x.len() == out.len() && v.len() == out.len() && out.len() % stride == 0 && !out.is_empty()
+        x.len() == out.len()
+            && v.len() == out.len()
+            && out.len().is_multiple_of(stride)
+            && !out.is_empty()
     );
     assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
     let batch = out.len() / stride;
@@ -415,7 +418,7 @@ pub fn forces_backward<T: Float + Send + Sync>(
             && v.len() == n
             && grad.len() == n
             && gv.len() == n
-            && n % stride == 0
+            && n.is_multiple_of(stride)
             && n > 0
     );
     assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
@@ -456,7 +459,7 @@ pub fn step<T: Float + Send + Sync>(
     let stride = g.particles * 3;
     let n = x.len();
     assert!(v.len() == n && pins.x.len() == n && pins.v.len() == n && pins.pinned.len() * 3 == n);
-    assert!(out.len() == 3 * n && n % stride == 0 && n > 0);
+    assert!(out.len() == 3 * n && n.is_multiple_of(stride) && n > 0);
     assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
     dispatch_lanes!(
         n / stride,
@@ -556,7 +559,7 @@ pub fn step_backward<T: Float + Send + Sync>(
             && pinned.len() * 3 == n
             && gout.len() == 3 * n
     );
-    assert!(n % stride == 0 && n > 0);
+    assert!(n.is_multiple_of(stride) && n > 0);
     assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
     assert!(gk.len() == g.num_springs() && gb.len() == g.num_springs());
     let step = Some((pinned, params));
