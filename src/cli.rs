@@ -469,7 +469,9 @@ fn simulate(
     let track = Track::new(&rollout, &res);
     let first = if rollout.velocities.is_some() { 0 } else { 1 };
     let physics = Physics::new(&config.sim, rollout.frame_dt, mass);
-    physics.check_surrogate(&topo, &model, config.sim.allow_unstable)?;
+    physics
+        .stability_of(&topo, &model)
+        .check("the trained surrogate", config.sim.allow_unstable)?;
     let p = topo.num_particles();
     let frames = (seconds / rollout.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");

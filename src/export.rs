@@ -18,13 +18,14 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
 use crate::backend::Backend;
-use crate::cloth::{Resampler, Topology};
+use crate::cloth::Resampler;
 use crate::config::Config;
 use crate::data::npz::Array;
 use crate::data::{Rollout, Track};
 use crate::eval;
 use crate::progress::Progress;
 use crate::sim::Physics;
+use crate::source::{Diagonal, fem::grid_triangles};
 use crate::train::{self, RunDir};
 
 /// Mesh file format.
@@ -55,22 +56,6 @@ impl FromStr for Format {
             other => Err(format!("unknown format `{other}` (expected obj or ply)")),
         }
     }
-}
-
-/// The triangles of a grid topology: each cell's quad split along its main diagonal into two
-/// triangles, counter-clockwise in the rest rectangle.
-pub fn grid_triangles(topology: &Topology) -> Vec<[usize; 3]> {
-    let nx = topology.nx;
-    let mut t = Vec::with_capacity(2 * (topology.nx - 1) * (topology.ny - 1));
-    for r in 0..topology.ny - 1 {
-        for c in 0..nx - 1 {
-            let p00 = r * nx + c;
-            let (p01, p10, p11) = (p00 + 1, p00 + nx, p00 + nx + 1);
-            t.push([p00, p01, p11]);
-            t.push([p00, p11, p10]);
-        }
-    }
-    t
 }
 
 /// Writes a triangle mesh as Wavefront OBJ, atomically: `positions` flat `[N, 3]`, optional
@@ -325,7 +310,9 @@ pub fn export_run(
         let track = Track::new(r, &res);
         let first = if r.velocities.is_some() { 0 } else { 1 };
         let physics = Physics::new(&config.sim, r.frame_dt, mass);
-        physics.check_surrogate(&topo, &model, config.sim.allow_unstable)?;
+        physics
+            .stability_of(&topo, &model)
+            .check("the trained surrogate", config.sim.allow_unstable)?;
         let seconds = options
             .seconds
             .unwrap_or((r.frames - 1 - first) as f64 * r.frame_dt);
@@ -368,7 +355,7 @@ pub fn export_run(
         }
     }
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let tris = grid_triangles(&topo);
+    let tris = grid_triangles(topo.nx, topo.ny, Diagonal::Main);
     let uv: Vec<[f64; 2]> = topo
         .rest_uv
         .iter()
@@ -507,7 +494,6 @@ pub fn count_mesh(path: &Path) -> Result<(usize, usize)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cloth::GridSpec;
 
     #[test]
     fn surrogate_json_text_parses_back_to_the_same_value() {
@@ -533,22 +519,5 @@ mod tests {
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();
         assert_eq!(back, serde_json::to_value(&j).unwrap());
         assert_eq!(text.lines().count(), 18);
-    }
-
-    #[test]
-    fn grid_triangles_cover_every_cell_counter_clockwise() {
-        let spec = GridSpec {
-            nx: 4,
-            ny: 3,
-            ..GridSpec::default()
-        };
-        let topo = Topology::grid(&spec, 3.0, 2.0);
-        let t = grid_triangles(&topo);
-        assert_eq!(t.len(), 2 * 3 * 2);
-        for tri in &t {
-            let [a, b, c] = tri.map(|i| topo.rest_uv[i]);
-            let cross = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
-            assert!(cross > 0.0, "{tri:?} is not counter-clockwise");
-        }
     }
 }

@@ -56,7 +56,9 @@ pub fn evaluate(
         Trained::Springs(_) | Trained::NeuralOde(_) => {
             let model: &dyn crate::model::ForceModel = match &loaded.model {
                 Trained::Springs(springs) => {
-                    physics.check_surrogate(&topo, springs, config.sim.allow_unstable)?;
+                    physics
+                        .stability_of(&topo, springs)
+                        .check("the trained surrogate", config.sim.allow_unstable)?;
                     springs
                 }
                 Trained::NeuralOde(ode) => ode,

@@ -698,27 +698,21 @@ fn fig7(dir: &Path, inputs: &Inputs) -> Result<Figure> {
                         &inputs.b,
                     ),
                 ] {
-                    if plot::levels(truth).len() <= MAX_LEVELS {
-                        plot::draw_level_strips(
-                            cell,
-                            caption,
-                            quantity,
-                            truth,
-                            learned,
-                            &groups,
-                            &FAMILY_NAMES,
-                        )?;
+                    // A few true levels: strips per level; a continuous truth: a scatter.
+                    let draw = if plot::levels(truth).len() <= MAX_LEVELS {
+                        plot::draw_level_strips
                     } else {
-                        plot::draw_truth_scatter(
-                            cell,
-                            caption,
-                            quantity,
-                            truth,
-                            learned,
-                            &groups,
-                            &FAMILY_NAMES,
-                        )?;
-                    }
+                        plot::draw_truth_scatter
+                    };
+                    draw(
+                        cell,
+                        caption,
+                        quantity,
+                        truth,
+                        learned,
+                        &groups,
+                        &FAMILY_NAMES,
+                    )?;
                 }
             }
             None => {

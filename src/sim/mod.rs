@@ -67,14 +67,13 @@ impl Physics {
         }
     }
 
-    /// Refuses (unless `allow_unstable`) to simulate a spring surrogate past the explicit
-    /// stability limit at this step.
-    pub fn check_surrogate(
+    /// The explicit-step stability estimate of a spring network at this step (`.check(..)` it
+    /// before simulating).
+    pub fn stability_of(
         &self,
         topology: &crate::cloth::Topology,
         model: &crate::model::SpringNet,
-        allow_unstable: bool,
-    ) -> anyhow::Result<()> {
+    ) -> Stability {
         Stability::estimate(
             topology,
             &model.k_values(),
@@ -83,7 +82,6 @@ impl Physics {
             self.rayleigh,
             self.sim_dt(),
         )
-        .check("the trained surrogate", allow_unstable)
     }
 
     /// The integration step `frame_dt / substeps`.

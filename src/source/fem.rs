@@ -797,6 +797,28 @@ mod tests {
     }
 
     #[test]
+    fn grid_triangles_cover_every_cell_counter_clockwise() {
+        let (nx, ny) = (4, 3);
+        let uv = |i: usize| [(i % nx) as f64 * 1.0, (i / nx) as f64 * 1.0];
+        for diagonal in [Diagonal::Main, Diagonal::Anti, Diagonal::Alternating] {
+            let t = grid_triangles(nx, ny, diagonal);
+            assert_eq!(t.len(), 2 * (nx - 1) * (ny - 1));
+            let mut area = 0.0;
+            for tri in &t {
+                let [a, b, c] = tri.map(uv);
+                let cross = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+                assert!(
+                    cross > 0.0,
+                    "{diagonal:?}: {tri:?} is not counter-clockwise"
+                );
+                area += 0.5 * cross;
+            }
+            // The triangles tile the rectangle.
+            assert!((area - ((nx - 1) * (ny - 1)) as f64).abs() < 1e-12);
+        }
+    }
+
+    #[test]
     fn no_force_at_rest_and_flat_sheet_has_no_bending_force() {
         for d in [Diagonal::Main, Diagonal::Anti, Diagonal::Alternating] {
             let c = cloth(d, Layout::Stripes, [0.0; 3], 0.0);

@@ -28,7 +28,7 @@ use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, Spri
 use crate::model::neural_ode::OdeScales;
 use crate::model::{Gnn, GnnConfig, ModelKind, NeuralOde, SpringNet, gnn};
 use crate::progress::Progress;
-use crate::sim::{Physics, Stability};
+use crate::sim::Physics;
 
 /// Which clips a pass draws from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -488,7 +488,7 @@ impl Trainable for SpringNet {
     }
 
     fn check_start(&self, job: &Job) -> Result<()> {
-        self.stability(job).check(
+        job.physics.stability_of(job.topology, self).check(
             "the surrogate at its initial k and b",
             job.config.sim.allow_unstable,
         )
@@ -497,20 +497,7 @@ impl Trainable for SpringNet {
     fn divergence_hint(&self, job: &Job) -> String {
         format!(
             "the rollout likely diverged: {}",
-            self.stability(job).describe()
-        )
-    }
-}
-
-impl SpringNet {
-    fn stability(&self, job: &Job) -> Stability {
-        Stability::estimate(
-            job.topology,
-            &self.k_values(),
-            &self.b_values(),
-            job.physics.mass,
-            job.physics.rayleigh,
-            job.physics.sim_dt(),
+            job.physics.stability_of(job.topology, self).describe()
         )
     }
 }
