@@ -14,6 +14,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use anyhow::{Result, anyhow, bail};
+use plotters::chart::MeshStyle;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
@@ -601,6 +602,17 @@ impl Series {
     }
 }
 
+/// The house style of a chart's grid and labels (light grey lines, 12-pt labels, 14-pt axis
+/// descriptions).
+fn house_mesh<'m, 'a, 'b, X: Ranged, Y: Ranged, DB: DrawingBackend>(
+    mesh: &'m mut MeshStyle<'a, 'b, X, Y, DB>,
+) -> &'m mut MeshStyle<'a, 'b, X, Y, DB> {
+    mesh.label_style(text(12))
+        .axis_desc_style(text(14))
+        .light_line_style(RGBColor(235, 235, 235))
+        .bold_line_style(RGBColor(215, 215, 215))
+}
+
 /// Draws a line plot of `series` (colours from [`PALETTE`], in order) with a legend.
 /// `log_y` puts y on a log scale and drops points with `y ≤ 0`; non-finite points are dropped
 /// either way. `marks` are vertical lines at the given x with a label to their right at the
@@ -644,20 +656,18 @@ pub fn draw_curves(
     macro_rules! finish {
         ($chart:expr) => {{
             let mut chart = $chart;
-            chart
-                .configure_mesh()
-                .x_desc(x_label)
-                .y_desc(y_label)
-                .x_labels(6)
-                .y_labels(8)
-                .x_label_formatter(&|v| tick(*v))
-                .y_label_formatter(&|v| tick(*v))
-                .label_style(text(12))
-                .axis_desc_style(text(14))
-                .light_line_style(RGBColor(235, 235, 235))
-                .bold_line_style(RGBColor(215, 215, 215))
-                .draw()
-                .map_err(err)?;
+            house_mesh(
+                chart
+                    .configure_mesh()
+                    .x_desc(x_label)
+                    .y_desc(y_label)
+                    .x_labels(6)
+                    .y_labels(8)
+                    .x_label_formatter(&|v| tick(*v))
+                    .y_label_formatter(&|v| tick(*v)),
+            )
+            .draw()
+            .map_err(err)?;
             let yr = chart.y_range();
             for &(x, name) in marks {
                 chart
@@ -764,20 +774,18 @@ pub fn draw_truth_scatter(
         .y_label_area_size(62)
         .build_cartesian_2d(lo..hi, lo..hi)
         .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(format!("true {quantity}"))
-        .y_desc(format!("learned {quantity}"))
-        .x_labels(6)
-        .y_labels(6)
-        .x_label_formatter(&|v| tick(*v))
-        .y_label_formatter(&|v| tick(*v))
-        .label_style(text(12))
-        .axis_desc_style(text(14))
-        .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215))
-        .draw()
-        .map_err(err)?;
+    house_mesh(
+        chart
+            .configure_mesh()
+            .x_desc(format!("true {quantity}"))
+            .y_desc(format!("learned {quantity}"))
+            .x_labels(6)
+            .y_labels(6)
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| tick(*v)),
+    )
+    .draw()
+    .map_err(err)?;
     chart
         .draw_series(std::iter::once(PathElement::new(
             vec![(lo, lo), (hi, hi)],
@@ -850,19 +858,17 @@ pub fn draw_histogram(
         .y_label_area_size(55)
         .build_cartesian_2d(lo..hi, 0f64..top * 1.4) // headroom for the legend
         .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(quantity.to_string())
-        .y_desc("springs")
-        .x_labels(6)
-        .x_label_formatter(&|v| tick(*v))
-        .y_label_formatter(&|v| format!("{v:.0}"))
-        .label_style(text(12))
-        .axis_desc_style(text(14))
-        .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215))
-        .draw()
-        .map_err(err)?;
+    house_mesh(
+        chart
+            .configure_mesh()
+            .x_desc(quantity.to_string())
+            .y_desc("springs")
+            .x_labels(6)
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| format!("{v:.0}")),
+    )
+    .draw()
+    .map_err(err)?;
     let mut base = vec![0usize; bins];
     for (g, name) in group_names.iter().enumerate() {
         let color = PALETTE[g % PALETTE.len()];
@@ -933,20 +939,18 @@ pub fn draw_band(
         .y_label_area_size(70)
         .build_cartesian_2d(x0..x1, 0f64..hi)
         .map_err(err)?;
-    chart
-        .configure_mesh()
-        .x_desc(x_label)
-        .y_desc(y_label)
-        .x_labels(6)
-        .y_labels(8)
-        .x_label_formatter(&|v| tick(*v))
-        .y_label_formatter(&|v| tick(*v))
-        .label_style(text(12))
-        .axis_desc_style(text(14))
-        .light_line_style(RGBColor(235, 235, 235))
-        .bold_line_style(RGBColor(215, 215, 215))
-        .draw()
-        .map_err(err)?;
+    house_mesh(
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .x_labels(6)
+            .y_labels(8)
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| tick(*v)),
+    )
+    .draw()
+    .map_err(err)?;
     let shade = PALETTE[0].mix(0.22);
     if !band.is_empty() {
         let mut poly: Vec<(f64, f64)> = band.iter().map(|b| (b.0, b.3)).collect();
