@@ -430,6 +430,21 @@ fn print_eval(r: &EvalReport) {
         "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ 0.8 s: {:.4e} ± {:.4e}; ≤ 8 s: {:.4e} ± {:.4e})",
         m.rollouts, m.mean, m.std, m.mean_0_8s, m.std_0_8s, m.mean_8s, m.std_8s
     );
+    if let Some(u) = &r.uniform_baseline {
+        println!(
+            "best uniform stiffness {:.4} N/m (b {:.4}, searched on {} training rollouts): test \
+             motion RMSE {:.4e} m (short horizon {:.4e}, long {:.4e}); training improves on it \
+             by {:.1} % (long) and {:.1} % (short)",
+            u.k,
+            u.b,
+            u.search_rollouts,
+            u.test.mean,
+            u.test.mean_0_8s,
+            u.test.mean_8s,
+            100.0 * u.improvement_long,
+            100.0 * u.improvement_short
+        );
+    }
     if let Some(i) = &r.inference {
         println!(
             "inference: {:.1} µs per rollout·step of {} ms (batch {}), {:.3} s per simulated second",
@@ -510,6 +525,8 @@ fn simulate(
             b: model.b_values(),
         }),
         mesh: None,
+        gravity: Some(physics.gravity),
+        rayleigh: Some(physics.rayleigh),
     };
     out_rollout.save(out)?;
     println!(

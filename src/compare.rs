@@ -123,7 +123,14 @@ fn compare_one(cfg: &Config, run_dir: &Path, force: bool, progress: &Progress) -
     let state = run.state()?;
     let reused = match &state {
         Some(s) if s.status == Status::Finished && !force => {
-            let mut previous = Config::load(&run.config(), &[])?;
+            // Compared as requested: `config.toml` holds the values resolved from the data.
+            let requested = run.requested_config();
+            let path = if requested.exists() {
+                requested
+            } else {
+                run.config()
+            };
+            let mut previous = Config::load(&path, &[])?;
             previous.backend = cfg.backend;
             if previous.to_toml() != cfg.to_toml() {
                 bail!(

@@ -97,15 +97,17 @@ impl Config {
         if self.cloth.nx < 2 || self.cloth.ny < 2 {
             bail!("`cloth.nx` and `cloth.ny` must be at least 2");
         }
-        if self.sim.substeps == 0 {
+        if self.sim.substeps == Auto::Value(0) {
             bail!("`sim.substeps` must be at least 1");
         }
-        if !(self.sim.rayleigh >= 0.0) {
+        if let Auto::Value(c) = self.sim.rayleigh
+            && !(c >= 0.0)
+        {
             bail!("`sim.rayleigh` must be non-negative");
         }
         self.model.validate()?;
         let c = &self.data.clips;
-        if c.steps < 2 {
+        if c.steps.value().is_some_and(|t| t < 2) {
             bail!("`data.clips.steps` must be at least 2");
         }
         for (key, v) in [
@@ -131,6 +133,62 @@ impl Config {
     /// The config as TOML text.
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("config serializes")
+    }
+}
+
+/// A setting springtime derives from the data unless the config gives it: `"auto"` (the
+/// default of such keys) or a value.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Auto<T> {
+    /// Derived from the data when a run starts (the resolved value is written to the run's
+    /// `config.toml`).
+    #[default]
+    Auto,
+    /// Given by the config.
+    Value(T),
+}
+
+impl<T: Copy> Auto<T> {
+    /// The value, if the config gives one.
+    pub fn value(self) -> Option<T> {
+        match self {
+            Auto::Auto => None,
+            Auto::Value(v) => Some(v),
+        }
+    }
+
+    /// The value, or `fallback` while it is still `"auto"`.
+    pub fn or(self, fallback: T) -> T {
+        self.value().unwrap_or(fallback)
+    }
+}
+
+impl<T: Serialize> Serialize for Auto<T> {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            Auto::Auto => s.serialize_str("auto"),
+            Auto::Value(v) => v.serialize(s),
+        }
+    }
+}
+
+impl<'de, T: Deserialize<'de>> Deserialize<'de> for Auto<T> {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Either<T> {
+            Value(T),
+            Word(String),
+        }
+        match Either::<T>::deserialize(d).map_err(|_| {
+            serde::de::Error::custom("expected \"auto\" or a value of the key's type")
+        })? {
+            Either::Value(v) => Ok(Auto::Value(v)),
+            Either::Word(w) if w == "auto" => Ok(Auto::Auto),
+            Either::Word(w) => Err(serde::de::Error::custom(format!(
+                "expected \"auto\" or a value of the key's type, found {w:?}"
+            ))),
+        }
     }
 }
 

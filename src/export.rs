@@ -438,8 +438,8 @@ pub fn export_run(
         k: k.iter().map(|&x| x as f32).collect(),
         b: b.iter().map(|&x| x as f32).collect(),
         pinned: pinned.clone(),
-        rayleigh: config.sim.rayleigh,
-        gravity: config.sim.gravity,
+        rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
+        gravity: config.sim.gravity.or(crate::sim::GRAVITY),
         dt: plan.as_ref().map(|p| p.0.sim_dt()),
     };
     crate::io::write_text(&paths[1], &json.to_text()?)?;
@@ -453,8 +453,14 @@ pub fn export_run(
         pin_mask[i] = true;
     }
     npz.insert("pinned", Array::bool(&[p], &pin_mask));
-    npz.insert("rayleigh", Array::scalar(config.sim.rayleigh));
-    npz.insert("gravity", Array::f64(&[3], &config.sim.gravity));
+    npz.insert(
+        "rayleigh",
+        Array::scalar(config.sim.rayleigh.or(crate::sim::RAYLEIGH)),
+    );
+    npz.insert(
+        "gravity",
+        Array::f64(&[3], &config.sim.gravity.or(crate::sim::GRAVITY)),
+    );
     npz.write(&paths[2])?;
     files.push(paths[2].clone());
     Ok(ExportSummary {

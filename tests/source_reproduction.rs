@@ -15,7 +15,7 @@ fn ground_truth_parameters_reproduce_the_source() {
     let mut cfg = common::source(8, &[10.0, 50.0, 100.0], 0.6);
     cfg.train_rollouts = 3;
     let clips = ClipConfig {
-        steps: 200,
+        steps: springtime::config::Auto::Value(200),
         ..ClipConfig::default()
     };
     springtime::source::generate(&cfg, &clips, &dir, |_| {}).unwrap();

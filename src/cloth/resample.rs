@@ -13,6 +13,8 @@ pub struct Resampler {
     pub index: Vec<[usize; 3]>,
     /// Their barycentric weights.
     pub weight: Vec<[f64; 3]>,
+    /// The particle nearest to each landmark (ties by index).
+    pub nearest_particle: Vec<usize>,
 }
 
 /// How many nearest landmarks are searched for a non-degenerate triangle.
@@ -36,7 +38,15 @@ impl Resampler {
             index.push(i);
             weight.push(w);
         }
-        Self { index, weight }
+        let nearest_particle = landmarks
+            .iter()
+            .map(|&l| nearest(particles, l, 1)[0])
+            .collect();
+        Self {
+            index,
+            weight,
+            nearest_particle,
+        }
     }
 
     /// Whether every particle copies exactly one landmark (the identity map when the grids agree).
@@ -78,10 +88,19 @@ impl Resampler {
             .collect()
     }
 
-    /// Pinned particles: the interpolated pin flag is at least one half.
+    /// Pinned particles: those whose interpolated pin flag is at least one half, and the
+    /// particle nearest to each pinned landmark.
+    ///
+    /// The second rule keeps every pin of the data: a user's simulator often pins single
+    /// vertices, which a coarser or shifted particle grid would otherwise miss, leaving the
+    /// surrogate's cloth to fall where the data's hangs.
     pub fn pinned(&self, landmark_pinned: &[bool]) -> Vec<bool> {
         let flags: Vec<f64> = landmark_pinned.iter().map(|&p| p as u8 as f64).collect();
-        self.apply1(&flags).into_iter().map(|f| f >= 0.5).collect()
+        let mut pinned: Vec<bool> = self.apply1(&flags).into_iter().map(|f| f >= 0.5).collect();
+        for (l, _) in landmark_pinned.iter().enumerate().filter(|(_, p)| **p) {
+            pinned[self.nearest_particle[l]] = true;
+        }
+        pinned
     }
 }
 
@@ -168,6 +187,31 @@ mod tests {
         assert!(!Resampler::new(&g, &g[1..]).is_identity(g.len() - 1));
         for (p, idx) in r.index.iter().enumerate() {
             assert_eq!(idx[0], p);
+        }
+    }
+
+    #[test]
+    fn single_pinned_vertices_of_a_finer_mesh_pin_their_nearest_particles() {
+        // A user's simulator pins two single vertices of a 21 × 21 mesh; a 16 × 16 surrogate has
+        // no particle there, and the interpolated flag is below one half everywhere.
+        let landmarks = grid(21, 21, 2.0, 2.0);
+        let particles = grid(16, 16, 2.0, 2.0);
+        let r = Resampler::new(&landmarks, &particles);
+        let mut flags = vec![false; landmarks.len()];
+        let (a, b) = (21 * 20 + 2, 21 * 6 + 20); // top edge at x = 0.2; right edge at y = 0.6
+        flags[a] = true;
+        flags[b] = true;
+        let interpolated = r.apply1(&flags.iter().map(|&f| f as u8 as f64).collect::<Vec<_>>());
+        assert!(
+            interpolated.iter().all(|&f| f < 0.5),
+            "the old rule would pin nothing"
+        );
+        let pinned = r.pinned(&flags);
+        assert_eq!(pinned.iter().filter(|&&p| p).count(), 2);
+        for l in [a, b] {
+            let p = r.nearest_particle[l];
+            assert!(pinned[p]);
+            assert!(dist2(particles[p], landmarks[l]).sqrt() <= 2.0 / 15.0 * 0.75);
         }
     }
 

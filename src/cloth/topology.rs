@@ -171,6 +171,18 @@ impl Topology {
         self.rest_uv.iter().map(|&[u, v]| [u, v, 0.0]).collect()
     }
 
+    /// An upper bound of the largest eigenvalue of `Σ_s w_s u_s u_sᵀ` for any spring directions
+    /// `u_s` (block Gershgorin): `max_i 2 Σ_{s∋i} max(w_s, 0)`.
+    pub fn max_eigenvalue_bound(&self, weights: &[f64]) -> f64 {
+        assert_eq!(weights.len(), self.num_springs());
+        let mut sum = vec![0f64; self.num_particles()];
+        for (&[a, b], &w) in self.springs.iter().zip(weights) {
+            sum[a] += w.max(0.0);
+            sum[b] += w.max(0.0);
+        }
+        2.0 * sum.into_iter().fold(0.0, f64::max)
+    }
+
     /// Largest eigenvalue of `Σ_s w_s u_s u_sᵀ` (3P × 3P, `u_s` the unit rest direction of
     /// spring `s`, assembled through the signed incidence matrix) by power iteration.
     ///

@@ -14,13 +14,15 @@ use serde::{Deserialize, Serialize};
 
 use super::rollout::Rollout;
 use crate::cloth::{Resampler, Topology};
+use crate::config::Auto;
 
 /// How rollouts are cut into clips: part of the `[data]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ClipConfig {
-    /// Steps per clip `T` (the paper uses 500).
-    pub steps: usize,
+    /// Steps per clip `T` in data frames (the paper uses 500 at 1 ms); `"auto"`: half a second
+    /// of frames ([`ClipConfig::steps_for`]).
+    pub steps: Auto<usize>,
     /// Fraction of a rollout's regular clips that are kept (the paper keeps 6 %).
     pub fraction: f64,
     /// The low-velocity set: clips within this many seconds of a rollout's end.
@@ -34,7 +36,7 @@ pub struct ClipConfig {
 impl Default for ClipConfig {
     fn default() -> Self {
         Self {
-            steps: 500,
+            steps: Auto::Auto,
             fraction: 1.0,
             low_velocity_seconds: 1.0,
             low_velocity_fraction: 1.0,
@@ -52,7 +54,18 @@ pub struct PlannedClip {
     pub low_velocity: bool,
 }
 
+/// The span of a clip when `data.clips.steps = "auto"`: the paper's 500 steps of 1 ms.
+pub const AUTO_CLIP_SECONDS: f64 = 0.5;
+
 impl ClipConfig {
+    /// Steps per clip for frames `frame_dt` apart: the configured number, or
+    /// [`AUTO_CLIP_SECONDS`] worth of frames (at least 2).
+    pub fn steps_for(&self, frame_dt: f64) -> usize {
+        self.steps
+            .value()
+            .unwrap_or_else(|| ((AUTO_CLIP_SECONDS / frame_dt).round() as usize).max(2))
+    }
+
     /// The clips kept from a rollout called `name` whose timeline has `frames` frames, the first
     /// usable one (with a known velocity) being `first`.
     ///
@@ -61,7 +74,7 @@ impl ClipConfig {
     /// The choice is a deterministic function of the seed and the rollout's name, so the
     /// generator can store exactly the windows that training will later cut.
     pub fn plan(&self, name: &str, frames: usize, frame_dt: f64, first: usize) -> Vec<PlannedClip> {
-        let t = self.steps;
+        let t = self.steps_for(frame_dt);
         let mut rng = StdRng::seed_from_u64(self.seed ^ fnv1a(name));
         let mut out = Vec::new();
         let mut start = first;
@@ -107,8 +120,8 @@ pub struct Track {
     pub particles: usize,
     /// Positions `[F, P, 3]`.
     pub positions: Vec<f32>,
-    /// Velocities `[F, P, 3]` (stored, or backward differences; frame 0 of a window without
-    /// stored velocities is unusable as a clip start).
+    /// Velocities `[F, P, 3]` (stored, or central differences of positions — backward at a
+    /// window's last frame; frame 0 of a window without stored velocities starts no clip).
     pub velocities: Vec<f32>,
     /// Pinned particles.
     pub pinned: Vec<bool>,
@@ -168,16 +181,22 @@ impl Track {
                 }
             }
             None => {
-                // Backward differences: exact for a semi-implicit Euler source.
+                // Central differences inside each stored window (second-order: at camera rate a
+                // backward difference lags by half a frame, ≈ g·Δt/2 under gravity alone), a
+                // backward difference at its last frame; its first frame has no velocity and
+                // starts no clip.
                 let inv = 1.0 / rollout.frame_dt;
+                let at = |frame: usize, i: usize| positions[frame * p * 3 + i] as f64;
                 for seg in &rollout.segments {
-                    for frame in seg.offset + 1..seg.offset + seg.len {
+                    let last = seg.offset + seg.len - 1;
+                    for frame in seg.offset + 1..=last {
                         for i in 0..p * 3 {
-                            let (a, b) = (
-                                positions[(frame - 1) * p * 3 + i],
-                                positions[frame * p * 3 + i],
-                            );
-                            velocities[frame * p * 3 + i] = ((b as f64 - a as f64) * inv) as f32;
+                            let v = if frame < last {
+                                (at(frame + 1, i) - at(frame - 1, i)) * 0.5 * inv
+                            } else {
+                                (at(frame, i) - at(frame - 1, i)) * inv
+                            };
+                            velocities[frame * p * 3 + i] = v as f32;
                         }
                     }
                 }
@@ -233,6 +252,21 @@ pub struct SetInfo {
     pub width: f64,
     /// Rest rectangle height, m.
     pub height: f64,
+    /// Number of landmarks.
+    pub landmarks: usize,
+    /// Gravity the files state (key `gravity`).
+    pub gravity: Option<[f64; 3]>,
+    /// Rayleigh damping per landmark the files state, N·s/m (key `rayleigh`).
+    pub rayleigh: Option<f64>,
+}
+
+impl SetInfo {
+    /// The files' Rayleigh damping for particles of `particle_mass`: the same damping rate per
+    /// unit mass as the landmarks, which share `total_mass` equally.
+    pub fn rayleigh_for(&self, particle_mass: f64) -> Option<f64> {
+        self.rayleigh
+            .map(|c| c * self.landmarks as f64 / self.total_mass * particle_mass)
+    }
 }
 
 struct Entry {
@@ -321,6 +355,9 @@ impl ClipSet {
                 total_mass: rollout.total_mass,
                 width: rollout.width,
                 height: rollout.height,
+                landmarks: rollout.landmarks,
+                gravity: rollout.gravity,
+                rayleigh: rollout.rayleigh,
             };
             match info {
                 None => {
@@ -338,7 +375,8 @@ impl ClipSet {
             let first = if rollout.velocities.is_some() { 0 } else { 1 };
             let plan = clips.plan(&name, rollout.timeline_frames(), this.frame_dt, first);
             for c in plan {
-                let Some(offset) = stored_offset(&rollout, c.start, clips.steps, first) else {
+                let steps = clips.steps_for(this.frame_dt);
+                let Some(offset) = stored_offset(&rollout, c.start, steps, first) else {
                     continue;
                 };
                 let r = ClipRef {
@@ -378,7 +416,7 @@ impl ClipSet {
             bail!(
                 "the rollouts yield no clip of {} steps (they are too short, or `data.fraction` / \
                  `data.low_velocity_fraction` kept none)",
-                clips.steps
+                clips.steps_for(info.map_or(1.0, |i| i.frame_dt))
             );
         }
         Ok(Self {
@@ -387,7 +425,7 @@ impl ClipSet {
             topology: topology.expect("at least one file"),
             regular,
             low_velocity,
-            steps: clips.steps,
+            steps: clips.steps_for(info.expect("at least one file").frame_dt),
             resampler,
             cache: Mutex::new(cache),
         })
@@ -588,6 +626,32 @@ fn check_same(a: &SetInfo, b: &SetInfo, path: &Path, first: &Path) -> Result<()>
             );
         }
     }
+    let same = |x: Option<&[f64]>, y: Option<&[f64]>| match (x, y) {
+        (None, None) => true,
+        (Some(x), Some(y)) => x.iter().zip(y).all(|(&x, &y)| close(x, y)),
+        _ => false,
+    };
+    for (key, x, y) in [
+        (
+            "gravity",
+            a.gravity.as_ref().map(|g| &g[..]),
+            b.gravity.as_ref().map(|g| &g[..]),
+        ),
+        (
+            "rayleigh",
+            a.rayleigh.as_ref().map(std::slice::from_ref),
+            b.rayleigh.as_ref().map(std::slice::from_ref),
+        ),
+    ] {
+        if !same(x, y) {
+            bail!(
+                "{}: key `{key}` = {y:?} differs from {} ({x:?}): all rollouts of a set must \
+                 share their external forces",
+                path.display(),
+                first.display()
+            );
+        }
+    }
     Ok(())
 }
 
@@ -598,7 +662,7 @@ mod tests {
     #[test]
     fn plan_cuts_regular_and_low_velocity_clips() {
         let cfg = ClipConfig {
-            steps: 500,
+            steps: Auto::Value(500),
             ..ClipConfig::default()
         };
         // 8 s at 1 ms: 8001 frames, velocities known from frame 0.

@@ -84,6 +84,11 @@ pub struct Rollout {
     pub springs: Option<SpringTruth>,
     /// Mesh and stiffness map, when the source is an FEM mesh.
     pub mesh: Option<MeshTruth>,
+    /// Gravity the cloth moved under, m/s² (key `gravity`), when the file says.
+    pub gravity: Option<[f64; 3]>,
+    /// Rayleigh damping `c` of `−c ẋ` on every landmark, N·s/m, the landmarks sharing
+    /// `total_mass` equally (key `rayleigh`), when the file says.
+    pub rayleigh: Option<f64>,
 }
 
 impl Rollout {
@@ -205,6 +210,21 @@ impl Rollout {
         } else {
             None
         };
+        let gravity = if npz.has("gravity") {
+            let (g, _) = npz.f32("gravity", &[Some(3)])?;
+            Some([g[0] as f64, g[1] as f64, g[2] as f64])
+        } else {
+            None
+        };
+        let rayleigh = if npz.has("rayleigh") {
+            let c = npz.scalar("rayleigh")?;
+            if !(c >= 0.0) {
+                bail!("{shown}: key `rayleigh` must be non-negative, is {c}");
+            }
+            Some(c)
+        } else {
+            None
+        };
         Ok(Self {
             path: path.to_path_buf(),
             frames,
@@ -220,6 +240,8 @@ impl Rollout {
             segments,
             springs,
             mesh,
+            gravity,
+            rayleigh,
         })
     }
 
@@ -242,6 +264,12 @@ impl Rollout {
         npz.insert("total_mass", Array::scalar(self.total_mass));
         npz.insert("width", Array::scalar(self.width));
         npz.insert("height", Array::scalar(self.height));
+        if let Some(g) = self.gravity {
+            npz.insert("gravity", Array::f64(&[3], &g));
+        }
+        if let Some(c) = self.rayleigh {
+            npz.insert("rayleigh", Array::scalar(c));
+        }
         let whole = self.segments.len() == 1 && self.segments[0].start == 0;
         if !whole {
             let seg: Vec<i64> = self

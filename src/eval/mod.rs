@@ -2,6 +2,7 @@
 //! (Eq. 14).
 
 mod run;
+pub mod uniform;
 
 pub use run::evaluate;
 
@@ -31,6 +32,9 @@ pub struct EvalConfig {
     pub batch: usize,
     /// Evaluate at most this many test rollouts (0 = all).
     pub max_rollouts: usize,
+    /// Also search the best uniform stiffness on the training rollouts and evaluate it on the
+    /// test rollouts (`eval.json`'s `uniform_baseline`: the yardstick of spatial learning).
+    pub uniform_baseline: bool,
 }
 
 impl Default for EvalConfig {
@@ -40,6 +44,7 @@ impl Default for EvalConfig {
             long_seconds: 8.0,
             batch: 16,
             max_rollouts: 0,
+            uniform_baseline: false,
         }
     }
 }
@@ -96,6 +101,9 @@ pub struct EvalReport {
     pub stiffness_map_corr: Option<f64>,
     /// Motion RMSE over the test rollouts.
     pub motion_rmse: MotionRmse,
+    /// The best uniform surrogate beside the trained one (`eval.uniform_baseline`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uniform_baseline: Option<uniform::UniformBaseline>,
     /// What the model's steps cost during this evaluation.
     #[serde(default)]
     pub inference: Option<Inference>,

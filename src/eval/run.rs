@@ -43,7 +43,7 @@ pub fn evaluate(
     let topo = loaded.topology;
     let mass = loaded.meta.particle_mass;
     let split = config.data.split()?;
-    let mut files = split.test;
+    let mut files = split.test.clone();
     if files.is_empty() {
         bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
     }
@@ -109,10 +109,26 @@ pub fn evaluate(
             eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh)
         });
     }
+    let uniform_baseline = match &loaded.model {
+        Trained::Springs(_) if config.eval.uniform_baseline => Some(eval::uniform::search(
+            &topo,
+            &physics,
+            config.model.k_init.or(50.0),
+            config.model.b_init.or(0.0),
+            &split.train,
+            &files,
+            &motion,
+            &config.eval,
+            &device,
+            progress,
+        )?),
+        _ => None,
+    };
     let report = EvalReport {
         rmse_k,
         rmse_b,
         stiffness_map_corr,
+        uniform_baseline,
         motion_rmse: motion,
         inference: Some(eval::Inference {
             us_per_step: curves.us_per_step(),

@@ -13,6 +13,7 @@ pub use springs::{Kernel, SpringGraph, SpringNet, spring_forces};
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
+use crate::config::Auto;
 use kernels::StepParams;
 
 /// The model families: the paper's surrogate and its two baselines.
@@ -48,10 +49,11 @@ impl ModelKind {
 pub struct ModelConfig {
     /// The model family.
     pub kind: ModelKind,
-    /// Initial stiffness of every spring, N/m (springs).
-    pub k_init: f64,
-    /// Initial damping of every spring, N·s/m (springs).
-    pub b_init: f64,
+    /// Initial stiffness of every spring, N/m (springs); `"auto"`: the least-squares uniform
+    /// stiffness of the training data's forces (Eq. 4 is linear in `k`), kept stable.
+    pub k_init: Auto<f64>,
+    /// Initial damping of every spring, N·s/m (springs); `"auto"`: fitted with `k_init`.
+    pub b_init: Auto<f64>,
     /// Spring-force implementation: the fused kernel or the tensor-op reference (springs).
     pub kernel: Kernel,
     /// The Neural ODE's architecture.
@@ -61,12 +63,12 @@ pub struct ModelConfig {
 }
 
 impl Default for ModelConfig {
-    /// Springs with a uniform guess between the paper's stiffness levels and below its damping.
+    /// Springs whose uniform initial `k` and `b` are fitted to the data.
     fn default() -> Self {
         Self {
             kind: ModelKind::Springs,
-            k_init: 50.0,
-            b_init: 3.0,
+            k_init: Auto::Auto,
+            b_init: Auto::Auto,
             kernel: Kernel::Fused,
             neural_ode: NeuralOdeConfig::default(),
             gnn: GnnConfig::default(),
@@ -77,8 +79,12 @@ impl Default for ModelConfig {
 impl ModelConfig {
     /// Checks ranges; errors name the key.
     pub fn validate(&self) -> anyhow::Result<()> {
-        if !self.k_init.is_finite() || !self.b_init.is_finite() {
-            anyhow::bail!("`model.k_init` and `model.b_init` must be finite");
+        for (key, v) in [("k_init", self.k_init), ("b_init", self.b_init)] {
+            if let Auto::Value(x) = v
+                && !x.is_finite()
+            {
+                anyhow::bail!("`model.{key}` must be finite or \"auto\", is {x}");
+            }
         }
         self.neural_ode.validate()?;
         self.gnn.validate()

@@ -8,22 +8,32 @@ pub use stability::Stability;
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
+use crate::config::Auto;
 use crate::model::ForceModel;
 use crate::model::kernels::StepParams;
 
 /// Standard gravity, m/s², along −z.
 pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];
 
+/// The paper's Rayleigh damping constant, N·s/m: used where `sim.rayleigh` is still `"auto"`
+/// outside a training run (a run resolves it from the data).
+pub const RAYLEIGH: f64 = 0.1;
+
 /// The `[sim]` section: how the surrogate is stepped.
+///
+/// `"auto"` values are resolved from the training data when a run starts
+/// ([`crate::train::init`]) and written to the run's `config.toml`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SimConfig {
-    /// Integration steps per data frame (`frame_dt = substeps · sim_dt`).
-    pub substeps: usize,
-    /// Rayleigh damping constant `c` of the external force `−c ẋ`, N·s/m (paper: 0.1).
-    pub rayleigh: f64,
-    /// Gravity vector, m/s².
-    pub gravity: [f64; 3],
+    /// Integration steps per data frame (`frame_dt = substeps · sim_dt`); `"auto"`: the fewest
+    /// that keep the initial surrogate well inside the stability region.
+    pub substeps: Auto<usize>,
+    /// Rayleigh damping constant `c` of the external force `−c ẋ`, N·s/m (paper: 0.1);
+    /// `"auto"`: the data's `rayleigh` key, else a least-squares fit to the data's forces.
+    pub rayleigh: Auto<f64>,
+    /// Gravity vector, m/s²; `"auto"`: the data's `gravity` key, else `[0, 0, −9.81]`.
+    pub gravity: Auto<[f64; 3]>,
     /// Run even when the stability guard predicts a blow-up.
     pub allow_unstable: bool,
 }
@@ -31,9 +41,9 @@ pub struct SimConfig {
 impl Default for SimConfig {
     fn default() -> Self {
         Self {
-            substeps: 1,
-            rayleigh: 0.1,
-            gravity: GRAVITY,
+            substeps: Auto::Auto,
+            rayleigh: Auto::Auto,
+            gravity: Auto::Auto,
             allow_unstable: false,
         }
     }
@@ -60,10 +70,10 @@ impl Physics {
     pub fn new(sim: &SimConfig, frame_dt: f64, mass: f64) -> Self {
         Self {
             frame_dt,
-            substeps: sim.substeps,
+            substeps: sim.substeps.or(1),
             mass,
-            rayleigh: sim.rayleigh,
-            gravity: sim.gravity,
+            rayleigh: sim.rayleigh.or(RAYLEIGH),
+            gravity: sim.gravity.or(GRAVITY),
         }
     }
 

@@ -369,6 +369,8 @@ pub fn simulate_rollout(
         segments,
         springs: sim.spring_truth(),
         mesh: sim.mesh_truth(),
+        gravity: Some(cfg.gravity),
+        rayleigh: Some(cfg.rayleigh),
     })
 }
 
@@ -432,7 +434,7 @@ pub fn generate(
                             let keep = (*train && cfg.storage == Storage::Clips).then(|| {
                                 let w = windows(
                                     &clips.plan(name, timeline, cfg.frame_dt(), first),
-                                    clips.steps,
+                                    clips.steps_for(cfg.frame_dt()),
                                     first,
                                 );
                                 // A rollout none of whose clips is kept still stores its last

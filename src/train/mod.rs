@@ -3,6 +3,7 @@
 //! The stiffness pass trains `k` with `b` frozen on low-velocity clips; the damping pass
 //! trains `b` with `k` frozen on regular clips. `mode = "single"` trains both at once.
 
+pub mod init;
 pub mod losses;
 pub mod run;
 
@@ -16,7 +17,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use burn::module::{Module, ParamId};
+use burn::module::{Module, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -342,10 +343,18 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     }
     let (clips, truth) = open_training_clips(config, progress)?;
     let clips = Arc::new(clips);
+    let requested = config;
+    let (resolved, resolution) = init::resolve(config, &clips)?;
+    let config = &resolved;
+    for line in resolution.lines() {
+        progress.note(&format!("from the data: {line}"));
+    }
     if !options.resume {
         run.create_fresh()?;
     }
+    crate::io::write_text(&run.requested_config(), &requested.to_toml())?;
     crate::io::write_text(&run.config(), &config.to_toml())?;
+    crate::io::write_json(&run.defaults(), &resolution)?;
     let device = training_device(config)?;
     let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
     let topo = clips.topology.clone();
@@ -381,9 +390,8 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     };
     let summary = match config.model.kind {
         ModelKind::Springs => {
-            let model =
-                SpringNet::uniform(&topo, config.model.k_init, config.model.b_init, &device)
-                    .with_kernel(config.model.kernel);
+            let model = SpringNet::uniform(&topo, resolution.k_init, resolution.b_init, &device)
+                .with_kernel(config.model.kernel);
             let (summary, model) = fit.run(model)?;
             run::write_springs(
                 &run.springs(),
@@ -459,7 +467,18 @@ pub trait Trainable: Module + Sized {
     fn divergence_hint(&self, _job: &Job) -> String {
         "the surrogate's rollout diverged".into()
     }
+
+    /// Projects the trained parameters back into the explicit step's stable region after an
+    /// optimizer step (spring networks: `0 ≤ k, b ≤ cap`; a negative `k` or `b` grows
+    /// exponentially, whatever the step); returns how many values were clamped.
+    fn project_stable(self, _job: &Job, _train_k: bool, _train_b: bool) -> (Self, usize) {
+        (self, 0)
+    }
 }
+
+/// Training keeps `dt²ω² + 2·dt·γ` at or below this (the limit is 4): a step that would leave
+/// the region is projected back by clamping the trained `k` (or `b`) from above.
+pub const TRAIN_STABILITY_LIMIT: f64 = 3.6;
 
 impl Trainable for SpringNet {
     fn batch_loss(&self, job: &Job, batch: &ClipBatch, pass: &PassConfig, _: usize) -> LossTerms {
@@ -499,6 +518,47 @@ impl Trainable for SpringNet {
             "the rollout likely diverged: {}",
             job.physics.stability_of(job.topology, self).describe()
         )
+    }
+
+    /// `ω²` grows with every `k_s` and `γ` with every `b_s` (sums of positive semi-definite
+    /// terms), so clamping the trained values to the cap of a uniform network that uses the
+    /// remaining budget keeps the whole network inside the guard's region; the untrained
+    /// parameter keeps its share, and with both trained the budget is split as they use it now.
+    fn project_stable(mut self, job: &Job, train_k: bool, train_b: bool) -> (Self, usize) {
+        let topo = job.topology;
+        let (dt, m, c) = (job.physics.sim_dt(), job.physics.mass, job.physics.rayleigh);
+        let (k, b) = (self.k_values(), self.b_values());
+        let st = job.physics.stability_of(topo, &self);
+        let k_part = dt * dt * st.omega2;
+        let b_part = 2.0 * dt * (st.gamma - c / m);
+        let budget = TRAIN_STABILITY_LIMIT - 2.0 * dt * c / m;
+        let negative = |v: &[f64], trained: bool| trained && v.iter().any(|&x| x < 0.0);
+        if k_part + b_part <= budget && !negative(&k, train_k) && !negative(&b, train_b) {
+            return (self, 0);
+        }
+        let (k_budget, b_budget) = match (train_k, train_b) {
+            (true, false) => (budget - b_part, b_part),
+            (false, true) => (k_part, budget - k_part),
+            _ => {
+                let share = k_part / (k_part + b_part).max(f64::MIN_POSITIVE);
+                (budget * share, budget * (1.0 - share))
+            }
+        };
+        let (k_budget, b_budget) = (k_budget.max(0.0), b_budget.max(0.0));
+        let unit = topo.max_eigenvalue(&vec![1.0; topo.num_springs()]);
+        let mut clamped = 0;
+        let mut clamp = |param: Param<Tensor<1>>, cap: f64| {
+            let values = crate::model::springs::to_f64(param.val());
+            clamped += values.iter().filter(|&&v| v > cap || v < 0.0).count();
+            param.map(|t| Tensor::from_inner(t.inner().clamp(0.0, cap as f32)).require_grad())
+        };
+        if train_k {
+            self.k = clamp(self.k, k_budget * m / (dt * dt * unit));
+        }
+        if train_b {
+            self.b = clamp(self.b, b_budget * m / (2.0 * dt * unit));
+        }
+        (self, clamped)
     }
 }
 
@@ -663,6 +723,7 @@ impl Fit<'_> {
         let mut rmse_now = model.parameter_rmse(job.truth);
         let mut global = 0;
         let mut pending = Vec::new();
+        let mut clamped_total = 0usize;
         for (pass_index, (name, pass, train_k, train_b)) in passes.into_iter().enumerate() {
             let pass_start = global;
             global += pass.iterations;
@@ -739,6 +800,9 @@ impl Fit<'_> {
                     None => GradientsParams::from_grads(grads, &model),
                 };
                 model = optim.step(pass.lr, model, grads);
+                let (projected, clamped) = model.project_stable(job, train_k, train_b);
+                model = projected;
+                clamped_total += clamped;
                 last = values;
                 if job.truth.is_some() {
                     rmse_now = model.parameter_rmse(job.truth);
@@ -748,7 +812,7 @@ impl Fit<'_> {
                     (format!("{k:.6}"), format!("{b:.6}"))
                 });
                 pending.push(format!(
-                    "{},{name},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{rk},{rb},{elapsed:.3}",
+                    "{},{name},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{rk},{rb},{elapsed:.3},{clamped}",
                     it + 1,
                     values.total,
                     values.force,
@@ -789,6 +853,12 @@ impl Fit<'_> {
             start_iteration = global;
         }
         bar.finish();
+        if clamped_total > 0 {
+            self.progress.note(&format!(
+                "the stability limit was active: {clamped_total} spring values clamped so that \
+                 dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT} (see the `clamped` column of metrics.csv)"
+            ));
+        }
         run.append_metrics(&pending)?;
         let model = model.valid();
         RunDir::save_module(&model, &run.model())?;

@@ -55,7 +55,7 @@ pub struct RunDir {
 
 /// Metrics columns, in order.
 pub const METRICS_HEADER: &str =
-    "iteration,pass,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b,seconds";
+    "iteration,pass,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b,seconds,clamped";
 
 impl RunDir {
     /// A run directory at `dir` (not created yet).
@@ -67,6 +67,16 @@ impl RunDir {
     pub fn config(&self) -> PathBuf {
         self.dir.join("config.toml")
     }
+    /// The config as the user gave it (`"auto"` values unresolved), `config.requested.toml`.
+    pub fn requested_config(&self) -> PathBuf {
+        self.dir.join("config.requested.toml")
+    }
+
+    /// What the run derived from its data (`defaults.json`).
+    pub fn defaults(&self) -> PathBuf {
+        self.dir.join("defaults.json")
+    }
+
     /// `run.json`.
     pub fn state_path(&self) -> PathBuf {
         self.dir.join("run.json")

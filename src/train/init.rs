@@ -1,0 +1,482 @@
+//! Defaults derived from the data: gravity, Rayleigh damping, the initial uniform `k` and `b`,
+//! and the number of substeps — every `"auto"` of a config, resolved when a run starts.
+//!
+//! Eq. 4 is linear in `k` and `b`, and the Rayleigh force `−c ẋ` is linear in `c`, so the
+//! uniform network that best explains the data's forces is a small least-squares problem:
+//! for free particles at interior frames `j` of a sample of clips,
+//!
+//! `m â_j − m g ≈ k Σ_s (|d| − l₀) d̂ + b Σ_s (w·d̂) d̂ − c v̂_j`,
+//!
+//! with `v̂_j = (x_{j+1} − x_{j−1}) / 2Δt` and `â_j = (x_{j+1} − 2x_j + x_{j−1}) / Δt²` from
+//! positions alone (so files without velocities and at camera rate are handled alike). The
+//! unknowns are kept non-negative. The resolved values go into the run's `config.toml`, so that
+//! evaluation, simulation and export use the same physics.
+
+use anyhow::{Result, bail};
+use serde::Serialize;
+
+use crate::cloth::Topology;
+use crate::config::{Auto, Config};
+use crate::data::{ClipRef, ClipSet};
+use crate::sim::{GRAVITY, Stability};
+
+/// The stability number `dt²ω² + 2·dt·γ` that `sim.substeps = "auto"` keeps the initial
+/// surrogate below: a quarter of the limit, so training can raise `k` several-fold.
+pub const AUTO_SUBSTEPS_TARGET: f64 = 1.0;
+/// The stability number a fitted initial guess is clamped to when the substeps are fixed.
+pub const INITIAL_CLAMP: f64 = 2.0;
+/// At most this many clips are sampled for the fit.
+const FIT_CLIPS: usize = 48;
+
+/// The uniform spring network that best explains the data's forces.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct UniformFit {
+    /// Stiffness, N/m.
+    pub k: f64,
+    /// Damping, N·s/m.
+    pub b: f64,
+    /// Rayleigh damping per particle, N·s/m (the given value when it was not fitted).
+    pub c: f64,
+    /// Whether `c` was fitted.
+    pub fitted_c: bool,
+    /// Particle-frame samples (free particles × frames) in the fit.
+    pub samples: usize,
+    /// Frames on either side of the acceleration's stencil that fitted best.
+    pub stencil: usize,
+    /// RMS of the target force `m â − m g`, N.
+    pub target_rms: f64,
+    /// RMS of the residual, N.
+    pub residual_rms: f64,
+}
+
+impl UniformFit {
+    /// Fits `k`, `b` (and `c`, unless `rayleigh` gives it) to clips of `clips`, with particles
+    /// of mass `mass` under `gravity`.
+    pub fn fit(clips: &ClipSet, gravity: [f64; 3], rayleigh: Option<f64>) -> Result<Self> {
+        let topo = &clips.topology;
+        let mass = clips.particle_mass();
+        let dt = clips.info.frame_dt;
+        let pool: Vec<ClipRef> = clips
+            .regular
+            .iter()
+            .chain(&clips.low_velocity)
+            .copied()
+            .collect();
+        if pool.is_empty() {
+            bail!("no clips to fit the initial stiffness to");
+        }
+        let stride = pool.len().div_ceil(FIT_CLIPS).max(1);
+        let unknowns = if rayleigh.is_some() { 2 } else { 3 };
+        let t = clips.steps;
+        let stencils: Vec<usize> = STENCILS.iter().copied().filter(|&w| 2 * w < t).collect();
+        let mut systems = vec![Normal::default(); stencils.len()];
+        let p = topo.num_particles();
+        let mut cols = vec![[[0f64; 3]; 2]; p];
+        for clip in pool.iter().step_by(stride) {
+            let track = clips.track(clip.rollout)?;
+            let x = |j: usize, i: usize| -> [f64; 3] {
+                let o = ((clip.offset + j) * p + i) * 3;
+                let x = &track.positions[o..o + 3];
+                [x[0] as f64, x[1] as f64, x[2] as f64]
+            };
+            // Unit columns and central-difference velocities at frames 1..t−1 of the clip.
+            let mut frames: Vec<Vec<[[f64; 3]; 3]>> = vec![Vec::new(); t + 1];
+            for (j, slot) in frames.iter_mut().enumerate().take(t).skip(1) {
+                let xs: Vec<[f64; 3]> = (0..p).map(|i| x(j, i)).collect();
+                let vs: Vec<[f64; 3]> = (0..p)
+                    .map(|i| {
+                        let (a, c) = (x(j - 1, i), x(j + 1, i));
+                        [0, 1, 2].map(|d| (c[d] - a[d]) / (2.0 * dt))
+                    })
+                    .collect();
+                unit_columns(topo, &xs, &vs, &mut cols);
+                *slot = (0..p)
+                    .map(|i| [0, 1, 2].map(|d| [cols[i][0][d], cols[i][1][d], -vs[i][d]]))
+                    .collect();
+            }
+            for (system, &w) in systems.iter_mut().zip(&stencils) {
+                // m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² is the tent-weighted mean of the net
+                // force over (j − w, j + w): weights (w − |i − j|)/w² on the frames between.
+                let h2 = (w as f64 * dt).powi(2);
+                for j in w.max(1)..=t - w {
+                    if j + w > t || j < w || (j - w + 1..j + w).any(|i| i == 0 || i >= t) {
+                        continue;
+                    }
+                    for i in (0..p).filter(|&i| !track.pinned[i]) {
+                        let (a, b, c) = (x(j - w, i), x(j, i), x(j + w, i));
+                        for d in 0..3 {
+                            let mut row = [0f64; 3];
+                            for q in j + 1 - w..j + w {
+                                let weight = (w - q.abs_diff(j)) as f64 / (w * w) as f64;
+                                for (r, v) in row.iter_mut().zip(frames[q][i][d]) {
+                                    *r += weight * v;
+                                }
+                            }
+                            let mut y = mass * ((c[d] - 2.0 * b[d] + a[d]) / h2 - gravity[d]);
+                            if let Some(c) = rayleigh {
+                                y -= c * row[2]; // the known Rayleigh force, −c v̄
+                            }
+                            system.add(&row, y, unknowns);
+                        }
+                        system.samples += 1;
+                    }
+                }
+            }
+        }
+        let best = systems
+            .iter()
+            .zip(&stencils)
+            .filter(|(s, _)| s.samples > 0)
+            .map(|(s, &w)| (s.solve(unknowns), w))
+            .inspect(|(s, w)| {
+                if std::env::var_os("SPRINGTIME_DEBUG_FIT").is_some() {
+                    eprintln!(
+                        "fit ±{w}: k {:.4e} b {:.4e} c {:.4e} explained {:.4} (target {:.3e})",
+                        s.x[0],
+                        s.x[1],
+                        s.x[2],
+                        s.explained(),
+                        s.target_rms
+                    );
+                }
+            })
+            .max_by(|a, b| a.0.explained().total_cmp(&b.0.explained()))
+            .ok_or_else(|| {
+                anyhow::anyhow!("the data has no free particle to fit the initial stiffness to")
+            })?;
+        let (solution, stencil) = best;
+        Ok(Self {
+            k: solution.x[0],
+            b: solution.x[1],
+            c: rayleigh.unwrap_or(solution.x[2]),
+            fitted_c: rayleigh.is_none(),
+            samples: solution.samples,
+            stencil,
+            target_rms: solution.target_rms,
+            residual_rms: solution.residual_rms,
+        })
+    }
+}
+
+/// Stencil widths (frames) tried for the acceleration: the one whose fit explains the largest
+/// share of the target force wins. At camera rate a stiff cloth rings faster than the frames
+/// resolve; a wider stencil averages that ringing out of the target and the regressors alike.
+const STENCILS: [usize; 5] = [1, 2, 4, 8, 16];
+
+/// Accumulated normal equations of the fit.
+#[derive(Debug, Clone, Default)]
+struct Normal {
+    a: [[f64; 3]; 3],
+    rhs: [f64; 3],
+    yy: f64,
+    rows: usize,
+    samples: usize,
+}
+
+/// A solved [`Normal`].
+struct Solved {
+    x: [f64; 3],
+    samples: usize,
+    target_rms: f64,
+    residual_rms: f64,
+}
+
+impl Solved {
+    /// The share of the target's mean square the fit explains.
+    fn explained(&self) -> f64 {
+        1.0 - (self.residual_rms / self.target_rms.max(f64::MIN_POSITIVE)).powi(2)
+    }
+}
+
+impl Normal {
+    fn add(&mut self, row: &[f64; 3], y: f64, unknowns: usize) {
+        for r in 0..unknowns {
+            self.rhs[r] += row[r] * y;
+            for q in 0..unknowns {
+                self.a[r][q] += row[r] * row[q];
+            }
+        }
+        self.yy += y * y;
+        self.rows += 1;
+    }
+
+    /// Non-negative least squares by elimination: the most negative unknown is dropped and the
+    /// rest solved again (at most three unknowns).
+    fn solve(&self, unknowns: usize) -> Solved {
+        let mut active: Vec<usize> = (0..unknowns).collect();
+        let x = loop {
+            let x = solve(&self.a, &self.rhs, &active);
+            match active
+                .iter()
+                .zip(&x)
+                .filter(|(_, v)| **v < 0.0)
+                .min_by(|a, b| a.1.total_cmp(b.1))
+            {
+                Some((&drop, _)) => active.retain(|&a| a != drop),
+                None => {
+                    let mut full = [0f64; 3];
+                    for (&a, v) in active.iter().zip(&x) {
+                        full[a] = *v;
+                    }
+                    break full;
+                }
+            }
+        };
+        // |y − Ax|² = yᵀy − 2xᵀAᵀy + xᵀAᵀAx.
+        let mut res = self.yy;
+        for r in 0..3 {
+            res -= 2.0 * x[r] * self.rhs[r];
+            for q in 0..3 {
+                res += x[r] * self.a[r][q] * x[q];
+            }
+        }
+        let n = self.rows.max(1) as f64;
+        Solved {
+            x,
+            samples: self.samples,
+            target_rms: (self.yy / n).sqrt(),
+            residual_rms: (res.max(0.0) / n).sqrt(),
+        }
+    }
+}
+
+/// Per particle, the force of unit uniform stiffness and of unit uniform damping (Eq. 4).
+fn unit_columns(topo: &Topology, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[[f64; 3]; 2]]) {
+    out.iter_mut().for_each(|c| *c = [[0.0; 3]; 2]);
+    for (&[a, b], &l0) in topo.springs.iter().zip(&topo.rest_length) {
+        let d = [x[b][0] - x[a][0], x[b][1] - x[a][1], x[b][2] - x[a][2]];
+        let w = [v[b][0] - v[a][0], v[b][1] - v[a][1], v[b][2] - v[a][2]];
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+        let u = d.map(|c| c / len);
+        let along = w[0] * u[0] + w[1] * u[1] + w[2] * u[2];
+        for c in 0..3 {
+            let fk = (len - l0) * u[c];
+            let fb = along * u[c];
+            out[a][0][c] += fk;
+            out[b][0][c] -= fk;
+            out[a][1][c] += fb;
+            out[b][1][c] -= fb;
+        }
+    }
+}
+
+/// Solves the normal equations restricted to the unknowns `active` (Gaussian elimination).
+fn solve(normal: &[[f64; 3]; 3], rhs: &[f64; 3], active: &[usize]) -> Vec<f64> {
+    let n = active.len();
+    let mut m: Vec<Vec<f64>> = active
+        .iter()
+        .map(|&r| {
+            let mut row: Vec<f64> = active.iter().map(|&q| normal[r][q]).collect();
+            row.push(rhs[r]);
+            row
+        })
+        .collect();
+    for col in 0..n {
+        let pivot = (col..n)
+            .max_by(|&a, &b| m[a][col].abs().total_cmp(&m[b][col].abs()))
+            .expect("non-empty");
+        m.swap(col, pivot);
+        let p = m[col][col];
+        if p.abs() < 1e-300 {
+            continue;
+        }
+        for r in 0..n {
+            if r != col {
+                let f = m[r][col] / p;
+                for c in col..=n {
+                    m[r][c] -= f * m[col][c];
+                }
+            }
+        }
+    }
+    (0..n)
+        .map(|r| {
+            if m[r][r].abs() < 1e-300 {
+                0.0
+            } else {
+                m[r][n] / m[r][r]
+            }
+        })
+        .collect()
+}
+
+/// What a run resolved from its data, written to `defaults.json` in the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct Resolution {
+    /// Gravity, m/s², and where it came from.
+    pub gravity: [f64; 3],
+    /// `"config"`, `"data"` or `"default"`.
+    pub gravity_from: &'static str,
+    /// Rayleigh damping per particle, N·s/m.
+    pub rayleigh: f64,
+    /// `"config"`, `"data"` or `"fit"`.
+    pub rayleigh_from: &'static str,
+    /// Initial uniform stiffness, N/m.
+    pub k_init: f64,
+    /// Initial uniform damping, N·s/m.
+    pub b_init: f64,
+    /// `"config"`, `"fit"` or `"fit, clamped for stability"`.
+    pub init_from: String,
+    /// Substeps per frame.
+    pub substeps: usize,
+    /// `"config"` or `"auto"`.
+    pub substeps_from: &'static str,
+    /// The stability number of the initial surrogate.
+    pub stability_number: f64,
+    /// The least-squares fit, when one was needed.
+    pub fit: Option<UniformFit>,
+}
+
+impl Resolution {
+    /// One line per resolved value, for the console.
+    pub fn lines(&self) -> Vec<String> {
+        let mut out = vec![
+            format!(
+                "gravity [{:.3}, {:.3}, {:.3}] m/s² ({})",
+                self.gravity[0], self.gravity[1], self.gravity[2], self.gravity_from
+            ),
+            format!(
+                "Rayleigh damping {:.4e} N·s/m per particle ({})",
+                self.rayleigh, self.rayleigh_from
+            ),
+            format!(
+                "initial k = {:.4} N/m, b = {:.4e} N·s/m ({})",
+                self.k_init, self.b_init, self.init_from
+            ),
+            format!(
+                "{} substep(s) per frame ({}): dt²ω² + 2·dt·γ = {:.3} at the start (stable below 4)",
+                self.substeps, self.substeps_from, self.stability_number
+            ),
+        ];
+        if let Some(f) = &self.fit {
+            out.push(format!(
+                "uniform fit over {} particle-frames (acceleration over ±{} frames): residual \
+                 {:.3e} N of {:.3e} N RMS target force",
+                f.samples, f.stencil, f.residual_rms, f.target_rms
+            ));
+        }
+        out
+    }
+}
+
+/// Resolves every `"auto"` of `config` from the training clips; returns the resolved config
+/// (only numbers left) and what was chosen.
+pub fn resolve(config: &Config, clips: &ClipSet) -> Result<(Config, Resolution)> {
+    let mut out = config.clone();
+    let info = &clips.info;
+    let mass = clips.particle_mass();
+    let topo = &clips.topology;
+    let (gravity, gravity_from) = match (config.sim.gravity.value(), info.gravity) {
+        (Some(g), _) => (g, "config"),
+        (None, Some(g)) => (g, "data"),
+        (None, None) => (GRAVITY, "default"),
+    };
+    let given_c = match config.sim.rayleigh.value() {
+        Some(c) => Some((c, "config")),
+        None => info.rayleigh_for(mass).map(|c| (c, "data")),
+    };
+    let need_fit = given_c.is_none()
+        || (config.model.kind == crate::model::ModelKind::Springs
+            && (config.model.k_init == Auto::Auto || config.model.b_init == Auto::Auto));
+    let fit = if need_fit {
+        Some(UniformFit::fit(clips, gravity, given_c.map(|c| c.0))?)
+    } else {
+        None
+    };
+    let (rayleigh, rayleigh_from) = match (given_c, &fit) {
+        (Some(c), _) => c,
+        (None, Some(f)) => (f.c, "fit"),
+        (None, None) => unreachable!("fitted when not given"),
+    };
+    let (mut k, mut b) = (
+        config
+            .model
+            .k_init
+            .value()
+            .or(fit.map(|f| f.k))
+            .unwrap_or(1.0),
+        config
+            .model
+            .b_init
+            .value()
+            .or(fit.map(|f| f.b))
+            .unwrap_or(0.0),
+    );
+    let fitted = config.model.k_init == Auto::Auto || config.model.b_init == Auto::Auto;
+    let mut init_from = match (config.model.k_init, config.model.b_init) {
+        (Auto::Value(_), Auto::Value(_)) => "config".to_string(),
+        (Auto::Auto, Auto::Auto) => "fit".to_string(),
+        _ => "config and fit".to_string(),
+    };
+    if k <= 0.0 {
+        bail!(
+            "the data's forces fit no positive uniform stiffness (least squares gave k = {k:.4e} \
+             N/m); check `total_mass`, `frame_dt` and the units of `positions`, or set \
+             `model.k_init`"
+        );
+    }
+    let number = |k: f64, b: f64, n: usize| {
+        let s = topo.num_springs();
+        Stability::estimate(
+            topo,
+            &vec![k; s],
+            &vec![b; s],
+            mass,
+            rayleigh,
+            info.frame_dt / n as f64,
+        )
+        .number()
+    };
+    let (substeps, substeps_from) = match config.sim.substeps.value() {
+        Some(n) => (n, "config"),
+        None => {
+            let mut n = 1;
+            while number(k, b, n) > AUTO_SUBSTEPS_TARGET {
+                n += 1;
+                if n > 10_000 {
+                    bail!(
+                        "sim.substeps = \"auto\": even 10000 substeps per {:.3e} s frame leave \
+                         the initial surrogate unstable (k = {k:.4e}, b = {b:.4e}); set \
+                         `sim.substeps`, `model.k_init` and `model.b_init`",
+                        info.frame_dt
+                    );
+                }
+            }
+            (n, "auto")
+        }
+    };
+    // A fitted guess past the limit at fixed substeps is scaled into the stable region.
+    if fitted && number(k, b, substeps) > INITIAL_CLAMP {
+        let mut scale = 1.0;
+        while number(k * scale, b * scale, substeps) > INITIAL_CLAMP && scale > 1e-6 {
+            scale *= 0.9;
+        }
+        if config.model.k_init == Auto::Auto {
+            k *= scale;
+        }
+        if config.model.b_init == Auto::Auto {
+            b *= scale;
+        }
+        init_from.push_str(&format!(", scaled by {scale:.3} to stay stable"));
+    }
+    out.data.clips.steps = Auto::Value(clips.steps);
+    out.sim.gravity = Auto::Value(gravity);
+    out.sim.rayleigh = Auto::Value(rayleigh);
+    out.sim.substeps = Auto::Value(substeps);
+    out.model.k_init = Auto::Value(k);
+    out.model.b_init = Auto::Value(b);
+    let resolution = Resolution {
+        gravity,
+        gravity_from,
+        rayleigh,
+        rayleigh_from,
+        k_init: k,
+        b_init: b,
+        init_from,
+        substeps,
+        substeps_from,
+        stability_number: number(k, b, substeps),
+        fit,
+    };
+    Ok((out, resolution))
+}

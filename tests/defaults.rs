@@ -1,0 +1,157 @@
+//! Defaults derived from the data: the least-squares uniform fit, external forces read from the
+//! files, automatic substeps, and training that stays inside the stable region.
+
+mod common;
+
+use springtime::config::{Auto, Config};
+use springtime::data::ClipSet;
+use springtime::progress::Progress;
+use springtime::source::Layout;
+use springtime::train::init::{UniformFit, resolve};
+use springtime::train::{TrainOptions, train};
+
+/// A uniform 6 × 6 spring source (k = 40 N/m, b = 6 N·s/m, Rayleigh 0.1) written to `dir`,
+/// with its `rayleigh` key dropped when `keep_rayleigh` is false and gravity replaced.
+fn write_uniform_source(dir: &std::path::Path, keep_rayleigh: bool, gravity: [f64; 3]) {
+    let mut cfg = common::source(6, &[40.0], 0.6);
+    cfg.layout = Layout::Uniform;
+    cfg.gravity = gravity;
+    std::fs::create_dir_all(dir).unwrap();
+    for seed in 0..3 {
+        let (_, mut r) = common::rollout(&cfg, seed);
+        if !keep_rayleigh {
+            r.rayleigh = None;
+        }
+        r.save(&dir.join(format!("r{seed}.npz"))).unwrap();
+    }
+}
+
+fn open(dir: &std::path::Path, config: &Config) -> ClipSet {
+    let files = springtime::data::npz_files(dir).unwrap();
+    ClipSet::open(
+        &files,
+        &config.data.clips,
+        |w, h| springtime::train::topology(config, w, h),
+        256,
+        |_| {},
+    )
+    .unwrap()
+}
+
+fn config(dir: &std::path::Path) -> Config {
+    let mut c = Config::parse("[cloth]\nnx = 6\nny = 6\n[data.clips]\nsteps = 100\n", &[]).unwrap();
+    c.data.dir = dir.to_path_buf();
+    c
+}
+
+#[test]
+fn the_uniform_fit_recovers_k_b_and_rayleigh_of_a_uniform_source() {
+    let dir = common::temp_dir("defaults_fit");
+    write_uniform_source(&dir, false, [0.0, 0.0, -9.81]);
+    let cfg = config(&dir);
+    let clips = open(&dir, &cfg);
+    let fit = UniformFit::fit(&clips, [0.0, 0.0, -9.81], None).unwrap();
+    eprintln!("{fit:?}");
+    // The surrogate is the source's own network: the fit is exact up to the central
+    // differences' O(dt²) error at 1 ms.
+    assert!((fit.k - 40.0).abs() < 0.02 * 40.0, "k = {}", fit.k);
+    assert!((fit.b - 6.0).abs() < 0.05 * 6.0, "b = {}", fit.b);
+    assert!((fit.c - 0.1).abs() < 0.05, "c = {}", fit.c);
+    assert!(fit.residual_rms < 0.05 * fit.target_rms, "{fit:?}");
+    // A given Rayleigh constant is kept and the rest still fits.
+    let fixed = UniformFit::fit(&clips, [0.0, 0.0, -9.81], Some(0.1)).unwrap();
+    assert!(!fixed.fitted_c && fixed.c == 0.1);
+    assert!((fixed.k - 40.0).abs() < 0.02 * 40.0, "k = {}", fixed.k);
+    // Wrong gravity cannot be explained by springs: the residual grows.
+    let wrong = UniformFit::fit(&clips, [0.0, 0.0, -5.0], None).unwrap();
+    assert!(
+        wrong.residual_rms > 5.0 * fit.residual_rms,
+        "{wrong:?} vs {fit:?}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn auto_values_come_from_the_files_and_are_written_resolved() {
+    let dir = common::temp_dir("defaults_resolve");
+    write_uniform_source(&dir, true, [0.0, -2.0, -9.0]);
+    let cfg = config(&dir);
+    let clips = open(&dir, &cfg);
+    let (resolved, how) = resolve(&cfg, &clips).unwrap();
+    assert_eq!(how.gravity, [0.0, -2.0, -9.0]);
+    assert_eq!(how.gravity_from, "data");
+    // Same particles as landmarks: the files' Rayleigh constant is taken as it is.
+    assert!((how.rayleigh - 0.1).abs() < 1e-12 && how.rayleigh_from == "data");
+    assert!((how.k_init - 40.0).abs() < 0.02 * 40.0, "{how:?}");
+    assert!(how.stability_number <= springtime::train::init::AUTO_SUBSTEPS_TARGET);
+    for v in [
+        resolved.sim.substeps.value().map(|n| n as f64),
+        resolved.sim.rayleigh.value(),
+        resolved.model.k_init.value(),
+        resolved.model.b_init.value(),
+        resolved.data.clips.steps.value().map(|n| n as f64),
+    ] {
+        assert!(v.is_some(), "an \"auto\" left unresolved: {resolved:?}");
+    }
+    // The resolved config reads back as the same numbers.
+    let back = Config::parse(&resolved.to_toml(), &[]).unwrap();
+    assert_eq!(back, resolved);
+    // A value the config gives wins over the data.
+    let mut given = cfg.clone();
+    given.sim.gravity = Auto::Value([0.0, -2.0, -9.0]);
+    given.sim.rayleigh = Auto::Value(0.5);
+    let (_, how) = resolve(&given, &clips).unwrap();
+    assert_eq!((how.gravity_from, how.rayleigh_from), ("config", "config"));
+    assert_eq!(how.rayleigh, 0.5);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn training_is_projected_back_into_the_stable_region() {
+    // A damping learning rate far too large for the explicit step: without the projection the
+    // damping pass drives b past dt²ω² + 2·dt·γ = 4 and the loss becomes NaN.
+    let dir = common::temp_dir("defaults_projection");
+    let data = dir.join("data");
+    write_uniform_source(&data, true, [0.0, 0.0, -9.81]);
+    let mut cfg = config(&data);
+    cfg.runs_dir = dir.join("runs");
+    cfg.name = "proj".into();
+    cfg.train.stiffness.iterations = 4;
+    cfg.train.damping.iterations = 12;
+    cfg.train.damping.lr = 50.0;
+    cfg.train.stiffness.batch = 2;
+    cfg.train.damping.batch = 2;
+    let summary = train(&cfg, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let metrics = std::fs::read_to_string(summary.run_dir.join("metrics.csv")).unwrap();
+    let header: Vec<&str> = metrics.lines().next().unwrap().split(',').collect();
+    let col = header.iter().position(|h| *h == "clamped").unwrap();
+    let clamped: usize = metrics
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(col).unwrap().parse::<usize>().unwrap())
+        .sum();
+    assert!(clamped > 0, "the limit never became active:\n{metrics}");
+    // The final network is inside the region the projection promises, with no negative value.
+    let resolved = Config::load(&summary.run_dir.join("config.toml"), &[]).unwrap();
+    let springs = springtime::data::npz::Npz::read(&summary.run_dir.join("springs.npz")).unwrap();
+    let b = springs.f32("b", &[None]).unwrap().0;
+    let k = springs.f32("k", &[None]).unwrap().0;
+    let clips = open(&data, &resolved);
+    let physics =
+        springtime::sim::Physics::new(&resolved.sim, clips.info.frame_dt, clips.particle_mass());
+    let st = springtime::sim::Stability::estimate(
+        &clips.topology,
+        &k.iter().map(|&x| x as f64).collect::<Vec<_>>(),
+        &b.iter().map(|&x| x as f64).collect::<Vec<_>>(),
+        physics.mass,
+        physics.rayleigh,
+        physics.sim_dt(),
+    );
+    assert!(
+        st.number() <= springtime::train::TRAIN_STABILITY_LIMIT * 1.001,
+        "{}",
+        st.describe()
+    );
+    assert!(b.iter().chain(&k).all(|&x| x >= 0.0));
+    std::fs::remove_dir_all(&dir).ok();
+}
