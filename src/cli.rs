@@ -86,6 +86,30 @@ pub enum Command {
         #[arg(long)]
         backend: Option<Backend>,
     },
+    /// Diagnose a finished run before tuning it: the chaos floor, the observability of every
+    /// spring, and where the motion error lives; writes <run-dir>/diagnose/ and prints a table.
+    Diagnose {
+        /// Run directory.
+        run_dir: PathBuf,
+        /// Directory of test rollouts (every .npz in it), instead of the run's test split.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Output directory (default <run-dir>/diagnose).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Overwrite an existing diagnosis.
+        #[arg(long)]
+        force: bool,
+        /// Relative perturbations ε of k and b for the chaos floor (level 0 is always added).
+        #[arg(long, value_delimiter = ',', default_value = "0.005,0.01,0.02")]
+        levels: Vec<f64>,
+        /// Seed of the chaos floor's perturbation.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Compute backend for the simulations.
+        #[arg(long)]
+        backend: Option<Backend>,
+    },
     /// Export a finished run: rest mesh, a simulated rollout as OBJ/PLY frames, the surrogate
     /// as JSON and .npz.
     Export {
@@ -227,6 +251,31 @@ pub fn run(cli: Cli) -> Result<()> {
             data,
             backend,
         } => report(&run_dir, data, backend, &progress),
+        Command::Diagnose {
+            run_dir,
+            data,
+            out,
+            force,
+            levels,
+            seed,
+            backend,
+        } => {
+            let options = crate::diagnose::DiagnoseOptions {
+                data,
+                out,
+                force,
+                levels,
+                seed,
+                backend,
+            };
+            let s = crate::diagnose::diagnose(&run_dir, &options, &progress)?;
+            for note in &s.notes {
+                eprintln!("note: {note}");
+            }
+            print!("{}", s.table);
+            println!("diagnosis: {}", s.dir.display());
+            Ok(())
+        }
         Command::Export {
             run_dir,
             format,

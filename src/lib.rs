@@ -17,6 +17,7 @@ pub mod cloth;
 pub mod compare;
 pub mod config;
 pub mod data;
+pub mod diagnose;
 pub mod eval;
 pub mod export;
 pub mod io;

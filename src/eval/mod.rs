@@ -118,6 +118,64 @@ pub struct EvalReport {
 /// Per-frame motion RMSE of one rollout: `(time since start, rmse)` for every simulated frame.
 pub type Curve = Vec<(f64, f64)>;
 
+/// A test rollout resampled to the surrogate's particles, with the frame a free rollout starts
+/// from (the first with a known velocity).
+#[derive(Debug, Clone)]
+pub struct TestTrack {
+    /// The rollout file.
+    pub path: PathBuf,
+    /// Its frames on the particles.
+    pub track: Track,
+    /// The first usable frame: 0 with stored velocities, else 1.
+    pub first: usize,
+    /// Time between frames, s.
+    pub frame_dt: f64,
+}
+
+impl TestTrack {
+    /// Loads and resamples a test rollout; refuses one stored in windows (`segments`).
+    pub fn load(path: &std::path::Path, topology: &Topology) -> Result<Self> {
+        let r = Rollout::load(path)?;
+        if r.segments.len() != 1 {
+            bail!(
+                "{}: a test rollout must be stored in full (it has `segments`)",
+                path.display()
+            );
+        }
+        let res = Resampler::new(&r.rest_uv, &topology.rest_uv);
+        Ok(Self {
+            path: path.to_path_buf(),
+            track: Track::new(&r, &res),
+            first: if r.velocities.is_some() { 0 } else { 1 },
+            frame_dt: r.frame_dt,
+        })
+    }
+
+    /// Frames a free rollout steps: from the first usable frame to the last.
+    pub fn steps(&self) -> usize {
+        self.track.frames - 1 - self.first
+    }
+
+    /// Observed positions of frame `j` counted from the first usable frame, `[P, 3]`.
+    pub fn observed(&self, j: usize) -> &[f32] {
+        let n = self.track.particles * 3;
+        let j = self.first + j;
+        &self.track.positions[j * n..(j + 1) * n]
+    }
+}
+
+/// Motion RMSE of one frame (Eq. 14): `√(Σᵢ |xᵢ − x̂ᵢ|² / P)` over `[P, 3]` positions, every
+/// particle counted (pinned ones follow the data and add nothing), as [`motion_curves`] does.
+pub fn frame_rmse(x: &[f32], target: &[f32]) -> f64 {
+    assert_eq!(x.len(), target.len());
+    let sum: f64 = x
+        .iter()
+        .zip(target)
+        .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+        .sum();
+    (sum / (x.len() / 3).max(1) as f64).sqrt()
+}
+
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
 /// particles following the data, and returns the per-frame motion RMSE of each.
 pub fn motion_curves(
@@ -131,16 +189,8 @@ pub fn motion_curves(
 ) -> Result<MotionCurves> {
     let mut tracks = Vec::new();
     for f in files {
-        let r = Rollout::load(f)?;
-        if r.segments.len() != 1 {
-            bail!(
-                "{}: a test rollout must be stored in full (it has `segments`)",
-                f.display()
-            );
-        }
-        let res = Resampler::new(&r.rest_uv, &topology.rest_uv);
-        let first = if r.velocities.is_some() { 0 } else { 1 };
-        tracks.push((f.clone(), Track::new(&r, &res), first, r.frame_dt));
+        let t = TestTrack::load(f, topology)?;
+        tracks.push((t.path, t.track, t.first, t.frame_dt));
     }
     // Every rollout is stepped from its first usable frame to its last.
     let total_frames: usize = tracks.iter().map(|t| t.1.frames - 1 - t.2).sum();
@@ -262,25 +312,17 @@ pub fn gnn_motion_curves(
     let c = model.history;
     let mut tracks = Vec::new();
     for f in files {
-        let r = Rollout::load(f)?;
-        if r.segments.len() != 1 {
-            bail!(
-                "{}: a test rollout must be stored in full (it has `segments`)",
-                f.display()
-            );
-        }
-        let res = Resampler::new(&r.rest_uv, &topology.rest_uv);
-        let first = if r.velocities.is_some() { 0 } else { 1 };
-        if r.frames <= first + (c + 1) * downsample {
+        let t = TestTrack::load(f, topology)?;
+        if t.track.frames <= t.first + (c + 1) * downsample {
             bail!(
                 "{}: {} frames are too few for the GNN's {} input frames {} apart",
                 f.display(),
-                r.frames,
+                t.track.frames,
                 c + 1,
                 downsample
             );
         }
-        tracks.push((Track::new(&r, &res), first, r.frame_dt));
+        tracks.push((t.track, t.first, t.frame_dt));
     }
     let p = topology.num_particles();
     let frame_at = |t: &Track, j: usize| -> Vec<[f32; 3]> {

@@ -184,12 +184,16 @@ pub fn check_finished(run: &RunDir) -> Result<RunState> {
 }
 
 /// A run's test and training rollout files, as its config (or `--data`) names them.
-struct DataFiles {
-    test: Vec<PathBuf>,
-    train: Vec<PathBuf>,
+pub struct DataFiles {
+    /// Test rollouts (at most `eval.max_rollouts`).
+    pub test: Vec<PathBuf>,
+    /// Training rollouts (empty when only `--data` is at hand).
+    pub train: Vec<PathBuf>,
 }
 
-fn data_files(config: &Config, data: Option<&Path>) -> Result<DataFiles> {
+/// The rollout files of a run's config; `data` names a directory of test rollouts instead of
+/// the config's split (which then serves alone when the training data is gone).
+pub fn data_files(config: &Config, data: Option<&Path>) -> Result<DataFiles> {
     let mut data_cfg = config.data.clone();
     if let Some(d) = data {
         data_cfg.test_dir = Some(d.to_path_buf());

@@ -504,6 +504,41 @@ pub fn spring_maps_png(
     range: (f64, f64),
     label: &str,
 ) -> Result<()> {
+    let rows: Vec<MapRow> = rows
+        .iter()
+        .map(|&(name, values)| MapRow {
+            name,
+            values,
+            range,
+            label,
+        })
+        .collect();
+    spring_map_rows_png(path, topology, &rows, title)
+}
+
+/// One row of [`spring_map_rows_png`]: a quantity per spring with its own colour range and
+/// colour-bar label.
+#[derive(Debug, Clone, Copy)]
+pub struct MapRow<'a> {
+    /// Row name, the start of each panel's caption.
+    pub name: &'a str,
+    /// One value per spring (NaN is drawn grey).
+    pub values: &'a [f64],
+    /// Colour range `(lo, hi)`.
+    pub range: (f64, f64),
+    /// Colour-bar label, with units.
+    pub label: &'a str,
+}
+
+/// Writes a grid of spring maps: one row per entry of `rows`, each with its own colour range
+/// and colour bar (e.g. two quantities of different units), one column per spring family
+/// present in `topology`. [`spring_maps_png`] is the case of one shared range.
+pub fn spring_map_rows_png(
+    path: &Path,
+    topology: &Topology,
+    rows: &[MapRow],
+    title: &str,
+) -> Result<()> {
     let families: Vec<SpringFamily> = [
         SpringFamily::Structural,
         SpringFamily::Shear,
@@ -522,24 +557,56 @@ pub fn spring_maps_png(
         let body = self::title(root, title, 18)?;
         let (maps, bar) = body.split_horizontally(pw * families.len() as u32);
         let cells = maps.split_evenly((rows.len(), families.len()));
-        for (r, (name, values)) in rows.iter().enumerate() {
+        for (r, row) in rows.iter().enumerate() {
             for (c, &fam) in families.iter().enumerate() {
                 draw_spring_map(
                     &cells[r * families.len() + c],
                     topology,
-                    values,
-                    &format!("{name}: {}", fam.name()),
-                    range,
+                    row.values,
+                    &format!("{}: {}", row.name, fam.name()),
+                    row.range,
                     Some(fam),
                 )?;
             }
         }
         let bars = bar.split_evenly((rows.len(), 1));
-        for b in &bars {
-            draw_colorbar(b, range, label)?;
+        for (b, row) in bars.iter().zip(rows) {
+            draw_colorbar(b, row.range, row.label)?;
         }
         Ok(())
     })
+}
+
+/// Draws one value per particle of a grid `topology` as a filled square around its rest
+/// position (a cell of the grid spacing), coloured on viridis over `range` (NaN grey).
+/// No colour bar: see [`draw_colorbar`].
+pub fn draw_particle_map(
+    area: &Area,
+    topology: &Topology,
+    values: &[f64],
+    caption: &str,
+    range: (f64, f64),
+) -> Result<()> {
+    if values.len() != topology.num_particles() {
+        bail!(
+            "{} values for {} particles",
+            values.len(),
+            topology.num_particles()
+        );
+    }
+    let mut chart = sheet_chart(area, topology.width, topology.height, caption)?;
+    let hx = topology.width / (topology.nx - 1).max(1) as f64 / 2.0;
+    let hy = topology.height / (topology.ny - 1).max(1) as f64 / 2.0;
+    let (lo, hi) = widen(range);
+    chart
+        .draw_series(topology.rest_uv.iter().zip(values).map(|(p, &v)| {
+            Rectangle::new(
+                [(p[0] - hx, p[1] - hy), (p[0] + hx, p[1] + hy)],
+                viridis((v - lo) / (hi - lo)).filled(),
+            )
+        }))
+        .map_err(err)?;
+    Ok(())
 }
 
 /// Writes a map of filled triangles coloured by value (e.g. an FEM source's stiffness map)
