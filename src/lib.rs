@@ -36,7 +36,7 @@ use progress::Progress;
 /// directory has no `index.json` and no `.npz` files.
 pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
     let dir = &config.data.dir;
-    if data::Index::path(dir).exists() {
+    if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
         return Ok(());
     }
     let has_files = dir.is_dir() && data::npz_files(dir).is_ok();
