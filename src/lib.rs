@@ -19,6 +19,7 @@ pub mod config;
 pub mod data;
 pub mod eval;
 pub mod export;
+pub mod import;
 pub mod io;
 pub mod model;
 pub mod progress;
@@ -28,6 +29,26 @@ pub mod source;
 pub mod train;
 
 use anyhow::{Result, bail};
+use serde::Serialize;
+
+/// The springtime build: crate version and the git commit it was built from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct BuildInfo {
+    /// `CARGO_PKG_VERSION`.
+    pub version: &'static str,
+    /// `git rev-parse HEAD` at build time, or `unknown` outside a checkout.
+    pub commit: &'static str,
+}
+
+impl BuildInfo {
+    /// This binary's build.
+    pub fn current() -> Self {
+        Self {
+            version: env!("CARGO_PKG_VERSION"),
+            commit: env!("SPRINGTIME_GIT_COMMIT"),
+        }
+    }
+}
 
 use config::Config;
 use progress::Progress;
