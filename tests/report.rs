@@ -344,7 +344,8 @@ fn check_binary_exports(dir: &Path, verts: usize, faces: usize) {
     let rest = std::fs::read(ply.join("rest.ply")).unwrap();
     let rest_float = |o: usize| f32::from_le_bytes(rest[o..o + 4].try_into().unwrap());
     // The rest sheet: vertex 1 is one particle spacing (2.5 m / 5) along x, at uv (0.2, 0).
-    let v1 = end + 20;
+    let rest_end = rest.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let v1 = rest_end + 20;
     assert_eq!(
         [
             rest_float(v1),
@@ -354,7 +355,8 @@ fn check_binary_exports(dir: &Path, verts: usize, faces: usize) {
         ],
         [0.5, 0.0, 0.0, 0.2]
     );
-    assert!(float(v1).is_finite() && float(v1 + 8).is_finite());
+    let f1 = end + 20;
+    assert!(float(f1).is_finite() && float(f1 + 8).is_finite());
     assert_eq!(
         springtime::export::count_mesh(&ply.join("rest.ply")).unwrap(),
         (verts, faces)
