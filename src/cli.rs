@@ -17,7 +17,12 @@ use crate::train::{self, RunDir, TrainOptions};
 
 /// Learn simulatable mass-spring cloth models from motion.
 #[derive(Debug, Parser)]
-#[command(name = "springtime", version, about)]
+#[command(
+    name = "springtime",
+    version,
+    long_version = concat!(env!("CARGO_PKG_VERSION"), " (commit ", env!("SPRINGTIME_GIT_COMMIT"), ")"),
+    about
+)]
 pub struct Cli {
     /// What to do.
     #[command(subcommand)]
@@ -28,6 +33,9 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Generate the rollouts of a config's [source] into its data.dir.
+    #[command(
+        after_help = "Example:\n  springtime generate configs/quickstart.toml --set source.train_rollouts=64"
+    )]
     Generate {
         /// Config file.
         config: PathBuf,
@@ -35,12 +43,43 @@ pub enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Print a configuration as TOML: every key with its default (--defaults), or a config
+    /// file resolved (defaults filled in, --set applied).
+    #[command(after_help = "Examples:\n  springtime config --defaults > my.toml\n  \
+                            springtime config configs/quickstart.toml --set sim.substeps=2")]
+    Config {
+        /// Config file to resolve.
+        #[arg(required_unless_present = "defaults", conflicts_with = "defaults")]
+        config: Option<PathBuf>,
+        /// Print every key with its default value, with comments.
+        #[arg(long)]
+        defaults: bool,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Dataset tools: `data check DIR`.
+    Data {
+        /// What to do with the data.
+        #[command(subcommand)]
+        command: DataCommand,
+    },
+    /// Convert other tools' cloth motion (OBJ frames, .pc2 point caches, CSV tracks) into a
+    /// springtime rollout file.
+    Import {
+        /// The input's format.
+        #[command(subcommand)]
+        source: ImportCommand,
+    },
     /// Train a surrogate (generating missing data first), then evaluate it.
+    #[command(
+        after_help = "Examples:\n  springtime train configs/quickstart.toml\n  springtime train my.toml --set data.dir=data/flag --set sim.substeps=4 --out runs/flag"
+    )]
     Train {
         /// Config file.
         config: PathBuf,
-        /// Compute backend: flex, ndarray or wgpu.
-        #[arg(long)]
+        /// Compute backend (default: the config's `backend`).
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
         /// Run directory (default runs/<name>).
         #[arg(long)]
@@ -62,6 +101,7 @@ pub enum Command {
         set: Vec<String>,
     },
     /// Evaluate a trained run on its test rollouts (or those in --data) and write eval.json.
+    #[command(after_help = "Example:\n  springtime eval runs/quickstart --data data/held_out")]
     Eval {
         /// Run directory.
         run_dir: PathBuf,
@@ -69,13 +109,14 @@ pub enum Command {
         #[arg(long)]
         data: Option<PathBuf>,
         /// Compute backend.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
     /// Draw a finished run's figures and write <run-dir>/report/report.html (self-contained).
+    #[command(after_help = "Example:\n  springtime report runs/quickstart")]
     Report {
         /// Run directory.
         run_dir: PathBuf,
@@ -83,7 +124,7 @@ pub enum Command {
         #[arg(long)]
         data: Option<PathBuf>,
         /// Compute backend for the simulations.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
     },
     /// Diagnose a finished run before tuning it: the chaos floor, the observability of every
@@ -107,16 +148,20 @@ pub enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
         /// Compute backend for the simulations.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
     },
-    /// Export a finished run: rest mesh, a simulated rollout as OBJ/PLY frames, the surrogate
-    /// as JSON and .npz.
+    /// Export a finished run: the rest mesh and a simulated rollout (OBJ or PLY frames, a glTF
+    /// animation, or a .pc2 point cache), the surrogate as JSON and .npz.
+    #[command(
+        after_help = "Examples:\n  springtime export runs/quickstart --format gltf --out export\n  \
+                            springtime export runs/quickstart --format pc2 --out export --seconds 4 --fps 24"
+    )]
     Export {
         /// Run directory.
         run_dir: PathBuf,
-        /// Mesh format: obj or ply.
-        #[arg(long, default_value = "obj", value_parser = parse_format)]
+        /// File format of the meshes and the animation.
+        #[arg(long, value_enum, default_value_t = crate::export::Format::Obj)]
         format: crate::export::Format,
         /// Output directory.
         #[arg(long)]
@@ -135,7 +180,7 @@ pub enum Command {
         #[arg(long, default_value_t = 30.0)]
         fps: f64,
         /// Compute backend.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
         /// Overwrite existing files.
         #[arg(long)]
@@ -143,6 +188,7 @@ pub enum Command {
     },
     /// Train (or reuse) the spring surrogate, the Neural ODE and the GNN on the same data and
     /// write comparison.md, comparison.csv and comparison_rmse.png (paper Table 2).
+    #[command(after_help = "Example:\n  springtime compare configs/compare_quick.toml")]
     Compare {
         /// Config file (TOML); its `model.kind` is ignored, every family is trained.
         config: PathBuf,
@@ -150,7 +196,7 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
         /// Compute backend for every model.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
         /// Retrain every model even where a finished run exists.
         #[arg(long)]
@@ -160,6 +206,7 @@ pub enum Command {
         set: Vec<String>,
     },
     /// Time the training workload of ../shared/bench/peer_torch.py; prints one JSON line.
+    #[command(after_help = "Example:\n  springtime bench --batch 8 --steps 500 --backend flex")]
     Bench {
         /// Clips per iteration.
         #[arg(long, default_value_t = 8)]
@@ -168,19 +215,22 @@ pub enum Command {
         #[arg(long, default_value_t = 500)]
         steps: usize,
         /// Compute backend.
-        #[arg(long, default_value = "flex")]
+        #[arg(long, value_enum, default_value_t = Backend::Flex)]
         backend: Backend,
         /// Timed iterations.
         #[arg(long, default_value_t = 3)]
         iters: usize,
-        /// Spring-force implementation: fused or reference.
-        #[arg(long, default_value = "fused", value_parser = parse_kernel)]
+        /// Spring-force implementation.
+        #[arg(long, value_enum, default_value_t = crate::model::Kernel::Fused)]
         kernel: crate::model::Kernel,
         /// Particles per side.
         #[arg(long, default_value_t = 32)]
         n: usize,
     },
     /// Simulate a trained surrogate from the first frame of a rollout file.
+    #[command(
+        after_help = "Example:\n  springtime simulate runs/quickstart --init data/quickstart/test_0000.npz --seconds 2 --out sim.npz"
+    )]
     Simulate {
         /// Run directory.
         run_dir: PathBuf,
@@ -194,7 +244,7 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
         /// Compute backend.
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<Backend>,
         /// Overwrite the output file.
         #[arg(long)]
@@ -205,11 +255,180 @@ pub enum Command {
     },
 }
 
+/// `springtime data …`: dataset tools.
+#[derive(Debug, Subcommand)]
+pub enum DataCommand {
+    /// Validate a dataset folder and summarise it: files, frames, frame_dt, mass, rest
+    /// rectangle, landmarks, pins, velocities, ignored keys, and the stability number of the
+    /// surrogate a config would train (default config unless --config). Exits non-zero, naming
+    /// the file and the key, when springtime cannot use the data.
+    #[command(after_help = "Example:\n  springtime data check data/rollouts\n  \
+                            springtime data check my_takes --config configs/quickstart.toml --set sim.substeps=4")]
+    Check {
+        /// Folder of .npz rollouts (with or without index.json).
+        dir: PathBuf,
+        /// Config whose surrogate (cloth grid, model.k_init/b_init, sim) the stability number is
+        /// computed for (default: the built-in defaults).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+}
+
+/// What `springtime import` reads.
+#[derive(Debug, Subcommand)]
+pub enum ImportCommand {
+    /// A folder of OBJ frames (sorted by name, numbers in names compared as numbers; vertex i of
+    /// every frame is point i). Rest rectangle: the texture coordinates (`vt`, through `f v/vt`)
+    /// scaled so that the mean edge length equals the first frame's, or the flat first frame
+    /// when there are no `vt`. Writes OUT/<folder name>.npz.
+    #[command(
+        after_help = "Example:\n  springtime import obj takes/flag_wave --out data/flag \
+                            --frame-dt 0.0416667 --mass 0.3 --pinned 0,20"
+    )]
+    Obj {
+        /// Folder of .obj frames.
+        folder: PathBuf,
+        /// Output folder, frame step, mass, pins.
+        #[command(flatten)]
+        args: ImportArgs,
+    },
+    /// A Blender/Houdini point cache (.pc2) with the OBJ of the cached mesh (same vertex
+    /// order) for the rest rectangle. Writes OUT/<cache name>.npz.
+    #[command(
+        after_help = "Example:\n  springtime import pc2 cache/cloth.pc2 --rest cache/cloth_rest.obj \
+                            --out data/cloth --frame-dt 0.04 --mass 0.5 --pinned 0,31"
+    )]
+    Pc2 {
+        /// The .pc2 file.
+        file: PathBuf,
+        /// OBJ of the cached mesh: its texture coordinates (or flat shape) give the rest
+        /// rectangle.
+        #[arg(long)]
+        rest: PathBuf,
+        /// Output folder, frame step, mass, pins.
+        #[command(flatten)]
+        args: ImportArgs,
+    },
+    /// Tracked points as CSV: a header naming the columns frame, point, x, y, z and optionally
+    /// u, v (rest coordinates, m); one row per point per frame. Without u, v the first frame
+    /// must be flat. Writes OUT/<file stem>.npz.
+    #[command(
+        after_help = "Example:\n  springtime import csv markers.csv --out data/markers \
+                            --frame-dt 0.01 --mass 0.2\n\nmarkers.csv:\n  frame,point,x,y,z,u,v\n  \
+                            0,0,0.0,0.0,1.5,0.0,0.0\n  0,1,0.5,0.0,1.5,0.5,0.0\n  …"
+    )]
+    Csv {
+        /// The .csv file.
+        file: PathBuf,
+        /// Output folder, frame step, mass, pins.
+        #[command(flatten)]
+        args: ImportArgs,
+    },
+}
+
+/// The options every importer takes.
+#[derive(Debug, clap::Args)]
+pub struct ImportArgs {
+    /// Output folder (created if needed).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seconds between frames (samples).
+    #[arg(long, value_name = "S")]
+    pub frame_dt: f64,
+    /// Mass of the whole cloth, kg.
+    #[arg(long, value_name = "KG")]
+    pub mass: f64,
+    /// Pinned points, 0-based in the source's vertex/point order (default: none, the cloth
+    /// moves freely).
+    #[arg(long, value_name = "I,J,…", value_delimiter = ',')]
+    pub pinned: Vec<usize>,
+    /// Rest rectangle width, m (with --height; default: derived from the geometry).
+    #[arg(long, value_name = "W", requires = "height")]
+    pub width: Option<f64>,
+    /// Rest rectangle height, m (with --width).
+    #[arg(long, value_name = "H", requires = "width")]
+    pub height: Option<f64>,
+    /// Overwrite an existing rollout file.
+    #[arg(long)]
+    pub force: bool,
+}
+
+impl ImportArgs {
+    fn options(&self) -> Result<crate::import::ImportOptions> {
+        let size = match (self.width, self.height) {
+            (Some(w), Some(h)) => {
+                if !(w > 0.0 && h > 0.0 && w.is_finite() && h.is_finite()) {
+                    bail!("--width and --height must be positive, are {w} and {h}");
+                }
+                Some([w, h])
+            }
+            _ => None,
+        };
+        Ok(crate::import::ImportOptions {
+            out: self.out.clone(),
+            frame_dt: self.frame_dt,
+            total_mass: self.mass,
+            pinned: self.pinned.clone(),
+            size,
+            force: self.force,
+        })
+    }
+}
+
 /// Runs a parsed command line.
 pub fn run(cli: Cli) -> Result<()> {
     let progress = Progress::auto();
     match cli.command {
         Command::Generate { config, set } => generate(&config, &set, &progress),
+        Command::Config {
+            config,
+            defaults: _,
+            set,
+        } => {
+            match config {
+                Some(path) => print!("{}", Config::load(&path, &set)?.to_toml()),
+                None if set.is_empty() => print!("{}", Config::defaults_toml()),
+                None => print!("{}", Config::parse("", &set)?.to_toml()),
+            }
+            Ok(())
+        }
+        Command::Import { source } => {
+            let summary = match &source {
+                ImportCommand::Obj { folder, args } => {
+                    crate::import::obj::import_sequence(folder, &args.options()?)?
+                }
+                ImportCommand::Pc2 { file, rest, args } => {
+                    crate::import::pc2::import_cache(file, rest, &args.options()?)?
+                }
+                ImportCommand::Csv { file, args } => {
+                    crate::import::csv::import_tracks(file, &args.options()?)?
+                }
+            };
+            println!(
+                "wrote {}: {} frames of {} points, rest rectangle {:.6} m × {:.6} m from {}",
+                summary.path.display(),
+                summary.frames,
+                summary.points,
+                summary.width,
+                summary.height,
+                summary.rest_from
+            );
+            Ok(())
+        }
+        Command::Data {
+            command: DataCommand::Check { dir, config, set },
+        } => {
+            let cfg = match &config {
+                Some(path) => Config::load(path, &set)?,
+                None => Config::parse("", &set)?,
+            };
+            let report = crate::data::check_dir(&dir, &cfg)?;
+            print!("{}", report.render());
+            Ok(())
+        }
         Command::Train {
             config,
             backend,
@@ -384,10 +603,6 @@ pub fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn parse_format(s: &str) -> std::result::Result<crate::export::Format, String> {
-    s.parse()
-}
-
 fn report(
     run_dir: &Path,
     data: Option<PathBuf>,
@@ -428,16 +643,6 @@ fn export(
         ),
     }
     Ok(())
-}
-
-fn parse_kernel(s: &str) -> std::result::Result<crate::model::Kernel, String> {
-    match s {
-        "fused" => Ok(crate::model::Kernel::Fused),
-        "reference" => Ok(crate::model::Kernel::Reference),
-        other => Err(format!(
-            "unknown kernel `{other}` (expected fused or reference)"
-        )),
-    }
 }
 
 fn generate(config: &Path, set: &[String], progress: &Progress) -> Result<()> {

@@ -134,6 +134,110 @@ impl Config {
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("config serializes")
     }
+
+    /// Every key with its default, as TOML that parses back to the defaults, with a comment
+    /// above the keys and sections that have one (`springtime config --defaults`). The
+    /// `[source]` section, absent by default, is shown with its defaults too.
+    pub fn defaults_toml() -> String {
+        let config = Config {
+            source: Some(crate::source::SourceConfig::default()),
+            ..Config::default()
+        };
+        let mut out = String::from(
+            "# springtime configuration: every key with its default (`springtime config --defaults`).\n\
+             # A job's TOML needs only the keys it changes; unknown keys are errors.\n\
+             # data.test_dir (a folder of test rollouts) has no default and is not shown.\n",
+        );
+        let mut section = String::new();
+        for line in config.to_toml().lines() {
+            let trimmed = line.trim();
+            let key =
+                if let Some(name) = trimmed.strip_prefix('[').and_then(|l| l.strip_suffix(']')) {
+                    section = name.to_string();
+                    Some(section.clone())
+                } else {
+                    trimmed.split_once(" = ").map(|(k, _)| {
+                        if section.is_empty() {
+                            k.to_string()
+                        } else {
+                            format!("{section}.{k}")
+                        }
+                    })
+                };
+            if let Some(help) = key.as_deref().and_then(key_help) {
+                if trimmed.starts_with('[') {
+                    out.push('\n');
+                }
+                out.push_str(&format!("# {help}\n"));
+            }
+            out.push_str(line);
+            out.push('\n');
+        }
+        out
+    }
+}
+
+/// One line about a config key or section, where there is something to say (the README's
+/// configuration table has the rest).
+fn key_help(key: &str) -> Option<&'static str> {
+    // A pass's keys are the same in every pass.
+    let generic = key
+        .strip_prefix("train.")
+        .and_then(|k| k.split_once('.'))
+        .filter(|(pass, _)| ["stiffness", "damping", "single", "gnn"].contains(pass))
+        .map(|(_, k)| k);
+    Some(match (key, generic) {
+        ("name", _) => "run name: runs/<name>",
+        ("backend", _) => "compute backend: flex, ndarray or wgpu (needs --features wgpu)",
+        ("runs_dir", _) => "where runs go",
+        ("cloth", _) => "the surrogate's particle grid",
+        ("cloth.nx" | "cloth.ny", _) => "particles along width / height",
+        ("cloth.bending_stride", _) => "stride of the bending springs (0 = none)",
+        ("model", _) => "the model family and its initial parameters",
+        ("model.kind", _) => "springs, neural_ode or gnn",
+        ("model.k_init", _) => "uniform initial stiffness, N/m",
+        ("model.b_init", _) => "uniform initial damping, N·s/m",
+        ("sim", _) => "how the surrogate is stepped",
+        ("sim.substeps", _) => "integration steps per data frame",
+        ("sim.rayleigh", _) => "Rayleigh damping c of the force -c v, N·s/m",
+        ("sim.gravity", _) => "m/s²",
+        ("sim.allow_unstable", _) => "run even when the stability guard refuses",
+        ("data", _) => "the rollouts (see `springtime data check DIR`)",
+        ("data.dir", _) => "folder of .npz rollouts (with index.json, or every file trains)",
+        ("data.cache_mib", _) => "memory for resampled rollouts kept between batches, MiB",
+        ("data.clips.steps", _) => "steps per clip",
+        ("data.clips.fraction", _) => "fraction of regular clips kept (paper: 0.06)",
+        ("data.clips.low_velocity_seconds", _) => {
+            "the low-velocity clips: the last seconds of each rollout"
+        }
+        ("data.clips.low_velocity_fraction", _) => "fraction of those kept (paper: 0.5)",
+        ("train", _) => "the training curriculum",
+        ("train.mode", _) => "dual (stiffness pass, then damping pass) or single",
+        ("train.force_on", _) => {
+            "forces of the loss on the simulated states or on the target states"
+        }
+        ("train.checkpoint_every", _) => "iterations between checkpoints",
+        ("train.gradient_checkpointing", _) => "recompute instead of storing activations",
+        (_, Some("iterations")) => "Adam steps of this pass",
+        (_, Some("batch")) => "clips per step",
+        (_, Some("lr")) => "learning rate",
+        (_, Some("clips")) => "clip pool: low_velocity, regular or all",
+        ("eval", _) => "evaluation",
+        ("eval.short_seconds" | "eval.long_seconds", _) => {
+            "horizons of the short / long motion RMSE, s"
+        }
+        ("eval.max_rollouts", _) => "evaluate at most this many test rollouts (0 = all)",
+        ("source", _) => "synthetic data: present = `train` and `generate` make the rollouts",
+        ("source.kind", _) => "mass_spring or fem",
+        ("source.width" | "source.height", _) => "sheet size, m",
+        ("source.areal_density", _) => "kg/m²",
+        ("source.stiffness_levels", _) => "stiffness levels of the map, N/m",
+        ("source.layout", _) => "uniform, stripes or patches",
+        ("source.storage", _) => "full, or clips: store only the training windows",
+        ("source.fem.diagonal", _) => "main, anti or alternating",
+        ("source.fem.membrane", _) => "corotational or stvk",
+        _ => return None,
+    })
 }
 
 /// A setting springtime derives from the data unless the config gives it: `"auto"` (the
@@ -257,6 +361,27 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("backend"), "{err}");
+    }
+
+    #[test]
+    fn defaults_toml_lists_every_key_and_parses_back() {
+        let text = Config::defaults_toml();
+        let back = Config::parse(&text, &[]).unwrap();
+        assert_eq!(
+            back,
+            Config {
+                source: Some(crate::source::SourceConfig::default()),
+                ..Config::default()
+            }
+        );
+        for key in [
+            "k_init = 50.0",
+            "[train.stiffness.weights]",
+            "substeps = 1",
+            "# Adam steps",
+        ] {
+            assert!(text.contains(key), "no {key:?} in\n{text}");
+        }
     }
 
     #[test]

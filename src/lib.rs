@@ -20,6 +20,7 @@ pub mod data;
 pub mod diagnose;
 pub mod eval;
 pub mod export;
+pub mod import;
 pub mod io;
 pub mod model;
 pub mod progress;
@@ -29,6 +30,26 @@ pub mod source;
 pub mod train;
 
 use anyhow::{Result, bail};
+use serde::Serialize;
+
+/// The springtime build: crate version and the git commit it was built from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct BuildInfo {
+    /// `CARGO_PKG_VERSION`.
+    pub version: &'static str,
+    /// `git rev-parse HEAD` at build time, or `unknown` outside a checkout.
+    pub commit: &'static str,
+}
+
+impl BuildInfo {
+    /// This binary's build.
+    pub fn current() -> Self {
+        Self {
+            version: env!("CARGO_PKG_VERSION"),
+            commit: env!("SPRINGTIME_GIT_COMMIT"),
+        }
+    }
+}
 
 use config::Config;
 use progress::Progress;
@@ -37,7 +58,7 @@ use progress::Progress;
 /// directory has no `index.json` and no `.npz` files.
 pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
     let dir = &config.data.dir;
-    if data::Index::path(dir).exists() {
+    if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
         return Ok(());
     }
     let has_files = dir.is_dir() && data::npz_files(dir).is_ok();

@@ -90,6 +90,16 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
         );
     }
     assert!(eval["rmse_k"].as_f64().is_some());
+    // run.json names the build.
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(state["springtime"]["version"], env!("CARGO_PKG_VERSION"));
+    let commit = state["springtime"]["commit"].as_str().unwrap();
+    assert!(
+        commit == "unknown"
+            || (commit.len() == 40 && commit.bytes().all(|b| b.is_ascii_hexdigit())),
+        "{commit}"
+    );
 
     // A finished run is not overwritten unless asked.
     fails(

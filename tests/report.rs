@@ -203,8 +203,9 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
     ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
     // 6 × 6 particles: 36 vertices, 5 × 5 cells of 2 triangles.
     let (verts, faces) = (36, 50);
-    for format in ["obj", "ply"] {
+    for format in ["obj", "ply-ascii"] {
         let out_dir = format!("export_{format}");
+        let ext = &format[..3];
         let out = ok(&springtime(
             &[
                 "export",
@@ -220,7 +221,7 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
         ));
         let out_dir = dir.join(out_dir);
         assert!(out.contains("frames"), "{out}");
-        let rest = out_dir.join(format!("rest.{format}"));
+        let rest = out_dir.join(format!("rest.{ext}"));
         assert_eq!(
             springtime::export::count_mesh(&rest).unwrap(),
             (verts, faces)
@@ -236,7 +237,7 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
         }
         // An independent parse of one frame: every face indexes an existing vertex.
         let text =
-            std::fs::read_to_string(out_dir.join(format!("rollout/frame_0030.{format}"))).unwrap();
+            std::fs::read_to_string(out_dir.join(format!("rollout/frame_0030.{ext}"))).unwrap();
         let max_index = if format == "obj" {
             text.lines()
                 .filter_map(|l| l.strip_prefix("f "))
@@ -277,6 +278,7 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
             assert!(npz.has(key), "surrogate.npz lacks {key}");
         }
     }
+    check_binary_exports(&dir, verts, faces);
     // Existing files are not overwritten without --force.
     fails(
         &springtime(&["export", "runs/tiny", "--out", "export_obj"], &dir),
@@ -298,6 +300,167 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
         .unwrap()
         .count();
     assert_eq!(n, 2, "--force left stale frames behind"); // 0.05 s at 30 fps: frames 0 and 1
+}
+
+/// Binary PLY, glTF (JSON and binary, read back with the `gltf` crate) and the point cache of
+/// the same 31-frame rollout.
+fn check_binary_exports(dir: &Path, verts: usize, faces: usize) {
+    let export = |format: &str| {
+        let out_dir = format!("export_{format}");
+        ok(&springtime(
+            &[
+                "export",
+                "runs/tiny",
+                "--format",
+                format,
+                "--out",
+                &out_dir,
+                "--fps",
+                "100",
+            ],
+            dir,
+        ));
+        dir.join(out_dir)
+    };
+    // Binary PLY: the header, then vertex 1 as five little-endian floats (x y z s t).
+    let ply = export("ply");
+    let frame = std::fs::read(ply.join("rollout/frame_0000.ply")).unwrap();
+    let end = frame
+        .windows(11)
+        .position(|w| w == b"end_header\n")
+        .unwrap()
+        + 11;
+    let header = String::from_utf8_lossy(&frame[..end]);
+    assert!(
+        header.starts_with("ply\nformat binary_little_endian 1.0\n"),
+        "{header}"
+    );
+    assert!(
+        header.contains(&format!("element vertex {verts}\n")),
+        "{header}"
+    );
+    assert_eq!(frame.len(), end + verts * 20 + faces * 13);
+    let float = |o: usize| f32::from_le_bytes(frame[o..o + 4].try_into().unwrap());
+    let rest = std::fs::read(ply.join("rest.ply")).unwrap();
+    let rest_float = |o: usize| f32::from_le_bytes(rest[o..o + 4].try_into().unwrap());
+    // The rest sheet: vertex 1 is one particle spacing (2.5 m / 5) along x, at uv (0.2, 0).
+    let rest_end = rest.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let v1 = rest_end + 20;
+    assert_eq!(
+        [
+            rest_float(v1),
+            rest_float(v1 + 4),
+            rest_float(v1 + 8),
+            rest_float(v1 + 12)
+        ],
+        [0.5, 0.0, 0.0, 0.2]
+    );
+    let f1 = end + 20;
+    assert!(float(f1).is_finite() && float(f1 + 8).is_finite());
+    assert_eq!(
+        springtime::export::count_mesh(&ply.join("rest.ply")).unwrap(),
+        (verts, faces)
+    );
+    // The first face: 3 corners, indices below the vertex count.
+    let f0 = end + verts * 20;
+    assert_eq!(frame[f0], 3);
+    let corner =
+        |k: usize| i32::from_le_bytes(frame[f0 + 1 + 4 * k..f0 + 5 + 4 * k].try_into().unwrap());
+    assert!((0..3).all(|k| (0..verts as i32).contains(&corner(k))));
+
+    // glTF: morph targets, one per frame, and a step animation of their weights.
+    for format in ["gltf", "glb"] {
+        let path = export(format).join(format!("cloth.{format}"));
+        let bytes = std::fs::read(&path).unwrap();
+        let doc = gltf::Gltf::from_slice(&bytes)
+            .unwrap_or_else(|e| panic!("{} does not validate: {e}", path.display()));
+        let buffer: Vec<u8> = match doc.blob.clone() {
+            Some(blob) => blob,
+            None => {
+                use base64::Engine;
+                let uri = doc.buffers().next().unwrap();
+                let gltf::buffer::Source::Uri(uri) = uri.source() else {
+                    panic!("no buffer")
+                };
+                let data = uri.split_once("base64,").unwrap().1;
+                base64::engine::general_purpose::STANDARD
+                    .decode(data)
+                    .unwrap()
+            }
+        };
+        let mesh = doc.meshes().next().unwrap();
+        let prim = mesh.primitives().next().unwrap();
+        let reader = prim.reader(|_| Some(buffer.as_slice()));
+        let rest: Vec<[f32; 3]> = reader.read_positions().unwrap().collect();
+        assert_eq!(rest.len(), verts);
+        assert_eq!(reader.read_indices().unwrap().into_u32().count(), faces * 3);
+        assert_eq!(reader.read_tex_coords(0).unwrap().into_f32().count(), verts);
+        // y-up: the rest sheet (z = 0 in springtime) lies in the x-z plane, y = 0.
+        assert!(rest.iter().all(|p| p[1] == 0.0));
+        let pos = prim.get(&gltf::Semantic::Positions).unwrap();
+        assert_eq!(pos.count(), verts);
+        let max: Vec<f64> = serde_json::from_value(pos.max().unwrap()).unwrap();
+        assert!((max[0] - 2.5).abs() < 1e-6, "{max:?}");
+        let targets: Vec<Vec<[f32; 3]>> = reader
+            .read_morph_targets()
+            .map(|(p, _, _)| p.unwrap().collect())
+            .collect();
+        assert_eq!(targets.len(), 31);
+        // Frame 0 starts where the test rollout starts: not at rest, and the cloth falls.
+        let y_mean = |k: usize| -> f32 {
+            targets[k]
+                .iter()
+                .zip(&rest)
+                .map(|(d, r)| d[1] + r[1])
+                .sum::<f32>()
+                / verts as f32
+        };
+        assert!(y_mean(30).is_finite() && y_mean(30) != y_mean(0));
+        let anim = doc.animations().next().unwrap();
+        let channel = anim.channels().next().unwrap();
+        assert_eq!(
+            channel.target().property(),
+            gltf::animation::Property::MorphTargetWeights
+        );
+        assert_eq!(
+            channel.sampler().interpolation(),
+            gltf::animation::Interpolation::Step
+        );
+        let input = channel.sampler().input();
+        assert_eq!(input.count(), 31);
+        let t_max: Vec<f64> = serde_json::from_value(input.max().unwrap()).unwrap();
+        assert!((t_max[0] - 0.3).abs() < 1e-5, "{t_max:?}");
+        let r = channel.reader(|_| Some(buffer.as_slice()));
+        let gltf::animation::util::ReadOutputs::MorphTargetWeights(w) = r.read_outputs().unwrap()
+        else {
+            panic!("not weights")
+        };
+        let w: Vec<f32> = w.into_f32().collect();
+        assert_eq!(w.len(), 31 * 31);
+        assert_eq!(&w[31 * 5..31 * 6].iter().position(|&x| x == 1.0), &Some(5));
+    }
+
+    // Point cache: header, then frame 30 equals the OBJ export's frame 30.
+    let pc2 = export("pc2");
+    assert_eq!(
+        springtime::export::count_mesh(&pc2.join("rest.obj")).unwrap(),
+        (verts, faces)
+    );
+    let cache = springtime::import::pc2::PointCache::read(&pc2.join("rollout.pc2")).unwrap();
+    assert_eq!((cache.points, cache.samples), (verts, 31));
+    let bytes = std::fs::read(pc2.join("rollout.pc2")).unwrap();
+    assert_eq!(&bytes[..12], b"POINTCACHE2\0");
+    assert_eq!(bytes.len(), 32 + 31 * verts * 12);
+    let obj = std::fs::read_to_string(dir.join("export_obj/rollout/frame_0030.obj")).unwrap();
+    let first_v: Vec<f32> = obj
+        .lines()
+        .find_map(|l| l.strip_prefix("v "))
+        .unwrap()
+        .split_whitespace()
+        .map(|x| x.parse().unwrap())
+        .collect();
+    let o = 30 * verts * 3;
+    assert_eq!(&cache.positions[o..o + 3], &first_v[..]);
 }
 
 #[test]

@@ -391,16 +391,8 @@ impl ClipSet {
                 }
             }
             let resampler_ref = resampler.as_ref().expect("set on the first file");
-            let same_landmarks = rest_uv.as_ref().is_none_or(|uv: &Vec<[f64; 2]>| {
-                uv.len() == rollout.rest_uv.len()
-                    && uv.iter().zip(&rollout.rest_uv).all(|(a, b)| a == b)
-            });
-            if !same_landmarks {
-                bail!(
-                    "{}: key `rest_uv` differs from {}: all rollouts of a set must share their landmarks",
-                    path.display(),
-                    paths[0].display()
-                );
+            if let Some(uv) = &rest_uv {
+                check_same_landmarks(uv, &rollout.rest_uv, path, &paths[0])?;
             }
             rest_uv.get_or_insert_with(|| rollout.rest_uv.clone());
             if cache.bytes < cache.limit {
@@ -609,7 +601,26 @@ fn stored_offset(rollout: &Rollout, start: usize, steps: usize, first: usize) ->
     })
 }
 
-fn check_same(a: &SetInfo, b: &SetInfo, path: &Path, first: &Path) -> Result<()> {
+/// Errors unless `b` (of `path`) has the landmarks `a` of the set's first file `first`.
+pub(crate) fn check_same_landmarks(
+    a: &[[f64; 2]],
+    b: &[[f64; 2]],
+    path: &Path,
+    first: &Path,
+) -> Result<()> {
+    if a.len() != b.len() || a.iter().zip(b).any(|(x, y)| x != y) {
+        bail!(
+            "{}: key `rest_uv` differs from {}: all rollouts of a set must share their landmarks",
+            path.display(),
+            first.display()
+        );
+    }
+    Ok(())
+}
+
+/// Errors unless `b` (of `path`) has the frame step, mass and rectangle `a` of the set's first
+/// file `first`; the error names the key.
+pub(crate) fn check_same(a: &SetInfo, b: &SetInfo, path: &Path, first: &Path) -> Result<()> {
     let close = |x: f64, y: f64| (x - y).abs() <= 1e-9 * x.abs().max(y.abs());
     for (key, x, y) in [
         ("frame_dt", a.frame_dt, b.frame_dt),

@@ -1,9 +1,11 @@
 //! Data: the rollout `.npz` format, the `index.json` beside it, and clip datasets.
 
+pub mod check;
 pub mod clips;
 pub mod npz;
 pub mod rollout;
 
+pub use check::{DatasetReport, check_dir};
 pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, Track};
 pub use rollout::{MeshTruth, Rollout, Segment, SpringTruth};
 
@@ -61,25 +63,66 @@ impl Index {
         dir.join("index.json")
     }
 
-    /// Reads `dir/index.json`, if present.
+    /// Reads `dir/index.json`, if springtime wrote it. An `index.json` of another tool
+    /// (unparseable, or without the `train`/`test` lists) is ignored with a warning on stderr;
+    /// one of a later springtime format is an error.
     pub fn read(dir: &Path) -> Result<Option<Self>> {
+        match Self::probe(dir)? {
+            IndexFile::Springtime(index) => Ok(Some(index)),
+            IndexFile::Missing => Ok(None),
+            IndexFile::Foreign(why) => {
+                eprintln!(
+                    "warning: ignoring {}: {why}; every .npz of the directory is a training rollout",
+                    Self::path(dir).display()
+                );
+                Ok(None)
+            }
+        }
+    }
+
+    /// What `dir/index.json` is, without warnings.
+    pub fn probe(dir: &Path) -> Result<IndexFile> {
         let path = Self::path(dir);
         if !path.exists() {
-            return Ok(None);
+            return Ok(IndexFile::Missing);
         }
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        let index: Index = serde_json::from_str(&text)
-            .with_context(|| format!("{} is not a valid index", path.display()))?;
-        if index.format != INDEX_FORMAT {
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) => return Ok(IndexFile::Foreign(format!("cannot be read as text ({e})"))),
+        };
+        let value: serde_json::Value = match serde_json::from_str(&text) {
+            Ok(v) => v,
+            Err(e) => return Ok(IndexFile::Foreign(format!("not JSON ({e})"))),
+        };
+        let format = value.get("format").and_then(|f| f.as_str()).unwrap_or("");
+        if format.starts_with("springtime-rollouts/") && format != INDEX_FORMAT {
             bail!(
-                "{}: unknown format `{}` (expected `{INDEX_FORMAT}`)",
-                path.display(),
-                index.format
+                "{}: unknown format `{format}` (this springtime reads `{INDEX_FORMAT}`)",
+                path.display()
             );
         }
-        Ok(Some(index))
+        if format != INDEX_FORMAT {
+            return Ok(IndexFile::Foreign(
+                "not a springtime index (no `format`, `train` and `test` fields as springtime \
+                 writes them)"
+                    .into(),
+            ));
+        }
+        let index: Index = serde_json::from_value(value)
+            .with_context(|| format!("{} is not a valid springtime index", path.display()))?;
+        Ok(IndexFile::Springtime(index))
     }
+}
+
+/// What a directory's `index.json` turned out to be.
+#[derive(Debug, Clone)]
+pub enum IndexFile {
+    /// There is none.
+    Missing,
+    /// One that springtime wrote.
+    Springtime(Index),
+    /// Another tool's file (the reason it is not springtime's).
+    Foreign(String),
 }
 
 /// The train and test files of a data configuration.

@@ -1,5 +1,12 @@
-//! A small `.npy` / `.npz` codec: the arrays NumPy writes with `np.savez` (stored) or
-//! `np.savez_compressed` (deflate), little-endian numeric and bool dtypes, C order.
+//! A lenient `.npy` / `.npz` codec: reads what NumPy writes with `np.savez` (stored) or
+//! `np.savez_compressed` (deflate), in any byte order and in C or Fortran order, and writes
+//! little-endian C-ordered arrays.
+//!
+//! Real files carry more than springtime needs: strings, pickled objects, structured records.
+//! Reading never fails on such a key: its header is parsed leniently and its raw bytes are kept
+//! as an [`Unreadable`] entry, and only asking for it as numbers fails — with the file, the key
+//! and the dtype. Numeric keys (float16/32/64, signed and unsigned integers of every width,
+//! bool) are decoded to native little-endian C order on read.
 //!
 //! Errors name the file and the key so that a user's bad file is easy to find.
 
@@ -10,69 +17,136 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 
-/// Element type of an array.
+/// Element type of a numeric array.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Dtype {
+    /// `<f2`
+    F16,
     /// `<f4`
     F32,
     /// `<f8`
     F64,
+    /// `|i1`
+    I8,
+    /// `<i2`
+    I16,
     /// `<i4`
     I32,
     /// `<i8`
     I64,
     /// `|u1`
     U8,
+    /// `<u2`
+    U16,
+    /// `<u4`
+    U32,
+    /// `<u8`
+    U64,
     /// `|b1`
     Bool,
 }
 
+/// What a dtype string names: a numeric type and its byte order, or why it is not one.
+struct Descr {
+    dtype: Dtype,
+    big_endian: bool,
+}
+
 impl Dtype {
-    fn from_descr(descr: &str) -> Option<Self> {
-        Some(match descr {
-            "<f4" | "=f4" => Dtype::F32,
-            "<f8" | "=f8" => Dtype::F64,
-            "<i4" | "=i4" => Dtype::I32,
-            "<i8" | "=i8" => Dtype::I64,
-            "|u1" | "<u1" => Dtype::U8,
-            "|b1" | "<b1" => Dtype::Bool,
-            _ => return None,
-        })
+    /// Parses a NumPy type string such as `<f4`, `>i8`, `|b1`, `=u2` or `?`.
+    fn parse(descr: &str) -> std::result::Result<Descr, String> {
+        let (order, body) = match descr.chars().next() {
+            Some(c @ ('<' | '>' | '=' | '|' | '!')) => (c, &descr[1..]),
+            _ => ('=', descr),
+        };
+        let big_endian =
+            matches!(order, '>' | '!') || (order == '=' && cfg!(target_endian = "big"));
+        let dtype = match body {
+            "f2" | "e" => Dtype::F16,
+            "f4" | "f" => Dtype::F32,
+            "f8" | "d" => Dtype::F64,
+            "i1" | "b" => Dtype::I8,
+            "i2" | "h" => Dtype::I16,
+            "i4" | "i" => Dtype::I32,
+            "i8" | "q" => Dtype::I64,
+            "u1" | "B" => Dtype::U8,
+            "u2" | "H" => Dtype::U16,
+            "u4" | "I" => Dtype::U32,
+            "u8" | "Q" => Dtype::U64,
+            "b1" | "?" => Dtype::Bool,
+            _ => {
+                let what = match body.chars().next() {
+                    Some('U') => "Unicode strings",
+                    Some('S' | 'a') => "byte strings",
+                    Some('O') => "Python objects (pickled)",
+                    Some('c') => "complex numbers",
+                    Some('M') => "datetimes",
+                    Some('m') => "time deltas",
+                    Some('V') => "raw records",
+                    Some('f') => "floats of an unsupported width",
+                    Some('i' | 'u') => "integers of an unsupported width",
+                    _ => "an unknown type",
+                };
+                return Err(format!(
+                    "dtype '{descr}' holds {what}, not numbers springtime can read"
+                ));
+            }
+        };
+        Ok(Descr { dtype, big_endian })
     }
 
+    /// The little-endian type string springtime writes.
     fn descr(self) -> &'static str {
         match self {
+            Dtype::F16 => "<f2",
             Dtype::F32 => "<f4",
             Dtype::F64 => "<f8",
+            Dtype::I8 => "|i1",
+            Dtype::I16 => "<i2",
             Dtype::I32 => "<i4",
             Dtype::I64 => "<i8",
             Dtype::U8 => "|u1",
+            Dtype::U16 => "<u2",
+            Dtype::U32 => "<u4",
+            Dtype::U64 => "<u8",
             Dtype::Bool => "|b1",
         }
     }
 
-    fn size(self) -> usize {
+    /// Bytes per element.
+    pub fn size(self) -> usize {
         match self {
-            Dtype::F32 | Dtype::I32 => 4,
-            Dtype::F64 | Dtype::I64 => 8,
-            Dtype::U8 | Dtype::Bool => 1,
+            Dtype::I8 | Dtype::U8 | Dtype::Bool => 1,
+            Dtype::F16 | Dtype::I16 | Dtype::U16 => 2,
+            Dtype::F32 | Dtype::I32 | Dtype::U32 => 4,
+            Dtype::F64 | Dtype::I64 | Dtype::U64 => 8,
         }
     }
 
     /// NumPy's name of the dtype, for messages.
     pub fn name(self) -> &'static str {
         match self {
+            Dtype::F16 => "float16",
             Dtype::F32 => "float32",
             Dtype::F64 => "float64",
+            Dtype::I8 => "int8",
+            Dtype::I16 => "int16",
             Dtype::I32 => "int32",
             Dtype::I64 => "int64",
             Dtype::U8 => "uint8",
+            Dtype::U16 => "uint16",
+            Dtype::U32 => "uint32",
+            Dtype::U64 => "uint64",
             Dtype::Bool => "bool",
         }
     }
+
+    fn is_float(self) -> bool {
+        matches!(self, Dtype::F16 | Dtype::F32 | Dtype::F64)
+    }
 }
 
-/// One array: dtype, shape and little-endian bytes in C order.
+/// One numeric array: dtype, shape and little-endian bytes in C order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Array {
     /// Element type.
@@ -82,12 +156,38 @@ pub struct Array {
     bytes: Vec<u8>,
 }
 
+/// An entry that is not a numeric array (strings, pickled objects, records, a damaged header):
+/// kept as read, so that it is skipped unless springtime needs it and survives a rewrite.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Unreadable {
+    /// The dtype as the header spells it (`<U5`, `|O`, `[('a', '<f4')]`), or `?` when the header
+    /// itself could not be read.
+    pub descr: String,
+    /// Why springtime cannot use it as numbers.
+    pub reason: String,
+    /// The whole `.npy` entry.
+    raw: Vec<u8>,
+}
+
 macro_rules! le_values {
     ($bytes:expr, $ty:ty) => {
         $bytes
             .chunks_exact(std::mem::size_of::<$ty>())
             .map(|c| <$ty>::from_le_bytes(c.try_into().expect("chunk size")))
     };
+}
+
+/// IEEE half precision to single precision (exact).
+fn f16_to_f32(h: u16) -> f32 {
+    let negative = h & 0x8000 != 0;
+    let exp = u32::from((h >> 10) & 0x1f);
+    let mant = u32::from(h & 0x3ff);
+    let magnitude = match exp {
+        0 => mant as f32 * (1.0 / 16_777_216.0), // zero and subnormals: mant · 2⁻²⁴
+        0x1f => f32::from_bits(0x7f80_0000 | (mant << 13)),
+        _ => f32::from_bits(((exp + 112) << 23) | (mant << 13)),
+    };
+    if negative { -magnitude } else { magnitude }
 }
 
 impl Array {
@@ -165,42 +265,67 @@ impl Array {
         self.len() == 0
     }
 
-    /// The values as `f64`, from any float or integer dtype.
+    /// The values as `f64`, from any float or integer dtype (not bool).
     pub fn to_f64(&self) -> Option<Vec<f64>> {
+        let b = &self.bytes;
         Some(match self.dtype {
-            Dtype::F32 => le_values!(self.bytes, f32).map(f64::from).collect(),
-            Dtype::F64 => le_values!(self.bytes, f64).collect(),
-            Dtype::I32 => le_values!(self.bytes, i32).map(f64::from).collect(),
-            Dtype::I64 => le_values!(self.bytes, i64).map(|v| v as f64).collect(),
-            Dtype::U8 | Dtype::Bool => return None,
+            Dtype::F16 => le_values!(b, u16)
+                .map(|h| f64::from(f16_to_f32(h)))
+                .collect(),
+            Dtype::F32 => le_values!(b, f32).map(f64::from).collect(),
+            Dtype::F64 => le_values!(b, f64).collect(),
+            Dtype::I8 => b.iter().map(|&v| f64::from(v as i8)).collect(),
+            Dtype::I16 => le_values!(b, i16).map(f64::from).collect(),
+            Dtype::I32 => le_values!(b, i32).map(f64::from).collect(),
+            Dtype::I64 => le_values!(b, i64).map(|v| v as f64).collect(),
+            Dtype::U8 => b.iter().map(|&v| f64::from(v)).collect(),
+            Dtype::U16 => le_values!(b, u16).map(f64::from).collect(),
+            Dtype::U32 => le_values!(b, u32).map(f64::from).collect(),
+            Dtype::U64 => le_values!(b, u64).map(|v| v as f64).collect(),
+            Dtype::Bool => return None,
         })
     }
 
-    /// The values as `f32`, from `f32` or `f64`.
+    /// The values as `f32`, from any float or integer dtype (not bool).
     pub fn to_f32(&self) -> Option<Vec<f32>> {
-        Some(match self.dtype {
-            Dtype::F32 => le_values!(self.bytes, f32).collect(),
-            Dtype::F64 => le_values!(self.bytes, f64).map(|v| v as f32).collect(),
-            _ => return None,
-        })
+        match self.dtype {
+            Dtype::F32 => Some(le_values!(self.bytes, f32).collect()),
+            Dtype::F16 => Some(le_values!(self.bytes, u16).map(f16_to_f32).collect()),
+            _ => Some(self.to_f64()?.into_iter().map(|v| v as f32).collect()),
+        }
     }
 
-    /// The values as `i64`, from any integer dtype.
+    /// The values as `i64`, from any integer dtype, or a float dtype holding whole numbers
+    /// (not bool; `None` when a value does not fit).
     pub fn to_i64(&self) -> Option<Vec<i64>> {
+        let b = &self.bytes;
         Some(match self.dtype {
-            Dtype::I32 => le_values!(self.bytes, i32).map(i64::from).collect(),
-            Dtype::I64 => le_values!(self.bytes, i64).collect(),
-            Dtype::U8 => self.bytes.iter().map(|&v| i64::from(v)).collect(),
-            _ => return None,
+            Dtype::I8 => b.iter().map(|&v| i64::from(v as i8)).collect(),
+            Dtype::I16 => le_values!(b, i16).map(i64::from).collect(),
+            Dtype::I32 => le_values!(b, i32).map(i64::from).collect(),
+            Dtype::I64 => le_values!(b, i64).collect(),
+            Dtype::U8 => b.iter().map(|&v| i64::from(v)).collect(),
+            Dtype::U16 => le_values!(b, u16).map(i64::from).collect(),
+            Dtype::U32 => le_values!(b, u32).map(i64::from).collect(),
+            Dtype::U64 => le_values!(b, u64)
+                .map(i64::try_from)
+                .collect::<std::result::Result<_, _>>()
+                .ok()?,
+            Dtype::F16 | Dtype::F32 | Dtype::F64 => self
+                .to_f64()?
+                .into_iter()
+                .map(|v| (v.fract() == 0.0 && v.abs() < 9.0e15).then_some(v as i64))
+                .collect::<Option<_>>()?,
+            Dtype::Bool => return None,
         })
     }
 
-    /// The values as `bool`, from `bool` or 0/1 integers.
+    /// The values as `bool`, from `bool` or integers (non-zero = true).
     pub fn to_bool(&self) -> Option<Vec<bool>> {
         match self.dtype {
-            Dtype::Bool | Dtype::U8 => Some(self.bytes.iter().map(|&v| v != 0).collect()),
-            Dtype::I32 | Dtype::I64 => Some(self.to_i64()?.into_iter().map(|v| v != 0).collect()),
-            _ => None,
+            Dtype::Bool => Some(self.bytes.iter().map(|&v| v != 0).collect()),
+            d if d.is_float() => None,
+            _ => Some(self.to_i64()?.into_iter().map(|v| v != 0).collect()),
         }
     }
 
@@ -235,7 +360,93 @@ impl Array {
         out
     }
 
-    fn from_npy(raw: &[u8]) -> std::result::Result<Self, String> {
+    /// Decodes one `.npy` entry: a numeric array, or the reason it is not one (with the dtype
+    /// as the header spells it).
+    fn from_npy(raw: &[u8]) -> std::result::Result<Self, (String, String)> {
+        let header = NpyHeader::parse(raw).map_err(|e| ("?".to_string(), e))?;
+        let fail = |reason: String| (header.descr.clone(), reason);
+        let Descr { dtype, big_endian } = match &header.descr_kind {
+            DescrKind::Simple => Dtype::parse(&header.descr).map_err(fail)?,
+            DescrKind::Structured => {
+                return Err(fail(format!(
+                    "structured dtype {} (records with named fields), not a plain number array",
+                    header.descr
+                )));
+            }
+        };
+        let shape = header.shape.clone();
+        let n: usize = shape.iter().product();
+        let size = dtype.size();
+        let data = &raw[header.data_start..];
+        if data.len() != n * size {
+            return Err(fail(format!(
+                "shape {shape:?} of {} needs {} bytes, the file holds {}",
+                dtype.name(),
+                n * size,
+                data.len()
+            )));
+        }
+        let mut bytes = data.to_vec();
+        if big_endian && size > 1 {
+            for element in bytes.chunks_exact_mut(size) {
+                element.reverse();
+            }
+        }
+        if header.fortran_order && shape.len() > 1 {
+            bytes = fortran_to_c(&bytes, &shape, size);
+        }
+        Ok(Self {
+            dtype,
+            shape,
+            bytes,
+        })
+    }
+}
+
+/// Reorders the elements of a Fortran-ordered (first axis fastest) array into C order.
+fn fortran_to_c(bytes: &[u8], shape: &[usize], size: usize) -> Vec<u8> {
+    let rank = shape.len();
+    // Fortran strides, in elements.
+    let mut stride = vec![1usize; rank];
+    for d in 1..rank {
+        stride[d] = stride[d - 1] * shape[d - 1];
+    }
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut index = vec![0usize; rank];
+    let n: usize = shape.iter().product();
+    for _ in 0..n {
+        let f: usize = index.iter().zip(&stride).map(|(i, s)| i * s).sum();
+        out.extend_from_slice(&bytes[f * size..(f + 1) * size]);
+        // Next C-order index: the last axis fastest.
+        for d in (0..rank).rev() {
+            index[d] += 1;
+            if index[d] < shape[d] {
+                break;
+            }
+            index[d] = 0;
+        }
+    }
+    out
+}
+
+enum DescrKind {
+    /// A type string such as `<f4`.
+    Simple,
+    /// A list of fields.
+    Structured,
+}
+
+/// The parts of a `.npy` header that springtime reads.
+struct NpyHeader {
+    descr: String,
+    descr_kind: DescrKind,
+    fortran_order: bool,
+    shape: Vec<usize>,
+    data_start: usize,
+}
+
+impl NpyHeader {
+    fn parse(raw: &[u8]) -> std::result::Result<Self, String> {
         if raw.len() < 10 || &raw[..6] != b"\x93NUMPY" {
             return Err("not a .npy array (bad magic)".into());
         }
@@ -255,25 +466,27 @@ impl Array {
         let header = raw
             .get(start..start + header_len)
             .ok_or("truncated .npy header")?;
-        let header = std::str::from_utf8(header).map_err(|_| "non-UTF-8 .npy header")?;
-        let descr = dict_value(header, "descr").ok_or("header has no 'descr'")?;
-        let descr = descr.trim_matches(|c| c == '\'' || c == '"');
-        let dtype = Dtype::from_descr(descr).ok_or_else(|| {
-            format!(
-                "unsupported dtype '{descr}' (use little-endian float32/float64/int32/int64/bool)"
+        // Version 3 allows UTF-8 field names; only the structure matters here.
+        let header = String::from_utf8_lossy(header);
+        let fields = dict_fields(&header);
+        let descr = fields.get("descr").ok_or("header has no 'descr'")?.trim();
+        let (descr, descr_kind) = if descr.starts_with('\'') || descr.starts_with('"') {
+            (
+                descr.trim_matches(|c| c == '\'' || c == '"').to_string(),
+                DescrKind::Simple,
             )
-        })?;
-        if dict_value(header, "fortran_order").is_some_and(|v| v.starts_with("True")) {
-            return Err(
-                "Fortran-ordered arrays are not supported (save a C-contiguous array)".into(),
-            );
-        }
-        let shape_text = dict_value(header, "shape").ok_or("header has no 'shape'")?;
+        } else {
+            (descr.to_string(), DescrKind::Structured)
+        };
+        let fortran_order = fields
+            .get("fortran_order")
+            .is_some_and(|v| v.trim() == "True");
+        let shape_text = fields.get("shape").ok_or("header has no 'shape'")?;
         let inner = shape_text
             .trim()
             .strip_prefix('(')
-            .and_then(|s| s.split(')').next())
-            .ok_or("malformed 'shape'")?;
+            .and_then(|s| s.strip_suffix(')'))
+            .ok_or_else(|| format!("malformed shape {shape_text}"))?;
         let shape = inner
             .split(',')
             .map(str::trim)
@@ -281,37 +494,68 @@ impl Array {
             .map(|s| s.trim_end_matches('L').parse::<usize>())
             .collect::<std::result::Result<Vec<_>, _>>()
             .map_err(|_| format!("malformed shape {shape_text}"))?;
-        let n: usize = shape.iter().product();
-        let data = &raw[start + header_len..];
-        if data.len() != n * dtype.size() {
-            return Err(format!(
-                "shape {shape:?} of {} needs {} bytes, the file holds {}",
-                dtype.name(),
-                n * dtype.size(),
-                data.len()
-            ));
-        }
         Ok(Self {
-            dtype,
+            descr,
+            descr_kind,
+            fortran_order,
             shape,
-            bytes: data.to_vec(),
+            data_start: start + header_len,
         })
     }
 }
 
-/// The text after `'key':` in a NumPy header dict, up to the next top-level comma.
-fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
-    let pat_single = format!("'{key}':");
-    let pat_double = format!("\"{key}\":");
-    let at = header
-        .find(&pat_single)
-        .map(|i| i + pat_single.len())
-        .or_else(|| header.find(&pat_double).map(|i| i + pat_double.len()))?;
-    let rest = header[at..].trim_start();
-    if rest.starts_with('(') {
-        return Some(&rest[..rest.find(')')? + 1]);
+/// The `key: value` pairs of a NumPy header (a Python dict literal), values as raw text.
+/// Lenient: nested brackets and quoted strings inside values are kept whole, unknown keys are
+/// returned too, and text that does not parse ends the scan.
+fn dict_fields(header: &str) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    let chars: Vec<char> = header.chars().collect();
+    let mut i = 0;
+    let skip = |i: &mut usize, set: &[char]| {
+        while *i < chars.len() && (chars[*i].is_whitespace() || set.contains(&chars[*i])) {
+            *i += 1;
+        }
+    };
+    skip(&mut i, &['{']);
+    while i < chars.len() {
+        skip(&mut i, &[',']);
+        let Some(&quote @ ('\'' | '"')) = chars.get(i) else {
+            break;
+        };
+        let key_start = i + 1;
+        let Some(len) = chars[key_start..].iter().position(|&c| c == quote) else {
+            break;
+        };
+        let key: String = chars[key_start..key_start + len].iter().collect();
+        i = key_start + len + 1;
+        skip(&mut i, &[]);
+        if chars.get(i) != Some(&':') {
+            break;
+        }
+        i += 1;
+        let value_start = i;
+        let mut depth = 0i32;
+        let mut in_quote: Option<char> = None;
+        while i < chars.len() {
+            let c = chars[i];
+            match in_quote {
+                Some(q) if c == q => in_quote = None,
+                Some(_) => {}
+                None => match c {
+                    '\'' | '"' => in_quote = Some(c),
+                    '(' | '[' | '{' => depth += 1,
+                    ')' | ']' => depth -= 1,
+                    '}' if depth > 0 => depth -= 1,
+                    ',' | '}' if depth == 0 => break,
+                    _ => {}
+                },
+            }
+            i += 1;
+        }
+        let value: String = chars[value_start..i].iter().collect();
+        out.insert(key, value.trim().to_string());
     }
-    Some(rest.split(',').next()?.trim())
+    out
 }
 
 /// The arrays of one `.npz` file, by key.
@@ -319,17 +563,22 @@ fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
 pub struct Npz {
     /// The file it came from (for messages).
     pub path: PathBuf,
-    /// Arrays by key (the entry name without `.npy`).
+    /// Numeric arrays by key (the entry name without `.npy`).
     pub arrays: BTreeMap<String, Array>,
+    /// Entries that are not numeric arrays (strings, objects, records, damaged headers), by key;
+    /// skipped unless asked for, and written back unchanged.
+    pub unreadable: BTreeMap<String, Unreadable>,
 }
 
 impl Npz {
-    /// Reads every array of `path`.
+    /// Reads every entry of `path`. Only a file that is not a readable zip archive fails here;
+    /// an entry that is not a numeric array is kept in [`Npz::unreadable`].
     pub fn read(path: &Path) -> Result<Self> {
         let file = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
         let mut zip = zip::ZipArchive::new(BufReader::new(file))
             .with_context(|| format!("{} is not a .npz (zip) archive", path.display()))?;
         let mut arrays = BTreeMap::new();
+        let mut unreadable = BTreeMap::new();
         for i in 0..zip.len() {
             let mut entry = zip
                 .by_index(i)
@@ -342,16 +591,30 @@ impl Npz {
                 continue;
             };
             let mut raw = Vec::with_capacity(entry.size() as usize);
-            entry
-                .read_to_end(&mut raw)
-                .with_context(|| format!("{}: cannot read key `{key}`", path.display()))?;
-            let array = Array::from_npy(&raw)
-                .map_err(|e| anyhow::anyhow!("{}: key `{key}`: {e}", path.display()))?;
-            arrays.insert(key.to_string(), array);
+            if let Err(e) = entry.read_to_end(&mut raw) {
+                unreadable.insert(
+                    key.to_string(),
+                    Unreadable {
+                        descr: "?".into(),
+                        reason: format!("the zip entry cannot be read: {e}"),
+                        raw: Vec::new(),
+                    },
+                );
+                continue;
+            }
+            match Array::from_npy(&raw) {
+                Ok(array) => {
+                    arrays.insert(key.to_string(), array);
+                }
+                Err((descr, reason)) => {
+                    unreadable.insert(key.to_string(), Unreadable { descr, reason, raw });
+                }
+            }
         }
         Ok(Self {
             path: path.to_path_buf(),
             arrays,
+            unreadable,
         })
     }
 
@@ -359,8 +622,17 @@ impl Npz {
     pub fn write(&self, path: &Path) -> Result<()> {
         crate::io::write_atomic(path, |file| {
             let mut zip = zip::ZipWriter::new(BufWriter::new(file));
-            for (key, array) in &self.arrays {
-                let npy = array.to_npy();
+            let entries = self
+                .arrays
+                .iter()
+                .map(|(key, array)| (key, array.to_npy()))
+                .chain(
+                    self.unreadable
+                        .iter()
+                        .filter(|(_, u)| !u.raw.is_empty())
+                        .map(|(key, u)| (key, u.raw.clone())),
+                );
+            for (key, npy) in entries {
                 let options = zip::write::SimpleFileOptions::default()
                     .compression_method(zip::CompressionMethod::Stored)
                     .large_file(npy.len() as u64 >= u32::MAX as u64);
@@ -377,19 +649,42 @@ impl Npz {
         self.arrays.insert(key.to_string(), array);
     }
 
-    /// Whether `key` exists.
+    /// Whether `key` exists (readable or not).
     pub fn has(&self, key: &str) -> bool {
-        self.arrays.contains_key(key)
+        self.arrays.contains_key(key) || self.unreadable.contains_key(key)
     }
 
-    fn get(&self, key: &str) -> Result<&Array> {
-        self.arrays.get(key).ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: missing key `{key}` (has: {})",
+    /// Every key of the file, sorted.
+    pub fn keys(&self) -> Vec<String> {
+        let mut keys: Vec<String> = self
+            .arrays
+            .keys()
+            .chain(self.unreadable.keys())
+            .cloned()
+            .collect();
+        keys.sort();
+        keys
+    }
+
+    /// The numeric array `key`; an error names the file and the key, and for an entry that is
+    /// not a numeric array, its dtype and why.
+    pub fn get(&self, key: &str) -> Result<&Array> {
+        if let Some(a) = self.arrays.get(key) {
+            return Ok(a);
+        }
+        if let Some(u) = self.unreadable.get(key) {
+            bail!(
+                "{}: key `{key}` (dtype {}) cannot be used: {}",
                 self.path.display(),
-                self.arrays.keys().cloned().collect::<Vec<_>>().join(", ")
-            )
-        })
+                u.descr,
+                u.reason
+            );
+        }
+        bail!(
+            "{}: missing key `{key}` (has: {})",
+            self.path.display(),
+            self.keys().join(", ")
+        )
     }
 
     fn check_shape(&self, key: &str, array: &Array, expect: &[Option<usize>]) -> Result<()> {
@@ -420,7 +715,7 @@ impl Npz {
         self.check_shape(key, a, shape)?;
         let v = a.to_f32().ok_or_else(|| {
             anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected float32 or float64",
+                "{}: key `{key}` has dtype {}, expected a float or integer type",
                 self.path.display(),
                 a.dtype.name()
             )
@@ -465,7 +760,7 @@ impl Npz {
         self.check_shape(key, a, shape)?;
         let v = a.to_i64().ok_or_else(|| {
             anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected an integer type",
+                "{}: key `{key}` has dtype {}, expected integers (an integer type, or whole floats)",
                 self.path.display(),
                 a.dtype.name()
             )
@@ -479,7 +774,7 @@ impl Npz {
         self.check_shape(key, a, shape)?;
         a.to_bool().ok_or_else(|| {
             anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected bool",
+                "{}: key `{key}` has dtype {}, expected bool (or 0/1 integers)",
                 self.path.display(),
                 a.dtype.name()
             )

@@ -13,7 +13,7 @@
 //! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
 //! | `triangles`, `tri_stiffness` | i32, f32 | `[M, 3]`, `[M]` | optional mesh and stiffness map of an FEM source |
 //!
-//! Unknown keys are ignored. Loading validates shapes, dtypes, ranges and finiteness; every
+//! Unknown keys are ignored, whatever their dtype ([`KEYS`] are the known ones). Loading validates shapes, dtypes, ranges and finiteness; every
 //! error names the file and the key.
 
 use std::path::{Path, PathBuf};
@@ -91,10 +91,35 @@ pub struct Rollout {
     pub rayleigh: Option<f64>,
 }
 
+/// The keys a rollout file may hold; any other key is ignored.
+pub const KEYS: &[&str] = &[
+    "positions",
+    "rest_uv",
+    "pinned",
+    "frame_dt",
+    "total_mass",
+    "width",
+    "height",
+    "velocities",
+    "segments",
+    "springs",
+    "spring_k",
+    "spring_b",
+    "triangles",
+    "tri_stiffness",
+    "gravity",
+    "rayleigh",
+];
+
 impl Rollout {
     /// Reads and validates a rollout file.
     pub fn load(path: &Path) -> Result<Self> {
-        let npz = Npz::read(path)?;
+        Self::from_npz(&Npz::read(path)?)
+    }
+
+    /// Validates the arrays of a rollout file read with [`Npz::read`].
+    pub fn from_npz(npz: &Npz) -> Result<Self> {
+        let path = npz.path.as_path();
         let shown = path.display();
         let (positions, shape) = npz.f32("positions", &[None, None, Some(3)])?;
         let (frames, n) = (shape[0], shape[1]);

@@ -10,7 +10,7 @@ use super::kernels::{self, HostGraph};
 use crate::cloth::Topology;
 
 /// Which implementation computes the spring forces.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Kernel {
     /// One fused kernel with a hand-written backward ([`kernels::spring_forces`]).

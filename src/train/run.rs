@@ -133,7 +133,10 @@ impl RunDir {
 
     /// Writes `run.json`.
     pub fn write_state(&self, state: &RunState) -> Result<()> {
-        crate::io::write_json(&self.state_path(), state)
+        // The build that wrote the run: `springtime.version` and `springtime.commit`.
+        let mut value = serde_json::to_value(state)?;
+        value["springtime"] = serde_json::json!(crate::BuildInfo::current());
+        crate::io::write_json(&self.state_path(), &value)
     }
 
     /// Refuses to start a fresh run over a finished or started one unless `force`.

@@ -1,18 +1,26 @@
-//! Export for other tools: `springtime export <run-dir> --format obj|ply --out DIR` writes
+//! Export for other tools: `springtime export <run-dir> --format F --out DIR` writes
 //!
-//! | file | contents |
+//! | format | files |
 //! |---|---|
-//! | `rest.obj` / `rest.ply` | the surrogate's rest sheet (z = 0) as a triangle mesh with uv coordinates |
-//! | `rollout/frame_NNNN.obj` / `.ply` | a simulated rollout, one mesh per frame at `--fps` (Blender: *Import OBJ* with *Split by group* off, or a mesh-sequence add-on; Houdini: a File SOP with `$F4`) |
-//! | `surrogate.json` | topology, rest positions and lengths, `k`, `b`, masses, the rollout's pinned particles, simulation constants |
-//! | `surrogate.npz` | the same arrays for NumPy (`springs.npz`'s keys plus `mass`, `rest_positions`, `pinned`, `rayleigh`, `gravity`) |
+//! | `obj` | `rest.obj` and `rollout/frame_NNNN.obj`, one mesh per frame |
+//! | `ply` | `rest.ply` and `rollout/frame_NNNN.ply`, binary little-endian |
+//! | `ply-ascii` | the same as ASCII PLY |
+//! | `gltf` / `glb` | `cloth.gltf` (buffer embedded as base64) / `cloth.glb`: the rest mesh with the rollout as one morph target per frame and a step-interpolated weights animation (Blender: *File › Import › glTF*; three.js: `GLTFLoader`) — see [`gltf`] |
+//! | `pc2` | `rest.obj` and `rollout.pc2`, a point cache for Blender's Mesh Cache modifier (or Houdini) |
+//!
+//! and always `surrogate.json` (topology, rest positions and lengths, `k`, `b`, masses, the
+//! rollout's pinned particles, simulation constants) and `surrogate.npz` (the same arrays for
+//! NumPy: `springs.npz`'s keys plus `mass`, `rest_positions`, `pinned`, `rayleigh`, `gravity`).
 //!
 //! Meshes are the grid's quads split into two counter-clockwise triangles (normals +z at
-//! rest); vertex `i` is particle `i`. Existing files are never overwritten without `--force`.
+//! rest); vertex `i` is particle `i`. OBJ, PLY and PC2 keep springtime's z-up metres; glTF is
+//! y-up. Existing files are never overwritten without `--force`.
+
+pub mod gltf;
 
 use std::fmt::Write as _;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::str::FromStr;
 
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
@@ -23,38 +31,43 @@ use crate::config::Config;
 use crate::data::npz::Array;
 use crate::data::{Rollout, Track};
 use crate::eval;
+use crate::import::pc2::PointCache;
 use crate::progress::Progress;
 use crate::sim::Physics;
 use crate::source::{Diagonal, fem::grid_triangles};
 use crate::train::{self, RunDir};
 
-/// Mesh file format.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// Export file format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Format {
-    /// Wavefront OBJ (`v`, `vt`, `f` lines).
+    /// Wavefront OBJ per frame (`v`, `vt`, `f` lines).
     Obj,
-    /// ASCII PLY (vertex `x y z s t`, face lists).
+    /// Binary little-endian PLY per frame (vertex `x y z s t`, face lists).
     Ply,
+    /// ASCII PLY per frame.
+    PlyAscii,
+    /// glTF 2.0 JSON with an embedded buffer: morph-target animation.
+    Gltf,
+    /// glTF 2.0 binary container.
+    Glb,
+    /// Point cache (`rollout.pc2`) plus the rest mesh as OBJ.
+    Pc2,
 }
 
 impl Format {
-    /// File extension, without the dot.
+    /// Extension of the rest mesh file, without the dot.
     pub fn extension(self) -> &'static str {
         match self {
-            Format::Obj => "obj",
-            Format::Ply => "ply",
+            Format::Obj | Format::Pc2 => "obj",
+            Format::Ply | Format::PlyAscii => "ply",
+            Format::Gltf => "gltf",
+            Format::Glb => "glb",
         }
     }
-}
 
-impl FromStr for Format {
-    type Err = String;
-    fn from_str(s: &str) -> std::result::Result<Self, String> {
-        match s.to_ascii_lowercase().as_str() {
-            "obj" => Ok(Format::Obj),
-            "ply" => Ok(Format::Ply),
-            other => Err(format!("unknown format `{other}` (expected obj or ply)")),
-        }
+    /// Whether the rollout is one mesh file per frame.
+    pub fn per_frame(self) -> bool {
+        matches!(self, Format::Obj | Format::Ply | Format::PlyAscii)
     }
 }
 
@@ -91,18 +104,24 @@ pub fn write_obj(
     crate::io::write_text(path, &s)
 }
 
-/// Writes a triangle mesh as ASCII PLY, atomically (arguments as [`write_obj`]; `uv` become
-/// the vertex properties `s`, `t`).
+/// Writes a triangle mesh as PLY, atomically (arguments as [`write_obj`]; `uv` become the
+/// vertex properties `s`, `t`): binary little-endian, or ASCII with `ascii`.
 pub fn write_ply(
     path: &Path,
     comment: &str,
     positions: &[f32],
     uv: Option<&[[f64; 2]]>,
     triangles: &[[usize; 3]],
+    ascii: bool,
 ) -> Result<()> {
     let n = positions.len() / 3;
     let mut s = String::with_capacity(positions.len() * 12 + triangles.len() * 24);
-    s.push_str("ply\nformat ascii 1.0\n");
+    s.push_str("ply\n");
+    s.push_str(if ascii {
+        "format ascii 1.0\n"
+    } else {
+        "format binary_little_endian 1.0\n"
+    });
     for line in comment.lines() {
         writeln!(s, "comment {line}")?;
     }
@@ -118,17 +137,40 @@ pub fn write_ply(
         "element face {}\nproperty list uchar int vertex_indices\nend_header",
         triangles.len()
     )?;
-    for (i, p) in positions.chunks_exact(3).enumerate() {
-        write!(s, "{} {} {}", p[0], p[1], p[2])?;
-        if let Some(uv) = uv {
-            write!(s, " {:.6} {:.6}", uv[i][0], uv[i][1])?;
+    if ascii {
+        for (i, p) in positions.chunks_exact(3).enumerate() {
+            write!(s, "{} {} {}", p[0], p[1], p[2])?;
+            if let Some(uv) = uv {
+                write!(s, " {:.6} {:.6}", uv[i][0], uv[i][1])?;
+            }
+            s.push('\n');
         }
-        s.push('\n');
+        for [a, b, c] in triangles {
+            writeln!(s, "3 {a} {b} {c}")?;
+        }
+        return crate::io::write_text(path, &s);
     }
-    for [a, b, c] in triangles {
-        writeln!(s, "3 {a} {b} {c}")?;
+    let mut bytes = s.into_bytes();
+    for (i, p) in positions.chunks_exact(3).enumerate() {
+        for c in p {
+            bytes.extend_from_slice(&c.to_le_bytes());
+        }
+        if let Some(uv) = uv {
+            bytes.extend_from_slice(&(uv[i][0] as f32).to_le_bytes());
+            bytes.extend_from_slice(&(uv[i][1] as f32).to_le_bytes());
+        }
     }
-    crate::io::write_text(path, &s)
+    for t in triangles {
+        bytes.push(3);
+        for &i in t {
+            bytes.extend_from_slice(&(i as i32).to_le_bytes());
+        }
+    }
+    crate::io::write_atomic(path, |mut f| {
+        f.write_all(&bytes)?;
+        f.sync_all()?;
+        Ok(())
+    })
 }
 
 /// `surrogate.json`: everything needed to simulate the learned cloth elsewhere.
@@ -323,13 +365,19 @@ pub fn export_run(
         plan = Some((physics, track, first, frames, keep));
     }
     let frame_path = |i: usize| seq_dir.join(format!("frame_{i:04}.{ext}"));
+    let gltf = matches!(options.format, Format::Gltf | Format::Glb);
     let mut paths = vec![
-        out.join(format!("rest.{ext}")),
+        out.join(format!("{}.{ext}", if gltf { "cloth" } else { "rest" })),
         out.join("surrogate.json"),
         out.join("surrogate.npz"),
     ];
+    let pc2_path = out.join("rollout.pc2");
     if let Some((_, _, _, _, keep)) = &plan {
-        paths.extend((0..keep.len()).map(frame_path));
+        match options.format {
+            f if f.per_frame() => paths.extend((0..keep.len()).map(frame_path)),
+            Format::Pc2 => paths.push(pc2_path.clone()),
+            _ => {}
+        }
     }
     let existing: Vec<&PathBuf> = paths.iter().filter(|p| p.exists()).collect();
     if let Some(first) = existing.first()
@@ -362,8 +410,9 @@ pub fn export_run(
         .map(|p| [p[0] / topo.width, p[1] / topo.height])
         .collect();
     let write_mesh = |path: &Path, comment: &str, pos: &[f32]| match options.format {
-        Format::Obj => write_obj(path, comment, pos, Some(&uv), &tris),
-        Format::Ply => write_ply(path, comment, pos, Some(&uv), &tris),
+        Format::Ply => write_ply(path, comment, pos, Some(&uv), &tris, false),
+        Format::PlyAscii => write_ply(path, comment, pos, Some(&uv), &tris, true),
+        _ => write_obj(path, comment, pos, Some(&uv), &tris),
     };
     let rest: Vec<f32> = topo
         .rest_positions()
@@ -371,19 +420,22 @@ pub fn export_run(
         .flat_map(|p| p.map(|c| c as f32))
         .collect();
     let mut files = Vec::new();
-    write_mesh(
-        &paths[0],
-        &format!(
-            "springtime surrogate of {}: rest sheet, {} x {} particles, metres",
-            run_dir.display(),
-            topo.nx,
-            topo.ny
-        ),
-        &rest,
-    )?;
-    files.push(paths[0].clone());
+    if !gltf {
+        write_mesh(
+            &paths[0],
+            &format!(
+                "springtime surrogate of {}: rest sheet, {} x {} particles, metres",
+                run_dir.display(),
+                topo.nx,
+                topo.ny
+            ),
+            &rest,
+        )?;
+        files.push(paths[0].clone());
+    }
     let mut pinned = Vec::new();
     let mut frames_written = 0;
+    let mut animation: (Vec<f32>, Vec<f64>) = (Vec::new(), Vec::new());
     if let (Some((physics, track, first, frames, keep)), Some(r)) = (&plan, &rollout) {
         pinned = track
             .pinned
@@ -404,24 +456,52 @@ pub fn export_run(
         )?;
         bar.finish();
         let p = topo.num_particles();
-        let bar = progress.bar(sim.frames.len() as u64, "export");
-        for (i, &j) in sim.frames.iter().enumerate() {
-            let path = frame_path(i);
-            write_mesh(
-                &path,
-                &format!(
-                    "springtime surrogate of {}: frame {i}, t = {:.6} s, simulated from {}",
-                    run_dir.display(),
-                    j as f64 * r.frame_dt,
-                    r.path.display()
-                ),
-                &sim.positions[i * p * 3..(i + 1) * p * 3],
-            )?;
-            files.push(path);
-            bar.inc(1);
-        }
-        bar.finish();
         frames_written = sim.frames.len();
+        let times: Vec<f64> = sim.frames.iter().map(|&j| j as f64 * r.frame_dt).collect();
+        match options.format {
+            f if f.per_frame() => {
+                let bar = progress.bar(sim.frames.len() as u64, "export");
+                for (i, t) in times.iter().enumerate() {
+                    let path = frame_path(i);
+                    write_mesh(
+                        &path,
+                        &format!(
+                            "springtime surrogate of {}: frame {i}, t = {t:.6} s, simulated from {}",
+                            run_dir.display(),
+                            r.path.display()
+                        ),
+                        &sim.positions[i * p * 3..(i + 1) * p * 3],
+                    )?;
+                    files.push(path);
+                    bar.inc(1);
+                }
+                bar.finish();
+            }
+            Format::Pc2 => {
+                PointCache {
+                    start_frame: 0.0,
+                    sample_rate: 1.0,
+                    points: p,
+                    samples: frames_written,
+                    positions: sim.positions[..frames_written * p * 3].to_vec(),
+                }
+                .write(&pc2_path)?;
+                files.push(pc2_path.clone());
+            }
+            _ => animation = (sim.positions[..frames_written * p * 3].to_vec(), times),
+        }
+    }
+    if gltf {
+        let mesh = gltf::AnimatedMesh {
+            name: "cloth",
+            rest: &rest,
+            uv: &uv,
+            triangles: &tris,
+            frames: &animation.0,
+            times: &animation.1,
+        };
+        gltf::write(&paths[0], &mesh, options.format == Format::Glb)?;
+        files.push(paths[0].clone());
     }
     let (k, b) = (model.k_values(), model.b_values());
     let json = SurrogateJson {
@@ -472,11 +552,15 @@ pub fn export_run(
     })
 }
 
-/// Counts the vertices and faces of an OBJ or PLY file (for checks).
+/// Counts the vertices and faces of an OBJ or PLY (ASCII or binary) file (for checks).
 pub fn count_mesh(path: &Path) -> Result<(usize, usize)> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    if text.starts_with("ply") {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if bytes.starts_with(b"ply") {
+        let end = bytes
+            .windows(10)
+            .position(|w| w == b"end_header")
+            .unwrap_or(bytes.len());
+        let text = String::from_utf8_lossy(&bytes[..end]);
         let count = |key: &str| -> Result<usize> {
             text.lines()
                 .find_map(|l| l.strip_prefix(key))
@@ -485,6 +569,7 @@ pub fn count_mesh(path: &Path) -> Result<(usize, usize)> {
         };
         return Ok((count("element vertex ")?, count("element face ")?));
     }
+    let text = String::from_utf8_lossy(&bytes);
     let mut v = 0;
     let mut f = 0;
     for l in text.lines() {

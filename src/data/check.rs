@@ -1,0 +1,328 @@
+//! `springtime data check DIR`: what a dataset folder holds, whether springtime can use it, and
+//! how stable a surrogate of the configuration would be on it.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Result, bail};
+
+use super::clips::{ClipSet, SetInfo, check_same, check_same_landmarks};
+use super::npz::Npz;
+use super::rollout::{KEYS, Rollout};
+use super::{DataConfig, Index, IndexFile};
+use crate::cloth::Topology;
+use crate::config::Config;
+use crate::sim::Stability;
+
+/// Smallest and largest of a count over the files of a set.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Range {
+    /// Smallest.
+    pub min: usize,
+    /// Largest.
+    pub max: usize,
+}
+
+impl Range {
+    fn add(this: &mut Option<Range>, v: usize) {
+        *this = Some(match *this {
+            None => Range { min: v, max: v },
+            Some(r) => Range {
+                min: r.min.min(v),
+                max: r.max.max(v),
+            },
+        });
+    }
+
+    fn show(self) -> String {
+        if self.min == self.max {
+            self.min.to_string()
+        } else {
+            format!("{} to {}", self.min, self.max)
+        }
+    }
+}
+
+/// The stability of the configured surrogate on the data (uniform `k_init`, `b_init`).
+#[derive(Debug, Clone)]
+pub struct SurrogateStability {
+    /// Particles along width and height.
+    pub grid: [usize; 2],
+    /// Uniform stiffness, N/m.
+    pub k: f64,
+    /// Uniform damping, N·s/m.
+    pub b: f64,
+    /// Integration steps per frame.
+    pub substeps: usize,
+    /// The estimate at `frame_dt / substeps`.
+    pub stability: Stability,
+    /// What `train` would derive from the data (one line each), or why it cannot.
+    pub defaults: std::result::Result<Vec<String>, String>,
+}
+
+/// What a dataset folder holds.
+#[derive(Debug, Clone)]
+pub struct DatasetReport {
+    /// The folder.
+    pub dir: PathBuf,
+    /// `index.json`: springtime's (train/test counts), none, or another tool's (ignored).
+    pub index: String,
+    /// Training files.
+    pub train: usize,
+    /// Test files.
+    pub test: usize,
+    /// Stored frames per file.
+    pub frames: Range,
+    /// Stored frames of all files together.
+    pub total_frames: usize,
+    /// Shared frame step, mass and rest rectangle.
+    pub info: SetInfo,
+    /// Landmarks per frame.
+    pub landmarks: usize,
+    /// Pinned landmarks per file.
+    pub pinned: Range,
+    /// Files that store velocities.
+    pub with_velocities: usize,
+    /// Files with ground-truth springs / an FEM mesh.
+    pub with_springs: usize,
+    /// Files with an FEM mesh and stiffness map.
+    pub with_mesh: usize,
+    /// Keys springtime ignores: key → dtype, over every file.
+    pub ignored_keys: BTreeMap<String, String>,
+    /// The configured surrogate's stability on this data.
+    pub surrogate: SurrogateStability,
+}
+
+/// Reads and validates every rollout of `dir` (the `index.json` split when springtime wrote
+/// one, else every `.npz`), checks that they share frame step, mass, rectangle and landmarks,
+/// and estimates the stability of `config`'s initial surrogate at the data's frame step. An
+/// error names the file and the key.
+pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
+    if !dir.is_dir() {
+        bail!("{} is not a directory", dir.display());
+    }
+    let index = match Index::probe(dir)? {
+        IndexFile::Missing => "none (every .npz is a training rollout)".to_string(),
+        IndexFile::Springtime(i) => format!(
+            "springtime's ({} train, {} test)",
+            i.train.len(),
+            i.test.len()
+        ),
+        IndexFile::Foreign(why) => format!("ignored: {why}"),
+    };
+    let data = DataConfig {
+        dir: dir.to_path_buf(),
+        ..DataConfig::default()
+    };
+    let split = data.split()?;
+    let paths: Vec<&PathBuf> = split.train.iter().chain(&split.test).collect();
+    if paths.is_empty() {
+        bail!("{} lists no rollout files", Index::path(dir).display());
+    }
+    let mut first: Option<(SetInfo, Vec<[f64; 2]>)> = None;
+    let (mut frames, mut pinned) = (None, None);
+    let (mut total_frames, mut with_velocities, mut with_springs, mut with_mesh) = (0, 0, 0, 0);
+    let mut ignored_keys = BTreeMap::new();
+    for path in &paths {
+        let npz = Npz::read(path)?;
+        for (key, a) in &npz.arrays {
+            if !KEYS.contains(&key.as_str()) {
+                ignored_keys
+                    .entry(key.clone())
+                    .or_insert_with(|| format!("{} {:?}", a.dtype.name(), a.shape));
+            }
+        }
+        for (key, u) in &npz.unreadable {
+            if !KEYS.contains(&key.as_str()) {
+                ignored_keys
+                    .entry(key.clone())
+                    .or_insert_with(|| u.descr.clone());
+            }
+        }
+        let r = Rollout::from_npz(&npz)?;
+        let info = SetInfo {
+            frame_dt: r.frame_dt,
+            total_mass: r.total_mass,
+            width: r.width,
+            height: r.height,
+            landmarks: r.landmarks,
+            gravity: r.gravity,
+            rayleigh: r.rayleigh,
+        };
+        match &first {
+            None => first = Some((info, r.rest_uv.clone())),
+            Some((info0, uv0)) => {
+                check_same(info0, &info, path, paths[0])?;
+                check_same_landmarks(uv0, &r.rest_uv, path, paths[0])?;
+            }
+        }
+        Range::add(&mut frames, r.frames);
+        Range::add(&mut pinned, r.pinned.iter().filter(|&&p| p).count());
+        total_frames += r.frames;
+        with_velocities += usize::from(r.velocities.is_some());
+        with_springs += usize::from(r.springs.is_some());
+        with_mesh += usize::from(r.mesh.is_some());
+    }
+    let (info, rest_uv) = first.expect("at least one file");
+    // The surrogate training would start from: the config's values, its "auto"s resolved from
+    // the training files exactly as `train` resolves them.
+    let train_files = if split.train.is_empty() {
+        &split.test
+    } else {
+        &split.train
+    };
+    let clips = ClipSet::open(
+        train_files,
+        &config.data.clips,
+        |w, h| Topology::grid(&config.cloth, w, h),
+        config.data.cache_mib.min(1024),
+        |_| {},
+    )?;
+    let (resolved, defaults) = match crate::train::init::resolve(config, &clips) {
+        Ok((c, how)) => (c, Ok(how.lines())),
+        Err(e) => (config.clone(), Err(format!("{e:#}"))),
+    };
+    let topo = &clips.topology;
+    let s = topo.num_springs();
+    let mass = clips.particle_mass();
+    let (k, b) = (
+        resolved.model.k_init.or(50.0),
+        resolved.model.b_init.or(3.0),
+    );
+    let substeps = resolved.sim.substeps.or(1);
+    let stability = Stability::estimate(
+        topo,
+        &vec![k; s],
+        &vec![b; s],
+        mass,
+        resolved.sim.rayleigh.or(crate::sim::RAYLEIGH),
+        info.frame_dt / substeps as f64,
+    );
+    Ok(DatasetReport {
+        dir: dir.to_path_buf(),
+        index,
+        train: split.train.len(),
+        test: split.test.len(),
+        frames: frames.expect("at least one file"),
+        total_frames,
+        info,
+        landmarks: rest_uv.len(),
+        pinned: pinned.expect("at least one file"),
+        with_velocities,
+        with_springs,
+        with_mesh,
+        ignored_keys,
+        surrogate: SurrogateStability {
+            grid: [topo.nx, topo.ny],
+            k,
+            b,
+            substeps,
+            stability,
+            defaults,
+        },
+    })
+}
+
+impl DatasetReport {
+    /// Number of files.
+    pub fn files(&self) -> usize {
+        self.train + self.test
+    }
+
+    /// The report as lines of text.
+    pub fn render(&self) -> String {
+        let mut s = String::new();
+        let i = &self.info;
+        let files = self.files();
+        let all_or = |n: usize| match n {
+            0 => "no".to_string(),
+            n if n == files => "yes".to_string(),
+            n => format!("in {n} of {files} files"),
+        };
+        let _ = writeln!(s, "dataset {}", self.dir.display());
+        let _ = writeln!(
+            s,
+            "  files            {files} ({} train, {} test)",
+            self.train, self.test
+        );
+        let _ = writeln!(s, "  index.json       {}", self.index);
+        let _ = writeln!(
+            s,
+            "  frames           {} per file, {} in all ({:.4} s per file at most)",
+            self.frames.show(),
+            self.total_frames,
+            (self.frames.max.saturating_sub(1)) as f64 * i.frame_dt
+        );
+        let _ = writeln!(
+            s,
+            "  frame_dt         {} s ({:.1} fps)",
+            i.frame_dt,
+            1.0 / i.frame_dt
+        );
+        let _ = writeln!(s, "  total mass       {} kg", i.total_mass);
+        let _ = writeln!(s, "  rest rectangle   {} m × {} m", i.width, i.height);
+        let _ = writeln!(s, "  landmarks        {}", self.landmarks);
+        let _ = writeln!(s, "  pinned           {}", self.pinned.show());
+        let _ = writeln!(s, "  velocities       {}", all_or(self.with_velocities));
+        if self.with_springs > 0 || self.with_mesh > 0 {
+            let _ = writeln!(
+                s,
+                "  ground truth     springs {}, FEM mesh {}",
+                all_or(self.with_springs),
+                all_or(self.with_mesh)
+            );
+        }
+        let ignored = if self.ignored_keys.is_empty() {
+            "none".to_string()
+        } else {
+            self.ignored_keys
+                .iter()
+                .map(|(k, d)| format!("{k} ({d})"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        let _ = writeln!(s, "  extra keys       ignored: {ignored}");
+        let g = &self.surrogate;
+        match &g.defaults {
+            Ok(lines) => {
+                for (n, line) in lines.iter().enumerate() {
+                    let head = if n == 0 { "from the data" } else { "" };
+                    let _ = writeln!(s, "  {head:<16} {line}");
+                }
+            }
+            Err(why) => {
+                let _ = writeln!(
+                    s,
+                    "  from the data    cannot derive the defaults: {why} (set them in the config)"
+                );
+            }
+        }
+        let st = &g.stability;
+        let _ = writeln!(
+            s,
+            "  stability        dt²ω² + 2dtγ = {:.4} for the surrogate ({} × {} particles, k = {} N/m, b = {} N·s/m, {} substep{} per frame, dt = {:.3e} s): {}",
+            st.number(),
+            g.grid[0],
+            g.grid[1],
+            g.k,
+            g.b,
+            g.substeps,
+            if g.substeps == 1 { "" } else { "s" },
+            st.dt,
+            if st.is_stable() {
+                format!(
+                    "stable (below 4; largest stable dt {:.3e} s)",
+                    st.max_stable_dt()
+                )
+            } else {
+                let need = (i.frame_dt / st.max_stable_dt()).ceil() as usize;
+                format!(
+                    "UNSTABLE (4 or more): training would refuse; set `sim.substeps` to at least {} or a larger mass",
+                    need.max(g.substeps + 1)
+                )
+            }
+        );
+        s
+    }
+}

@@ -1,0 +1,155 @@
+//! Tracked points as CSV (`import csv`): one row per point per frame.
+//!
+//! The first line names the columns, in any order: `frame`, `point`, `x`, `y`, `z` (required)
+//! and `u`, `v` (optional rest coordinates in metres); other columns are ignored. `frame` and
+//! `point` are integers; every point must appear in every frame exactly once. Frames are taken
+//! in increasing order of `frame`, points in increasing order of `point` (so `--pinned` counts
+//! points in that order: with ids 0…N−1, the ids themselves). Without `u`, `v` the first frame
+//! must be flat and gives the rest rectangle. Fields are separated by commas (or semicolons or
+//! tabs); lines starting with `#` are skipped.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+
+use super::{ImportOptions, ImportSummary, Motion, RestShape, rest_rectangle, write_rollout};
+
+/// Imports a CSV of tracked points as `<out>/<file stem>.npz`.
+pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSummary> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let shown = path.display();
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+    let Some((_, header)) = lines.next() else {
+        bail!("{shown} is empty");
+    };
+    let sep = [',', ';', '\t']
+        .into_iter()
+        .find(|&c| header.contains(c))
+        .unwrap_or(',');
+    let names: Vec<String> = header
+        .split(sep)
+        .map(|s| s.trim().trim_matches('"').to_ascii_lowercase())
+        .collect();
+    let column = |name: &str| names.iter().position(|n| n == name);
+    let mut required = [0usize; 5];
+    for (slot, name) in required.iter_mut().zip(["frame", "point", "x", "y", "z"]) {
+        *slot = column(name).ok_or_else(|| {
+            anyhow::anyhow!(
+                "{shown}, line 1: no `{name}` column (the header must name frame, point, x, y, z; \
+                 optionally u, v), found: {}",
+                names.join(", ")
+            )
+        })?;
+    }
+    let uv_columns = match (column("u"), column("v")) {
+        (Some(u), Some(v)) => Some([u, v]),
+        (None, None) => None,
+        _ => bail!("{shown}, line 1: give both `u` and `v` columns, or neither"),
+    };
+    // frame id → point id → (position, line)
+    let mut frames: BTreeMap<i64, BTreeMap<i64, ([f64; 3], usize)>> = BTreeMap::new();
+    let mut rest: BTreeMap<i64, ([f64; 2], usize)> = BTreeMap::new();
+    for (number, line) in lines {
+        let fields: Vec<&str> = line
+            .split(sep)
+            .map(|s| s.trim().trim_matches('"'))
+            .collect();
+        let field = |c: usize| -> Result<&str> {
+            fields.get(c).copied().ok_or_else(|| {
+                anyhow::anyhow!("{shown}, line {number}: missing column `{}`", names[c])
+            })
+        };
+        let int = |c: usize| -> Result<i64> {
+            let s = field(c)?;
+            s.parse().map_err(|_| {
+                anyhow::anyhow!(
+                    "{shown}, line {number}: `{}` = `{s}` is not an integer",
+                    names[c]
+                )
+            })
+        };
+        let num = |c: usize| -> Result<f64> {
+            let s = field(c)?;
+            let v: f64 = s.parse().map_err(|_| {
+                anyhow::anyhow!(
+                    "{shown}, line {number}: `{}` = `{s}` is not a number",
+                    names[c]
+                )
+            })?;
+            if !v.is_finite() || !(v as f32).is_finite() {
+                bail!("{shown}, line {number}: `{}` = {s} is not finite", names[c]);
+            }
+            Ok(v)
+        };
+        let (frame, point) = (int(required[0])?, int(required[1])?);
+        let p = [num(required[2])?, num(required[3])?, num(required[4])?];
+        if let Some((_, first)) = frames.entry(frame).or_default().insert(point, (p, number)) {
+            bail!(
+                "{shown}, line {number}: frame {frame}, point {point} was already given on line {first}"
+            );
+        }
+        if let Some([u, v]) = uv_columns {
+            let q = [num(u)?, num(v)?];
+            match rest.get(&point) {
+                Some(&(old, line)) if old != q => bail!(
+                    "{shown}, line {number}: point {point} has rest coordinates ({}, {}) here and \
+                     ({}, {}) on line {line}",
+                    q[0],
+                    q[1],
+                    old[0],
+                    old[1]
+                ),
+                Some(_) => {}
+                None => {
+                    rest.insert(point, (q, number));
+                }
+            }
+        }
+    }
+    let Some((&first_frame, first)) = frames.iter().next() else {
+        bail!("{shown} holds no rows");
+    };
+    let ids: Vec<i64> = first.keys().copied().collect();
+    let mut positions = Vec::with_capacity(frames.len() * ids.len() * 3);
+    for (&frame, points) in &frames {
+        if let Some(id) = ids.iter().find(|&&id| !points.contains_key(&id)) {
+            bail!("{shown}: frame {frame} lacks point {id} (frame {first_frame} has it)");
+        }
+        if let Some((id, (_, line))) = points.iter().find(|&(&id, _)| !first.contains_key(&id)) {
+            bail!(
+                "{shown}, line {line}: point {id} of frame {frame} is not in frame {first_frame}"
+            );
+        }
+        positions.extend(points.values().flat_map(|(p, _)| p.map(|c| c as f32)));
+    }
+    let shape = if uv_columns.is_some() {
+        RestShape::Given {
+            uv: ids.iter().map(|id| rest[id].0).collect(),
+            what: format!("{shown} (columns u, v)"),
+        }
+    } else {
+        RestShape::Flat {
+            reference: first.values().map(|(p, _)| *p).collect(),
+            what: format!("{shown}, frame {first_frame}"),
+        }
+    };
+    let rect = rest_rectangle(&shape, options.size)?;
+    let rest_from = if uv_columns.is_some() {
+        "the u, v columns".to_string()
+    } else {
+        format!("the flat frame {first_frame}")
+    };
+    let motion = Motion {
+        name: super::stem(path),
+        frames: frames.len(),
+        points: ids.len(),
+        positions,
+    };
+    write_rollout(&motion, rect, &rest_from, options)
+}
