@@ -375,9 +375,9 @@ mod tests {
             }
         );
         for key in [
-            "k_init = 50.0",
+            "k_init = \"auto\"",
             "[train.stiffness.weights]",
-            "substeps = 1",
+            "substeps = \"auto\"",
             "# Adam steps",
         ] {
             assert!(text.contains(key), "no {key:?} in\n{text}");

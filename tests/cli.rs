@@ -324,6 +324,8 @@ fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() 
             "train.stiffness.lr=1e5",
             "--set",
             "train.checkpoint_every=1",
+            "--set",
+            "train.project_stable=false",
         ],
         &dir,
     );
@@ -338,5 +340,19 @@ fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() 
         dir.join(format!("runs/tiny/checkpoints/model_{ckpt:06}.bpk"))
             .exists()
     );
+    // The same learning rate with the projection on (the default) stays stable and finishes.
+    let out = springtime(
+        &[
+            "train",
+            "tiny.toml",
+            "--force",
+            "--no-report",
+            "--set",
+            "train.stiffness.lr=1e5",
+        ],
+        &dir,
+    );
+    let text = ok(&out);
+    assert!(text.contains("stability limit was active"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -529,7 +529,12 @@ fn the_cli_explains_itself() {
     let defaults = ok(&springtime(&["config", "--defaults"], &dir));
     std::fs::write(dir.join("defaults.toml"), &defaults).unwrap();
     let parsed = springtime::config::Config::load(&dir.join("defaults.toml"), &[]).unwrap();
-    assert_eq!(parsed.model.k_init, 50.0);
+    assert_eq!(
+        parsed.model,
+        springtime::config::Config::default().model,
+        "{defaults}"
+    );
+    assert!(defaults.contains("k_init = \"auto\""), "{defaults}");
     assert!(
         defaults.contains("[source.fem]") && defaults.contains("# "),
         "{defaults}"

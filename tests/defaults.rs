@@ -77,7 +77,7 @@ fn auto_values_come_from_the_files_and_are_written_resolved() {
     write_uniform_source(&dir, true, [0.0, -2.0, -9.0]);
     let cfg = config(&dir);
     let clips = open(&dir, &cfg);
-    let (resolved, how) = resolve(&cfg, &clips).unwrap();
+    let (resolved, how) = resolve(&cfg, &clips, None).unwrap();
     assert_eq!(how.gravity, [0.0, -2.0, -9.0]);
     assert_eq!(how.gravity_from, "data");
     // Same particles as landmarks: the files' Rayleigh constant is taken as it is.
@@ -100,7 +100,7 @@ fn auto_values_come_from_the_files_and_are_written_resolved() {
     let mut given = cfg.clone();
     given.sim.gravity = Auto::Value([0.0, -2.0, -9.0]);
     given.sim.rayleigh = Auto::Value(0.5);
-    let (_, how) = resolve(&given, &clips).unwrap();
+    let (_, how) = resolve(&given, &clips, None).unwrap();
     assert_eq!((how.gravity_from, how.rayleigh_from), ("config", "config"));
     assert_eq!(how.rayleigh, 0.5);
     std::fs::remove_dir_all(&dir).ok();

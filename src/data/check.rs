@@ -172,27 +172,28 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     } else {
         &split.train
     };
-    let clips = ClipSet::open(
+    let topo = Topology::grid(&config.cloth, info.width, info.height);
+    let mass = info.total_mass / topo.num_particles() as f64;
+    let opened = ClipSet::open(
         train_files,
         &config.data.clips,
         |w, h| Topology::grid(&config.cloth, w, h),
         config.data.cache_mib.min(1024),
         |_| {},
-    )?;
-    let (resolved, defaults) = match crate::train::init::resolve(config, &clips) {
-        Ok((c, how)) => (c, Ok(how.lines())),
-        Err(e) => (config.clone(), Err(format!("{e:#}"))),
-    };
-    let topo = &clips.topology;
+    );
+    let (resolved, defaults) =
+        match opened.and_then(|clips| crate::train::init::resolve(config, &clips, None)) {
+            Ok((c, how)) => (c, Ok(how.lines())),
+            Err(e) => (config.clone(), Err(format!("{e:#}"))),
+        };
     let s = topo.num_springs();
-    let mass = clips.particle_mass();
     let (k, b) = (
         resolved.model.k_init.or(50.0),
         resolved.model.b_init.or(3.0),
     );
     let substeps = resolved.sim.substeps.or(1);
     let stability = Stability::estimate(
-        topo,
+        &topo,
         &vec![k; s],
         &vec![b; s],
         mass,

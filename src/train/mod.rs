@@ -101,6 +101,10 @@ pub struct TrainConfig {
     /// Memory the fused rollout may keep for its backward pass, MiB; beyond it, states are
     /// checkpointed every ⌈√T⌉ frames and recomputed.
     pub state_budget_mib: usize,
+    /// Project `k` and `b` back into the explicit step's stable region (and to non-negative
+    /// values) after every Adam step (springs); off: the paper's unconstrained steps, which may
+    /// diverge.
+    pub project_stable: bool,
     /// The stiffness pass.
     pub stiffness: PassConfig,
     /// The damping pass.
@@ -121,6 +125,7 @@ impl Default for TrainConfig {
             seed: 0,
             gradient_checkpointing: false,
             state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
+            project_stable: true,
             stiffness: PassConfig {
                 lr: 2.0,
                 clips: ClipPool::LowVelocity,
@@ -344,7 +349,16 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     let (clips, truth) = open_training_clips(config, progress)?;
     let clips = Arc::new(clips);
     let requested = config;
-    let (resolved, resolution) = init::resolve(config, &clips)?;
+    let train_files = config.data.split()?.train;
+    let search_device = config.backend.device()?;
+    let (resolved, resolution) = init::resolve(
+        config,
+        &clips,
+        Some(&init::SearchContext {
+            files: &train_files,
+            device: &search_device,
+        }),
+    )?;
     let config = &resolved;
     for line in resolution.lines() {
         progress.note(&format!("from the data: {line}"));
@@ -468,6 +482,11 @@ pub trait Trainable: Module + Sized {
         "the surrogate's rollout diverged".into()
     }
 
+    /// Whether the gradients are finite (spring networks check `k` and `b`; others trust them).
+    fn gradients_finite(&self, _grads: &GradientsParams) -> bool {
+        true
+    }
+
     /// Projects the trained parameters back into the explicit step's stable region after an
     /// optimizer step (spring networks: `0 ≤ k, b ≤ cap`; a negative `k` or `b` grows
     /// exponentially, whatever the step); returns how many values were clamped.
@@ -518,6 +537,16 @@ impl Trainable for SpringNet {
             "the rollout likely diverged: {}",
             job.physics.stability_of(job.topology, self).describe()
         )
+    }
+
+    fn gradients_finite(&self, grads: &GradientsParams) -> bool {
+        [self.k.id, self.b.id].into_iter().all(|id| {
+            grads.get::<1>(id).is_none_or(|g| {
+                crate::model::springs::to_f64(g)
+                    .iter()
+                    .all(|x| x.is_finite())
+            })
+        })
     }
 
     /// `ω²` grows with every `k_s` and `γ` with every `b_s` (sums of positive semi-definite
@@ -724,6 +753,7 @@ impl Fit<'_> {
         let mut global = 0;
         let mut pending = Vec::new();
         let mut clamped_total = 0usize;
+        let mut skipped = 0usize;
         for (pass_index, (name, pass, train_k, train_b)) in passes.into_iter().enumerate() {
             let pass_start = global;
             global += pass.iterations;
@@ -799,9 +829,18 @@ impl Fit<'_> {
                     Some(ids) => GradientsParams::from_params(&mut grads, &model, ids),
                     None => GradientsParams::from_grads(grads, &model),
                 };
-                model = optim.step(pass.lr, model, grads);
-                let (projected, clamped) = model.project_stable(job, train_k, train_b);
-                model = projected;
+                if model.gradients_finite(&grads) {
+                    model = optim.step(pass.lr, model, grads);
+                } else {
+                    skipped += 1; // a finite loss with a non-finite gradient: no step
+                }
+                let clamped = if config.train.project_stable {
+                    let (projected, clamped) = model.project_stable(job, train_k, train_b);
+                    model = projected;
+                    clamped
+                } else {
+                    0
+                };
                 clamped_total += clamped;
                 last = values;
                 if job.truth.is_some() {
@@ -853,6 +892,11 @@ impl Fit<'_> {
             start_iteration = global;
         }
         bar.finish();
+        if skipped > 0 {
+            self.progress.note(&format!(
+                "{skipped} step(s) skipped: the loss was finite but its gradient was not"
+            ));
+        }
         if clamped_total > 0 {
             self.progress.note(&format!(
                 "the stability limit was active: {clamped_total} spring values clamped so that \
