@@ -438,6 +438,15 @@ impl ClipSet {
         &self.entries[i].name
     }
 
+    /// Every clip: the regular ones, then the low-velocity ones.
+    pub fn all_clips(&self) -> Vec<ClipRef> {
+        self.regular
+            .iter()
+            .chain(&self.low_velocity)
+            .copied()
+            .collect()
+    }
+
     /// Particle mass `ρA/P`.
     pub fn particle_mass(&self) -> f64 {
         self.info.total_mass / self.topology.num_particles() as f64

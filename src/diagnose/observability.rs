@@ -284,12 +284,7 @@ pub fn observability(
     inputs: &Inputs,
     progress: &Progress,
 ) -> Result<ObservabilityReport> {
-    let clips: Vec<ClipRef> = set
-        .regular
-        .iter()
-        .chain(&set.low_velocity)
-        .copied()
-        .collect();
+    let clips: Vec<ClipRef> = set.all_clips();
     let acc = accumulate(set, &clips, progress)?;
     Ok(summarize(&inputs.topology, &acc, clips.len(), inputs))
 }

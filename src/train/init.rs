@@ -153,12 +153,7 @@ impl UniformFit {
         let topo = &clips.topology;
         let mass = clips.particle_mass();
         let dt = clips.info.frame_dt;
-        let pool: Vec<ClipRef> = clips
-            .regular
-            .iter()
-            .chain(&clips.low_velocity)
-            .copied()
-            .collect();
+        let pool: Vec<ClipRef> = clips.all_clips();
         if pool.is_empty() {
             bail!("no clips to fit the initial stiffness to");
         }

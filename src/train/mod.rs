@@ -938,22 +938,12 @@ fn pool_of(
     let chosen = match pool {
         ClipPool::LowVelocity => clips.low_velocity.clone(),
         ClipPool::Regular => clips.regular.clone(),
-        ClipPool::All => clips
-            .regular
-            .iter()
-            .chain(&clips.low_velocity)
-            .copied()
-            .collect(),
+        ClipPool::All => clips.all_clips(),
     };
     if !chosen.is_empty() {
         return Ok(chosen);
     }
-    let all: Vec<ClipRef> = clips
-        .regular
-        .iter()
-        .chain(&clips.low_velocity)
-        .copied()
-        .collect();
+    let all: Vec<ClipRef> = clips.all_clips();
     if all.is_empty() {
         bail!("the {name} pass has no clips");
     }
@@ -996,12 +986,7 @@ impl ModelMeta {
             }
             ModelKind::Gnn => {
                 let cfg = &config.model.gnn;
-                let pool: Vec<ClipRef> = clips
-                    .regular
-                    .iter()
-                    .chain(&clips.low_velocity)
-                    .copied()
-                    .collect();
+                let pool: Vec<ClipRef> = clips.all_clips();
                 let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0005_7A75);
                 let refs: Vec<ClipRef> = sampler.next(64).into_iter().map(|i| pool[i]).collect();
                 progress.note(&format!("GNN: normalisation from {} clips", refs.len()));
