@@ -21,6 +21,35 @@ const SPAN: i32 = 6;
 /// Training rollouts the search simulates (the first ones of the split).
 const SEARCH_ROLLOUTS: usize = 8;
 
+/// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `files` (`None` when it
+/// is unstable at `physics`' step or a rollout diverges).
+pub fn rollout_rmse(
+    topology: &Topology,
+    physics: &Physics,
+    k: f64,
+    b: f64,
+    files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+) -> Option<f64> {
+    let model = SpringNet::uniform(topology, k, b, device);
+    if !physics.stability_of(topology, &model).is_stable() {
+        return None;
+    }
+    let curves = eval::motion_curves(
+        &model,
+        physics,
+        topology,
+        files,
+        batch,
+        device,
+        &Progress::quiet(),
+    )
+    .ok()?;
+    let mean = eval::summarize(&curves.curves, physics.frame_dt, 0.0, 0.0).mean;
+    mean.is_finite().then_some(mean)
+}
+
 /// `eval.json`'s `uniform_baseline`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct UniformBaseline {
@@ -56,30 +85,7 @@ pub fn search(
     progress: &Progress,
 ) -> Result<UniformBaseline> {
     let train: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
-    let quiet = Progress::quiet();
-    let score = |k: f64| -> Option<f64> {
-        let model = SpringNet::uniform(topology, k, b, device);
-        if !physics.stability_of(topology, &model).is_stable() {
-            return None;
-        }
-        let curves = eval::motion_curves(
-            &model,
-            physics,
-            topology,
-            &train,
-            eval_config.batch,
-            device,
-            &quiet,
-        )
-        .ok()?;
-        let m = eval::summarize(
-            &curves.curves,
-            physics.frame_dt,
-            eval_config.short_seconds,
-            eval_config.long_seconds,
-        );
-        m.mean.is_finite().then_some(m.mean)
-    };
+    let score = |k: f64| rollout_rmse(topology, physics, k, b, &train, eval_config.batch, device);
     let bar = progress.bar((2 * SPAN + 3) as u64, "uniform search");
     let mut search: Vec<(f64, f64)> = Vec::new();
     for i in -SPAN..=SPAN {

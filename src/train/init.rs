@@ -119,18 +119,8 @@ pub fn search_stiffness(
             rayleigh: c,
             gravity,
         };
-        let model = crate::model::SpringNet::uniform(topo, k, b, ctx.device);
-        let rmse = crate::eval::motion_curves(
-            &model,
-            &physics,
-            topo,
-            &files,
-            16,
-            ctx.device,
-            &crate::progress::Progress::quiet(),
-        )
-        .map(|m| crate::eval::summarize(&m.curves, clips.info.frame_dt, 1.0, 1.0).mean)
-        .unwrap_or(f64::INFINITY);
+        let rmse = crate::eval::uniform::rollout_rmse(topo, &physics, k, b, &files, 16, ctx.device)
+            .unwrap_or(f64::INFINITY);
         if best.is_none_or(|(_, _, r)| rmse < r) {
             best = Some((k, n, rmse));
             worse = 0;
@@ -190,10 +180,8 @@ impl UniformFit {
                 // m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² is the tent-weighted mean of the net
                 // force over (j − w, j + w): weights (w − |i − j|)/w² on the frames between.
                 let h2 = (w as f64 * dt).powi(2);
-                for j in w.max(1)..=t - w {
-                    if j + w > t || j < w || (j - w + 1..j + w).any(|i| i == 0 || i >= t) {
-                        continue;
-                    }
+                // Frames j − w + 1 … j + w − 1 all lie in 1 … t − 1, where `frames` is filled.
+                for j in w..=t - w {
                     for i in (0..p).filter(|&i| !track.pinned[i]) {
                         let (a, b, c) = (x(j - w, i), x(j, i), x(j + w, i));
                         for d in 0..3 {
