@@ -686,7 +686,7 @@ fn print_eval(r: &EvalReport) {
     );
     if let Some(u) = &r.uniform_baseline {
         println!(
-            "best uniform stiffness {:.4} N/m (b {:.4}, searched on {} training rollouts): test \
+            "best uniform network: k {:.4} N/m, b {:.4e} N·s/m (searched on {} training rollouts): test \
              motion RMSE {:.4e} m (short horizon {:.4e}, long {:.4e}); training improves on it \
              by {:.1} % (long) and {:.1} % (short)",
             u.k,

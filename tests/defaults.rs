@@ -155,3 +155,30 @@ fn training_is_projected_back_into_the_stable_region() {
     assert!(b.iter().chain(&k).all(|&x| x >= 0.0));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The yardstick of spatial learning: from a stiffness 4× too low and almost no damping, the
+/// uniform-baseline search of `eval` finds the uniform source's stiffness, and raises the
+/// damping towards the source's (b = 6 N·s/m, far above every candidate).
+#[test]
+fn the_uniform_baseline_finds_the_stiffness_and_damping_of_a_uniform_source() {
+    let dir = common::temp_dir("defaults_baseline");
+    write_uniform_source(&dir.join("data"), true, [0.0, 0.0, -9.81]);
+    let config = "name = \"baseline\"\n[cloth]\nnx = 6\nny = 6\n\
+                  [model]\nk_init = 10.0\nb_init = 0.001\n\
+                  [data]\ndir = \"data\"\ntest_dir = \"data\"\n[data.clips]\nsteps = 100\n\
+                  [train.stiffness]\niterations = 0\n[train.damping]\niterations = 0\n\
+                  [eval]\nuniform_baseline = true\n";
+    std::fs::write(dir.join("baseline.toml"), config).unwrap();
+    common::ok(&common::springtime(&["train", "baseline.toml"], &dir));
+    common::ok(&common::springtime(&["eval", "runs/baseline"], &dir));
+    let eval: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("runs/baseline/eval.json")).unwrap())
+            .unwrap();
+    let u = &eval["uniform_baseline"];
+    let (k, b) = (u["k"].as_f64().unwrap(), u["b"].as_f64().unwrap());
+    eprintln!("best uniform k = {k} N/m, b = {b} N·s/m");
+    assert!((k - 40.0).abs() < 0.2 * 40.0, "k = {k}: {u}");
+    assert!(b > 0.01, "b = {b}: {u}");
+    assert!(u["b_search"].as_array().unwrap().len() > 1, "{u}");
+    std::fs::remove_dir_all(&dir).ok();
+}
