@@ -754,6 +754,7 @@ impl Fit<'_> {
         let mut pending = Vec::new();
         let mut clamped_total = 0usize;
         let mut skipped = 0usize;
+        let mut dropped_clips = 0usize;
         for (pass_index, (name, pass, train_k, train_b)) in passes.into_iter().enumerate() {
             let pass_start = global;
             global += pass.iterations;
@@ -829,6 +830,7 @@ impl Fit<'_> {
                     Some(ids) => GradientsParams::from_params(&mut grads, &model, ids),
                     None => GradientsParams::from_grads(grads, &model),
                 };
+                dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
                 if model.gradients_finite(&grads) {
                     model = optim.step(pass.lr, model, grads);
                 } else {
@@ -895,6 +897,14 @@ impl Fit<'_> {
         if skipped > 0 {
             self.progress.note(&format!(
                 "{skipped} step(s) skipped: the loss was finite but its gradient was not"
+            ));
+        }
+        if dropped_clips > 0 {
+            self.progress.note(&format!(
+                "{dropped_clips} clip(s) left out of their step's gradient: their adjoint was not \
+                 finite or over {}× the batch's median (a buckling clip; shorter \
+                 `data.clips.steps` leave out fewer)",
+                crate::model::kernels::rollout::CHUNK_OUTLIER_RATIO
             ));
         }
         if clamped_total > 0 {

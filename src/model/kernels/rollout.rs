@@ -14,6 +14,7 @@
 //! or recomputed segment by segment from checkpoints stored every `⌈√T⌉` frames.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use num_traits::Float;
 use rayon::prelude::*;
@@ -400,7 +401,7 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
     let cf = cast::<T>(2.0 * w[0] / (b * t as f64 * p));
     let cj = cast::<T>(2.0 * w[1] / (b * p) * params.frame_dt);
     let cx = cast::<T>(2.0 * w[2] / (b * t as f64 * p));
-    let partials: Vec<Vec<T>> = tape
+    let partials: Vec<ChunkGradient<T>> = tape
         .chunks
         .par_iter()
         .enumerate()
@@ -512,15 +513,83 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
                     }
                 }
             }
-            pk
+            ChunkGradient {
+                clips: chunk.clips,
+                norm: pk
+                    .iter()
+                    .map(|v| v.to_f64().unwrap_or(f64::NAN).powi(2))
+                    .sum::<f64>()
+                    .sqrt(),
+                values: pk,
+            }
         })
         .collect();
+    let kept = keep_chunks(&partials);
+    let (clips, kept_clips) = (
+        partials.iter().map(|c| c.clips).sum::<usize>(),
+        partials
+            .iter()
+            .zip(&kept)
+            .filter(|(_, k)| **k)
+            .map(|(c, _)| c.clips)
+            .sum::<usize>(),
+    );
+    DROPPED_CLIPS.fetch_add(clips - kept_clips, Ordering::Relaxed);
+    // The mean over the clips kept: the loss weights above divide by all `B` clips.
+    let scale = cast::<T>(clips as f64 / kept_clips.max(1) as f64);
     let (mut gk, mut gb) = (vec![T::zero(); s_count], vec![T::zero(); s_count]);
-    for part in partials {
+    for part in partials
+        .iter()
+        .zip(&kept)
+        .filter(|(_, k)| **k)
+        .map(|(c, _)| &c.values)
+    {
         for s in 0..s_count {
-            gk[s] = gk[s] + part[s];
-            gb[s] = gb[s] + part[s_count + s];
+            gk[s] = gk[s] + part[s] * scale;
+            gb[s] = gb[s] + part[s_count + s] * scale;
         }
     }
     (gk, gb)
+}
+
+/// The parameter gradient of one chunk of clips.
+struct ChunkGradient<T> {
+    clips: usize,
+    norm: f64,
+    values: Vec<T>,
+}
+
+/// How far above the median chunk's gradient norm a chunk's may lie and still count.
+pub const CHUNK_OUTLIER_RATIO: f64 = 100.0;
+
+/// Clips left out of gradients since the last [`take_dropped_clips`].
+static DROPPED_CLIPS: AtomicUsize = AtomicUsize::new(0);
+
+/// The number of clips the backward left out since the last call (and resets it).
+///
+/// A clip's adjoint grows like the rollout's fastest instability (a compressed, buckling patch
+/// of cloth grows at `√(k ε / m)`); over a long clip it overflows or dwarfs every other clip's.
+/// Such chunks of clips, non-finite or more than [`CHUNK_OUTLIER_RATIO`] times the median
+/// chunk's gradient norm, are left out of the step and the rest averaged.
+pub fn take_dropped_clips() -> usize {
+    DROPPED_CLIPS.swap(0, Ordering::Relaxed)
+}
+
+/// Which chunks count: finite, and within [`CHUNK_OUTLIER_RATIO`] of the median norm.
+fn keep_chunks<T>(chunks: &[ChunkGradient<T>]) -> Vec<bool> {
+    let mut finite: Vec<f64> = chunks
+        .iter()
+        .map(|c| c.norm)
+        .filter(|n| n.is_finite())
+        .collect();
+    finite.sort_by(f64::total_cmp);
+    let median = finite.get(finite.len() / 2).copied().unwrap_or(f64::NAN);
+    if std::env::var_os("SPRINGTIME_DEBUG_CHUNKS").is_some() {
+        let norms: Vec<String> = chunks.iter().map(|c| format!("{:.2e}", c.norm)).collect();
+        eprintln!("chunk gradient norms: {}", norms.join(" "));
+    }
+    chunks
+        .iter()
+        .map(|c| c.norm.is_finite() && (c.norm <= CHUNK_OUTLIER_RATIO * median || median == 0.0))
+        .collect()
 }
