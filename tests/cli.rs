@@ -356,3 +356,30 @@ fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() 
     assert!(text.contains("stability limit was active"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_generating_config_never_writes_beside_someone_elses_rollouts() {
+    let dir = setup("cli-foreign");
+    ok(&springtime(&["generate", "tiny.toml"], &dir));
+    // The user's own folder: one take of theirs, no index.json.
+    let mine = dir.join("mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::copy(dir.join("data/train_0000.npz"), mine.join("my_take.npz")).unwrap();
+    let out = springtime(&["train", "tiny.toml", "--set", "data.dir=mine", "--no-eval"], &dir);
+    fails(&out, &["mine", "my_take.npz", "[source]", "another folder"]);
+    let left: Vec<_> = std::fs::read_dir(&mine)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    assert_eq!(left, ["my_take.npz"], "nothing written into the user's folder");
+    fails(
+        &springtime(&["generate", "tiny.toml", "--set", "data.dir=mine"], &dir),
+        &["my_take.npz"],
+    );
+    // An interrupted generation (its own files, no index yet) still resumes.
+    std::fs::remove_file(dir.join("data/index.json")).unwrap();
+    std::fs::remove_file(dir.join("data/test_0000.npz")).unwrap();
+    ok(&springtime(&["generate", "tiny.toml"], &dir));
+    assert!(dir.join("data/index.json").exists() && dir.join("data/test_0000.npz").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -382,6 +382,32 @@ pub fn build(cfg: &SourceConfig) -> Box<dyn ClothSim> {
     }
 }
 
+/// Errors when `dir` holds `.npz` files that are not among the rollouts a generation writes
+/// (`jobs`' names): someone's own data, which generating beside it would mix with synthetic
+/// rollouts (and training would then use those instead).
+fn refuse_foreign_rollouts(dir: &Path, jobs: &[(String, bool, u64)]) -> Result<()> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(());
+    };
+    let mut foreign: Vec<String> = entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|name| name.ends_with(".npz") && !jobs.iter().any(|(job, _, _)| job == name))
+        .collect();
+    foreign.sort();
+    if let Some(first) = foreign.first() {
+        bail!(
+            "data.dir {} holds {} rollout file(s) that this config's [source] does not write \
+             (e.g. {first}): refusing to generate synthetic rollouts beside them. To train on \
+             those files, remove [source] from the config; to generate, point data.dir at \
+             another folder",
+            dir.display(),
+            foreign.len()
+        );
+    }
+    Ok(())
+}
+
 /// Generates the train and test rollouts of `cfg` into `dir` with an `index.json`.
 ///
 /// Files that already exist are kept (an interrupted generation resumes); the index is written
@@ -398,7 +424,6 @@ pub fn generate(
     sim.stability(cfg.dt)
         .check("source", cfg.allow_unstable)
         .context("the source system would blow up")?;
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let jobs: Vec<(String, bool, u64)> = (0..cfg.train_rollouts)
         .map(|i| (format!("train_{i:04}.npz"), true, i as u64))
         .chain(
@@ -406,6 +431,8 @@ pub fn generate(
                 .map(|i| (format!("test_{i:04}.npz"), false, 1_000_000 + i as u64)),
         )
         .collect();
+    refuse_foreign_rollouts(dir, &jobs)?;
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
