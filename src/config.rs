@@ -384,6 +384,178 @@ mod tests {
         }
     }
 
+    /// Every key `config --defaults` prints, as `section.key` → value.
+    fn default_leaves() -> Vec<(String, toml::Value)> {
+        fn walk(prefix: &str, table: &toml::Table, out: &mut Vec<(String, toml::Value)>) {
+            for (k, v) in table {
+                let key = if prefix.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{prefix}.{k}")
+                };
+                match v {
+                    toml::Value::Table(t) => walk(&key, t, out),
+                    v => out.push((key, v.clone())),
+                }
+            }
+        }
+        let table: toml::Table = toml::from_str(&Config::defaults_toml()).unwrap();
+        let mut out = Vec::new();
+        walk("", &table, &mut out);
+        out
+    }
+
+    /// The keys a cell of the README's configuration table names: `a.b.c`, `d` → `a.b.c`,
+    /// `a.b.d` (a bare name shares the first key's section); `a.{x,y}.c` → `a.x.c`, `a.y.c`;
+    /// `a.*.c` stays a pattern.
+    fn readme_keys(cell: &str) -> Vec<String> {
+        let mut keys = Vec::new();
+        let mut section = String::new();
+        for part in cell.split("`, `") {
+            let part = part.trim_matches('`');
+            let full = if part.contains('.') || section.is_empty() {
+                section = part
+                    .rsplit_once('.')
+                    .map(|(s, _)| s.to_string())
+                    .unwrap_or_default();
+                part.to_string()
+            } else {
+                format!("{section}.{part}")
+            };
+            match (full.find('{'), full.find('}')) {
+                (Some(a), Some(b)) => {
+                    for alt in full[a + 1..b].split(',') {
+                        keys.push(format!("{}{alt}{}", &full[..a], &full[b + 1..]));
+                    }
+                }
+                _ => keys.push(full),
+            }
+        }
+        keys
+    }
+
+    /// Whether README key `pattern` (`*` = one name) covers `key` or the table `key` lies in.
+    fn covers(pattern: &str, key: &str) -> bool {
+        let (p, k): (Vec<&str>, Vec<&str>) =
+            (pattern.split('.').collect(), key.split('.').collect());
+        k.len() >= p.len() && p.iter().zip(&k).all(|(a, b)| *a == "*" || a == b)
+    }
+
+    /// The same value, numbers compared as numbers (`1e-4` = `0.0001`, `2` = `2.0`).
+    fn same_value(a: &toml::Value, b: &toml::Value) -> bool {
+        use toml::Value::{Array, Float, Integer};
+        match (a, b) {
+            (Integer(_) | Float(_), Integer(_) | Float(_)) => {
+                let f =
+                    |v: &toml::Value| v.as_float().or(v.as_integer().map(|i| i as f64)).unwrap();
+                (f(a) - f(b)).abs() <= 1e-12 * f(a).abs().max(f(b).abs())
+            }
+            (Array(x), Array(y)) => {
+                x.len() == y.len() && x.iter().zip(y).all(|(a, b)| same_value(a, b))
+            }
+            _ => a == b,
+        }
+    }
+
+    /// The README's configuration table cannot drift from the code: every key
+    /// `config --defaults` prints has a row, every row names real keys, and where a row lists
+    /// one default per key, the defaults are the code's.
+    #[test]
+    fn readme_configuration_table_matches_the_defaults() {
+        let readme =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md")).unwrap();
+        let table = readme
+            .split("\n## Configuration\n")
+            .nth(1)
+            .expect("README has a Configuration section");
+        let rows: Vec<(Vec<String>, String)> = table
+            .lines()
+            .skip_while(|l| !l.starts_with("| section.key"))
+            .skip(2)
+            .take_while(|l| l.starts_with('|'))
+            .map(|l| {
+                let cells: Vec<&str> = l.split(" | ").collect();
+                (
+                    readme_keys(cells[0].trim_start_matches("| ")),
+                    cells[1].to_string(),
+                )
+            })
+            .collect();
+        assert!(
+            rows.len() > 30,
+            "only {} rows read from the README's table",
+            rows.len()
+        );
+        let leaves = default_leaves();
+        let missing: Vec<&str> = leaves
+            .iter()
+            .map(|(key, _)| key.as_str())
+            .filter(|key| {
+                !rows
+                    .iter()
+                    .any(|(keys, _)| keys.iter().any(|p| covers(p, key)))
+            })
+            .collect();
+        assert!(
+            missing.is_empty(),
+            "keys of `springtime config --defaults` without a row in the README's configuration \
+             table: {missing:?}"
+        );
+        let mut checked = 0;
+        for (keys, defaults) in &rows {
+            for p in keys {
+                assert!(
+                    p == "data.test_dir" || leaves.iter().any(|(k, _)| covers(p, k)),
+                    "the README's configuration table names `{p}`, which is not a config key"
+                );
+            }
+            // One default per key (values may hold commas only inside brackets).
+            let values: Vec<toml::Value> = split_top_level(defaults)
+                .iter()
+                .filter_map(|v| {
+                    toml::from_str::<toml::Table>(&format!("v = {}", v.trim().trim_matches('`')))
+                        .ok()
+                })
+                .map(|t| t["v"].clone())
+                .collect();
+            if values.len() != keys.len() || keys.iter().any(|k| k.contains('*')) {
+                continue;
+            }
+            for (key, want) in keys.iter().zip(&values) {
+                let (_, have) = leaves
+                    .iter()
+                    .find(|(k, _)| k == key)
+                    .unwrap_or_else(|| panic!("README row `{key}`: not a key with a value"));
+                assert!(
+                    same_value(have, want),
+                    "README says `{key}` defaults to {want}, the code to {have}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 40, "only {checked} defaults compared");
+    }
+
+    /// `s` split at commas outside brackets and quotes.
+    fn split_top_level(s: &str) -> Vec<String> {
+        let (mut parts, mut cur, mut depth, mut quoted) = (Vec::new(), String::new(), 0, false);
+        for c in s.chars() {
+            match c {
+                '"' => quoted = !quoted,
+                '[' if !quoted => depth += 1,
+                ']' if !quoted => depth -= 1,
+                ',' if depth == 0 && !quoted => {
+                    parts.push(std::mem::take(&mut cur));
+                    continue;
+                }
+                _ => {}
+            }
+            cur.push(c);
+        }
+        parts.push(cur);
+        parts
+    }
+
     #[test]
     fn shipped_configs_parse() {
         for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/configs")).unwrap() {
