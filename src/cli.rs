@@ -58,6 +58,17 @@ pub enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// Print a shell completion script (bash, zsh, fish, elvish, powershell) to standard output.
+    #[command(
+        after_help = "Examples:\n  springtime completions bash > ~/.local/share/bash-completion/completions/springtime\n  \
+                            springtime completions zsh > ~/.zfunc/_springtime\n  \
+                            springtime completions fish > ~/.config/fish/completions/springtime.fish"
+    )]
+    Completions {
+        /// The shell.
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
     /// Dataset tools: `data check DIR`.
     Data {
         /// What to do with the data.
@@ -351,6 +362,20 @@ pub struct ImportArgs {
     /// Rest rectangle height, m (with --width).
     #[arg(long, value_name = "H", requires = "width")]
     pub height: Option<f64>,
+    /// Gravity the cloth moved under, m/s², as x,y,z in the file's axes (stored in the rollout;
+    /// default: none stored, training then uses 0,0,-9.81). Write it as --gravity=0,-9.81,0
+    /// when it starts with a minus sign.
+    #[arg(
+        long,
+        value_name = "X,Y,Z",
+        value_delimiter = ',',
+        allow_negative_numbers = true
+    )]
+    pub gravity: Option<Vec<f64>>,
+    /// Rayleigh damping c of −c·v on every point, N·s/m, when the tool that made the motion
+    /// used one (stored in the rollout; default: none stored, training fits it).
+    #[arg(long, value_name = "C")]
+    pub rayleigh: Option<f64>,
     /// Overwrite an existing rollout file.
     #[arg(long)]
     pub force: bool,
@@ -367,12 +392,19 @@ impl ImportArgs {
             }
             _ => None,
         };
+        let gravity = match self.gravity.as_deref() {
+            None => None,
+            Some(&[x, y, z]) => Some([x, y, z]),
+            Some(other) => bail!("--gravity takes three numbers x,y,z, got {}", other.len()),
+        };
         Ok(crate::import::ImportOptions {
             out: self.out.clone(),
             frame_dt: self.frame_dt,
             total_mass: self.mass,
             pinned: self.pinned.clone(),
             size,
+            gravity,
+            rayleigh: self.rayleigh,
             force: self.force,
         })
     }
@@ -393,6 +425,11 @@ pub fn run(cli: Cli) -> Result<()> {
                 None if set.is_empty() => print!("{}", Config::defaults_toml()),
                 None => print!("{}", Config::parse("", &set)?.to_toml()),
             }
+            Ok(())
+        }
+        Command::Completions { shell } => {
+            let mut command = <Cli as clap::CommandFactory>::command();
+            clap_complete::generate(shell, &mut command, "springtime", &mut std::io::stdout());
             Ok(())
         }
         Command::Import { source } => {

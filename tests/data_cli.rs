@@ -351,6 +351,59 @@ fn import_obj_without_texture_coordinates_unrolls_the_flat_first_frame() {
     ));
     let r = springtime::data::Rollout::load(&dir.join("out/flat.npz")).unwrap();
     assert_eq!((r.width, r.height), (2.0, 1.5));
+    assert_eq!(
+        (r.gravity, r.rayleigh),
+        (None, None),
+        "nothing stored unless given"
+    );
+    // --gravity and --rayleigh are stored in the rollout (a y-up tool's gravity here).
+    ok(&springtime(
+        &[
+            "import",
+            "obj",
+            "flat",
+            "--out",
+            "out",
+            "--frame-dt",
+            "0.04",
+            "--mass",
+            "0.25",
+            "--gravity",
+            "0,-9.8,0",
+            "--rayleigh",
+            "0.05",
+            "--force",
+        ],
+        &dir,
+    ));
+    let r = springtime::data::Rollout::load(&dir.join("out/flat.npz")).unwrap();
+    assert_eq!(
+        r.gravity,
+        Some([0.0, -9.8f32 as f64, 0.0]),
+        "stored as float32"
+    );
+    assert_eq!(r.rayleigh, Some(0.05));
+    // A gravity of two components is refused, naming the flag.
+    fails(
+        &springtime(
+            &[
+                "import",
+                "obj",
+                "flat",
+                "--out",
+                "out",
+                "--frame-dt",
+                "0.04",
+                "--mass",
+                "0.25",
+                "--gravity",
+                "0,-9.8",
+                "--force",
+            ],
+            &dir,
+        ),
+        &["--gravity", "three numbers"],
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -544,7 +597,65 @@ fn the_cli_explains_itself() {
         &dir,
     ));
     assert!(resolved.contains("substeps = 3"), "{resolved}");
+    // Shell completions know the subcommands and their options.
+    let bash = ok(&springtime(&["completions", "bash"], &dir));
+    for needle in ["_springtime()", "import", "--frame-dt", "--gravity", "gltf"] {
+        assert!(
+            bash.contains(needle),
+            "no {needle:?} in the bash completions"
+        );
+    }
+    let fish = ok(&springtime(&["completions", "fish"], &dir));
+    assert!(fish.contains("complete -c springtime"), "{fish}");
+    fails(
+        &springtime(&["completions", "tcsh"], &dir),
+        &["tcsh", "bash"],
+    );
     let version = ok(&springtime(&["--version"], &dir));
     assert!(version.contains(env!("CARGO_PKG_VERSION")), "{version}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn takes_imported_one_by_one_into_one_folder_share_one_rest_rectangle() {
+    use springtime::data::Rollout;
+    let dir = common::temp_dir("import-takes");
+    // Two takes of one cloth; the second starts stretched by 0.5 %, so its first frame's edge
+    // lengths give another scale for the same texture coordinates.
+    let take_a = swinging_cloth(6);
+    let mut take_b = swinging_cloth(6);
+    take_b.rotate_left(3);
+    for v in take_b[0].iter_mut() {
+        v[0] *= 1.005;
+    }
+    write_sequence(&dir.join("take_a"), &take_a, true);
+    write_sequence(&dir.join("take_b"), &take_b, true);
+    let import = |take: &str| {
+        springtime(
+            &["import", "obj", take, "--out", "set", "--frame-dt", "0.04", "--mass", "0.25"],
+            &dir,
+        )
+    };
+    ok(&import("take_a"));
+    let joined = import("take_b");
+    ok(&joined);
+    let said = String::from_utf8_lossy(&joined.stdout);
+    assert!(said.contains("matched to the set already in"), "{said}");
+    let a = Rollout::load(&dir.join("set/take_a.npz")).unwrap();
+    let b = Rollout::load(&dir.join("set/take_b.npz")).unwrap();
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    assert_eq!(a.rest_uv, b.rest_uv);
+    // ... so the folder is one usable set.
+    ok(&springtime(&["data", "check", "set"], &dir));
+    // Imported into another folder, take_b keeps its own (stretched) scale, and a set of the
+    // two is refused by `data check`, naming the key.
+    ok(&springtime(
+        &["import", "obj", "take_b", "--out", "alone", "--frame-dt", "0.04", "--mass", "0.25"],
+        &dir,
+    ));
+    let alone = Rollout::load(&dir.join("alone/take_b.npz")).unwrap();
+    assert!((alone.width / a.width - 1.005).abs() < 2e-3, "{} vs {}", alone.width, a.width);
+    std::fs::copy(dir.join("set/take_a.npz"), dir.join("alone/take_a.npz")).unwrap();
+    fails(&springtime(&["data", "check", "alone"], &dir), &["width"]);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -33,6 +33,12 @@ pub struct ImportOptions {
     pub pinned: Vec<usize>,
     /// The rest rectangle's width and height, m (default: from the geometry).
     pub size: Option<[f64; 2]>,
+    /// Gravity the cloth moved under, m/s² (stored as the key `gravity`; default: not stored,
+    /// so training assumes `[0, 0, −9.81]`).
+    pub gravity: Option<[f64; 3]>,
+    /// Rayleigh damping `c` of `−c ẋ` on every point, N·s/m (stored as the key `rayleigh`;
+    /// default: not stored, so training fits it).
+    pub rayleigh: Option<f64>,
     /// Overwrite an existing output file.
     pub force: bool,
 }
@@ -339,6 +345,16 @@ pub fn write_rollout(
     if !(options.total_mass > 0.0 && options.total_mass.is_finite()) {
         bail!("--mass must be positive, is {}", options.total_mass);
     }
+    if let Some(g) = options.gravity
+        && g.iter().any(|c| !c.is_finite())
+    {
+        bail!("--gravity must be three finite numbers, is {g:?}");
+    }
+    if let Some(c) = options.rayleigh
+        && !(c >= 0.0 && c.is_finite())
+    {
+        bail!("--rayleigh must be non-negative, is {c}");
+    }
     if motion.frames < 2 {
         bail!(
             "{}: {} frame(s): a rollout needs at least 2",
@@ -368,6 +384,13 @@ pub fn write_rollout(
     if path.exists() && !options.force {
         bail!("{} exists; pass --force to overwrite it", path.display());
     }
+    let (rest, rest_from) = match join_set(&rest, &options.out, &path)? {
+        Some((shared, file)) => (
+            shared,
+            format!("{rest_from}, matched to the set already in {}", file.display()),
+        ),
+        None => (rest, rest_from.to_string()),
+    };
     let rollout = Rollout {
         path: path.clone(),
         frames: motion.frames,
@@ -387,8 +410,8 @@ pub fn write_rollout(
         }],
         springs: None,
         mesh: None,
-        gravity: None,
-        rayleigh: None,
+        gravity: options.gravity,
+        rayleigh: options.rayleigh,
     };
     rollout.save(&path)?;
     Rollout::load(&path).with_context(|| {
@@ -403,8 +426,62 @@ pub fn write_rollout(
         points: motion.points,
         width: rollout.width,
         height: rollout.height,
-        rest_from: rest_from.to_string(),
+        rest_from,
     })
+}
+
+/// Largest landmark mismatch, as a fraction of the rectangle's size, under which a new import
+/// takes the rest rectangle of the rollouts already in its output folder: takes of one cloth
+/// imported one by one get their scale from each take's first frame, which differs by float
+/// noise (and by the first frame's strain); a set must share one rectangle.
+const JOIN_TOLERANCE: f64 = 0.01;
+
+/// The rest rectangle of the first rollout already in `out` (other than `path`), when `rest`
+/// has the same landmarks within [`JOIN_TOLERANCE`]; `None` when the folder has none, or
+/// they differ (then the new file starts a set of its own, and `data check` says so).
+fn join_set(rest: &RestRectangle, out: &Path, path: &Path) -> Result<Option<(RestRectangle, PathBuf)>> {
+    let Ok(entries) = std::fs::read_dir(out) else {
+        return Ok(None);
+    };
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "npz") && p != path)
+        .collect();
+    files.sort();
+    let Some(first) = files.first() else {
+        return Ok(None);
+    };
+    let Ok(other) = Rollout::load(first) else {
+        return Ok(None);
+    };
+    if other.rest_uv.len() != rest.rest_uv.len() {
+        return Ok(None);
+    }
+    let size = other.width.max(other.height);
+    let worst = other
+        .rest_uv
+        .iter()
+        .zip(&rest.rest_uv)
+        .map(|(a, b)| (a[0] - b[0]).hypot(a[1] - b[1]))
+        .fold(0.0, f64::max);
+    if worst > JOIN_TOLERANCE * size {
+        eprintln!(
+            "warning: the rest rectangle differs from {} by up to {worst:.3e} m ({:.2} % of its \
+             size): this file starts a set of its own (same cloth? import with the same \
+             --width/--height)",
+            first.display(),
+            100.0 * worst / size
+        );
+        return Ok(None);
+    }
+    Ok(Some((
+        RestRectangle {
+            rest_uv: other.rest_uv,
+            width: other.width,
+            height: other.height,
+        },
+        first.clone(),
+    )))
 }
 
 /// Parses a list of point indices `I,J,…` (0-based).
