@@ -365,13 +365,20 @@ fn a_generating_config_never_writes_beside_someone_elses_rollouts() {
     let mine = dir.join("mine");
     std::fs::create_dir_all(&mine).unwrap();
     std::fs::copy(dir.join("data/train_0000.npz"), mine.join("my_take.npz")).unwrap();
-    let out = springtime(&["train", "tiny.toml", "--set", "data.dir=mine", "--no-eval"], &dir);
+    let out = springtime(
+        &["train", "tiny.toml", "--set", "data.dir=mine", "--no-eval"],
+        &dir,
+    );
     fails(&out, &["mine", "my_take.npz", "[source]", "another folder"]);
     let left: Vec<_> = std::fs::read_dir(&mine)
         .unwrap()
         .map(|e| e.unwrap().file_name().into_string().unwrap())
         .collect();
-    assert_eq!(left, ["my_take.npz"], "nothing written into the user's folder");
+    assert_eq!(
+        left,
+        ["my_take.npz"],
+        "nothing written into the user's folder"
+    );
     fails(
         &springtime(&["generate", "tiny.toml", "--set", "data.dir=mine"], &dir),
         &["my_take.npz"],

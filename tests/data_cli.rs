@@ -47,6 +47,8 @@ fn data_check_summarises_a_usable_folder() {
         "labels (<U1)",
         "dt²ω² + 2dtγ =",
         "32 × 32 particles, k = 50 N/m, b = 3 N·s/m",
+        // 9 landmarks on a square: a 3 × 3 grid holds what they resolve.
+        "--set cloth.nx=3 --set cloth.ny=3",
     ] {
         assert!(out.contains(needle), "no {needle:?} in:\n{out}");
     }
@@ -632,7 +634,17 @@ fn takes_imported_one_by_one_into_one_folder_share_one_rest_rectangle() {
     write_sequence(&dir.join("take_b"), &take_b, true);
     let import = |take: &str| {
         springtime(
-            &["import", "obj", take, "--out", "set", "--frame-dt", "0.04", "--mass", "0.25"],
+            &[
+                "import",
+                "obj",
+                take,
+                "--out",
+                "set",
+                "--frame-dt",
+                "0.04",
+                "--mass",
+                "0.25",
+            ],
             &dir,
         )
     };
@@ -650,11 +662,26 @@ fn takes_imported_one_by_one_into_one_folder_share_one_rest_rectangle() {
     // Imported into another folder, take_b keeps its own (stretched) scale, and a set of the
     // two is refused by `data check`, naming the key.
     ok(&springtime(
-        &["import", "obj", "take_b", "--out", "alone", "--frame-dt", "0.04", "--mass", "0.25"],
+        &[
+            "import",
+            "obj",
+            "take_b",
+            "--out",
+            "alone",
+            "--frame-dt",
+            "0.04",
+            "--mass",
+            "0.25",
+        ],
         &dir,
     ));
     let alone = Rollout::load(&dir.join("alone/take_b.npz")).unwrap();
-    assert!((alone.width / a.width - 1.005).abs() < 2e-3, "{} vs {}", alone.width, a.width);
+    assert!(
+        (alone.width / a.width - 1.005).abs() < 2e-3,
+        "{} vs {}",
+        alone.width,
+        a.width
+    );
     std::fs::copy(dir.join("set/take_a.npz"), dir.join("alone/take_a.npz")).unwrap();
     fails(&springtime(&["data", "check", "alone"], &dir), &["width"]);
     std::fs::remove_dir_all(&dir).ok();

@@ -155,10 +155,7 @@ impl Run {
     /// `dt` (s per step), `mass` (kg per particle), `rayleigh` (N·s/m per particle, the force
     /// `−rayleigh·v`) and `gravity` (m/s², 3 components).
     #[getter(physics)]
-    fn physics_constants<'py>(
-        &self,
-        py: Python<'py>,
-    ) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
+    fn physics_constants<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
         let p = Physics::new(
             &self.loaded.config.sim,
             self.loaded.meta.frame_dt,

@@ -387,7 +387,10 @@ pub fn write_rollout(
     let (rest, rest_from) = match join_set(&rest, &options.out, &path)? {
         Some((shared, file)) => (
             shared,
-            format!("{rest_from}, matched to the set already in {}", file.display()),
+            format!(
+                "{rest_from}, matched to the set already in {}",
+                file.display()
+            ),
         ),
         None => (rest, rest_from.to_string()),
     };
@@ -439,7 +442,11 @@ const JOIN_TOLERANCE: f64 = 0.01;
 /// The rest rectangle of the first rollout already in `out` (other than `path`), when `rest`
 /// has the same landmarks within [`JOIN_TOLERANCE`]; `None` when the folder has none, or
 /// they differ (then the new file starts a set of its own, and `data check` says so).
-fn join_set(rest: &RestRectangle, out: &Path, path: &Path) -> Result<Option<(RestRectangle, PathBuf)>> {
+fn join_set(
+    rest: &RestRectangle,
+    out: &Path,
+    path: &Path,
+) -> Result<Option<(RestRectangle, PathBuf)>> {
     let Ok(entries) = std::fs::read_dir(out) else {
         return Ok(None);
     };
