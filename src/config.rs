@@ -214,7 +214,8 @@ fn key_help(key: &str) -> Option<&'static str> {
         ("train", _) => "the training curriculum",
         ("train.mode", _) => "dual (stiffness pass, then damping pass) or single",
         ("train.force_on", _) => {
-            "forces of the loss on the simulated states or on the target states"
+            "forces of the loss: simulated (the integrator's, paper), target (teacher forcing) \
+             or frames (simulated frames differenced like camera-rate data)"
         }
         ("train.checkpoint_every", _) => "iterations between checkpoints",
         ("train.gradient_checkpointing", _) => "recompute instead of storing activations",

@@ -49,6 +49,7 @@ fn autodiff_gradients_match_central_differences() {
         (ForceOn::Simulated, Kernel::Fused, 0),
         (ForceOn::Target, Kernel::Fused, 1024),
         (ForceOn::Simulated, Kernel::Reference, 1024),
+        (ForceOn::Frames, Kernel::Fused, 1024),
     ] {
         let eval = |k: &[f64], b: &[f64], device: &Device| {
             let batch = common::batch(&cfg, &[r1.clone(), r2.clone()], 30, 20, device);

@@ -47,3 +47,58 @@ fn dual_pass_training_recovers_two_stiffness_levels() {
     assert!(rmse_b < 1.5, "rmse_b = {rmse_b}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// On camera-rate data without stored velocities (10 ms frames, the velocities estimated by
+/// central differences), the frame-difference loss (`train.force_on = "frames"`) of the true
+/// network is small (what is left comes from the pins, which the surrogate interpolates
+/// linearly between frames, and the estimated initial velocities), and a uniform network
+/// stiffer or softer than the truth
+/// scores worse in both its force and impulse terms: the loss ranks uniform stiffnesses as the
+/// motion does.
+#[test]
+fn frame_difference_loss_is_zero_at_the_truth_and_ranks_uniform_stiffness() {
+    use springtime::model::SpringNet;
+    use springtime::sim::Physics;
+    use springtime::train::{ForceOn, LossWeights, loss};
+    let device = burn::tensor::Device::flex().autodiff();
+    let mut cfg = common::source(6, &[40.0], 1.0);
+    cfg.frame_stride = 10;
+    cfg.save_velocities = false;
+    let rollouts: Vec<_> = (0..3).map(|s| common::rollout(&cfg, s).1).collect();
+    assert!(rollouts[0].velocities.is_none());
+    let topo = common::grid_of(&cfg);
+    let physics = Physics {
+        frame_dt: rollouts[0].frame_dt,
+        substeps: cfg.frame_stride,
+        mass: rollouts[0].total_mass / topo.num_particles() as f64,
+        rayleigh: cfg.rayleigh,
+        gravity: cfg.gravity,
+    };
+    assert!((physics.frame_dt - 0.01).abs() < 1e-12);
+    let batch = common::batch(&cfg, &rollouts, 20, 30, &device);
+    let s = topo.num_springs();
+    let score_on = |k: f64, on: ForceOn| {
+        let model = SpringNet::new(&topo, &vec![k; s], &vec![cfg.damping; s], &device);
+        let t = loss(&model, &physics, &batch, &LossWeights::default(), on);
+        (
+            t.force.into_scalar::<f64>(),
+            t.impulse.into_scalar::<f64>(),
+            t.position.into_scalar::<f64>(),
+        )
+    };
+    let score = |k: f64| score_on(k, ForceOn::Frames);
+    let truth = score(40.0);
+    // Against a particle's weight: an RMS force error under 0.5 % of it.
+    let m_g = physics.mass * 9.81;
+    assert!(
+        truth.0 < (5e-3 * m_g).powi(2),
+        "force term at the truth {truth:?}"
+    );
+    for k in [10.0, 20.0, 80.0, 160.0] {
+        let other = score(k);
+        assert!(
+            other.0 > 100.0 * truth.0.max(1e-30) && other.1 > truth.1 && other.2 > truth.2,
+            "k = {k}: {other:?} vs the truth's {truth:?}"
+        );
+    }
+}

@@ -264,6 +264,20 @@ impl DatasetReport {
         let _ = writeln!(s, "  total mass       {} kg", i.total_mass);
         let _ = writeln!(s, "  rest rectangle   {} m × {} m", i.width, i.height);
         let _ = writeln!(s, "  landmarks        {}", self.landmarks);
+        let [gx, gy] = self.surrogate.grid;
+        if gx * gy > 2 * self.landmarks {
+            // A grid of about as many particles as landmarks, with the rectangle's aspect.
+            let aspect = i.width / i.height;
+            let nx = ((self.landmarks as f64 * aspect).sqrt().round() as usize).max(2);
+            let ny = ((self.landmarks as f64 / aspect).sqrt().round() as usize).max(2);
+            let _ = writeln!(
+                s,
+                "  surrogate grid   {gx} × {gy} particles for {} landmarks: most particles are \
+                 interpolated between landmarks; a grid near the data's, --set cloth.nx={nx} \
+                 --set cloth.ny={ny}, holds what the data resolves",
+                self.landmarks
+            );
+        }
         let _ = writeln!(s, "  pinned           {}", self.pinned.show());
         let _ = writeln!(s, "  velocities       {}", all_or(self.with_velocities));
         if self.with_springs > 0 || self.with_mesh > 0 {

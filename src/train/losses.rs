@@ -50,6 +50,13 @@ pub enum ForceOn {
     Simulated,
     /// On the target states (teacher forcing): no rollout, every frame in parallel.
     Target,
+    /// On the surrogate's own rollout, but estimated from its frames' positions by the same
+    /// central differences that give the targets of data without stored velocities (camera-rate
+    /// data): `f̃_j = m (ṽ_{j+1} − ṽ_j)/Δt`, `ṽ_j = (x_{j+1} − x_{j−1})/(2Δt)`, compared with the
+    /// same estimate of the clip's frames for `j = 1..T−2`. Oscillations faster than the frame
+    /// rate then count by their displacement, as in the data, not by their velocity (which grows
+    /// with `√k`).
+    Frames,
 }
 
 /// The loss and its terms, each a one-element tensor.
@@ -140,6 +147,71 @@ pub fn loss_with_budget(
     terms
 }
 
+/// [`ForceOn::Frames`]: the force and impulse losses on forces estimated from simulated and
+/// target frame positions alike (the estimates' difference is a stencil of the position error
+/// `e = x − x̂`: `m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1})`).
+fn frame_difference_loss(
+    model: &dyn ForceModel,
+    physics: &Physics,
+    batch: &ClipBatch,
+    weights: &LossWeights,
+    free: Tensor<4>,
+) -> LossTerms {
+    let [b, frames, p, _] = batch.positions.dims();
+    let t = frames - 1;
+    assert!(
+        t >= 4,
+        "frame-difference forces need clips of at least 4 frames, got {t}"
+    );
+    let x0 = batch
+        .positions
+        .clone()
+        .slice([0..b, 0..1, 0..p, 0..3])
+        .reshape([b, p, 3]);
+    let v0 = batch
+        .velocities
+        .clone()
+        .slice([0..b, 0..1, 0..p, 0..3])
+        .reshape([b, p, 3]);
+    let drive = Drive {
+        x0,
+        v0,
+        pinned: batch.pinned.clone(),
+        path: batch.positions.clone(),
+    };
+    let traj = sim::rollout(model, physics, &drive, t);
+    let e = traj.positions.clone() - batch.positions.clone();
+    let at = |from: usize, to: usize| e.clone().slice([0..b, from..to, 0..p, 0..3]);
+    // Force differences at frames 1..=T−2: m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1}).
+    let n = t - 2;
+    let df = (at(3, t + 1) - at(2, t) - at(1, t - 1) + at(0, t - 2))
+        .mul_scalar(physics.mass / (2.0 * physics.frame_dt * physics.frame_dt))
+        * free.clone();
+    let force = (df.clone() * df.clone())
+        .sum()
+        .div_scalar((b * n * p) as f64);
+    let ends =
+        df.clone().slice([0..b, 0..1, 0..p, 0..3]) + df.clone().slice([0..b, n - 1..n, 0..p, 0..3]);
+    let dj = (df.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt);
+    let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
+    let dx = at(1, t + 1) * free;
+    let position = (dx.clone() * dx).sum().div_scalar((b * t * p) as f64);
+    let mut total =
+        force.clone().mul_scalar(weights.force) + impulse.clone().mul_scalar(weights.impulse);
+    if weights.position != 0.0 {
+        total = total + position.clone().mul_scalar(weights.position);
+    }
+    let zero = Tensor::<1>::zeros([1], &batch.positions.device());
+    LossTerms {
+        total,
+        force,
+        impulse,
+        position,
+        k_neg: zero.clone(),
+        b_neg: zero,
+    }
+}
+
 /// The force, impulse and position losses of any [`ForceModel`] on a batch of clips, built
 /// from tensor ops (the penalty terms are zero).
 ///
@@ -165,6 +237,9 @@ pub fn motion_loss(
         .reshape([b, 1, p, 1]);
     let zero = || Tensor::<1>::zeros([1], &device);
     let (forces, trajectory) = match on {
+        ForceOn::Frames => {
+            return frame_difference_loss(model, physics, batch, weights, free);
+        }
         ForceOn::Simulated => {
             let x0 = batch
                 .positions
