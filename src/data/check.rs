@@ -59,6 +59,9 @@ pub struct SurrogateStability {
     pub stability: Stability,
     /// What `train` would derive from the data (one line each), or why it cannot.
     pub defaults: std::result::Result<Vec<String>, String>,
+    /// `train` picks the stiffness and the substeps itself (a search over free rollouts, which
+    /// `data check` does not run): the estimate above is for fallback values only.
+    pub decided_by_train: bool,
 }
 
 /// What a dataset folder holds.
@@ -219,6 +222,9 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
             k,
             b,
             substeps,
+            decided_by_train: defaults.is_err()
+                && config.model.k_init.value().is_none()
+                && config.sim.substeps.value().is_none(),
             stability,
             defaults,
         },
@@ -309,7 +315,12 @@ impl DatasetReport {
             Err(why) => {
                 let _ = writeln!(
                     s,
-                    "  from the data    cannot derive the defaults: {why} (set them in the config)"
+                    "  from the data    cannot derive the defaults: {why}{}",
+                    if g.decided_by_train {
+                        ""
+                    } else {
+                        " (set them in the config)"
+                    }
                 );
             }
         }
@@ -325,7 +336,11 @@ impl DatasetReport {
             g.substeps,
             if g.substeps == 1 { "" } else { "s" },
             st.dt,
-            if st.is_stable() {
+            if g.decided_by_train {
+                "not a prediction: `train` searches k over free rollouts and then picks the \
+                 substeps that keep it stable"
+                    .to_string()
+            } else if st.is_stable() {
                 format!(
                     "stable (below 4; largest stable dt {:.3e} s)",
                     st.max_stable_dt()
