@@ -31,7 +31,7 @@ pub fn sag(x: &[[f64; 3]], pinned: &[bool]) -> f64 {
 /// grid over the same square, row-major: coarse `(r, c)` is fine `(s r, s c)` with
 /// `s = (fine − 1)/(coarse − 1)`. Fails unless the grids nest.
 pub fn nested_indices(coarse: usize, fine: usize) -> Result<Vec<usize>> {
-    if coarse < 2 || fine < coarse || (fine - 1) % (coarse - 1) != 0 {
+    if coarse < 2 || fine < coarse || !(fine - 1).is_multiple_of(coarse - 1) {
         bail!(
             "a {fine} × {fine} grid does not hold the vertices of a {coarse} × {coarse} grid \
              (needs fine − 1 to be a multiple of coarse − 1)"

@@ -351,7 +351,13 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
     })
 }
 
-/// Runs `jobs` on up to two threads (the machine's cores), in order of submission.
+/// A settled system: which, its numbers and its positions.
+type Settled = (System, CaseResult, Vec<[f64; 3]>);
+
+/// A unit of work for [`run_parallel`].
+type Job<'a, T> = Box<dyn FnOnce() -> Result<T> + Send + 'a>;
+
+/// Runs `jobs` on as many threads as the machine has cores (two here), in order of submission.
 fn run_parallel<T: Send>(jobs: Vec<Box<dyn FnOnce() -> Result<T> + Send + '_>>) -> Result<Vec<T>> {
     let n = jobs.len();
     let jobs: Vec<Mutex<Option<_>>> = jobs.into_iter().map(|j| Mutex::new(Some(j))).collect();
@@ -404,8 +410,7 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
         (System::FemFine, fine, None),
         (System::FemFineNoBending, fine, Some(0.0)),
     ];
-    let mut jobs: Vec<Box<dyn FnOnce() -> Result<(System, CaseResult, Vec<[f64; 3]>)> + Send>> =
-        Vec::new();
+    let mut jobs: Vec<Job<Settled>> = Vec::new();
     // The fine meshes first: they take longest.
     for &(system, n, kb) in systems.iter().rev() {
         for case in FoldCase::ALL {

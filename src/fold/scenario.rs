@@ -8,6 +8,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::source::{ClothSim, Diagonal};
 
+/// Two corners of a grid as `(row, col)`.
+pub type Corners = [(usize, usize); 2];
+
 /// Which diagonal of the sheet is pinned, relative to the mesh's cell diagonals.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -34,12 +37,7 @@ impl FoldCase {
     /// The pinned corners of an `nx × ny` grid cut along `diagonal`, as `(row, col)`, and the
     /// free corners. A main-diagonal mesh has its cuts along `(0, 0)–(n−1, n−1)`; an
     /// anti-diagonal mesh along `(0, n−1)–(n−1, 0)`. Alternating cuts have no aligned diagonal.
-    pub fn corners(
-        self,
-        nx: usize,
-        ny: usize,
-        diagonal: Diagonal,
-    ) -> Result<([(usize, usize); 2], [(usize, usize); 2])> {
+    pub fn corners(self, nx: usize, ny: usize, diagonal: Diagonal) -> Result<(Corners, Corners)> {
         let main = [(0, 0), (ny - 1, nx - 1)];
         let anti = [(0, nx - 1), (ny - 1, 0)];
         let aligned_is_main = match diagonal {
@@ -59,12 +57,7 @@ impl FoldCase {
 
 /// Vertices of a grid (`rest_uv` row-major, `nx` per row) within `radius` of the given
 /// corners in the rest rectangle: pins of one physical size at every resolution.
-pub fn corner_pins(
-    rest_uv: &[[f64; 2]],
-    nx: usize,
-    corners: &[(usize, usize); 2],
-    radius: f64,
-) -> Vec<bool> {
+pub fn corner_pins(rest_uv: &[[f64; 2]], nx: usize, corners: &Corners, radius: f64) -> Vec<bool> {
     let r2 = radius * radius * (1.0 + 1e-9) + 1e-18;
     let centres = corners.map(|(r, c)| rest_uv[r * nx + c]);
     rest_uv
