@@ -110,6 +110,22 @@ fn fold_writes_the_criteria_and_refuses_to_overwrite() {
         &springtime(&["fold", "fold.toml", "--out", "out"], &dir),
         &["--force"],
     );
+    // An interrupted job's data and surrogate are not reused for another config.
+    std::fs::remove_file(dir.join("out/fold.json")).unwrap();
+    fails(
+        &springtime(
+            &[
+                "fold",
+                "fold.toml",
+                "--out",
+                "out",
+                "--set",
+                "surrogate.source.seed=7",
+            ],
+            &dir,
+        ),
+        &["surrogate.source", "--force"],
+    );
     // Errors name the key.
     fails(
         &springtime(

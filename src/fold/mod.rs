@@ -397,6 +397,22 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
             out.display()
         );
     }
+    // The data and the surrogate of an interrupted job are reused when they come from the
+    // same config; --force starts both over.
+    let data_dir = out.join("data");
+    let run_dir = out.join("surrogate");
+    let mut train_cfg = cfg.surrogate.clone();
+    train_cfg.data.dir = data_dir.clone();
+    if options.force {
+        for dir in [&data_dir, &run_dir] {
+            if dir.exists() {
+                std::fs::remove_dir_all(dir)
+                    .with_context(|| format!("cannot clear {}", dir.display()))?;
+            }
+        }
+    } else {
+        check_reusable(&train_cfg, &data_dir, &run_dir)?;
+    }
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let (coarse, fine) = (cfg.coarse(), cfg.fold.fine);
     let bending = cfg.source().fem.bending;
@@ -445,9 +461,6 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
     let mut settled = run_parallel(jobs)?;
 
     // 2. The surrogate: trained on random rollouts of the coarse mesh only.
-    let run_dir = out.join("surrogate");
-    let mut train_cfg = cfg.surrogate.clone();
-    train_cfg.data.dir = out.join("data");
     let run = RunDir::new(&run_dir);
     let finished = matches!(
         run.state().ok().flatten().map(|s| s.status),
@@ -547,6 +560,32 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
     };
     crate::io::write_json(&json, &report)?;
     Ok(report)
+}
+
+/// Fails when `data_dir` or `run_dir` (left by an interrupted job) came from another config
+/// than `train_cfg`, so that nothing stale is reused without `--force`.
+fn check_reusable(train_cfg: &Config, data_dir: &Path, run_dir: &Path) -> Result<()> {
+    let index = crate::data::Index::path(data_dir);
+    if index.exists() {
+        let text = std::fs::read_to_string(&index)
+            .with_context(|| format!("cannot read {}", index.display()))?;
+        let index: crate::data::Index = serde_json::from_str(&text)
+            .with_context(|| format!("cannot parse {}", index.display()))?;
+        if index.generator.get("source") != Some(&serde_json::to_value(&train_cfg.source)?) {
+            bail!(
+                "{} was generated from another [surrogate.source]; pass --force to start over",
+                data_dir.display()
+            );
+        }
+    }
+    let requested = RunDir::new(run_dir).requested_config();
+    if requested.exists() && Config::load(&requested, &[])? != *train_cfg {
+        bail!(
+            "{} was trained from another [surrogate] config; pass --force to start over",
+            run_dir.display()
+        );
+    }
+    Ok(())
 }
 
 /// L1–L4 of the issue from the measured figures.
