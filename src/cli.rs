@@ -216,6 +216,28 @@ pub enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// The membrane-locking fold test (paper §4.4, Fig. 2): settle the FEM source's mesh and a
+    /// nested fine mesh pinned at two opposite corners, train a spring surrogate on random
+    /// rollouts of the coarse mesh, settle it too, and write fold.json (criteria L1–L4),
+    /// fold.csv and fold.png.
+    #[command(
+        after_help = "Examples:\n  springtime fold configs/fold.toml --out runs/fold\n  \
+                      springtime fold configs/fold.toml --out runs/fold_kb --set surrogate.source.fem.bending=0.01"
+    )]
+    Fold {
+        /// Fold config (TOML): a `[fold]` section and the surrogate's training config under
+        /// `[surrogate]`.
+        config: PathBuf,
+        /// Output directory (fold.json, fold.csv, fold.png, surrogate/, data/).
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite a finished output directory and retrain the surrogate.
+        #[arg(long)]
+        force: bool,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
     /// Time the training workload of ../shared/bench/peer_torch.py; prints one JSON line.
     #[command(after_help = "Example:\n  springtime bench --batch 8 --steps 500 --backend flex")]
     Bench {
@@ -607,6 +629,12 @@ pub fn run(cli: Cli) -> Result<()> {
             println!("comparison: {}", c.files[0].display());
             Ok(())
         }
+        Command::Fold {
+            config,
+            out,
+            force,
+            set,
+        } => fold(&config, out, force, &set, &progress),
         Command::Bench {
             batch,
             steps,
@@ -824,6 +852,59 @@ fn simulate(
         "wrote {} frames ({seconds} s) to {}",
         frames + 1,
         out.display()
+    );
+    Ok(())
+}
+
+/// `springtime fold`: runs the fold test and prints each criterion beside its threshold.
+fn fold(
+    config: &Path,
+    out: PathBuf,
+    force: bool,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
+    let cfg = crate::fold::FoldConfig::load(config, set)?;
+    let report = crate::fold::run(
+        &cfg,
+        &crate::fold::FoldOptions {
+            out: out.clone(),
+            force,
+        },
+        progress,
+    )?;
+    println!(
+        "{:<20} {:<11} {:>9} {:>9} {:>12} {:>16} {:>9}",
+        "system", "case", "α (°)", "sag (m)", "RMSE fine", "RMSE fine k_b=0", "membrane"
+    );
+    for r in &report.results {
+        println!(
+            "{:<20} {:<11} {:>9.2} {:>9.4} {:>12.4} {:>16.4} {:>9}",
+            r.system,
+            r.case.name(),
+            r.alpha_deg,
+            r.sag_m,
+            r.rmse_fine_m,
+            r.rmse_fine_no_bending_m,
+            r.membrane_share.map_or("-".into(), |m| format!("{m:.3}"))
+        );
+    }
+    for (system, gap) in &report.locking_gap_deg {
+        println!("Δα {system:<20} {gap:>8.2}°");
+    }
+    for (name, c) in &report.criteria {
+        println!(
+            "{name} {:<4} value {:>10.4}  threshold {:>10.4}  ({})",
+            if c.pass { "PASS" } else { "FAIL" },
+            c.value,
+            c.threshold,
+            c.rule
+        );
+    }
+    println!(
+        "wall time {:.0} s; wrote {}",
+        report.wall_seconds,
+        out.join("fold.json").display()
     );
     Ok(())
 }

@@ -69,22 +69,7 @@ impl Config {
 
     /// Parses config text and applies `overrides`.
     pub fn parse(text: &str, overrides: &[String]) -> Result<Self> {
-        let mut table: toml::Table = text
-            .parse()
-            .map_err(|e: toml::de::Error| anyhow::anyhow!("{e}"))?;
-        for o in overrides {
-            apply_override(&mut table, o)?;
-        }
-        let config: Config =
-            serde_path_to_error::deserialize(toml::Value::Table(table)).map_err(|e| {
-                let path = e.path().to_string();
-                let inner = e.into_inner();
-                if path == "." || path.is_empty() {
-                    anyhow::anyhow!("{inner}")
-                } else {
-                    anyhow::anyhow!("`{path}`: {inner}")
-                }
-            })?;
+        let config: Config = parse_toml(text, overrides)?;
         config.validate()?;
         Ok(config)
     }
@@ -295,6 +280,26 @@ impl<'de, T: Deserialize<'de>> Deserialize<'de> for Auto<T> {
             ))),
         }
     }
+}
+
+/// Parses TOML text into `T` after applying `overrides` (`section.key=value`); errors name the
+/// key (`` `section.key`: … ``). Any config file of springtime is read this way.
+pub fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, overrides: &[String]) -> Result<T> {
+    let mut table: toml::Table = text
+        .parse()
+        .map_err(|e: toml::de::Error| anyhow::anyhow!("{e}"))?;
+    for o in overrides {
+        apply_override(&mut table, o)?;
+    }
+    serde_path_to_error::deserialize(toml::Value::Table(table)).map_err(|e| {
+        let path = e.path().to_string();
+        let inner = e.into_inner();
+        if path == "." || path.is_empty() {
+            anyhow::anyhow!("{inner}")
+        } else {
+            anyhow::anyhow!("`{path}`: {inner}")
+        }
+    })
 }
 
 /// Sets `section.key=value` in a TOML table, creating sections as needed.
@@ -562,7 +567,18 @@ mod tests {
         for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/configs")).unwrap() {
             let path = entry.unwrap().path();
             if path.extension().is_some_and(|e| e == "toml") {
-                Config::load(&path, &[]).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                // A fold job (`springtime fold`) embeds a training config under [surrogate].
+                let text = std::fs::read_to_string(&path).unwrap();
+                let fold = text
+                    .parse::<toml::Table>()
+                    .unwrap()
+                    .contains_key("surrogate");
+                let parsed = if fold {
+                    crate::fold::FoldConfig::load(&path, &[]).map(|_| ())
+                } else {
+                    Config::load(&path, &[]).map(|_| ())
+                };
+                parsed.unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
             }
         }
     }

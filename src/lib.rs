@@ -20,6 +20,7 @@ pub mod data;
 pub mod diagnose;
 pub mod eval;
 pub mod export;
+pub mod fold;
 pub mod import;
 pub mod io;
 pub mod model;

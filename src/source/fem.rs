@@ -351,17 +351,23 @@ impl FemCloth {
 
     /// Elastic energy (membrane and bending) at positions `x`, J.
     pub fn energy(&self, x: &[V3]) -> f64 {
-        let membrane: f64 = self
-            .elements
+        self.membrane_energy(x) + self.bending_energy(x)
+    }
+
+    /// Membrane (in-plane) elastic energy at positions `x`, J.
+    pub fn membrane_energy(&self, x: &[V3]) -> f64 {
+        self.elements
             .iter()
             .map(|el| el.area * elastic(el, deformation(el, x), self.membrane).1)
-            .sum();
-        let bending: f64 = self
-            .hinges
+            .sum()
+    }
+
+    /// Bending (dihedral) energy at positions `x`, J.
+    pub fn bending_energy(&self, x: &[V3]) -> f64 {
+        self.hinges
             .iter()
             .map(|h| h.weight * dihedral(h, x).0.powi(2))
-            .sum();
-        membrane + bending
+            .sum()
     }
 
     /// Internal forces (membrane, strain-rate damping, bending) at `(x, v)`, added to `out`.
