@@ -279,8 +279,8 @@ impl DatasetReport {
             let _ = writeln!(
                 s,
                 "  surrogate grid   {gx} × {gy} particles for {} landmarks: most particles are \
-                 interpolated between landmarks; a grid near the data's, --set cloth.nx={nx} \
-                 --set cloth.ny={ny}, holds what the data resolves",
+                 interpolated between landmarks (a grid of about as many particles as \
+                 landmarks: --set cloth.nx={nx} --set cloth.ny={ny})",
                 self.landmarks
             );
         }
