@@ -746,8 +746,16 @@ fn print_eval(r: &EvalReport) {
         );
     }
     println!(
-        "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ 0.8 s: {:.4e} ± {:.4e}; ≤ 8 s: {:.4e} ± {:.4e})",
-        m.rollouts, m.mean, m.std, m.mean_0_8s, m.std_0_8s, m.mean_8s, m.std_8s
+        "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ {} s: {:.4e} ± {:.4e}; ≤ {} s: {:.4e} ± {:.4e})",
+        m.rollouts,
+        m.mean,
+        m.std,
+        m.short_seconds,
+        m.mean_0_8s,
+        m.std_0_8s,
+        m.long_seconds,
+        m.mean_8s,
+        m.std_8s
     );
     if let Some(u) = &r.uniform_baseline {
         println!(

@@ -90,6 +90,29 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
         );
     }
     assert!(eval["rmse_k"].as_f64().is_some());
+    assert!(
+        out.contains("(≤ 0.8 s: ") && out.contains("; ≤ 8 s: "),
+        "{out}"
+    );
+    // The printout and eval.json name the horizons the config sets, not the paper's.
+    let out = ok(&springtime(
+        &[
+            "eval",
+            "runs/tiny",
+            "--set",
+            "eval.short_seconds=0.1",
+            "--set",
+            "eval.long_seconds=0.2",
+        ],
+        &dir,
+    ));
+    assert!(
+        out.contains("(≤ 0.1 s: ") && out.contains("; ≤ 0.2 s: "),
+        "{out}"
+    );
+    let eval: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(eval["motion_rmse"]["long_seconds"], 0.2);
     // run.json names the build.
     let state: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();

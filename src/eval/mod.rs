@@ -73,6 +73,20 @@ pub struct MotionRmse {
     pub frame_dt: f64,
     /// Rollouts evaluated.
     pub rollouts: usize,
+    /// The short horizon of `mean_0_8s`, s (`eval.short_seconds`; 0.8 in files without it).
+    #[serde(default = "default_short_seconds")]
+    pub short_seconds: f64,
+    /// The long horizon of `mean_8s`, s (`eval.long_seconds`; 8 in files without it).
+    #[serde(default = "default_long_seconds")]
+    pub long_seconds: f64,
+}
+
+fn default_short_seconds() -> f64 {
+    0.8
+}
+
+fn default_long_seconds() -> f64 {
+    8.0
 }
 
 /// Inference cost measured while evaluating: the model's steps only, batched as `eval.batch`.
@@ -467,6 +481,8 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
         times,
         frame_dt,
         rollouts: curves.len(),
+        short_seconds: short,
+        long_seconds: long,
     }
 }
 
