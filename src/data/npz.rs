@@ -590,7 +590,8 @@ impl Npz {
             let Some(key) = name.strip_suffix(".npy") else {
                 continue;
             };
-            let mut raw = Vec::with_capacity(entry.size() as usize);
+            // The size is the archive's claim: a damaged header may claim terabytes.
+            let mut raw = Vec::with_capacity(entry.size().min(64 << 20) as usize);
             if let Err(e) = entry.read_to_end(&mut raw) {
                 unreadable.insert(
                     key.to_string(),
