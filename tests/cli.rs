@@ -413,3 +413,27 @@ fn a_generating_config_never_writes_beside_someone_elses_rollouts() {
     assert!(dir.join("data/index.json").exists() && dir.join("data/test_0000.npz").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_second_training_process_on_the_same_run_refuses() {
+    let dir = setup("cli-lock");
+    let run = springtime::train::RunDir::new(dir.join("runs/tiny"));
+    // Another process (this test) is training in runs/tiny.
+    let held = run.lock().unwrap();
+    fails(
+        &springtime(&["train", "tiny.toml", "--no-eval", "--no-report"], &dir),
+        &["another springtime process", "runs/tiny", ".tiny.lock"],
+    );
+    assert!(
+        !dir.join("runs/tiny/run.json").exists(),
+        "the refused process wrote nothing"
+    );
+    // Once the holder is done, training goes ahead (and a lock of its own is released on exit).
+    drop(held);
+    ok(&springtime(
+        &["train", "tiny.toml", "--no-eval", "--no-report"],
+        &dir,
+    ));
+    run.lock().expect("the finished process released its lock");
+    std::fs::remove_dir_all(&dir).ok();
+}

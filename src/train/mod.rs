@@ -331,6 +331,7 @@ pub fn open_training_clips(
 /// of `config.data`.
 pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Result<TrainSummary> {
     let run = RunDir::new(config.run_dir(options.out.as_deref()));
+    let _lock = run.lock()?;
     let previous = if options.resume { run.state()? } else { None };
     if options.resume {
         match &previous {
