@@ -437,3 +437,75 @@ fn a_second_training_process_on_the_same_run_refuses() {
     run.lock().expect("the finished process released its lock");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `k`, `b` of a finished run's `springs.npz`.
+fn learned(run: &std::path::Path) -> (Vec<f32>, Vec<f32>) {
+    let npz = Npz::read(&run.join("springs.npz")).unwrap();
+    (
+        npz.f32("k", &[None]).unwrap().0,
+        npz.f32("b", &[None]).unwrap().0,
+    )
+}
+
+#[test]
+fn a_run_killed_with_sigkill_resumes_to_the_uninterrupted_result() {
+    let dir = setup("cli-kill");
+    let long = [
+        "--no-eval",
+        "--no-report",
+        "--set",
+        "train.stiffness.iterations=1000",
+        "--set",
+        "train.damping.iterations=20",
+        "--set",
+        "train.checkpoint_every=5",
+    ];
+    // The uninterrupted reference.
+    let mut args = vec!["train", "tiny.toml", "--out", "runs/whole"];
+    args.extend_from_slice(&long);
+    ok(&springtime(&args, &dir));
+    // The same job, killed (SIGKILL: no chance to clean up) once its first checkpoint is on disk.
+    let mut args = vec!["train", "tiny.toml", "--out", "runs/killed"];
+    args.extend_from_slice(&long);
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_springtime"))
+        .args(&args)
+        .current_dir(&dir)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let state = dir.join("runs/killed/run.json");
+    loop {
+        let checkpoint = std::fs::read_to_string(&state)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v["checkpoint"].as_u64())
+            .unwrap_or(0);
+        if checkpoint >= 5 {
+            break;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its first checkpoint"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let killed: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    assert_eq!(killed["status"], "running", "killed mid-run: {killed}");
+    // The lock died with the process: --resume finishes the run.
+    let mut args = vec!["train", "tiny.toml", "--out", "runs/killed", "--resume"];
+    args.extend_from_slice(&long);
+    ok(&springtime(&args, &dir));
+    let (whole, resumed) = (
+        learned(&dir.join("runs/whole")),
+        learned(&dir.join("runs/killed")),
+    );
+    assert_eq!(
+        whole, resumed,
+        "resumed after SIGKILL ≠ uninterrupted (same seed, flex)"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
