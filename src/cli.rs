@@ -1,4 +1,7 @@
 //! The command line: one function per subcommand, each a few library calls.
+// The doc comments below are clap's `--help` text, written for a terminal (`<run-dir>`,
+// `[source]`), not rustdoc markup.
+#![allow(rustdoc::invalid_html_tags, rustdoc::broken_intra_doc_links)]
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

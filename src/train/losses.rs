@@ -355,6 +355,8 @@ fn fused_loss(
         &model.graph.host,
         params,
     );
+    // One range per tensor dimension (clippy reads it as a one-element Vec of a range).
+    #[allow(clippy::single_range_in_vec_init)]
     let term = |i: usize| terms.clone().slice([i..i + 1]);
     let (force, impulse, position) = (term(0), term(1), term(2));
     let k_neg = relu(model.k.val().neg()).sum();

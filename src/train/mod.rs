@@ -428,6 +428,9 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
 
 /// A trained model of any family.
 #[derive(Debug)]
+// One value per opened run, never stored in bulk: boxing the spring network would only add an
+// indirection to every use.
+#[allow(clippy::large_enum_variant)]
 pub enum Trained {
     /// The spring network.
     Springs(SpringNet),

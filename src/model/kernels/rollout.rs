@@ -22,6 +22,11 @@ use rayon::prelude::*;
 use super::HostGraph;
 use super::cpu::{Lane, Springs, cast, interleave, run_backward, run_forces, wide};
 
+/// One state `(x, v)` of a batch's lanes, owned.
+type OwnedState<T, const L: usize> = (Vec<Lane<T, L>>, Vec<Lane<T, L>>);
+/// One state `(x, v)` of a batch's lanes, borrowed.
+type StateRef<'a, T, const L: usize> = (&'a [Lane<T, L>], &'a [Lane<T, L>]);
+
 /// Constants of a rollout.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RolloutParams {
@@ -428,41 +433,39 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
                 };
                 // States at every substep start of the segment, the state after it, and the
                 // frames' mean forces: from the tape, or recomputed from the checkpoint.
-                let mut states: Vec<(Vec<Lane<T, L>>, Vec<Lane<T, L>>)> = Vec::new();
+                let mut states: Vec<OwnedState<T, L>> = Vec::new();
                 let mut forces: Vec<Vec<Lane<T, L>>> = Vec::new();
-                let (states_ref, forces_ref): (
-                    Vec<(&[Lane<T, L>], &[Lane<T, L>])>,
-                    Vec<&[Lane<T, L>]>,
-                ) = if tape.stored_all {
-                    (
-                        ctape
-                            .states
-                            .iter()
-                            .map(|(x, v)| (unflatten::<T, L>(x), unflatten::<T, L>(v)))
-                            .collect(),
-                        ctape.forces.iter().map(|f| unflatten::<T, L>(f)).collect(),
-                    )
-                } else {
-                    let (x0, v0) = &ctape.states[seg];
-                    let (mut x, mut v) = (
-                        unflatten::<T, L>(x0).to_vec(),
-                        unflatten::<T, L>(v0).to_vec(),
-                    );
-                    for j in j0..j1 {
-                        let f = chunk.advance(j, &mut x, &mut v, &mut s, |xs, vs| {
-                            states.push((xs.to_vec(), vs.to_vec()))
-                        });
-                        forces.push(f);
-                    }
-                    states.push((x, v));
-                    (
-                        states
-                            .iter()
-                            .map(|(x, v)| (x.as_slice(), v.as_slice()))
-                            .collect(),
-                        forces.iter().map(|f| f.as_slice()).collect(),
-                    )
-                };
+                let (states_ref, forces_ref): (Vec<StateRef<'_, T, L>>, Vec<&[Lane<T, L>]>) =
+                    if tape.stored_all {
+                        (
+                            ctape
+                                .states
+                                .iter()
+                                .map(|(x, v)| (unflatten::<T, L>(x), unflatten::<T, L>(v)))
+                                .collect(),
+                            ctape.forces.iter().map(|f| unflatten::<T, L>(f)).collect(),
+                        )
+                    } else {
+                        let (x0, v0) = &ctape.states[seg];
+                        let (mut x, mut v) = (
+                            unflatten::<T, L>(x0).to_vec(),
+                            unflatten::<T, L>(v0).to_vec(),
+                        );
+                        for j in j0..j1 {
+                            let f = chunk.advance(j, &mut x, &mut v, &mut s, |xs, vs| {
+                                states.push((xs.to_vec(), vs.to_vec()))
+                            });
+                            forces.push(f);
+                        }
+                        states.push((x, v));
+                        (
+                            states
+                                .iter()
+                                .map(|(x, v)| (x.as_slice(), v.as_slice()))
+                                .collect(),
+                            forces.iter().map(|f| f.as_slice()).collect(),
+                        )
+                    };
                 for j in (j0..j1).rev() {
                     let local = j - j0;
                     // Position loss on the state after frame j.
