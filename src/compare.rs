@@ -9,6 +9,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
 use crate::config::Config;
@@ -88,7 +89,7 @@ pub fn compare(
         dir.join("comparison_rmse.png"),
     ];
     crate::io::write_text(&files[0], &markdown(config, &rows))?;
-    crate::io::write_text(&files[1], &csv(&rows))?;
+    crate::io::write_text(&files[1], &csv(&rows)?)?;
     let series: Vec<Series> = rows
         .iter()
         .map(|r| {
@@ -294,40 +295,73 @@ fn markdown(config: &Config, rows: &[Row]) -> String {
     s
 }
 
-fn csv(rows: &[Row]) -> String {
-    let mut s = String::from(
-        "model,parameters,train_seconds,peak_rss_mib,rmse_short_mean,rmse_short_std,\
-         rmse_long_mean,rmse_long_std,rmse_mean,rmse_std,inference_us_per_step,step_dt,\
-         seconds_per_simulated_second,run_dir\n",
-    );
+/// One line of `comparison.csv` (columns in this order; the `csv` crate quotes what needs it,
+/// e.g. a run directory with a comma).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CsvRow {
+    /// Model family.
+    pub model: String,
+    /// Learnable parameters.
+    pub parameters: usize,
+    /// Training wall time, s.
+    pub train_seconds: f64,
+    /// Peak resident memory while training, MiB.
+    pub peak_rss_mib: f64,
+    /// Motion RMSE over the short horizon (`eval.short_seconds`), m.
+    pub rmse_short_mean: f64,
+    /// Its standard deviation.
+    pub rmse_short_std: f64,
+    /// Motion RMSE over the long horizon (`eval.long_seconds`), m.
+    pub rmse_long_mean: f64,
+    /// Its standard deviation.
+    pub rmse_long_std: f64,
+    /// Motion RMSE over whole test rollouts, m.
+    pub rmse_mean: f64,
+    /// Its standard deviation.
+    pub rmse_std: f64,
+    /// Inference cost, µs per rollout·step (empty when not measured).
+    pub inference_us_per_step: Option<f64>,
+    /// Simulated time one step advances, s.
+    pub step_dt: Option<f64>,
+    /// Wall seconds per simulated second.
+    pub seconds_per_simulated_second: Option<f64>,
+    /// The model's run directory.
+    pub run_dir: String,
+}
+
+fn csv(rows: &[Row]) -> Result<String> {
+    let mut w = ::csv::Writer::from_writer(Vec::new());
     for r in rows {
         let m = &r.eval.motion_rmse;
-        let (us, dt, rate) =
-            r.eval
-                .inference
-                .as_ref()
-                .map_or((String::new(), String::new(), String::new()), |i| {
-                    (
-                        i.us_per_step.to_string(),
-                        i.step_dt.to_string(),
-                        i.seconds_per_second.to_string(),
-                    )
-                });
-        let _ = writeln!(
-            s,
-            "{},{},{},{},{},{},{},{},{},{},{us},{dt},{rate},{}",
-            r.kind.name(),
-            r.parameters,
-            r.train_seconds,
-            r.peak_rss_mib,
-            m.mean_0_8s,
-            m.std_0_8s,
-            m.mean_8s,
-            m.std_8s,
-            m.mean,
-            m.std,
-            r.run_dir.display()
-        );
+        let i = r.eval.inference.as_ref();
+        w.serialize(CsvRow {
+            model: r.kind.name().to_string(),
+            parameters: r.parameters,
+            train_seconds: r.train_seconds,
+            peak_rss_mib: r.peak_rss_mib,
+            rmse_short_mean: m.mean_0_8s,
+            rmse_short_std: m.std_0_8s,
+            rmse_long_mean: m.mean_8s,
+            rmse_long_std: m.std_8s,
+            rmse_mean: m.mean,
+            rmse_std: m.std,
+            inference_us_per_step: i.map(|i| i.us_per_step),
+            step_dt: i.map(|i| i.step_dt),
+            seconds_per_simulated_second: i.map(|i| i.seconds_per_second),
+            run_dir: r.run_dir.display().to_string(),
+        })?;
     }
-    s
+    let bytes = w
+        .into_inner()
+        .map_err(|e| anyhow::anyhow!("comparison.csv: {e}"))?;
+    Ok(String::from_utf8(bytes)?)
+}
+
+/// Reads a `comparison.csv`; errors name the file and the record.
+pub fn read_csv(path: &Path) -> Result<Vec<CsvRow>> {
+    let mut r = ::csv::Reader::from_path(path)
+        .with_context(|| format!("cannot read {}", path.display()))?;
+    r.deserialize()
+        .map(|row| row.with_context(|| format!("{}: a malformed row", path.display())))
+        .collect()
 }

@@ -120,45 +120,53 @@ fn compare_trains_the_three_families_and_reuses_finished_runs() {
         .replace("iterations = 600", "iterations = 20")
         .replace("iterations = 300", "iterations = 20");
     std::fs::write(dir.join("cmp.toml"), config).unwrap();
-    let out = ok(&springtime(&["compare", "cmp.toml", "--out", "cmp"], &dir));
-    let cmp = dir.join("cmp");
+    // An output folder with a comma in its name: comparison.csv must quote it.
+    let out = ok(&springtime(
+        &["compare", "cmp.toml", "--out", "cmp,1"],
+        &dir,
+    ));
+    let cmp = dir.join("cmp,1");
     for kind in ["springs", "gnn", "neural_ode"] {
         assert!(cmp.join(kind).join("eval.json").exists(), "{kind}: {out}");
     }
-    let csv = std::fs::read_to_string(cmp.join("comparison.csv")).unwrap();
-    let rows: Vec<Vec<&str>> = csv
-        .lines()
-        .skip(1)
-        .map(|l| l.split(',').collect())
-        .collect();
+    let rows = springtime::compare::read_csv(&cmp.join("comparison.csv")).unwrap();
     assert_eq!(
-        rows.iter().map(|r| r[0]).collect::<Vec<_>>(),
+        rows.iter().map(|r| r.model.as_str()).collect::<Vec<_>>(),
         ["springs", "gnn", "neural_ode"]
     );
     for r in &rows {
-        let params: usize = r[1].parse().unwrap();
-        let rmse: f64 = r[6].parse().unwrap();
-        assert!(params > 0 && rmse.is_finite() && rmse > 0.0, "{r:?}");
+        assert!(
+            r.parameters > 0 && r.rmse_long_mean.is_finite() && r.rmse_long_mean > 0.0,
+            "{r:?}"
+        );
+        assert!(r.run_dir.ends_with(&format!("cmp,1/{}", r.model)), "{r:?}");
+        assert!(r.inference_us_per_step.is_some_and(|us| us > 0.0), "{r:?}");
     }
     // The spring surrogate's parameters are k and b of every spring.
     let springs: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(cmp.join("springs").join("model.json")).unwrap(),
     )
     .unwrap();
-    assert_eq!(rows[0][1], springs["parameters"].to_string());
+    assert_eq!(
+        rows[0].parameters.to_string(),
+        springs["parameters"].to_string()
+    );
     let md = std::fs::read_to_string(cmp.join("comparison.md")).unwrap();
     assert!(md.contains("| springs (ours) |") && md.contains("| Neural ODE |"));
     let png = std::fs::read(cmp.join("comparison_rmse.png")).unwrap();
     assert_eq!(&png[1..4], b"PNG");
     // A second comparison reuses the finished runs; a changed config is refused.
-    let again = ok(&springtime(&["compare", "cmp.toml", "--out", "cmp"], &dir));
+    let again = ok(&springtime(
+        &["compare", "cmp.toml", "--out", "cmp,1"],
+        &dir,
+    ));
     assert_eq!(again.matches("reusing the finished").count(), 3, "{again}");
     let out = springtime(
         &[
             "compare",
             "cmp.toml",
             "--out",
-            "cmp",
+            "cmp,1",
             "--set",
             "model.k_init=7",
         ],
