@@ -147,6 +147,26 @@ pub fn loss_with_budget(
     terms
 }
 
+/// The first frame of every clip of `batch`: positions and velocities, `[B, P, 3]` each.
+fn clip_start(batch: &ClipBatch) -> (Tensor<3>, Tensor<3>) {
+    let [b, _, p, _] = batch.positions.dims();
+    let first = |t: &Tensor<4>| t.clone().slice([0..b, 0..1, 0..p, 0..3]).reshape([b, p, 3]);
+    (first(&batch.positions), first(&batch.velocities))
+}
+
+/// The surrogate's own rollout over every clip of `batch` from its first frame, pinned
+/// particles following the clip's path.
+fn free_rollout(model: &dyn ForceModel, physics: &Physics, batch: &ClipBatch) -> sim::Trajectory {
+    let (x0, v0) = clip_start(batch);
+    let drive = Drive {
+        x0,
+        v0,
+        pinned: batch.pinned.clone(),
+        path: batch.positions.clone(),
+    };
+    sim::rollout(model, physics, &drive, batch.positions.dims()[1] - 1)
+}
+
 /// [`ForceOn::Frames`]: the force and impulse losses on forces estimated from simulated and
 /// target frame positions alike (the estimates' difference is a stencil of the position error
 /// `e = x − x̂`: `m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1})`).
@@ -163,23 +183,7 @@ fn frame_difference_loss(
         t >= 4,
         "frame-difference forces need clips of at least 4 frames, got {t}"
     );
-    let x0 = batch
-        .positions
-        .clone()
-        .slice([0..b, 0..1, 0..p, 0..3])
-        .reshape([b, p, 3]);
-    let v0 = batch
-        .velocities
-        .clone()
-        .slice([0..b, 0..1, 0..p, 0..3])
-        .reshape([b, p, 3]);
-    let drive = Drive {
-        x0,
-        v0,
-        pinned: batch.pinned.clone(),
-        path: batch.positions.clone(),
-    };
-    let traj = sim::rollout(model, physics, &drive, t);
+    let traj = free_rollout(model, physics, batch);
     let e = traj.positions.clone() - batch.positions.clone();
     let at = |from: usize, to: usize| e.clone().slice([0..b, from..to, 0..p, 0..3]);
     // Force differences at frames 1..=T−2: m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1}).
@@ -241,23 +245,7 @@ pub fn motion_loss(
             return frame_difference_loss(model, physics, batch, weights, free);
         }
         ForceOn::Simulated => {
-            let x0 = batch
-                .positions
-                .clone()
-                .slice([0..b, 0..1, 0..p, 0..3])
-                .reshape([b, p, 3]);
-            let v0 = batch
-                .velocities
-                .clone()
-                .slice([0..b, 0..1, 0..p, 0..3])
-                .reshape([b, p, 3]);
-            let drive = Drive {
-                x0,
-                v0,
-                pinned: batch.pinned.clone(),
-                path: batch.positions.clone(),
-            };
-            let traj = sim::rollout(model, physics, &drive, t);
+            let traj = free_rollout(model, physics, batch);
             (traj.forces.clone(), Some(traj))
         }
         ForceOn::Target => {
@@ -325,17 +313,7 @@ fn fused_loss(
     weights: &LossWeights,
     budget_mib: usize,
 ) -> LossTerms {
-    let [b, _, p, _] = batch.positions.dims();
-    let x0 = batch
-        .positions
-        .clone()
-        .slice([0..b, 0..1, 0..p, 0..3])
-        .reshape([b, p, 3]);
-    let v0 = batch
-        .velocities
-        .clone()
-        .slice([0..b, 0..1, 0..p, 0..3])
-        .reshape([b, p, 3]);
+    let (x0, v0) = clip_start(batch);
     let params = RolloutParams {
         frame_dt: physics.frame_dt,
         substeps: physics.substeps,
