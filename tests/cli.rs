@@ -237,6 +237,21 @@ fn bad_configs_name_the_key() {
         &springtime(&["train", "missing.toml"], &dir),
         &["missing.toml"],
     );
+    // Frame differences need three steps per clip: an error naming the key, not a panic.
+    fails(
+        &springtime(
+            &[
+                "train",
+                "tiny.toml",
+                "--set",
+                "train.force_on=frames",
+                "--set",
+                "data.clips.steps=2",
+            ],
+            &dir,
+        ),
+        &["train.force_on", "data.clips.steps"],
+    );
     fails(
         &springtime(&["train", "tiny.toml", "--backend", "cuda"], &dir),
         &["cuda"],

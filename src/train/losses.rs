@@ -167,62 +167,31 @@ fn free_rollout(model: &dyn ForceModel, physics: &Physics, batch: &ClipBatch) ->
     sim::rollout(model, physics, &drive, batch.positions.dims()[1] - 1)
 }
 
-/// [`ForceOn::Frames`]: the force and impulse losses on forces estimated from simulated and
-/// target frame positions alike (the estimates' difference is a stencil of the position error
-/// `e = x − x̂`: `m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1})`).
-fn frame_difference_loss(
-    model: &dyn ForceModel,
-    physics: &Physics,
-    batch: &ClipBatch,
-    weights: &LossWeights,
-    free: Tensor<4>,
-) -> LossTerms {
+/// [`ForceOn::Frames`]: the difference of the force estimates from the simulated and the
+/// target frames' positions, at frames `1..=T−2`, `[B, T−2, P, 3]`. Both are central
+/// differences of positions, so their difference is a stencil of the position error
+/// `e = x − x̂`: `m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1})`.
+fn frame_force_error(traj: &sim::Trajectory, batch: &ClipBatch, physics: &Physics) -> Tensor<4> {
     let [b, frames, p, _] = batch.positions.dims();
     let t = frames - 1;
     assert!(
-        t >= 4,
-        "frame-difference forces need clips of at least 4 frames, got {t}"
+        t >= 3,
+        "frame-difference forces need clips of at least 3 steps, got {t}"
     );
-    let traj = free_rollout(model, physics, batch);
     let e = traj.positions.clone() - batch.positions.clone();
     let at = |from: usize, to: usize| e.clone().slice([0..b, from..to, 0..p, 0..3]);
-    // Force differences at frames 1..=T−2: m/(2Δt²) (e_{j+2} − e_{j+1} − e_j + e_{j−1}).
-    let n = t - 2;
-    let df = (at(3, t + 1) - at(2, t) - at(1, t - 1) + at(0, t - 2))
+    (at(3, t + 1) - at(2, t) - at(1, t - 1) + at(0, t - 2))
         .mul_scalar(physics.mass / (2.0 * physics.frame_dt * physics.frame_dt))
-        * free.clone();
-    let force = (df.clone() * df.clone())
-        .sum()
-        .div_scalar((b * n * p) as f64);
-    let ends =
-        df.clone().slice([0..b, 0..1, 0..p, 0..3]) + df.clone().slice([0..b, n - 1..n, 0..p, 0..3]);
-    let dj = (df.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt);
-    let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
-    let dx = at(1, t + 1) * free;
-    let position = (dx.clone() * dx).sum().div_scalar((b * t * p) as f64);
-    let mut total =
-        force.clone().mul_scalar(weights.force) + impulse.clone().mul_scalar(weights.impulse);
-    if weights.position != 0.0 {
-        total = total + position.clone().mul_scalar(weights.position);
-    }
-    let zero = Tensor::<1>::zeros([1], &batch.positions.device());
-    LossTerms {
-        total,
-        force,
-        impulse,
-        position,
-        k_neg: zero.clone(),
-        b_neg: zero,
-    }
 }
 
 /// The force, impulse and position losses of any [`ForceModel`] on a batch of clips, built
 /// from tensor ops (the penalty terms are zero).
 ///
-/// With `T` steps per clip, `P` particles and pinned particles masked out:
-/// - `L_f = 1/(B·T·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
-/// - `J = Δt [Σ_j f_j − (f_0 + f_{T−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
-/// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (simulated forces only).
+/// With `T` steps per clip, `P` particles and pinned particles masked out, and `N` frames whose
+/// forces are compared (`T`, or `T − 2` for [`ForceOn::Frames`]):
+/// - `L_f = 1/(B·N·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
+/// - `J = Δt [Σ_j f_j − (f_0 + f_{N−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
+/// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (when there is a simulated rollout).
 pub fn motion_loss(
     model: &dyn ForceModel,
     physics: &Physics,
@@ -240,13 +209,15 @@ pub fn motion_loss(
         .add_scalar(1.0)
         .reshape([b, 1, p, 1]);
     let zero = || Tensor::<1>::zeros([1], &device);
-    let (forces, trajectory) = match on {
-        ForceOn::Frames => {
-            return frame_difference_loss(model, physics, batch, weights, free);
-        }
+    // The force error of every compared frame, and the simulated rollout when there is one.
+    let (error, trajectory) = match on {
         ForceOn::Simulated => {
             let traj = free_rollout(model, physics, batch);
-            (traj.forces.clone(), Some(traj))
+            (traj.forces.clone() - batch.forces.clone(), Some(traj))
+        }
+        ForceOn::Frames => {
+            let traj = free_rollout(model, physics, batch);
+            (frame_force_error(&traj, batch, physics), Some(traj))
         }
         ForceOn::Target => {
             let x = batch
@@ -265,31 +236,30 @@ pub fn motion_loss(
                 .reshape([b, 1, p, 1])
                 .repeat_dim(1, t)
                 .reshape([b * t, p, 1]);
-            (
-                physics
-                    .net_force(model, x, v, &pinned)
-                    .reshape([b, t, p, 3]),
-                None,
-            )
+            let forces = physics
+                .net_force(model, x, v, &pinned)
+                .reshape([b, t, p, 3]);
+            (forces - batch.forces.clone(), None)
         }
     };
-    let diff = (forces.clone() - batch.forces.clone()) * free.clone();
-    let force = (diff.clone() * diff).sum().div_scalar((b * t * p) as f64);
-    let impulse_of = |f: Tensor<4>| {
-        let ends = f.clone().slice([0..b, 0..1, 0..p, 0..3])
-            + f.clone().slice([0..b, t - 1..t, 0..p, 0..3]);
-        (f.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt)
-    };
-    let dj = (impulse_of(forces) - impulse_of(batch.forces.clone())) * free.clone();
+    let error = error * free.clone();
+    let n = error.dims()[1];
+    let force = (error.clone() * error.clone())
+        .sum()
+        .div_scalar((b * n * p) as f64);
+    // The trapezoid impulse is linear in the forces: J − Ĵ is the impulse of the error.
+    let ends = error.clone().slice([0..b, 0..1, 0..p, 0..3])
+        + error.clone().slice([0..b, n - 1..n, 0..p, 0..3]);
+    let dj = (error.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt);
     let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
-    let position = match (&trajectory, weights.position != 0.0) {
-        (Some(traj), true) => {
+    let position = match &trajectory {
+        Some(traj) => {
             let dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
                 - batch.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3]))
                 * free;
             (dx.clone() * dx).sum().div_scalar((b * t * p) as f64)
         }
-        _ => zero(),
+        None => zero(),
     };
     let mut total =
         force.clone().mul_scalar(weights.force) + impulse.clone().mul_scalar(weights.impulse);

@@ -348,6 +348,13 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         run.check_fresh(options.force)?;
     }
     let (clips, truth) = open_training_clips(config, progress)?;
+    if config.train.force_on == ForceOn::Frames && clips.steps < 3 {
+        bail!(
+            "`train.force_on = \"frames\"` differences positions over clips of at least 3 \
+             steps; `data.clips.steps` is {}",
+            clips.steps
+        );
+    }
     let clips = Arc::new(clips);
     let requested = config;
     let train_files = config.data.split()?.train;
