@@ -12,11 +12,10 @@ pub mod metrics;
 pub mod scenario;
 
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::config::Config;
@@ -354,38 +353,6 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
 /// A settled system: which, its numbers and its positions.
 type Settled = (System, CaseResult, Vec<[f64; 3]>);
 
-/// A unit of work for [`run_parallel`].
-type Job<'a, T> = Box<dyn FnOnce() -> Result<T> + Send + 'a>;
-
-/// Runs `jobs` on as many threads as the machine has cores (two here), in order of submission.
-fn run_parallel<T: Send>(jobs: Vec<Box<dyn FnOnce() -> Result<T> + Send + '_>>) -> Result<Vec<T>> {
-    let n = jobs.len();
-    let jobs: Vec<Mutex<Option<_>>> = jobs.into_iter().map(|j| Mutex::new(Some(j))).collect();
-    let results: Vec<Mutex<Option<Result<T>>>> = (0..n).map(|_| Mutex::new(None)).collect();
-    let next = AtomicUsize::new(0);
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .min(n.max(1));
-    std::thread::scope(|scope| {
-        for _ in 0..workers {
-            scope.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    if i >= n {
-                        break;
-                    }
-                    let job = jobs[i].lock().expect("lock").take().expect("once");
-                    *results[i].lock().expect("lock") = Some(job());
-                }
-            });
-        }
-    });
-    results
-        .into_iter()
-        .map(|r| r.into_inner().expect("lock").expect("every job ran"))
-        .collect()
-}
-
 /// Runs the whole fold test into `options.out` (see the module docs).
 pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Result<FoldReport> {
     let start = Instant::now();
@@ -426,39 +393,43 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
         (System::FemFine, fine, None),
         (System::FemFineNoBending, fine, Some(0.0)),
     ];
-    let mut jobs: Vec<Job<Settled>> = Vec::new();
-    // The fine meshes first: they take longest.
-    for &(system, n, kb) in systems.iter().rev() {
-        for case in FoldCase::ALL {
-            jobs.push(Box::new(move || {
-                let setup = fem_setup(cfg, n, kb);
-                let label = system.label(coarse, fine);
-                let bar_note = |t: f64| {
-                    if n > coarse {
-                        progress.note(&format!("  {label} {}: t = {t:.2} s", case.name()));
-                    }
-                };
-                let (mut r, x) = settle_case(cfg, &setup, case, bar_note)?;
-                r.system = label;
-                progress.note(&format!(
-                    "  {} {}: α = {:.1}°, sag {:.3} m, membrane share {:.2}, settled in {:.2} s \
-                     ({} steps of {:.2e} s, {:.0} s wall{})",
-                    r.system,
-                    case.name(),
-                    r.alpha_deg,
-                    r.sag_m,
-                    r.membrane_share.unwrap_or(f64::NAN),
-                    r.settle_seconds,
-                    (r.settle_seconds / r.dt).round(),
-                    r.dt,
-                    r.wall_seconds,
-                    if r.converged { "" } else { ", NOT converged" }
-                ));
-                Ok((system, r, x))
-            }));
-        }
-    }
-    let mut settled = run_parallel(jobs)?;
+    // The fine meshes first (they take longest); one task per settling, as many at a time as
+    // there are cores.
+    let tasks: Vec<(System, usize, Option<f64>, FoldCase)> = systems
+        .iter()
+        .rev()
+        .flat_map(|&(system, n, kb)| FoldCase::ALL.map(|case| (system, n, kb, case)))
+        .collect();
+    let mut settled = tasks
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|(system, n, kb, case)| -> Result<Settled> {
+            let setup = fem_setup(cfg, n, kb);
+            let label = system.label(coarse, fine);
+            let bar_note = |t: f64| {
+                if n > coarse {
+                    progress.note(&format!("  {label} {}: t = {t:.2} s", case.name()));
+                }
+            };
+            let (mut r, x) = settle_case(cfg, &setup, case, bar_note)?;
+            r.system = label;
+            progress.note(&format!(
+                "  {} {}: α = {:.1}°, sag {:.3} m, membrane share {:.2}, settled in {:.2} s \
+                 ({} steps of {:.2e} s, {:.0} s wall{})",
+                r.system,
+                case.name(),
+                r.alpha_deg,
+                r.sag_m,
+                r.membrane_share.unwrap_or(f64::NAN),
+                r.settle_seconds,
+                (r.settle_seconds / r.dt).round(),
+                r.dt,
+                r.wall_seconds,
+                if r.converged { "" } else { ", NOT converged" }
+            ));
+            Ok((system, r, x))
+        })
+        .collect::<Result<Vec<_>>>()?;
 
     // 2. The surrogate: trained on random rollouts of the coarse mesh only.
     let run = RunDir::new(&run_dir);
