@@ -161,6 +161,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
             state = sim::step_frame(
                 &fwd_model,
                 &physics,
+                None,
                 state,
                 &pinned,
                 &frames[j],

@@ -241,6 +241,35 @@ pub enum Command {
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
     },
+    /// The drape experiment (paper §4.5, Figs. 8 and 11): release the trained cloth flat above
+    /// colliders it never saw, with contact, beside the run's source and a fine FEM reference;
+    /// write drape.json, <scene>.png and <scene>_motion_rmse.csv.
+    #[command(
+        after_help = "Examples:\n  springtime drape runs/drape_quick --scene configs/scenes/table.toml --out runs/drape\n  \
+                      springtime drape runs/springs runs/neural_ode --scene configs/scenes/sphere.toml \
+                      --scene configs/scenes/mesh.toml --out runs/drape_all --set scene.seconds=4"
+    )]
+    Drape {
+        /// Trained run directories (spring surrogate, Neural ODE; a GNN is reported as not
+        /// applicable). The first run's source is the reference.
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+        /// Scene file (TOML, `[scene]` with `[[scene.colliders]]`; repeatable).
+        #[arg(long, required = true)]
+        scene: Vec<PathBuf>,
+        /// Output directory (drape.json, <scene>.png, <scene>_motion_rmse.csv).
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite a finished output directory.
+        #[arg(long)]
+        force: bool,
+        /// Compute backend of the models (default: each run's).
+        #[arg(long, value_enum)]
+        backend: Option<Backend>,
+        /// Override a scene value: scene.key=value (repeatable, applies to every scene).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
     /// Time the training workload of ../shared/bench/peer_torch.py; prints one JSON line.
     #[command(after_help = "Example:\n  springtime bench --batch 8 --steps 500 --backend flex")]
     Bench {
@@ -638,6 +667,24 @@ pub fn run(cli: Cli) -> Result<()> {
             force,
             set,
         } => fold(&config, out, force, &set, &progress),
+        Command::Drape {
+            runs,
+            scene,
+            out,
+            force,
+            backend,
+            set,
+        } => drape(
+            &crate::drape::DrapeOptions {
+                runs,
+                scenes: scene,
+                out,
+                force,
+                backend,
+                set,
+            },
+            &progress,
+        ),
         Command::Bench {
             batch,
             steps,
@@ -824,6 +871,7 @@ fn simulate(
     let sim = eval::simulate_track(
         &model,
         &physics,
+        None,
         &track,
         first,
         frames,
@@ -868,6 +916,48 @@ fn simulate(
 }
 
 /// `springtime fold`: runs the fold test and prints each criterion beside its threshold.
+fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()> {
+    let report = crate::drape::run(options, progress)?;
+    println!(
+        "{:<12} {:<18} {:>14} {:>16} {:>14} {:>10}",
+        "scene", "system", "RMSE end (m)", "RMSE fine (m)", "deepest (m)", "diverged"
+    );
+    let show = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.4}"));
+    for (name, s) in &report.scenes {
+        if let Some(src) = &s.source {
+            println!(
+                "{:<12} {:<18} {:>14} {:>16} {:>14.4} {:>10}",
+                name,
+                format!("source {}", src.label),
+                "—",
+                show(src.steady_rmse_vs_fine),
+                src.max_penetration,
+                src.diverged
+            );
+        }
+        for (kind, m) in &s.models {
+            println!(
+                "{:<12} {:<18} {:>14} {:>16} {:>14} {:>10}",
+                name,
+                kind,
+                show(m.motion_rmse_end),
+                show(m.steady_rmse_vs_fine),
+                show(m.max_penetration),
+                if m.applicable {
+                    m.diverged.to_string()
+                } else {
+                    "n/a".into()
+                }
+            );
+        }
+        for w in &s.warnings {
+            eprintln!("warning: {name}: {w}");
+        }
+    }
+    println!("drape: {}", options.out.join("drape.json").display());
+    Ok(())
+}
+
 fn fold(
     config: &Path,
     out: PathBuf,

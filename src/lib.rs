@@ -18,6 +18,7 @@ pub mod compare;
 pub mod config;
 pub mod data;
 pub mod diagnose;
+pub mod drape;
 pub mod eval;
 pub mod export;
 pub mod fold;

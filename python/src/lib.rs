@@ -103,6 +103,7 @@ impl Run {
         let sim = springtime::eval::simulate_track(
             model,
             &physics,
+            None,
             track,
             first,
             frames,

@@ -144,6 +144,7 @@ pub fn free_rollout(
     eval::simulate_track(
         model,
         &physics,
+        None,
         &test.track,
         test.first,
         steps,

@@ -279,7 +279,7 @@ pub fn motion_curves(
             };
             for j in first..frames - 1 {
                 let next = frame_of(j + 1, false);
-                let (s, _) = sim::step_frame(model, &physics, state, &pinned, &here, &next);
+                let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);
                 state = s;
                 let d = state.x.clone() - next.clone();
                 errs.push(
@@ -581,12 +581,14 @@ pub fn stiffness_map_corr(
 /// resampled to the particles), pinned particles following the track's path while it lasts and
 /// then holding its last frame, and keeps the frames listed in `keep` (sorted, `0..=frames`).
 ///
+/// With `contact`, the colliders act on the cloth from frame `first` on (time 0 at `first`).
 /// `on_frame(j)` is called after each simulated frame (for progress). Fails, naming the time,
 /// when the simulation diverges.
 #[allow(clippy::too_many_arguments)]
 pub fn simulate_track(
     model: &dyn ForceModel,
     physics: &Physics,
+    contact: Option<&crate::sim::Contact>,
     track: &Track,
     first: usize,
     frames: usize,
@@ -642,7 +644,11 @@ pub fn simulate_track(
     }
     for j in 0..frames {
         let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
-        let (s, _) = sim::step_frame(model, physics, state, &pinned, &here, &next);
+        let at = contact.map(|contact| sim::ContactAt {
+            contact,
+            time: j as f64 * physics.frame_dt,
+        });
+        let (s, _) = sim::step_frame(model, physics, at, state, &pinned, &here, &next);
         state = s;
         if keep.next_if_eq(&(j + 1)).is_some() {
             record(j + 1, host(&state.x)?, host(&state.v)?, &mut out)?;

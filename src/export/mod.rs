@@ -447,6 +447,7 @@ pub fn export_run(
         let sim = eval::simulate_track(
             &model,
             physics,
+            None,
             track,
             *first,
             *frames,

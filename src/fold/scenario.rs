@@ -187,7 +187,7 @@ pub fn settle(
     let mut converged = false;
     while step < max_steps {
         for _ in 0..every {
-            sim.step(&mut x, &mut v, pinned, dt, &mut scratch);
+            sim.step(&mut x, &mut v, pinned, dt, None, &mut scratch);
         }
         step += every;
         max_speed = v

@@ -877,6 +877,7 @@ fn rollout_figures(
     let sim = eval::simulate_track(
         &inputs.model,
         &physics,
+        None,
         &track,
         first,
         frames,

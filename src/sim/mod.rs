@@ -1,8 +1,10 @@
 //! Forward dynamics: batched semi-implicit Euler rollouts as Burn tensor programs (Eq. 5), and
 //! the explicit-step stability guard.
 
+pub mod contact;
 mod stability;
 
+pub use contact::{Contact, ContactConfig, ContactParams};
 pub use stability::Stability;
 
 use burn::tensor::Tensor;
@@ -159,13 +161,26 @@ pub struct State {
     pub v: Tensor<3>,
 }
 
+/// The colliders a frame meets, and the time the frame starts (s), for moving colliders.
+#[derive(Debug, Clone, Copy)]
+pub struct ContactAt<'a> {
+    /// The colliders and contact constants.
+    pub contact: &'a Contact,
+    /// Time at the start of the frame, s.
+    pub time: f64,
+}
+
 /// Advances `state` by one data frame: `substeps` semi-implicit Euler steps (Eq. 5),
 /// `v ← v + dt/m · f(x, v)`, then `x ← x + dt · v`. Pinned particles (`pinned` = 1, `[B, P, 1]`)
 /// move from `here` to `next` (`[B, P, 3]`) along a straight line at constant velocity.
+/// With `contact`, the net force includes the contact forces ([`Contact::apply_tensor`]) and
+/// the step runs in tensor ops: the fused kernels keep the state inside the kernel, where the
+/// host collider queries cannot reach it.
 /// Returns the new state and the mean net force over the frame.
 pub fn step_frame(
     model: &dyn ForceModel,
     physics: &Physics,
+    contact: Option<ContactAt>,
     state: State,
     pinned: &Tensor<3>,
     here: &Tensor<3>,
@@ -190,21 +205,28 @@ pub fn step_frame(
             let t = (sub + 1) as f64 / n as f64;
             here.clone().mul_scalar(1.0 - t) + next.clone().mul_scalar(t)
         };
-        let fused = model.fused_step(
-            x.clone(),
-            v.clone(),
-            pinned,
-            target.clone(),
-            pin_v.clone(),
-            params,
-        );
+        let fused = match contact {
+            Some(_) => None,
+            None => model.fused_step(
+                x.clone(),
+                v.clone(),
+                pinned,
+                target.clone(),
+                pin_v.clone(),
+                params,
+            ),
+        };
         let f = match fused {
             Some((xn, vn, f)) => {
                 (x, v) = (xn, vn);
                 f
             }
             None => {
-                let f = physics.net_force(model, x.clone(), v.clone(), pinned);
+                let mut f = physics.net_force(model, x.clone(), v.clone(), pinned);
+                if let Some(c) = contact {
+                    let t = c.time + sub as f64 * h;
+                    f = c.contact.apply_tensor(t, h, physics.mass, &x, &v, f, &free);
+                }
                 v = v + f.clone().mul_scalar(h / physics.mass);
                 x = x + v.clone().mul_scalar(h);
                 x = x * free.clone() + target * pinned.clone();
@@ -256,7 +278,7 @@ pub fn rollout(
     let mut here = frame(0);
     for j in 0..frames {
         let next = frame(j + 1);
-        let (s, f) = step_frame(model, physics, state, &drive.pinned, &here, &next);
+        let (s, f) = step_frame(model, physics, None, state, &drive.pinned, &here, &next);
         state = s;
         forces.push(f);
         positions.push(state.x.clone());

@@ -661,27 +661,12 @@ impl ClothSim for FemCloth {
         self.mass.iter().sum::<f64>() / self.mass.len() as f64
     }
 
-    fn step(
-        &self,
-        x: &mut [[f64; 3]],
-        v: &mut [[f64; 3]],
-        pinned: &[bool],
-        dt: f64,
-        scratch: &mut Vec<[f64; 3]>,
-    ) {
-        scratch.resize(x.len(), [0.0; 3]);
-        self.forces(x, v, scratch);
-        for i in 0..x.len() {
-            if pinned[i] {
-                v[i] = [0.0; 3];
-                continue;
-            }
-            let h_over_m = dt / self.mass[i];
-            for c in 0..3 {
-                v[i][c] += h_over_m * scratch[i][c];
-                x[i][c] += dt * v[i][c];
-            }
-        }
+    fn mass_of(&self, i: usize) -> f64 {
+        self.mass[i]
+    }
+
+    fn net_forces(&self, x: &[V3], v: &[V3], out: &mut [V3]) {
+        self.forces(x, v, out);
     }
 
     /// The stiffest mode of the linearisation at the flat rest state: `ω²` from the
@@ -915,7 +900,7 @@ mod tests {
         let pinned = vec![false; x.len()];
         let mut scratch = Vec::new();
         for _ in 0..500 {
-            c.step(&mut x, &mut v, &pinned, 1e-3, &mut scratch);
+            c.step(&mut x, &mut v, &pinned, 1e-3, None, &mut scratch);
         }
         let p1 = momentum(&v);
         let total: f64 = c.mass.iter().sum();

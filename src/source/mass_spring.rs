@@ -91,27 +91,12 @@ impl ClothSim for SpringCloth {
         self.mass
     }
 
-    fn step(
-        &self,
-        x: &mut [[f64; 3]],
-        v: &mut [[f64; 3]],
-        pinned: &[bool],
-        dt: f64,
-        scratch: &mut Vec<[f64; 3]>,
-    ) {
-        scratch.resize(x.len(), [0.0; 3]);
-        self.forces(x, v, scratch);
-        let h_over_m = dt / self.mass;
-        for i in 0..x.len() {
-            if pinned[i] {
-                v[i] = [0.0; 3];
-                continue;
-            }
-            for c in 0..3 {
-                v[i][c] += h_over_m * scratch[i][c];
-                x[i][c] += dt * v[i][c];
-            }
-        }
+    fn mass_of(&self, _i: usize) -> f64 {
+        self.mass
+    }
+
+    fn net_forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]) {
+        self.forces(x, v, out);
     }
 
     fn stability(&self, dt: f64) -> Stability {

@@ -20,7 +20,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{ClipConfig, INDEX_FORMAT, Index, MeshTruth, Rollout, Segment, SpringTruth};
-use crate::sim::Stability;
+use crate::sim::{ContactAt, Stability};
 
 /// Which simulator generates the data.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -175,17 +175,42 @@ impl SourceConfig {
 pub trait ClothSim: Sync {
     /// Landmark rest positions in the rectangle.
     fn rest_uv(&self) -> &[[f64; 2]];
-    /// Mass of each landmark, kg.
+    /// Mean mass of a landmark, kg.
     fn particle_mass(&self) -> f64;
-    /// One semi-implicit Euler step; pinned landmarks stay where they are.
+    /// Mass of landmark `i`, kg.
+    fn mass_of(&self, i: usize) -> f64;
+    /// Net force on every landmark at `(x, v)`: internal forces, gravity, Rayleigh damping.
+    fn net_forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]);
+    /// One semi-implicit Euler step, `v ← v + dt/m f`, `x ← x + dt v`, with the contact
+    /// forces of `contact` when given ([`Contact::apply`](crate::sim::Contact::apply));
+    /// pinned landmarks stay where they are.
     fn step(
         &self,
         x: &mut [[f64; 3]],
         v: &mut [[f64; 3]],
         pinned: &[bool],
         dt: f64,
+        contact: Option<ContactAt>,
         scratch: &mut Vec<[f64; 3]>,
-    );
+    ) {
+        scratch.resize(x.len(), [0.0; 3]);
+        self.net_forces(x, v, scratch);
+        if let Some(c) = contact {
+            c.contact
+                .apply(c.time, dt, x, v, pinned, |i| self.mass_of(i), scratch);
+        }
+        for i in 0..x.len() {
+            if pinned[i] {
+                v[i] = [0.0; 3];
+                continue;
+            }
+            let h_over_m = dt / self.mass_of(i);
+            for c in 0..3 {
+                v[i][c] += h_over_m * scratch[i][c];
+                x[i][c] += dt * v[i][c];
+            }
+        }
+    }
     /// The explicit-step stability estimate at `dt`.
     fn stability(&self, dt: f64) -> Stability;
     /// Ground-truth springs, if the source is a spring network.
@@ -339,7 +364,7 @@ pub fn simulate_rollout(
         if step == steps {
             break;
         }
-        sim.step(&mut x, &mut v, &scenario.pinned, cfg.dt, &mut scratch);
+        sim.step(&mut x, &mut v, &scenario.pinned, cfg.dt, None, &mut scratch);
         if step % 64 == 0
             && x.iter()
                 .flatten()

@@ -1,0 +1,866 @@
+//! The drape experiment (paper §4.5, Figs. 8 and 11): `springtime drape <run>… --scene S… --out D`.
+//!
+//! A trained model (spring surrogate or Neural ODE, trained on free, pinned rollouts only) is
+//! released flat above colliders it never saw, without pins, and simulated with contact
+//! ([`crate::sim::contact`]). The same happens to the run's source (the coarse FEM or
+//! mass-spring cloth that made its data) and, for an FEM source, to a fine FEM mesh with the
+//! same material at `scene.fine` times the resolution. `drape.json` has, per scene and model,
+//! the motion RMSE (Eq. 14) against the source over time and at the end, the steady-state RMSE
+//! against the fine reference (for the models *and* the coarse source: the paper's claim is
+//! that the surrogate drapes closer to the fine mesh than the coarse FEM that trained it), the
+//! deepest intrusion into the contact layer, the kinetic energy at the end and whether it
+//! diverged. `<scene>.png` shows the drapes at the end side by side with the motion RMSE over
+//! time; `<scene>_motion_rmse.csv` has the curves.
+
+pub mod scene;
+
+pub use scene::{Scene, SceneConfig};
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use burn::tensor::Device;
+use serde::Serialize;
+
+use crate::backend::Backend;
+use crate::cloth::Resampler;
+use crate::data::Track;
+use crate::eval;
+use crate::model::ForceModel;
+use crate::progress::Progress;
+use crate::sim::{Contact, ContactAt, ContactParams, Physics};
+use crate::source::{ClothSim, FemCloth, SourceConfig, SourceKind, SpringCloth};
+use crate::train::{self, RunDir, Trained};
+
+type V3 = [f64; 3];
+
+/// Command-line choices of a drape job.
+#[derive(Debug, Clone, Default)]
+pub struct DrapeOptions {
+    /// Trained runs (the first one's source and step set the scene's references and defaults).
+    pub runs: Vec<PathBuf>,
+    /// Scene files.
+    pub scenes: Vec<PathBuf>,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Overwrite a finished output directory.
+    pub force: bool,
+    /// Compute backend of the models (default: each run's).
+    pub backend: Option<Backend>,
+    /// Overrides of the scene files (`scene.seconds=2`).
+    pub set: Vec<String>,
+}
+
+/// `drape.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct DrapeReport {
+    /// Per scene (the file's stem).
+    pub scenes: BTreeMap<String, SceneResult>,
+    /// The runs, in command-line order.
+    pub runs: Vec<PathBuf>,
+    /// Wall time of the command, s.
+    pub wall_seconds: f64,
+    /// The build.
+    pub build: crate::BuildInfo,
+}
+
+/// One scene's results.
+#[derive(Debug, Clone, Serialize)]
+pub struct SceneResult {
+    /// The scene file.
+    pub scene_file: PathBuf,
+    /// The scene as run.
+    pub scene: SceneConfig,
+    /// Contact thickness δ, m.
+    pub contact_thickness: f64,
+    /// The resolved contact constants.
+    pub contact: ContactParams,
+    /// Interval of the recorded frames, s.
+    pub record_dt: f64,
+    /// The run's source (coarse FEM or mass-spring cloth), if the run has a `[source]`.
+    pub source: Option<Reference>,
+    /// The fine FEM reference (FEM sources only).
+    pub fine: Option<Reference>,
+    /// Per model kind (`springs`, `neural_ode`, `gnn`).
+    pub models: BTreeMap<String, ModelResult>,
+    /// Penetrations beyond the contact thickness and divergences, in words.
+    pub warnings: Vec<String>,
+    /// Wall time of the scene, s.
+    pub wall_seconds: f64,
+}
+
+/// A reference simulator's drape.
+#[derive(Debug, Clone, Serialize)]
+pub struct Reference {
+    /// `fem31x31`, `mass_spring32x32`, …
+    pub label: String,
+    /// Step, s.
+    pub dt: f64,
+    /// Steady-state (end) RMSE to the fine reference at this mesh's vertices, m.
+    pub steady_rmse_vs_fine: Option<f64>,
+    /// Deepest intrusion into the contact layer, m.
+    pub max_penetration: f64,
+    /// Kinetic energy at the end, J.
+    pub kinetic_energy_end: Option<f64>,
+    /// Whether it diverged.
+    pub diverged: bool,
+    /// Wall time of the simulation, s.
+    pub wall_seconds: f64,
+}
+
+/// A model's drape.
+#[derive(Debug, Clone, Serialize)]
+pub struct ModelResult {
+    /// The run directory.
+    pub run: PathBuf,
+    /// Whether the model can take contact (the GNN cannot: it predicts positions).
+    pub applicable: bool,
+    /// Motion RMSE (Eq. 14) to the source at the end, m.
+    pub motion_rmse_end: Option<f64>,
+    /// Mean of the motion RMSE over the recorded frames, m.
+    pub motion_rmse_mean: Option<f64>,
+    /// Steady-state (end) RMSE to the fine FEM reference at the model's particles, m.
+    pub steady_rmse_vs_fine: Option<f64>,
+    /// Deepest intrusion into the contact layer, m.
+    pub max_penetration: Option<f64>,
+    /// Kinetic energy at the end, J.
+    pub kinetic_energy_end: Option<f64>,
+    /// Whether the simulation diverged.
+    pub diverged: bool,
+    /// Why, if it diverged or does not apply.
+    pub note: Option<String>,
+    /// Motion RMSE to the source over time, `[t, rmse]`.
+    pub motion_rmse_over_time: Vec<[f64; 2]>,
+    /// Wall time of the simulation, s.
+    pub wall_seconds: f64,
+}
+
+/// What one simulation recorded.
+#[derive(Debug, Clone)]
+pub struct Recording {
+    /// `fem31x31`, `springs`, …
+    pub label: String,
+    /// Rest positions of its vertices or particles.
+    pub rest_uv: Vec<[f64; 2]>,
+    /// Grid size `(nx, ny)` (row-major vertices), for drawing.
+    pub grid: (usize, usize),
+    /// Recorded positions, `[P, 3]` per record.
+    pub frames: Vec<Vec<f32>>,
+    /// Kinetic energy at the end, J (None when diverged).
+    pub kinetic_energy_end: Option<f64>,
+    /// Deepest intrusion into the contact layer, m.
+    pub deepest: f64,
+    /// Why it stopped early.
+    pub diverged: Option<String>,
+    /// Step, s.
+    pub dt: f64,
+    /// Wall time, s.
+    pub wall_seconds: f64,
+}
+
+/// Simulates a host cloth (a source) released at `x0`, for `steps` steps of `dt`, recording
+/// every `every` steps.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_host(
+    label: &str,
+    sim: &dyn ClothSim,
+    grid: (usize, usize),
+    x0: Vec<V3>,
+    contact: &Contact,
+    dt: f64,
+    steps: usize,
+    every: usize,
+    progress: &Progress,
+) -> Recording {
+    let start = Instant::now();
+    let n = x0.len();
+    let size = x0.iter().flatten().fold(1.0f64, |m, c| m.max(c.abs()));
+    let limit = 1e3 * size;
+    let (mut x, mut v) = (x0, vec![[0.0; 3]; n]);
+    let pinned = vec![false; n];
+    let mut scratch = Vec::new();
+    let mut rec = Recording {
+        label: label.into(),
+        rest_uv: sim.rest_uv().to_vec(),
+        grid,
+        frames: Vec::new(),
+        kinetic_energy_end: None,
+        deepest: 0.0,
+        diverged: None,
+        dt,
+        wall_seconds: 0.0,
+    };
+    let bar = progress.bar(steps as u64, label);
+    for step in 0..=steps {
+        if step % every == 0 {
+            if x.iter()
+                .flatten()
+                .any(|c| !c.is_finite() || c.abs() > limit)
+            {
+                rec.diverged = Some(format!("{label} diverged by t = {:.3} s", step as f64 * dt));
+                break;
+            }
+            rec.frames
+                .push(x.iter().flat_map(|p| p.map(|c| c as f32)).collect());
+        }
+        if step == steps {
+            break;
+        }
+        let at = ContactAt {
+            contact,
+            time: step as f64 * dt,
+        };
+        sim.step(&mut x, &mut v, &pinned, dt, Some(at), &mut scratch);
+        if step % 256 == 0 {
+            bar.set_position(step as u64);
+        }
+    }
+    bar.finish();
+    if rec.diverged.is_none() {
+        rec.kinetic_energy_end = Some(
+            v.iter()
+                .enumerate()
+                .map(|(i, w)| 0.5 * sim.mass_of(i) * (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]))
+                .sum(),
+        );
+    }
+    rec.deepest = contact.deepest();
+    rec.wall_seconds = start.elapsed().as_secs_f64();
+    rec
+}
+
+/// Simulates a trained force model released at `x0` (its particles), for `frames` frames,
+/// recording every `every` frames.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_model(
+    label: &str,
+    model: &dyn ForceModel,
+    physics: &Physics,
+    topology: &crate::cloth::Topology,
+    x0: &[V3],
+    contact: &Contact,
+    frames: usize,
+    every: usize,
+    device: &Device,
+    progress: &Progress,
+) -> Recording {
+    let start = Instant::now();
+    let p = x0.len();
+    let track = Track {
+        frames: 1,
+        particles: p,
+        positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
+        velocities: vec![0.0; p * 3],
+        pinned: vec![false; p],
+    };
+    let keep: Vec<usize> = (0..=frames).step_by(every).collect();
+    let bar = progress.bar(frames as u64, label);
+    let sim = eval::simulate_track(
+        model,
+        physics,
+        Some(contact),
+        &track,
+        0,
+        frames,
+        &keep,
+        device,
+        |j| {
+            if j % 64 == 0 {
+                bar.set_position(j as u64)
+            }
+        },
+    );
+    bar.finish();
+    let mut rec = Recording {
+        label: label.into(),
+        rest_uv: topology.rest_uv.clone(),
+        grid: (topology.nx, topology.ny),
+        frames: Vec::new(),
+        kinetic_energy_end: None,
+        deepest: contact.deepest(),
+        diverged: None,
+        dt: physics.sim_dt(),
+        wall_seconds: 0.0,
+    };
+    match sim {
+        Ok(s) => {
+            rec.frames = s.positions.chunks(p * 3).map(<[f32]>::to_vec).collect();
+            let n = s.frames.len();
+            let v_end = &s.velocities[(n - 1) * p * 3..];
+            rec.kinetic_energy_end =
+                Some(0.5 * physics.mass * v_end.iter().map(|c| (*c as f64).powi(2)).sum::<f64>());
+            let size = x0.iter().flatten().fold(1.0f64, |m, c| m.max(c.abs()));
+            if rec
+                .frames
+                .iter()
+                .flatten()
+                .any(|c| c.abs() as f64 > 1e3 * size)
+            {
+                rec.diverged = Some(format!(
+                    "{label} left the scene (|x| > {:.0} m)",
+                    1e3 * size
+                ));
+            }
+        }
+        Err(e) => rec.diverged = Some(format!("{label}: {e:#}")),
+    }
+    rec.wall_seconds = start.elapsed().as_secs_f64();
+    rec
+}
+
+/// RMSE between two `[P, 3]` position sets, m.
+fn rmse(a: &[f32], b: &[f32]) -> f64 {
+    eval::frame_rmse(a, b)
+}
+
+/// `src` frame (`res`'s landmarks) resampled to `res`'s particles.
+fn resample(res: &Resampler, src: &[f32]) -> Vec<f32> {
+    let mut out = vec![0.0f64; res.num_particles() * 3];
+    res.apply3(src, &mut out);
+    out.into_iter().map(|c| c as f32).collect()
+}
+
+/// A run, loaded for draping.
+struct LoadedModel {
+    dir: PathBuf,
+    loaded: train::LoadedRun,
+    device: Device,
+}
+
+/// The source config of a run with the fine mesh's resolution, damping per unit mass kept.
+fn fine_config(src: &SourceConfig, fine: usize) -> SourceConfig {
+    let mut s = src.clone();
+    s.nx = (src.nx - 1) * fine + 1;
+    s.ny = (src.ny - 1) * fine + 1;
+    s.rayleigh = src.rayleigh * (src.nx * src.ny) as f64 / (s.nx * s.ny) as f64;
+    s
+}
+
+/// The largest step `dt / 2^j` (`j ≥ 0`) at which `sim` with `contact` is comfortably stable
+/// (`dt²ω² + 2·dt·γ ≤ 3`).
+fn stable_step(sim: &dyn ClothSim, params: &ContactParams, dt: f64) -> f64 {
+    let mut h = dt;
+    for _ in 0..12 {
+        if sim.stability(h).with_contact(params).number() <= 3.0 {
+            return h;
+        }
+        h *= 0.5;
+    }
+    h
+}
+
+fn label_of(src: &SourceConfig) -> String {
+    let kind = match src.kind {
+        SourceKind::Fem => "fem",
+        SourceKind::MassSpring => "mass_spring",
+    };
+    format!("{kind}{}x{}", src.nx, src.ny)
+}
+
+/// Runs every scene for every run into `options.out` and writes `drape.json`.
+pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
+    let start = Instant::now();
+    if options.runs.is_empty() || options.scenes.is_empty() {
+        bail!("drape needs at least one run directory and one --scene");
+    }
+    let out = &options.out;
+    let json = out.join("drape.json");
+    if json.exists() && !options.force {
+        bail!(
+            "{} holds a finished drape; pass --force to run it again or --out to write elsewhere",
+            out.display()
+        );
+    }
+    let scenes = options
+        .scenes
+        .iter()
+        .map(|p| Scene::load(p, &options.set))
+        .collect::<Result<Vec<_>>>()?;
+    let mut models = Vec::new();
+    for dir in &options.runs {
+        let run = RunDir::new(dir);
+        crate::report::check_finished(&run)?;
+        let backend = match options.backend {
+            Some(b) => b,
+            None => {
+                crate::config::Config::load(&run.config(), &[])
+                    .with_context(|| format!("{} is not a run directory", dir.display()))?
+                    .backend
+            }
+        };
+        let device = backend.device()?;
+        let loaded = train::load_run(dir, &[], &device)?;
+        models.push(LoadedModel {
+            dir: dir.clone(),
+            loaded,
+            device,
+        });
+    }
+    let first = &models[0].loaded;
+    let (width, height) = (first.meta.width, first.meta.height);
+    let size = width.max(height);
+    let frame_dt = first.meta.frame_dt;
+    let sim_cfg = &first.config.sim;
+    let h = frame_dt / sim_cfg.substeps.or(1) as f64;
+    let source = first.config.source.clone();
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+
+    let mut results = BTreeMap::new();
+    for scene in &scenes {
+        let scene_start = Instant::now();
+        let params = scene.params(size, h);
+        let cfg = &scene.config;
+        progress.note(&format!(
+            "drape {}: {} collider(s), {:.1} s, contact thickness {:.4} m, κ = {:.3e}/s², ζ = {:.3e}/s",
+            scene.name,
+            scene.colliders.len(),
+            cfg.seconds,
+            params.thickness,
+            params.stiffness,
+            params.damping
+        ));
+        let record_frames = ((cfg.record_every / frame_dt).round() as usize).max(1);
+        let record_dt = record_frames as f64 * frame_dt;
+        let frames = (cfg.seconds / frame_dt).round() as usize;
+        let mut warnings = Vec::new();
+
+        // The references: the coarse source and the fine FEM mesh, side by side.
+        let host_run = |src: &SourceConfig| -> Result<Recording> {
+            let sim: Box<dyn ClothSim> = match src.kind {
+                SourceKind::Fem => Box::new(FemCloth::from_config(src)),
+                SourceKind::MassSpring => Box::new(SpringCloth::from_config(src)),
+            };
+            let dt = stable_step(sim.as_ref(), &params, src.dt);
+            let every = (record_dt / dt).round() as usize;
+            if every == 0 || (every as f64 * dt - record_dt).abs() > 1e-6 * record_dt {
+                bail!(
+                    "the source's step {dt} s does not divide the recorded interval {record_dt} s"
+                );
+            }
+            let steps = frames / record_frames * every;
+            let x0 = scene.release(sim.rest_uv(), src.width, src.height);
+            let contact = Contact::new(scene.colliders.clone(), params);
+            Ok(simulate_host(
+                &label_of(src),
+                sim.as_ref(),
+                (src.nx, src.ny),
+                x0,
+                &contact,
+                dt,
+                steps,
+                every,
+                progress,
+            ))
+        };
+        let (coarse, fine) = match &source {
+            Some(src) => {
+                let fine_src = (src.kind == SourceKind::Fem).then(|| fine_config(src, cfg.fine));
+                let (c, f) = rayon::join(
+                    || host_run(src),
+                    || fine_src.as_ref().map(&host_run).transpose(),
+                );
+                (Some(c?), f?)
+            }
+            None => {
+                warnings.push(
+                    "the run has no [source]: no reference drape, only the models' contact figures"
+                        .into(),
+                );
+                (None, None)
+            }
+        };
+
+        // The models.
+        let mut recs: Vec<(String, PathBuf, Option<Recording>, Option<String>)> = Vec::new();
+        for m in &models {
+            let l = &m.loaded;
+            let kind = l.config.model.kind.name().to_string();
+            if l.meta.frame_dt != frame_dt || l.meta.width != width || l.meta.height != height {
+                bail!(
+                    "{} has another frame step or sheet than {}: drape runs of one data set together",
+                    m.dir.display(),
+                    models[0].dir.display()
+                );
+            }
+            let physics = Physics::new(&l.config.sim, frame_dt, l.meta.particle_mass);
+            let model: &dyn ForceModel = match &l.model {
+                Trained::Springs(s) => {
+                    physics
+                        .stability_of(&l.topology, s)
+                        .with_contact(&params)
+                        .check(
+                            &format!("{} in scene {}", m.dir.display(), scene.name),
+                            l.config.sim.allow_unstable,
+                        )?;
+                    s
+                }
+                Trained::NeuralOde(o) => o,
+                Trained::Gnn(_) => {
+                    recs.push((
+                        kind,
+                        m.dir.clone(),
+                        None,
+                        Some(
+                            "not applicable: the GNN predicts positions, not forces, so contact \
+                             forces cannot enter its step (as in the paper)"
+                                .into(),
+                        ),
+                    ));
+                    continue;
+                }
+            };
+            let x0 = scene.release(&l.topology.rest_uv, width, height);
+            let contact = Contact::new(scene.colliders.clone(), params);
+            let rec = simulate_model(
+                &kind,
+                model,
+                &physics,
+                &l.topology,
+                &x0,
+                &contact,
+                frames / record_frames * record_frames,
+                record_frames,
+                &m.device,
+                progress,
+            );
+            recs.push((kind, m.dir.clone(), Some(rec), None));
+        }
+
+        // Metrics.
+        let fine_end = fine
+            .as_ref()
+            .filter(|f| f.diverged.is_none())
+            .and_then(|f| f.frames.last());
+        let vs_fine = |rec: &Recording| -> Option<f64> {
+            let f = fine.as_ref()?;
+            let end = fine_end?;
+            if rec.diverged.is_some() {
+                return None;
+            }
+            let res = Resampler::new(&f.rest_uv, &rec.rest_uv);
+            Some(rmse(rec.frames.last()?, &resample(&res, end)))
+        };
+        let mut check = |who: &str, rec: &Recording| {
+            if rec.deepest > params.thickness {
+                warnings.push(format!(
+                    "{who}: penetrated {:.4} m into the contact layer of {:.4} m: it reached the \
+                     collider's surface",
+                    rec.deepest, params.thickness
+                ));
+            }
+            if let Some(d) = &rec.diverged {
+                warnings.push(d.clone());
+            }
+        };
+        let reference = |rec: &Recording| Reference {
+            label: rec.label.clone(),
+            dt: rec.dt,
+            steady_rmse_vs_fine: vs_fine(rec),
+            max_penetration: rec.deepest,
+            kinetic_energy_end: rec.kinetic_energy_end,
+            diverged: rec.diverged.is_some(),
+            wall_seconds: rec.wall_seconds,
+        };
+        let source_ref = coarse.as_ref().map(|c| {
+            check("source", c);
+            reference(c)
+        });
+        let fine_ref = fine.as_ref().map(|f| {
+            check("fine reference", f);
+            let mut r = reference(f);
+            r.steady_rmse_vs_fine = Some(0.0);
+            r
+        });
+        let mut model_results = BTreeMap::new();
+        for (kind, dir, rec, note) in &recs {
+            let Some(rec) = rec else {
+                model_results.insert(
+                    kind.clone(),
+                    ModelResult {
+                        run: dir.clone(),
+                        applicable: false,
+                        motion_rmse_end: None,
+                        motion_rmse_mean: None,
+                        steady_rmse_vs_fine: None,
+                        max_penetration: None,
+                        kinetic_energy_end: None,
+                        diverged: false,
+                        note: note.clone(),
+                        motion_rmse_over_time: Vec::new(),
+                        wall_seconds: 0.0,
+                    },
+                );
+                continue;
+            };
+            check(kind, rec);
+            let curve: Vec<[f64; 2]> = match &coarse {
+                Some(c) => {
+                    let res = Resampler::new(&c.rest_uv, &rec.rest_uv);
+                    rec.frames
+                        .iter()
+                        .zip(&c.frames)
+                        .enumerate()
+                        .map(|(r, (x, y))| [r as f64 * record_dt, rmse(x, &resample(&res, y))])
+                        .collect()
+                }
+                None => Vec::new(),
+            };
+            let complete = rec.diverged.is_none() && !curve.is_empty();
+            model_results.insert(
+                kind.clone(),
+                ModelResult {
+                    run: dir.clone(),
+                    applicable: true,
+                    motion_rmse_end: curve.last().filter(|_| complete).map(|c| c[1]),
+                    motion_rmse_mean: complete
+                        .then(|| curve.iter().map(|c| c[1]).sum::<f64>() / curve.len() as f64),
+                    steady_rmse_vs_fine: vs_fine(rec),
+                    max_penetration: Some(rec.deepest),
+                    kinetic_energy_end: rec.kinetic_energy_end,
+                    diverged: rec.diverged.is_some(),
+                    note: rec.diverged.clone(),
+                    motion_rmse_over_time: curve,
+                    wall_seconds: rec.wall_seconds,
+                },
+            );
+        }
+        for (who, r) in &model_results {
+            progress.note(&format!(
+                "  {who}: motion RMSE at the end {}, to the fine mesh {}, deepest {:.4} m, {:.1} s wall{}",
+                fmt_m(r.motion_rmse_end),
+                fmt_m(r.steady_rmse_vs_fine),
+                r.max_penetration.unwrap_or(0.0),
+                r.wall_seconds,
+                if r.diverged { ", DIVERGED" } else { "" }
+            ));
+        }
+        if let Some(s) = &source_ref {
+            progress.note(&format!(
+                "  source {}: to the fine mesh {}, deepest {:.4} m, {:.1} s wall",
+                s.label,
+                fmt_m(s.steady_rmse_vs_fine),
+                s.max_penetration,
+                s.wall_seconds
+            ));
+        }
+        let mut drawn: Vec<&Recording> = Vec::new();
+        drawn.extend(coarse.as_ref());
+        drawn.extend(recs.iter().filter_map(|r| r.2.as_ref()));
+        drawn.extend(fine.as_ref());
+        figure(
+            &out.join(format!("{}.png", scene.name)),
+            scene,
+            &params,
+            &drawn,
+            &model_results,
+        )?;
+        write_curves(
+            &out.join(format!("{}_motion_rmse.csv", scene.name)),
+            &model_results,
+        )?;
+        results.insert(
+            scene.name.clone(),
+            SceneResult {
+                scene_file: scene.path.clone(),
+                scene: scene.config.clone(),
+                contact_thickness: params.thickness,
+                contact: params,
+                record_dt,
+                source: source_ref,
+                fine: fine_ref,
+                models: model_results,
+                warnings,
+                wall_seconds: scene_start.elapsed().as_secs_f64(),
+            },
+        );
+    }
+    let report = DrapeReport {
+        scenes: results,
+        runs: options.runs.clone(),
+        wall_seconds: start.elapsed().as_secs_f64(),
+        build: crate::BuildInfo::current(),
+    };
+    crate::io::write_json(&json, &report)?;
+    Ok(report)
+}
+
+fn fmt_m(v: Option<f64>) -> String {
+    v.map_or("—".into(), |v| format!("{v:.4} m"))
+}
+
+/// `time,<model>,…` motion RMSE curves.
+fn write_curves(path: &Path, models: &BTreeMap<String, ModelResult>) -> Result<()> {
+    let cols: Vec<(&String, &ModelResult)> = models
+        .iter()
+        .filter(|(_, m)| !m.motion_rmse_over_time.is_empty())
+        .collect();
+    let rows = cols
+        .iter()
+        .map(|(_, m)| m.motion_rmse_over_time.len())
+        .max()
+        .unwrap_or(0);
+    let mut w = csv::Writer::from_writer(Vec::new());
+    let mut header = vec!["time".to_string()];
+    header.extend(cols.iter().map(|(k, _)| format!("{k}_rmse_m")));
+    w.write_record(&header)?;
+    for r in 0..rows {
+        let t = cols
+            .iter()
+            .find_map(|(_, m)| m.motion_rmse_over_time.get(r))
+            .map_or(0.0, |c| c[0]);
+        let mut row = vec![format!("{t:.4}")];
+        row.extend(cols.iter().map(|(_, m)| {
+            m.motion_rmse_over_time
+                .get(r)
+                .map_or(String::new(), |c| format!("{:.6e}", c[1]))
+        }));
+        w.write_record(&row)?;
+    }
+    let bytes = w.into_inner().map_err(|e| anyhow::anyhow!("{e}"))?;
+    crate::io::write_text(path, &String::from_utf8(bytes)?)
+}
+
+/// Grid edges (rows and columns) of an `nx × ny` row-major grid.
+fn grid_edges(nx: usize, ny: usize) -> Vec<[usize; 2]> {
+    let mut e = Vec::new();
+    for r in 0..ny {
+        for c in 0..nx {
+            let i = r * nx + c;
+            if c + 1 < nx {
+                e.push([i, i + 1]);
+            }
+            if r + 1 < ny {
+                e.push([i, i + nx]);
+            }
+        }
+    }
+    e
+}
+
+/// The drapes at the end side by side (source, models, fine reference) over the colliders'
+/// surface points, and the motion RMSE over time.
+fn figure(
+    path: &Path,
+    scene: &Scene,
+    params: &ContactParams,
+    recs: &[&Recording],
+    models: &BTreeMap<String, ModelResult>,
+) -> Result<()> {
+    use crate::report::anim::{Layer, View, draw_cloth};
+    use crate::report::plot::{self, Series};
+    let view = View::default();
+    let ends: Vec<&[f32]> = recs
+        .iter()
+        .filter_map(|r| r.frames.last().map(Vec::as_slice))
+        .collect();
+    let bounds = view.bounds(ends.iter().copied());
+    let lo = [0, 1, 2].map(|c| {
+        ends.iter()
+            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
+            .fold(f64::INFINITY, f64::min)
+    });
+    let hi = [0, 1, 2].map(|c| {
+        ends.iter()
+            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
+            .fold(f64::NEG_INFINITY, f64::max)
+    });
+    let surface: Vec<f32> = surface_points(scene, lo, hi, params.thickness);
+    let panels = recs.len().max(1);
+    let (w, h) = (380 * panels as u32, 760);
+    plot::png_figure(path, w.max(760), h, |root| {
+        let (top, bottom) = root.split_vertically(400);
+        let cells = top.split_evenly((1, panels));
+        for (area, rec) in cells.iter().zip(recs) {
+            let edges = grid_edges(rec.grid.0, rec.grid.1);
+            let (caption, pos) = match (&rec.diverged, rec.frames.last()) {
+                (None, Some(f)) => (
+                    format!("{}: t = {:.1} s", rec.label, scene.config.seconds),
+                    f,
+                ),
+                (_, _) => {
+                    plot::draw_message(area, &rec.label, "diverged")?;
+                    continue;
+                }
+            };
+            let layers = [
+                Layer {
+                    positions: &surface,
+                    edges: &[],
+                    pinned: &[],
+                    color: plotters::style::RGBColor(170, 170, 170),
+                    radius: 1,
+                },
+                Layer {
+                    positions: pos,
+                    edges: &edges,
+                    pinned: &[],
+                    color: plotters::style::RGBColor(31, 119, 180),
+                    radius: 0,
+                },
+            ];
+            draw_cloth(area, &caption, &view, bounds, &layers)?;
+        }
+        let series: Vec<Series> = models
+            .iter()
+            .filter(|(_, m)| !m.motion_rmse_over_time.is_empty())
+            .map(|(k, m)| {
+                Series::new(
+                    k.clone(),
+                    m.motion_rmse_over_time
+                        .iter()
+                        .map(|c| (c[0], c[1]))
+                        .collect(),
+                )
+            })
+            .collect();
+        plot::draw_curves(
+            &bottom,
+            &format!("{}: motion RMSE to the source (Eq. 14)", scene.name),
+            "time (s)",
+            "RMSE (m)",
+            &series,
+            false,
+            &[],
+        )
+    })
+}
+
+/// Points on the colliders' surfaces within the box `lo..hi` (grown by a margin), for the
+/// figure: a lattice projected onto each collider.
+fn surface_points(scene: &Scene, lo: V3, hi: V3, thickness: f64) -> Vec<f32> {
+    if !lo.iter().chain(&hi).all(|c| c.is_finite()) {
+        return Vec::new();
+    }
+    let margin = 0.1 * (0..3).map(|c| hi[c] - lo[c]).fold(thickness, f64::max);
+    let (lo, hi) = (lo.map(|c| c - margin), hi.map(|c| c + margin));
+    let n = 20;
+    let contact = Contact::new(
+        scene.colliders.clone(),
+        ContactParams {
+            thickness: f64::INFINITY,
+            stiffness: 0.0,
+            damping: 0.0,
+        },
+    );
+    let mut pts = Vec::new();
+    for i in 0..n {
+        for j in 0..n {
+            for k in 0..n {
+                let q = [
+                    lo[0] + (hi[0] - lo[0]) * i as f64 / (n - 1) as f64,
+                    lo[1] + (hi[1] - lo[1]) * j as f64 / (n - 1) as f64,
+                    lo[2] + (hi[2] - lo[2]) * k as f64 / (n - 1) as f64,
+                ];
+                for p in contact.closest_points(scene.config.seconds, q) {
+                    let inside = (0..3).all(|c| p[c] >= lo[c] && p[c] <= hi[c]);
+                    if inside {
+                        pts.extend(p.map(|c| c as f32));
+                    }
+                }
+            }
+        }
+    }
+    pts
+}

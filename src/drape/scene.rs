@@ -1,0 +1,146 @@
+//! A drape scene file (`configs/scenes/*.toml`): colliders, contact constants and how the
+//! cloth is released.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::sim::contact::{Collider, ColliderConfig};
+use crate::sim::{Contact, ContactConfig, ContactParams};
+
+/// The scene file: a `[scene]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneFile {
+    /// The scene.
+    pub scene: SceneConfig,
+}
+
+/// The `[scene]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SceneConfig {
+    /// Simulated time, s.
+    pub seconds: f64,
+    /// Height of the flat sheet at release (its plane `z`), m.
+    pub release_height: f64,
+    /// Horizontal position `[x, y]` of the sheet's centre at release, m.
+    pub centre: [f64; 2],
+    /// Interval of the recorded frames (metrics over time, figure, OBJ frames), s; rounded
+    /// to whole frames of every simulator.
+    pub record_every: f64,
+    /// Refinement of the fine FEM reference: `(n − 1)·fine + 1` vertices per side of the
+    /// source's `n`, so that the source's vertices are fine vertices.
+    pub fine: usize,
+    /// The contact layer.
+    pub contact: ContactConfig,
+    /// The colliders.
+    pub colliders: Vec<ColliderConfig>,
+}
+
+impl Default for SceneConfig {
+    fn default() -> Self {
+        Self {
+            seconds: 8.0,
+            release_height: 1.0,
+            centre: [0.0, 0.0],
+            record_every: 0.02,
+            fine: 2,
+            contact: ContactConfig::default(),
+            colliders: Vec::new(),
+        }
+    }
+}
+
+/// A loaded scene: its name (the file stem), file, config and colliders.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The file's stem (`table` for `table.toml`).
+    pub name: String,
+    /// The scene file.
+    pub path: PathBuf,
+    /// The `[scene]` section.
+    pub config: SceneConfig,
+    /// The built colliders (meshes read).
+    pub colliders: Vec<Collider>,
+}
+
+impl SceneConfig {
+    /// Checks ranges; errors name the key.
+    pub fn validate(&self) -> Result<()> {
+        let pos = |key: &str, v: f64| -> Result<()> {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("`scene.{key}` must be positive, is {v}");
+            }
+            Ok(())
+        };
+        pos("seconds", self.seconds)?;
+        pos("record_every", self.record_every)?;
+        if !self.release_height.is_finite() || !self.centre.iter().all(|c| c.is_finite()) {
+            bail!("`scene.release_height` and `scene.centre` must be finite");
+        }
+        if self.fine < 1 {
+            bail!("`scene.fine` must be at least 1");
+        }
+        self.contact.validate()?;
+        for (i, c) in self.colliders.iter().enumerate() {
+            c.validate(&format!("scene.colliders[{i}]"))?;
+        }
+        Ok(())
+    }
+}
+
+impl Scene {
+    /// Reads a scene file (with `--set`-style `overrides`) and builds its colliders; errors name
+    /// the file and the key, or the mesh file.
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read scene {}", path.display()))?;
+        let file: SceneFile = crate::config::parse_toml(&text, overrides)
+            .with_context(|| format!("in scene {}", path.display()))?;
+        let config = file.scene;
+        config
+            .validate()
+            .with_context(|| format!("in scene {}", path.display()))?;
+        let base = path.parent().unwrap_or(Path::new("."));
+        let colliders = config
+            .colliders
+            .iter()
+            .enumerate()
+            .map(|(i, c)| c.build(base, &format!("scene.colliders[{i}]")))
+            .collect::<Result<Vec<_>>>()
+            .with_context(|| format!("in scene {}", path.display()))?;
+        let name = path
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "scene".into());
+        Ok(Self {
+            name,
+            path: path.to_path_buf(),
+            config,
+            colliders,
+        })
+    }
+
+    /// The contact of this scene with constants resolved for a sheet whose larger side is
+    /// `size`, stepped at `h`.
+    pub fn contact(&self, size: f64, h: f64) -> Contact {
+        Contact::new(self.colliders.clone(), self.config.contact.resolve(size, h))
+    }
+
+    /// The resolved contact constants (see [`Scene::contact`]).
+    pub fn params(&self, size: f64, h: f64) -> ContactParams {
+        self.config.contact.resolve(size, h)
+    }
+
+    /// The flat sheet at release: `rest_uv` (in a `width × height` rectangle) centred at
+    /// `scene.centre`, at `z = release_height`.
+    pub fn release(&self, rest_uv: &[[f64; 2]], width: f64, height: f64) -> Vec<[f64; 3]> {
+        let [cx, cy] = self.config.centre;
+        crate::fold::scenario::flat(rest_uv, width, height)
+            .into_iter()
+            .map(|p| [p[0] + cx, p[1] + cy, self.config.release_height])
+            .collect()
+    }
+}
