@@ -199,6 +199,10 @@ pub enum Command {
         /// Overwrite existing files.
         #[arg(long)]
         force: bool,
+        /// Drape scene (TOML): export the cloth released flat above its colliders, with
+        /// contact, instead of a test rollout.
+        #[arg(long, conflicts_with_all = ["init", "data"])]
+        scene: Option<PathBuf>,
     },
     /// Train (or reuse) the spring surrogate, the Neural ODE and the GNN on the same data and
     /// write comparison.md, comparison.csv and comparison_rmse.png (paper Table 2).
@@ -596,6 +600,7 @@ pub fn run(cli: Cli) -> Result<()> {
             fps,
             backend,
             force,
+            scene,
         } => export(
             &run_dir,
             &crate::export::ExportOptions {
@@ -607,6 +612,7 @@ pub fn run(cli: Cli) -> Result<()> {
                 fps,
                 force,
                 backend,
+                scene,
             },
             &progress,
         ),

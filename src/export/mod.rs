@@ -282,6 +282,21 @@ pub struct ExportOptions {
     pub force: bool,
     /// Compute backend (default: the run's).
     pub backend: Option<Backend>,
+    /// Drape scene: export the cloth released flat above its colliders instead of a test
+    /// rollout (see [`crate::drape`]).
+    pub scene: Option<PathBuf>,
+}
+
+/// What an export simulates.
+struct Plan {
+    physics: Physics,
+    track: Track,
+    first: usize,
+    frames: usize,
+    keep: Vec<usize>,
+    /// The rollout or scene file it starts from.
+    from: PathBuf,
+    contact: Option<crate::sim::Contact>,
 }
 
 /// What an export wrote.
@@ -322,10 +337,11 @@ pub fn export_run(
     }
     let device = config.backend.device()?;
     let (_, topo, model, mass) = train::load_surrogate(run_dir, &device)?;
-    // The rollout to start from.
-    let (init, note) = match &options.init {
-        Some(p) => (Some(p.clone()), None),
-        None => {
+    // The rollout (or the drape scene) to start from.
+    let (init, note) = match (&options.init, &options.scene) {
+        (_, Some(_)) => (None, None),
+        (Some(p), None) => (Some(p.clone()), None),
+        (None, None) => {
             let mut data = config.data.clone();
             if let Some(d) = &options.data {
                 data.test_dir = Some(d.clone());
@@ -345,24 +361,71 @@ pub fn export_run(
     let out = &options.out;
     let seq_dir = out.join("rollout");
     // The frames to write.
-    let mut plan: Option<(Physics, Track, usize, usize, Vec<usize>)> = None;
+    let stability = |physics: &Physics, contact: Option<&crate::sim::Contact>| {
+        let st = physics.stability_of(&topo, &model);
+        let st = match contact {
+            Some(c) => st.with_contact(&c.params),
+            None => st,
+        };
+        st.check("the trained surrogate", config.sim.allow_unstable)
+    };
+    let plan_for = |frame_dt: f64, seconds: f64| {
+        let frames = ((seconds / frame_dt).round() as usize).max(1);
+        let stride = ((1.0 / (options.fps * frame_dt)).round() as usize).max(1);
+        let keep: Vec<usize> = (0..=frames).step_by(stride).collect();
+        (frames, keep, 1.0 / (stride as f64 * frame_dt))
+    };
+    let mut plan: Option<Plan> = None;
     let mut fps = 0.0;
-    if let Some(r) = &rollout {
+    if let Some(scene_path) = &options.scene {
+        let scene = crate::drape::Scene::load(scene_path, &[])?;
+        let meta = crate::train::run::ModelMeta::read(&run.meta())?;
+        let physics = Physics::new(&config.sim, meta.frame_dt, mass);
+        let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt());
+        stability(&physics, Some(&contact))?;
+        let x0 = scene.release(&topo.rest_uv, topo.width, topo.height);
+        let p = x0.len();
+        let track = Track {
+            frames: 1,
+            particles: p,
+            positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
+            velocities: vec![0.0; p * 3],
+            pinned: vec![false; p],
+        };
+        let (frames, keep, f) = plan_for(
+            meta.frame_dt,
+            options.seconds.unwrap_or(scene.config.seconds),
+        );
+        fps = f;
+        plan = Some(Plan {
+            physics,
+            track,
+            first: 0,
+            frames,
+            keep,
+            from: scene_path.clone(),
+            contact: Some(contact),
+        });
+    } else if let Some(r) = &rollout {
         let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
         let track = Track::new(r, &res);
         let first = if r.velocities.is_some() { 0 } else { 1 };
         let physics = Physics::new(&config.sim, r.frame_dt, mass);
-        physics
-            .stability_of(&topo, &model)
-            .check("the trained surrogate", config.sim.allow_unstable)?;
+        stability(&physics, None)?;
         let seconds = options
             .seconds
             .unwrap_or((r.frames - 1 - first) as f64 * r.frame_dt);
-        let frames = ((seconds / r.frame_dt).round() as usize).max(1);
-        let stride = ((1.0 / (options.fps * r.frame_dt)).round() as usize).max(1);
-        fps = 1.0 / (stride as f64 * r.frame_dt);
-        let keep: Vec<usize> = (0..=frames).step_by(stride).collect();
-        plan = Some((physics, track, first, frames, keep));
+        let (frames, keep, f) = plan_for(r.frame_dt, seconds);
+        fps = f;
+        plan = Some(Plan {
+            physics,
+            track,
+            first,
+            frames,
+            keep,
+            from: r.path.clone(),
+            contact: None,
+        });
     }
     let frame_path = |i: usize| seq_dir.join(format!("frame_{i:04}.{ext}"));
     let gltf = matches!(options.format, Format::Gltf | Format::Glb);
@@ -372,9 +435,9 @@ pub fn export_run(
         out.join("surrogate.npz"),
     ];
     let pc2_path = out.join("rollout.pc2");
-    if let Some((_, _, _, _, keep)) = &plan {
+    if let Some(plan) = &plan {
         match options.format {
-            f if f.per_frame() => paths.extend((0..keep.len()).map(frame_path)),
+            f if f.per_frame() => paths.extend((0..plan.keep.len()).map(frame_path)),
             Format::Pc2 => paths.push(pc2_path.clone()),
             _ => {}
         }
@@ -436,7 +499,16 @@ pub fn export_run(
     let mut pinned = Vec::new();
     let mut frames_written = 0;
     let mut animation: (Vec<f32>, Vec<f64>) = (Vec::new(), Vec::new());
-    if let (Some((physics, track, first, frames, keep)), Some(r)) = (&plan, &rollout) {
+    if let Some(Plan {
+        physics,
+        track,
+        first,
+        frames,
+        keep,
+        from,
+        contact,
+    }) = &plan
+    {
         pinned = track
             .pinned
             .iter()
@@ -447,7 +519,7 @@ pub fn export_run(
         let sim = eval::simulate_track(
             &model,
             physics,
-            None,
+            contact.as_ref(),
             track,
             *first,
             *frames,
@@ -458,7 +530,11 @@ pub fn export_run(
         bar.finish();
         let p = topo.num_particles();
         frames_written = sim.frames.len();
-        let times: Vec<f64> = sim.frames.iter().map(|&j| j as f64 * r.frame_dt).collect();
+        let times: Vec<f64> = sim
+            .frames
+            .iter()
+            .map(|&j| j as f64 * physics.frame_dt)
+            .collect();
         match options.format {
             f if f.per_frame() => {
                 let bar = progress.bar(sim.frames.len() as u64, "export");
@@ -469,7 +545,7 @@ pub fn export_run(
                         &format!(
                             "springtime surrogate of {}: frame {i}, t = {t:.6} s, simulated from {}",
                             run_dir.display(),
-                            r.path.display()
+                            from.display()
                         ),
                         &sim.positions[i * p * 3..(i + 1) * p * 3],
                     )?;
@@ -521,7 +597,7 @@ pub fn export_run(
         pinned: pinned.clone(),
         rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
         gravity: config.sim.gravity.or(crate::sim::GRAVITY),
-        dt: plan.as_ref().map(|p| p.0.sim_dt()),
+        dt: plan.as_ref().map(|p| p.physics.sim_dt()),
     };
     crate::io::write_text(&paths[1], &json.to_text()?)?;
     files.push(paths[1].clone());
@@ -546,7 +622,7 @@ pub fn export_run(
     files.push(paths[2].clone());
     Ok(ExportSummary {
         files,
-        rollout: init.filter(|_| rollout.is_some()),
+        rollout: plan.as_ref().map(|p| p.from.clone()),
         frames: frames_written,
         fps,
         note,

@@ -1,0 +1,223 @@
+//! `springtime drape` end to end on a tiny sheet: a 4 × 4 FEM source, a 4 × 4 surrogate
+//! trained for a few steps on free pinned rollouts, a mesh and an analytic scene. Checks the
+//! interface (drape.json keys, figure, curves), the refusals (finished output, bad mesh,
+//! unstable contact) and `export --scene`; the physics is in tests/contact.rs.
+
+mod common;
+
+use common::{fails, ok, springtime};
+
+const TINY: &str = r#"
+name = "tiny_drape"
+
+[cloth]
+nx = 4
+ny = 4
+
+[model]
+k_init = 100.0
+b_init = 0.05
+
+[sim]
+substeps = 2
+rayleigh = 0.1
+
+[data]
+dir = "data"
+
+[data.clips]
+steps = 20
+
+[source]
+kind = "fem"
+nx = 4
+ny = 4
+width = 1.0
+height = 1.0
+stiffness_levels = [300.0]
+layout = "uniform"
+seconds = 0.3
+dt = 5e-4
+frame_stride = 2
+train_rollouts = 3
+test_rollouts = 1
+anchor_radius = 0.2
+
+[source.fem]
+bending = 0.002
+strain_damping = 0.0
+
+[train.stiffness]
+iterations = 4
+batch = 2
+
+[train.damping]
+iterations = 2
+batch = 2
+"#;
+
+const SPHERE: &str = r#"
+[scene]
+seconds = 0.4
+release_height = 0.2
+record_every = 0.02
+
+[[scene.colliders]]
+kind = "sphere"
+radius = 0.3
+translation = [0.0, 0.0, -0.3]
+friction = 0.5
+"#;
+
+/// A closed tetrahedron, outward faces, in `meshes/` beside the scene file.
+const TET: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
+
+const MESH: &str = r#"
+[scene]
+seconds = 0.3
+release_height = 0.1
+
+[[scene.colliders]]
+kind = "mesh"
+mesh = "meshes/tet.obj"
+scale = 0.5
+translation = [-0.2, -0.2, -0.5]
+"#;
+
+#[test]
+fn drape_writes_its_metrics_and_refuses_bad_scenes() {
+    let dir = common::temp_dir("drape");
+    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::create_dir_all(dir.join("scenes/meshes")).unwrap();
+    std::fs::write(dir.join("scenes/sphere.toml"), SPHERE).unwrap();
+    std::fs::write(dir.join("scenes/meshes/tet.obj"), TET).unwrap();
+    std::fs::write(dir.join("scenes/mesh.toml"), MESH).unwrap();
+    ok(&springtime(&["train", "tiny.toml", "--out", "run"], &dir));
+    let out = ok(&springtime(
+        &[
+            "drape",
+            "run",
+            "--scene",
+            "scenes/sphere.toml",
+            "--scene",
+            "scenes/mesh.toml",
+            "--out",
+            "d",
+        ],
+        &dir,
+    ));
+    assert!(out.contains("springs") && out.contains("fem4x4"), "{out}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("d/drape.json")).unwrap()).unwrap();
+    for name in ["sphere", "mesh"] {
+        let s = &json["scenes"][name];
+        let m = &s["models"]["springs"];
+        for key in ["motion_rmse_end", "steady_rmse_vs_fine", "max_penetration"] {
+            assert!(m[key].as_f64().unwrap() >= 0.0, "{name}.{key}: {m}");
+        }
+        assert_eq!(m["diverged"], false, "{m}");
+        assert!(
+            s["source"]["steady_rmse_vs_fine"].as_f64().unwrap() > 0.0,
+            "{s}"
+        );
+        assert_eq!(s["fine"]["label"], "fem7x7", "{s}");
+        let thickness = s["contact_thickness"].as_f64().unwrap();
+        assert!(
+            (thickness - 0.01).abs() < 1e-12,
+            "1 % of the 1 m sheet: {thickness}"
+        );
+        let png = std::fs::read(dir.join(format!("d/{name}.png"))).unwrap();
+        assert_eq!(&png[1..4], b"PNG");
+        let csv = std::fs::read_to_string(dir.join(format!("d/{name}_motion_rmse.csv"))).unwrap();
+        assert!(csv.starts_with("time,springs_rmse_m"), "{csv}");
+    }
+    // The sheet fell onto the sphere and stayed on it.
+    let sphere = &json["scenes"]["sphere"]["models"]["springs"];
+    assert!(
+        sphere["max_penetration"].as_f64().unwrap() > 0.0,
+        "{sphere}"
+    );
+    // A finished drape is not overwritten without --force.
+    fails(
+        &springtime(
+            &[
+                "drape",
+                "run",
+                "--scene",
+                "scenes/sphere.toml",
+                "--out",
+                "d",
+            ],
+            &dir,
+        ),
+        &["--force"],
+    );
+    // Contact too stiff for the step: the guard's refusal with the largest stable step.
+    fails(
+        &springtime(
+            &[
+                "drape",
+                "run",
+                "--scene",
+                "scenes/sphere.toml",
+                "--out",
+                "d2",
+                "--set",
+                "scene.contact.stiffness=1e9",
+            ],
+            &dir,
+        ),
+        &["unstable", "largest stable dt", "contact stiffness"],
+    );
+    // A broken mesh: the error names the file.
+    std::fs::write(
+        dir.join("scenes/meshes/tet.obj"),
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    fails(
+        &springtime(
+            &["drape", "run", "--scene", "scenes/mesh.toml", "--out", "d3"],
+            &dir,
+        ),
+        &["tet.obj", "not closed", "scene.colliders[0]"],
+    );
+    fails(
+        &springtime(
+            &[
+                "drape",
+                "run",
+                "--scene",
+                "scenes/nothing.toml",
+                "--out",
+                "d3",
+            ],
+            &dir,
+        ),
+        &["nothing.toml"],
+    );
+    // export --scene writes the surrogate's drape as OBJ frames.
+    let out = ok(&springtime(
+        &[
+            "export",
+            "run",
+            "--scene",
+            "scenes/sphere.toml",
+            "--out",
+            "e",
+            "--fps",
+            "25",
+        ],
+        &dir,
+    ));
+    assert!(out.contains("sphere"), "{out}");
+    let frames: Vec<_> = std::fs::read_dir(dir.join("e/rollout")).unwrap().collect();
+    assert_eq!(frames.len(), 11, "0.4 s at 25 fps: 11 frames");
+    let last = std::fs::read_to_string(dir.join("e/rollout/frame_0010.obj")).unwrap();
+    let lowest = last
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| l.split_whitespace().nth(2).unwrap().parse::<f64>().unwrap())
+        .fold(f64::INFINITY, f64::min);
+    assert!(lowest < 0.15, "the exported sheet fell: lowest z {lowest}");
+}
