@@ -405,12 +405,24 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
     let sim_cfg = &first.config.sim;
     let h = frame_dt / sim_cfg.substeps.or(1) as f64;
     let source = first.config.source.clone();
+    // The stiffest surrogate's own stability number (the automatic contact keeps to the rest).
+    let number = models
+        .iter()
+        .filter_map(|m| match &m.loaded.model {
+            Trained::Springs(s) => {
+                let l = &m.loaded;
+                let physics = Physics::new(&l.config.sim, frame_dt, l.meta.particle_mass);
+                Some(physics.stability_of(&l.topology, s).number())
+            }
+            _ => None,
+        })
+        .fold(0.0, f64::max);
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
 
     let mut results = BTreeMap::new();
     for scene in &scenes {
         let scene_start = Instant::now();
-        let params = scene.params(size, h);
+        let params = scene.params(size, h, number);
         let cfg = &scene.config;
         progress.note(&format!(
             "drape {}: {} collider(s), {:.1} s, contact thickness {:.4} m, κ = {:.3e}/s², ζ = {:.3e}/s",
@@ -683,7 +695,66 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
         build: crate::BuildInfo::current(),
     };
     crate::io::write_json(&json, &report)?;
+    // Let each run's report find this drape.
+    let here = std::fs::canonicalize(out).unwrap_or_else(|_| out.clone());
+    for m in &models {
+        let list = RunDir::new(&m.dir).drapes();
+        let mut dirs = read_drapes(&list);
+        if !dirs.contains(&here) {
+            dirs.push(here.clone());
+            crate::io::write_json(&list, &dirs)?;
+        }
+    }
     Ok(report)
+}
+
+/// The drape folders listed in a run's `drapes.json` (none when it is missing or unreadable).
+pub fn read_drapes(path: &Path) -> Vec<PathBuf> {
+    std::fs::read_to_string(path)
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .unwrap_or_default()
+}
+
+/// The figures of the drapes listed in `drapes.json` that still exist, as `(png, caption)`.
+pub fn report_figures(list: &Path) -> Vec<(PathBuf, String)> {
+    let mut out = Vec::new();
+    for dir in read_drapes(list) {
+        let Ok(text) = std::fs::read_to_string(dir.join("drape.json")) else {
+            continue;
+        };
+        let Ok(json) = serde_json::from_str::<serde_json::Value>(&text) else {
+            continue;
+        };
+        let Some(scenes) = json["scenes"].as_object() else {
+            continue;
+        };
+        for (name, s) in scenes {
+            let png = dir.join(format!("{name}.png"));
+            if !png.exists() {
+                continue;
+            }
+            let num =
+                |v: &serde_json::Value| v.as_f64().map_or("—".into(), |x| format!("{x:.4} m"));
+            let mut caption = format!(
+                "drape on `{name}` ({}): at the end of the scene; steady-state RMSE to the fine FEM mesh: source {}",
+                dir.display(),
+                num(&s["source"]["steady_rmse_vs_fine"])
+            );
+            if let Some(models) = s["models"].as_object() {
+                for (kind, m) in models {
+                    caption += &format!(
+                        ", {kind} {} (motion RMSE to the source at the end {}, deepest {})",
+                        num(&m["steady_rmse_vs_fine"]),
+                        num(&m["motion_rmse_end"]),
+                        num(&m["max_penetration"])
+                    );
+                }
+            }
+            out.push((png, caption));
+        }
+    }
+    out
 }
 
 fn fmt_m(v: Option<f64>) -> String {

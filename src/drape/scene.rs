@@ -124,14 +124,14 @@ impl Scene {
     }
 
     /// The contact of this scene with constants resolved for a sheet whose larger side is
-    /// `size`, stepped at `h`.
-    pub fn contact(&self, size: f64, h: f64) -> Contact {
-        Contact::new(self.colliders.clone(), self.config.contact.resolve(size, h))
+    /// `size`, stepped at `h` with stability number `number` ([`ContactConfig::resolve`]).
+    pub fn contact(&self, size: f64, h: f64, number: f64) -> Contact {
+        Contact::new(self.colliders.clone(), self.params(size, h, number))
     }
 
     /// The resolved contact constants (see [`Scene::contact`]).
-    pub fn params(&self, size: f64, h: f64) -> ContactParams {
-        self.config.contact.resolve(size, h)
+    pub fn params(&self, size: f64, h: f64, number: f64) -> ContactParams {
+        self.config.contact.resolve(size, h, number)
     }
 
     /// The flat sheet at release: `rest_uv` (in a `width × height` rectangle) centred at

@@ -381,7 +381,8 @@ pub fn export_run(
         let scene = crate::drape::Scene::load(scene_path, &[])?;
         let meta = crate::train::run::ModelMeta::read(&run.meta())?;
         let physics = Physics::new(&config.sim, meta.frame_dt, mass);
-        let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt());
+        let number = physics.stability_of(&topo, &model).number();
+        let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt(), number);
         stability(&physics, Some(&contact))?;
         let x0 = scene.release(&topo.rest_uv, topo.width, topo.height);
         let p = x0.len();

@@ -328,6 +328,13 @@ pub fn build(
         figures.push(f);
     }
     figures.push(fig7(&dir, &inputs)?);
+    for (png, caption) in crate::drape::report_figures(&run.drapes()) {
+        figures.push(Figure {
+            path: png,
+            heading: "Drape with contact (paper §4.5, Fig. 8)".into(),
+            caption,
+        });
+    }
     if let Some(test) = inputs.test.first() {
         match rollout_figures(&dir, &inputs, test, progress) {
             Ok(f) => figures.extend(f),

@@ -106,9 +106,11 @@ pub struct ContactConfig {
     /// `"auto"`: 1 % of the sheet's larger side.
     pub thickness: Auto<f64>,
     /// Contact stiffness κ per unit mass, 1/s²; `"auto"`: `0.25/h²` for the surrogate's step
-    /// `h` (adds 0.25 to `h²ω²`; a particle resting on a surface sinks `g/κ` into the layer).
+    /// `h` (adds 0.25 to `h²ω²`; a particle resting on a surface sinks `g/κ` into the layer),
+    /// less where the surrogate is near its stability limit (see [`ContactConfig::resolve`]).
     pub stiffness: Auto<f64>,
-    /// Approach damping ζ per unit mass, 1/s; `"auto"`: `0.25/h` (adds 0.5 to `2hγ`).
+    /// Approach damping ζ per unit mass, 1/s; `"auto"`: `0.25/h` (adds 0.5 to `2hγ`), scaled
+    /// with the stiffness.
     pub damping: Auto<f64>,
 }
 
@@ -123,12 +125,16 @@ impl Default for ContactConfig {
 }
 
 impl ContactConfig {
-    /// The constants for a sheet whose larger side is `size` (m), stepped at `h` (s).
-    pub fn resolve(&self, size: f64, h: f64) -> ContactParams {
+    /// The constants for a sheet whose larger side is `size` (m), stepped at `h` (s), whose
+    /// own stability number `dt²ω² + 2·dt·γ` is `number`. The automatic stiffness and damping
+    /// add 0.25 + 0.5 to it, scaled down together when that would pass 3.9 (a surrogate that
+    /// training left near its stability limit gets a softer layer instead of a refusal).
+    pub fn resolve(&self, size: f64, h: f64, number: f64) -> ContactParams {
+        let s = ((3.9 - number) / 0.75).clamp(0.02, 1.0);
         ContactParams {
             thickness: self.thickness.or(0.01 * size),
-            stiffness: self.stiffness.or(0.25 / (h * h)),
-            damping: self.damping.or(0.25 / h),
+            stiffness: self.stiffness.or(0.25 * s / (h * h)),
+            damping: self.damping.or(0.25 * s / h),
         }
     }
 

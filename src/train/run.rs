@@ -152,6 +152,10 @@ impl RunDir {
     pub fn eval(&self) -> PathBuf {
         self.dir.join("eval.json")
     }
+    /// `drapes.json`: the output folders of `springtime drape` runs of this run (for the report).
+    pub fn drapes(&self) -> PathBuf {
+        self.dir.join("drapes.json")
+    }
     /// `motion_rmse.csv`: per-frame motion RMSE of every test rollout (written by eval).
     pub fn motion_curves(&self) -> PathBuf {
         self.dir.join("motion_rmse.csv")
