@@ -117,7 +117,7 @@ fn free_flight_conserves_momentum_and_rest_is_an_equilibrium() {
     let mut moved = 0.0;
     for _ in 0..300 {
         let here = state.x.clone();
-        let (s, _) = sim::step_frame(&model, &physics, state, &pinned, &here, &here);
+        let (s, _) = sim::step_frame(&model, &physics, None, state, &pinned, &here, &here);
         moved += to_f64((s.x.clone() - here).abs().sum())[0];
         state = s;
     }

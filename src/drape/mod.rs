@@ -381,7 +381,14 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
     let mut models = Vec::new();
     for dir in &options.runs {
         let run = RunDir::new(dir);
-        crate::report::check_finished(&run)?;
+        let status = run.state().ok().flatten().map(|s| s.status);
+        if !matches!(status, Some(train::Status::Finished)) {
+            bail!(
+                "{} is not a finished run (no {} saying `finished`): train it first",
+                dir.display(),
+                run.state_path().display()
+            );
+        }
         let backend = match options.backend {
             Some(b) => b,
             None => {
