@@ -339,14 +339,7 @@ fn the_surrogate_with_the_true_springs_matches_the_source_through_contact() {
         rayleigh: cloth.rayleigh,
         gravity: cloth.gravity,
     };
-    let p = x0.len();
-    let track = Track {
-        frames: 1,
-        particles: p,
-        positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
-        velocities: vec![0.0; p * 3],
-        pinned: vec![false; p],
-    };
+    let track = Track::at_rest(&x0);
     let tensor_contact = contact.clone();
     let sim = springtime::eval::simulate_track(
         &model,

@@ -128,6 +128,19 @@ pub struct Track {
 }
 
 impl Track {
+    /// A one-frame track of particles at rest at `x0`, none pinned (a cloth released in a
+    /// scene).
+    pub fn at_rest(x0: &[[f64; 3]]) -> Self {
+        let p = x0.len();
+        Self {
+            frames: 1,
+            particles: p,
+            positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
+            velocities: vec![0.0; p * 3],
+            pinned: vec![false; p],
+        }
+    }
+
     /// Resamples `rollout` to the particles of `resampler`.
     pub fn new(rollout: &Rollout, resampler: &Resampler) -> Self {
         if resampler.is_identity(rollout.landmarks) && rollout.velocities.is_some() {

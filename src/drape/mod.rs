@@ -248,13 +248,7 @@ pub fn simulate_model(
 ) -> Recording {
     let start = Instant::now();
     let p = x0.len();
-    let track = Track {
-        frames: 1,
-        particles: p,
-        positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
-        velocities: vec![0.0; p * 3],
-        pinned: vec![false; p],
-    };
+    let track = Track::at_rest(x0);
     let keep: Vec<usize> = (0..=frames).step_by(every).collect();
     let bar = progress.bar(frames as u64, label);
     let sim = eval::simulate_track(
@@ -310,16 +304,22 @@ pub fn simulate_model(
     rec
 }
 
-/// RMSE between two `[P, 3]` position sets, m.
-fn rmse(a: &[f32], b: &[f32]) -> f64 {
-    eval::frame_rmse(a, b)
-}
-
 /// `src` frame (`res`'s landmarks) resampled to `res`'s particles.
 fn resample(res: &Resampler, src: &[f32]) -> Vec<f32> {
     let mut out = vec![0.0f64; res.num_particles() * 3];
     res.apply3(src, &mut out);
     out.into_iter().map(|c| c as f32).collect()
+}
+
+/// Why a GNN run has no drape.
+const GNN_NOT_APPLICABLE: &str = "not applicable: the GNN predicts positions, not forces, so \
+                                  contact forces cannot enter its step (as in the paper)";
+
+/// A model's simulation in one scene: `recording` is `None` where contact does not apply.
+struct Draped {
+    kind: String,
+    run: PathBuf,
+    recording: Option<Recording>,
 }
 
 /// A run, loaded for draping.
@@ -381,14 +381,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
     let mut models = Vec::new();
     for dir in &options.runs {
         let run = RunDir::new(dir);
-        let status = run.state().ok().flatten().map(|s| s.status);
-        if !matches!(status, Some(train::Status::Finished)) {
-            bail!(
-                "{} is not a finished run (no {} saying `finished`): train it first",
-                dir.display(),
-                run.state_path().display()
-            );
-        }
+        run.finished()?;
         let backend = match options.backend {
             Some(b) => b,
             None => {
@@ -492,7 +485,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
         };
 
         // The models.
-        let mut recs: Vec<(String, PathBuf, Option<Recording>, Option<String>)> = Vec::new();
+        let mut recs: Vec<Draped> = Vec::new();
         for m in &models {
             let l = &m.loaded;
             let kind = l.config.model.kind.name().to_string();
@@ -517,16 +510,11 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                 }
                 Trained::NeuralOde(o) => o,
                 Trained::Gnn(_) => {
-                    recs.push((
+                    recs.push(Draped {
                         kind,
-                        m.dir.clone(),
-                        None,
-                        Some(
-                            "not applicable: the GNN predicts positions, not forces, so contact \
-                             forces cannot enter its step (as in the paper)"
-                                .into(),
-                        ),
-                    ));
+                        run: m.dir.clone(),
+                        recording: None,
+                    });
                     continue;
                 }
             };
@@ -544,7 +532,11 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                 &m.device,
                 progress,
             );
-            recs.push((kind, m.dir.clone(), Some(rec), None));
+            recs.push(Draped {
+                kind,
+                run: m.dir.clone(),
+                recording: Some(rec),
+            });
         }
 
         // Metrics.
@@ -559,7 +551,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                 return None;
             }
             let res = Resampler::new(&f.rest_uv, &rec.rest_uv);
-            Some(rmse(rec.frames.last()?, &resample(&res, end)))
+            Some(eval::frame_rmse(rec.frames.last()?, &resample(&res, end)))
         };
         let mut check = |who: &str, rec: &Recording| {
             if rec.deepest > params.thickness {
@@ -593,8 +585,13 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
             r
         });
         let mut model_results = BTreeMap::new();
-        for (kind, dir, rec, note) in &recs {
-            let Some(rec) = rec else {
+        for Draped {
+            kind,
+            run: dir,
+            recording,
+        } in &recs
+        {
+            let Some(rec) = recording else {
                 model_results.insert(
                     kind.clone(),
                     ModelResult {
@@ -606,7 +603,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                         max_penetration: None,
                         kinetic_energy_end: None,
                         diverged: false,
-                        note: note.clone(),
+                        note: Some(GNN_NOT_APPLICABLE.into()),
                         motion_rmse_over_time: Vec::new(),
                         wall_seconds: 0.0,
                     },
@@ -621,7 +618,12 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                         .iter()
                         .zip(&c.frames)
                         .enumerate()
-                        .map(|(r, (x, y))| [r as f64 * record_dt, rmse(x, &resample(&res, y))])
+                        .map(|(r, (x, y))| {
+                            [
+                                r as f64 * record_dt,
+                                eval::frame_rmse(x, &resample(&res, y)),
+                            ]
+                        })
                         .collect()
                 }
                 None => Vec::new(),
@@ -666,7 +668,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
         }
         let mut drawn: Vec<&Recording> = Vec::new();
         drawn.extend(coarse.as_ref());
-        drawn.extend(recs.iter().filter_map(|r| r.2.as_ref()));
+        drawn.extend(recs.iter().filter_map(|r| r.recording.as_ref()));
         drawn.extend(fine.as_ref());
         figure(
             &out.join(format!("{}.png", scene.name)),
@@ -914,14 +916,6 @@ fn surface_points(scene: &Scene, lo: V3, hi: V3, thickness: f64) -> Vec<f32> {
     let margin = 0.1 * (0..3).map(|c| hi[c] - lo[c]).fold(thickness, f64::max);
     let (lo, hi) = (lo.map(|c| c - margin), hi.map(|c| c + margin));
     let n = 20;
-    let contact = Contact::new(
-        scene.colliders.clone(),
-        ContactParams {
-            thickness: f64::INFINITY,
-            stiffness: 0.0,
-            damping: 0.0,
-        },
-    );
     let mut pts = Vec::new();
     for i in 0..n {
         for j in 0..n {
@@ -931,10 +925,10 @@ fn surface_points(scene: &Scene, lo: V3, hi: V3, thickness: f64) -> Vec<f32> {
                     lo[1] + (hi[1] - lo[1]) * j as f64 / (n - 1) as f64,
                     lo[2] + (hi[2] - lo[2]) * k as f64 / (n - 1) as f64,
                 ];
-                for p in contact.closest_points(scene.config.seconds, q) {
-                    let inside = (0..3).all(|c| p[c] >= lo[c] && p[c] <= hi[c]);
-                    if inside {
-                        pts.extend(p.map(|c| c as f32));
+                for c in &scene.colliders {
+                    let p = c.query(scene.config.seconds, q).point;
+                    if (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]) {
+                        pts.extend(p.map(|a| a as f32));
                     }
                 }
             }

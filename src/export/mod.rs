@@ -385,14 +385,7 @@ pub fn export_run(
         let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt(), number);
         stability(&physics, Some(&contact))?;
         let x0 = scene.release(&topo.rest_uv, topo.width, topo.height);
-        let p = x0.len();
-        let track = Track {
-            frames: 1,
-            particles: p,
-            positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
-            velocities: vec![0.0; p * 3],
-            pinned: vec![false; p],
-        };
+        let track = Track::at_rest(&x0);
         let (frames, keep, f) = plan_for(
             meta.frame_dt,
             options.seconds.unwrap_or(scene.config.seconds),

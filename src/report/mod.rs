@@ -33,7 +33,7 @@ use crate::eval::{self, Curve, EvalReport};
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::Physics;
-use crate::train::{self, RunDir, RunState, Status};
+use crate::train::{self, RunDir, RunState};
 
 use anim::{Layer, View};
 use plot::{Area, Series};
@@ -136,30 +136,10 @@ pub fn read_metrics(path: &Path) -> Result<Vec<MetricsRow>> {
     Ok(rows)
 }
 
-/// Refuses a run that is missing or not finished, naming the file.
+/// Refuses a run that is missing or not finished, naming the file, or that holds no spring
+/// surrogate (the report and export draw springs).
 pub fn check_finished(run: &RunDir) -> Result<RunState> {
-    let state = run.state()?.with_context(|| {
-        format!(
-            "{} not found: {} is not a run directory",
-            run.state_path().display(),
-            run.dir.display()
-        )
-    })?;
-    if state.status != Status::Finished {
-        bail!(
-            "{} is not finished ({} says status `{}`{}): finish training first (springtime train --resume)",
-            run.dir.display(),
-            run.state_path().display(),
-            serde_json::to_value(state.status)?
-                .as_str()
-                .unwrap_or("unknown"),
-            state
-                .error
-                .as_deref()
-                .map(|e| format!(", error: {e}"))
-                .unwrap_or_default()
-        );
-    }
+    let state = run.finished()?;
     // A baseline run has no springs to draw or export: say so before looking for them.
     if let Ok(meta) = train::ModelMeta::read(&run.meta())
         && meta.kind != crate::model::ModelKind::Springs

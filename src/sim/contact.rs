@@ -560,18 +560,9 @@ impl Contact {
     }
 
     fn record(&self, intrusion: f64) {
-        let mut cur = self.deepest.load(Ordering::Relaxed);
-        while intrusion > f64::from_bits(cur) {
-            match self.deepest.compare_exchange_weak(
-                cur,
-                intrusion.to_bits(),
-                Ordering::Relaxed,
-                Ordering::Relaxed,
-            ) {
-                Ok(_) => break,
-                Err(now) => cur = now,
-            }
-        }
+        // Non-negative floats order like their bit patterns.
+        self.deepest
+            .fetch_max(intrusion.max(0.0).to_bits(), Ordering::Relaxed);
     }
 
     /// The contact force of one collider on one particle (see the module docs): `f` is the
@@ -625,21 +616,6 @@ impl Contact {
             }
         }
         self.record(deepest);
-    }
-
-    /// The closest surface point of every collider to `q` at time `t` (for drawing).
-    pub fn closest_points(&self, t: f64, q: V3) -> Vec<V3> {
-        self.colliders
-            .iter()
-            .map(|c| {
-                let (pose, _) = c.pose(t);
-                let p = c
-                    .shape
-                    .project_point(&pose, Vector::new(q[0], q[1], q[2]), false)
-                    .point;
-                [p.x, p.y, p.z]
-            })
-            .collect()
     }
 
     /// Host geometry of collider `c` for the flat host positions `x` (`[N·3]`).

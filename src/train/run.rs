@@ -186,6 +186,34 @@ impl RunDir {
         })?))
     }
 
+    /// The state of a finished run of any model family; refuses a run that is missing or not
+    /// finished, naming the file.
+    pub fn finished(&self) -> Result<RunState> {
+        let state = self.state()?.with_context(|| {
+            format!(
+                "{} not found: {} is not a run directory",
+                self.state_path().display(),
+                self.dir.display()
+            )
+        })?;
+        if state.status != Status::Finished {
+            bail!(
+                "{} is not finished ({} says status `{}`{}): finish training first (springtime train --resume)",
+                self.dir.display(),
+                self.state_path().display(),
+                serde_json::to_value(state.status)?
+                    .as_str()
+                    .unwrap_or("unknown"),
+                state
+                    .error
+                    .as_deref()
+                    .map(|e| format!(", error: {e}"))
+                    .unwrap_or_default()
+            );
+        }
+        Ok(state)
+    }
+
     /// Writes `run.json`.
     pub fn write_state(&self, state: &RunState) -> Result<()> {
         // The build that wrote the run: `springtime.version` and `springtime.commit`.
