@@ -35,7 +35,7 @@ impl Backend {
             Backend::Wgpu => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
             #[cfg(not(feature = "wgpu"))]
             Backend::Wgpu => anyhow::bail!(
-                "backend `wgpu` is not compiled in: rebuild with `cargo build --release --features wgpu`"
+                "backend `wgpu` is not compiled in: this build used `--no-default-features`; rebuild without it"
             ),
         }
     }

@@ -173,7 +173,7 @@ fn key_help(key: &str) -> Option<&'static str> {
         .map(|(_, k)| k);
     Some(match (key, generic) {
         ("name", _) => "run name: runs/<name>",
-        ("backend", _) => "compute backend: flex, ndarray or wgpu (needs --features wgpu)",
+        ("backend", _) => "compute backend: flex, ndarray or wgpu",
         ("runs_dir", _) => "where runs go",
         ("cloth", _) => "the surrogate's particle grid",
         ("cloth.nx" | "cloth.ny", _) => "particles along width / height",
