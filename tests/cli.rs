@@ -4,8 +4,6 @@ mod common;
 
 use common::{fails, ok, springtime};
 
-use std::path::PathBuf;
-
 use springtime::data::Rollout;
 use springtime::data::npz::{Array, Npz};
 
@@ -46,7 +44,7 @@ fn user_data_config(data_dir: &str) -> String {
     )
 }
 
-fn setup(name: &str) -> PathBuf {
+fn setup(name: &str) -> common::TestDir {
     let dir = common::temp_dir(name);
     std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
     dir
@@ -75,19 +73,16 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     assert_eq!(metrics.lines().count(), 1 + 15);
     let eval: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
-    for key in [
-        "mean",
-        "std",
-        "mean_0_8s",
-        "std_0_8s",
-        "mean_8s",
-        "std_8s",
-        "per_frame",
-    ] {
+    for key in ["mean", "std", "per_frame", "times"] {
         assert!(
             eval["motion_rmse"].get(key).is_some(),
             "eval.json lacks motion_rmse.{key}"
         );
+    }
+    for (horizon, seconds) in [("short", 0.8), ("long", 8.0)] {
+        let h = &eval["motion_rmse"][horizon];
+        assert_eq!(h["seconds"], seconds, "motion_rmse.{horizon}: {h}");
+        assert!(h["mean"].as_f64().is_some() && h["std"].as_f64().is_some());
     }
     assert!(eval["rmse_k"].as_f64().is_some());
     assert!(
@@ -112,7 +107,7 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     );
     let eval: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
-    assert_eq!(eval["motion_rmse"]["long_seconds"], 0.2);
+    assert_eq!(eval["motion_rmse"]["long"]["seconds"], 0.2);
     // run.json names the build.
     let state: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();

@@ -169,7 +169,7 @@ fn diagnose_end_to_end_and_refuses_to_overwrite() {
             "error_map.json lacks {key}"
         );
     }
-    assert!(err["motion"]["mean_8s"].as_f64().unwrap() > 0.0);
+    assert!(err["motion"]["long"]["mean"].as_f64().unwrap() > 0.0);
     let md = std::fs::read_to_string(diag.join("diagnose.md")).unwrap();
     assert!(md.contains("| quantity | value |"));
 

@@ -143,7 +143,7 @@ fn an_index_json_of_another_tool_is_ignored() {
     std::fs::copy(fixture("npz_savez.npz"), dir.join("a.npz")).unwrap();
     std::fs::write(dir.join("index.json"), "<html>not json</html>").unwrap();
     let data = DataConfig {
-        dir: dir.clone(),
+        dir: dir.to_path_buf(),
         ..DataConfig::default()
     };
     assert_eq!(data.split().unwrap().train, [dir.join("a.npz")]);

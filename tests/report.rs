@@ -39,7 +39,7 @@ batch = 4
 "#;
 
 /// Trains the tiny run in a fresh directory (with its report) and returns the directory.
-fn trained(name: &str) -> (PathBuf, String) {
+fn trained(name: &str) -> (common::TestDir, String) {
     let dir = common::temp_dir(name);
     std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
     let out = ok(&springtime(&["train", "tiny.toml"], &dir));
@@ -486,7 +486,7 @@ fn report_and_export_refuse_unfinished_or_missing_runs() {
         &springtime(&["report", "runs/half"], &dir),
         &["not finished", "running"],
     );
-    // Finished but missing its surrogate.
+    // Finished but missing its model.
     std::fs::write(
         run.join("run.json"),
         r#"{"status":"finished","iteration":3,"checkpoint":0,"backend":"flex","wall_seconds":1.0,"peak_rss_mib":10.0}"#,
@@ -495,7 +495,7 @@ fn report_and_export_refuse_unfinished_or_missing_runs() {
     std::fs::write(run.join("config.toml"), "name = \"half\"\n").unwrap();
     fails(
         &springtime(&["report", "runs/half"], &dir),
-        &["springs.npz", "incomplete"],
+        &["model.json", "incomplete"],
     );
     fails(
         &springtime(

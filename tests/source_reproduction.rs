@@ -20,7 +20,7 @@ fn ground_truth_parameters_reproduce_the_source() {
     };
     springtime::source::generate(&cfg, &clips, &dir, |_| {}).unwrap();
     let data = DataConfig {
-        dir: dir.clone(),
+        dir: dir.to_path_buf(),
         clips: clips.clone(),
         ..DataConfig::default()
     };

@@ -1,8 +1,6 @@
 //! Shared fixtures: tiny spring cloths simulated in memory, and temporary directories.
 #![allow(dead_code)]
 
-use std::path::PathBuf;
-
 use burn::tensor::Device;
 use rand::{SeedableRng, rngs::StdRng};
 use springtime::cloth::{GridSpec, Resampler, Topology};
@@ -65,12 +63,33 @@ pub fn batch(
     ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device)
 }
 
-/// A fresh, empty temporary directory for one test.
-pub fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("springtime-test-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends
+/// (passing or panicking); set `SPRINGTIME_KEEP_TEST_DIRS=1` to keep it for inspection.
+pub fn temp_dir(name: &str) -> TestDir {
+    let keep = std::env::var_os("SPRINGTIME_KEEP_TEST_DIRS").is_some();
+    TestDir(
+        tempfile::Builder::new()
+            .prefix(&format!("springtime-test-{name}-"))
+            .disable_cleanup(keep)
+            .tempdir()
+            .expect("a temporary directory"),
+    )
+}
+
+/// A test's scratch directory (see [`temp_dir`]); usable wherever a `Path` is.
+pub struct TestDir(tempfile::TempDir);
+
+impl std::ops::Deref for TestDir {
+    type Target = std::path::Path;
+    fn deref(&self) -> &std::path::Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<std::path::Path> for TestDir {
+    fn as_ref(&self) -> &std::path::Path {
+        self.0.path()
+    }
 }
 
 /// Runs the `springtime` binary in `cwd`.
