@@ -16,7 +16,7 @@ use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
 use crate::sim::Physics;
-use crate::train::{self, RunDir, TrainOptions};
+use crate::train::{self, TrainOptions};
 
 /// Learn simulatable mass-spring cloth models from motion.
 #[derive(Debug, Parser)]
@@ -477,53 +477,16 @@ pub fn run(cli: Cli) -> Result<()> {
             config,
             defaults: _,
             set,
-        } => {
-            match config {
-                Some(path) => print!("{}", Config::load(&path, &set)?.to_toml()),
-                None if set.is_empty() => print!("{}", Config::defaults_toml()),
-                None => print!("{}", Config::parse("", &set)?.to_toml()),
-            }
-            Ok(())
-        }
+        } => print_config(config.as_deref(), &set),
         Command::Completions { shell } => {
             let mut command = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(shell, &mut command, "springtime", &mut std::io::stdout());
             Ok(())
         }
-        Command::Import { source } => {
-            let summary = match &source {
-                ImportCommand::Obj { folder, args } => {
-                    crate::import::obj::import_sequence(folder, &args.options()?)?
-                }
-                ImportCommand::Pc2 { file, rest, args } => {
-                    crate::import::pc2::import_cache(file, rest, &args.options()?)?
-                }
-                ImportCommand::Csv { file, args } => {
-                    crate::import::csv::import_tracks(file, &args.options()?)?
-                }
-            };
-            println!(
-                "wrote {}: {} frames of {} points, rest rectangle {:.6} m × {:.6} m from {}",
-                summary.path.display(),
-                summary.frames,
-                summary.points,
-                summary.width,
-                summary.height,
-                summary.rest_from
-            );
-            Ok(())
-        }
+        Command::Import { source } => import(&source),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
-        } => {
-            let cfg = match &config {
-                Some(path) => Config::load(path, &set)?,
-                None => Config::parse("", &set)?,
-            };
-            let report = crate::data::check_dir(&dir, &cfg)?;
-            print!("{}", report.render());
-            Ok(())
-        }
+        } => data_check(&dir, config.as_deref(), &set),
         Command::Train {
             config,
             backend,
@@ -533,33 +496,15 @@ pub fn run(cli: Cli) -> Result<()> {
             no_eval,
             no_report,
             set,
-        } => {
-            let mut cfg = Config::load(&config, &set)?;
-            if let Some(b) = backend {
-                cfg.backend = b;
-            }
-            let summary = train::train(&cfg, &TrainOptions { out, resume, force }, &progress)?;
-            println!(
-                "trained {} iterations in {:.1} s (peak memory {:.0} MiB){}",
-                summary.iterations,
-                summary.wall_seconds,
-                summary.peak_rss_mib,
-                match (summary.rmse_k, summary.rmse_b) {
-                    (Some(k), Some(b)) => format!(": rmse_k {k:.4} N/m, rmse_b {b:.4} N·s/m"),
-                    _ => String::new(),
-                }
-            );
-            println!("run: {}", summary.run_dir.display());
-            if !no_eval {
-                let report = eval::evaluate(&summary.run_dir, None, None, &[], &progress)?;
-                print_eval(&report);
-            }
-            if !no_report && cfg.model.kind == crate::model::ModelKind::Springs {
-                report(&summary.run_dir, None, None, &progress)
-                    .context("training finished, but its report failed")?;
-            }
-            Ok(())
-        }
+        } => train_command(
+            &config,
+            backend,
+            TrainOptions { out, resume, force },
+            !no_eval,
+            !no_report,
+            &set,
+            &progress,
+        ),
         Command::Report {
             run_dir,
             data,
@@ -573,23 +518,18 @@ pub fn run(cli: Cli) -> Result<()> {
             levels,
             seed,
             backend,
-        } => {
-            let options = crate::diagnose::DiagnoseOptions {
+        } => diagnose(
+            &run_dir,
+            &crate::diagnose::DiagnoseOptions {
                 data,
                 out,
                 force,
                 levels,
                 seed,
                 backend,
-            };
-            let s = crate::diagnose::diagnose(&run_dir, &options, &progress)?;
-            for note in &s.notes {
-                eprintln!("note: {note}");
-            }
-            print!("{}", s.table);
-            println!("diagnosis: {}", s.dir.display());
-            Ok(())
-        }
+            },
+            &progress,
+        ),
         Command::Export {
             run_dir,
             format,
@@ -632,41 +572,16 @@ pub fn run(cli: Cli) -> Result<()> {
             backend,
             force,
             set,
-        } => {
-            let cfg = Config::load(&config, &set)?;
-            let c = crate::compare::compare(
-                &cfg,
-                &crate::compare::CompareOptions {
-                    out,
-                    force,
-                    backend,
-                },
-                &progress,
-            )?;
-            println!(
-                "{:<16} {:>22} {:>22} {:>12} {:>10} {:>14}",
-                "model", "RMSE ≤ short (m)", "RMSE ≤ long (m)", "train (s)", "params", "µs/step"
-            );
-            for r in &c.rows {
-                let m = &r.eval.motion_rmse;
-                println!(
-                    "{:<16} {:>10.3e} ± {:<9.2e} {:>10.3e} ± {:<9.2e} {:>12.1} {:>10} {:>14.1}",
-                    r.kind.name(),
-                    m.mean_0_8s,
-                    m.std_0_8s,
-                    m.mean_8s,
-                    m.std_8s,
-                    r.train_seconds,
-                    r.parameters,
-                    r.eval
-                        .inference
-                        .as_ref()
-                        .map_or(f64::NAN, |i| i.us_per_step)
-                );
-            }
-            println!("comparison: {}", c.files[0].display());
-            Ok(())
-        }
+        } => compare(
+            &config,
+            &set,
+            &crate::compare::CompareOptions {
+                out,
+                force,
+                backend,
+            },
+            &progress,
+        ),
         Command::Fold {
             config,
             out,
@@ -722,6 +637,143 @@ pub fn run(cli: Cli) -> Result<()> {
             &run_dir, &init, seconds, &out, backend, force, &set, &progress,
         ),
     }
+}
+
+/// `springtime config`: a config file resolved, or every default.
+fn print_config(config: Option<&Path>, set: &[String]) -> Result<()> {
+    match config {
+        Some(path) => print!("{}", Config::load(path, set)?.to_toml()),
+        None if set.is_empty() => print!("{}", Config::defaults_toml()),
+        None => print!("{}", Config::parse("", set)?.to_toml()),
+    }
+    Ok(())
+}
+
+/// `springtime import`: another tool's motion as a rollout file.
+fn import(source: &ImportCommand) -> Result<()> {
+    let summary = match source {
+        ImportCommand::Obj { folder, args } => {
+            crate::import::obj::import_sequence(folder, &args.options()?)?
+        }
+        ImportCommand::Pc2 { file, rest, args } => {
+            crate::import::pc2::import_cache(file, rest, &args.options()?)?
+        }
+        ImportCommand::Csv { file, args } => {
+            crate::import::csv::import_tracks(file, &args.options()?)?
+        }
+    };
+    println!(
+        "wrote {}: {} frames of {} points, rest rectangle {:.6} m × {:.6} m from {}",
+        summary.path.display(),
+        summary.frames,
+        summary.points,
+        summary.width,
+        summary.height,
+        summary.rest_from
+    );
+    Ok(())
+}
+
+/// `springtime data check`.
+fn data_check(dir: &Path, config: Option<&Path>, set: &[String]) -> Result<()> {
+    let cfg = match config {
+        Some(path) => Config::load(path, set)?,
+        None => Config::parse("", set)?,
+    };
+    print!("{}", crate::data::check_dir(dir, &cfg)?.render());
+    Ok(())
+}
+
+/// `springtime train`, then (unless asked not to) `eval` and `report` of the new run.
+fn train_command(
+    config: &Path,
+    backend: Option<Backend>,
+    options: TrainOptions,
+    evaluate: bool,
+    with_report: bool,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
+    let mut cfg = Config::load(config, set)?;
+    if let Some(b) = backend {
+        cfg.backend = b;
+    }
+    let summary = train::train(&cfg, &options, progress)?;
+    println!(
+        "trained {} iterations in {:.1} s (peak memory {:.0} MiB){}",
+        summary.iterations,
+        summary.wall_seconds,
+        summary.peak_rss_mib,
+        match (summary.rmse_k, summary.rmse_b) {
+            (Some(k), Some(b)) => format!(": rmse_k {k:.4} N/m, rmse_b {b:.4} N·s/m"),
+            _ => String::new(),
+        }
+    );
+    println!("run: {}", summary.run_dir.display());
+    if evaluate {
+        let report = eval::evaluate(&summary.run_dir, None, None, &[], progress)?;
+        print_eval(&report);
+    }
+    if with_report && cfg.model.kind == crate::model::ModelKind::Springs {
+        report(&summary.run_dir, None, None, progress)
+            .context("training finished, but its report failed")?;
+    }
+    Ok(())
+}
+
+/// `springtime diagnose`.
+fn diagnose(
+    run_dir: &Path,
+    options: &crate::diagnose::DiagnoseOptions,
+    progress: &Progress,
+) -> Result<()> {
+    let s = crate::diagnose::diagnose(run_dir, options, progress)?;
+    for note in &s.notes {
+        eprintln!("note: {note}");
+    }
+    print!("{}", s.table);
+    println!("diagnosis: {}", s.dir.display());
+    Ok(())
+}
+
+/// `springtime compare`: the table printed with the configured horizons.
+fn compare(
+    config: &Path,
+    set: &[String],
+    options: &crate::compare::CompareOptions,
+    progress: &Progress,
+) -> Result<()> {
+    let cfg = Config::load(config, set)?;
+    let c = crate::compare::compare(&cfg, options, progress)?;
+    let (short, long) = (cfg.eval.short_seconds, cfg.eval.long_seconds);
+    println!(
+        "{:<16} {:>22} {:>22} {:>12} {:>10} {:>14}",
+        "model",
+        format!("RMSE ≤ {short} s (m)"),
+        format!("RMSE ≤ {long} s (m)"),
+        "train (s)",
+        "params",
+        "µs/step"
+    );
+    for r in &c.rows {
+        let m = &r.eval.motion_rmse;
+        println!(
+            "{:<16} {:>10.3e} ± {:<9.2e} {:>10.3e} ± {:<9.2e} {:>12.1} {:>10} {:>14.1}",
+            r.kind.name(),
+            m.short.mean,
+            m.short.std,
+            m.long.mean,
+            m.long.std,
+            r.train_seconds,
+            r.parameters,
+            r.eval
+                .inference
+                .as_ref()
+                .map_or(f64::NAN, |i| i.us_per_step)
+        );
+    }
+    println!("comparison: {}", c.files[0].display());
+    Ok(())
 }
 
 fn report(
@@ -806,12 +858,12 @@ fn print_eval(r: &EvalReport) {
         m.rollouts,
         m.mean,
         m.std,
-        m.short_seconds,
-        m.mean_0_8s,
-        m.std_0_8s,
-        m.long_seconds,
-        m.mean_8s,
-        m.std_8s
+        m.short.seconds,
+        m.short.mean,
+        m.short.std,
+        m.long.seconds,
+        m.long.mean,
+        m.long.std
     );
     if let Some(u) = &r.uniform_baseline {
         println!(
@@ -822,8 +874,8 @@ fn print_eval(r: &EvalReport) {
             u.b,
             u.search_rollouts,
             u.test.mean,
-            u.test.mean_0_8s,
-            u.test.mean_8s,
+            u.test.short.mean,
+            u.test.long.mean,
             100.0 * u.improvement_long,
             100.0 * u.improvement_short
         );
@@ -856,33 +908,30 @@ fn simulate(
     if !(seconds > 0.0 && seconds.is_finite()) {
         bail!("--seconds must be positive, is {seconds}");
     }
-    let mut config = Config::load(&RunDir::new(run_dir).config(), set)?;
-    if let Some(b) = backend {
-        config.backend = b;
-    }
-    let device = config.backend.device()?;
-    let (_, topo, model, mass) = train::load_surrogate(run_dir, &device)?;
+    let run = train::Run::open(run_dir, set, backend)?;
+    let (model, topo, config) = (run.springs()?, &run.topology, &run.config);
+    let mass = run.particle_mass();
     let rollout = Rollout::load(init)?;
     let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
     let track = Track::new(&rollout, &res);
     let first = if rollout.velocities.is_some() { 0 } else { 1 };
     let physics = Physics::new(&config.sim, rollout.frame_dt, mass);
     physics
-        .stability_of(&topo, &model)
+        .stability_of(topo, model)
         .check("the trained surrogate", config.sim.allow_unstable)?;
     let p = topo.num_particles();
     let frames = (seconds / rollout.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");
     let keep: Vec<usize> = (0..=frames).collect();
     let sim = eval::simulate_track(
-        &model,
+        model,
         &physics,
         None,
         &track,
         first,
         frames,
         &keep,
-        &device,
+        &run.device,
         |_| bar.inc(1),
     )?;
     bar.finish();
@@ -921,7 +970,7 @@ fn simulate(
     Ok(())
 }
 
-/// `springtime fold`: runs the fold test and prints each criterion beside its threshold.
+/// `springtime drape`: drapes the runs over the scenes and prints each model's figures.
 fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()> {
     let report = crate::drape::run(options, progress)?;
     println!(

@@ -18,7 +18,7 @@ use springtime::data::{Rollout, Track};
 use springtime::model::ForceModel;
 use springtime::progress::Progress;
 use springtime::sim::Physics;
-use springtime::train::{self, LoadedRun, RunDir, TrainOptions, Trained};
+use springtime::train::{self, TrainOptions, Trained};
 
 /// springtime's error, with its chain of causes, as a Python `RuntimeError`.
 fn runtime(e: anyhow::Error) -> PyErr {
@@ -56,8 +56,7 @@ fn f32_out<'py>(
 #[pyclass(name = "Run", module = "springtime", unsendable)]
 struct Run {
     path: PathBuf,
-    loaded: LoadedRun,
-    device: burn::tensor::Device,
+    loaded: train::Run,
 }
 
 impl Run {
@@ -108,7 +107,7 @@ impl Run {
             first,
             frames,
             &keep,
-            &self.device,
+            &self.loaded.device,
             |_| {},
         )
         .map_err(runtime)?;
@@ -338,15 +337,8 @@ impl Run {
 #[pyo3(signature = (path, backend=None))]
 fn load_run(path: PathBuf, backend: Option<String>) -> PyResult<Run> {
     let overrides: Vec<String> = backend.iter().map(|b| format!("backend={b}")).collect();
-    let config = Config::load(&RunDir::new(&path).config(), &overrides)
-        .map_err(|e| runtime(e.context(format!("{} is not a run directory", path.display()))))?;
-    let device = config.backend.device().map_err(runtime)?;
-    let loaded = train::load_run(&path, &overrides, &device).map_err(runtime)?;
-    Ok(Run {
-        path,
-        loaded,
-        device,
-    })
+    let loaded = train::Run::open(&path, &overrides, None).map_err(runtime)?;
+    Ok(Run { path, loaded })
 }
 
 /// Trains the model of a config file (as `springtime train`), evaluates it unless

@@ -134,8 +134,8 @@ pub fn chaos_floor(
                 level,
                 at_end: m.per_frame.last().copied().unwrap_or(0.0),
                 per_frame_mean: m.per_frame,
-                mean_short: m.mean_0_8s,
-                mean_long: m.mean_8s,
+                mean_short: m.short.mean,
+                mean_long: m.long.mean,
             }
         })
         .collect();

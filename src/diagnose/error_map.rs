@@ -85,8 +85,8 @@ pub fn error_map(inputs: &Inputs, progress: &Progress) -> Result<ErrorMap> {
                 || test.path.display().to_string(),
                 |n| n.to_string_lossy().into(),
             ),
-            mean_short: one.mean_0_8s,
-            mean_long: one.mean_8s,
+            mean_short: one.short.mean,
+            mean_long: one.long.mean,
             at_end: curve.last().map_or(0.0, |c| c.1),
             seconds: test.steps() as f64 * test.frame_dt,
         });
@@ -134,7 +134,7 @@ impl ErrorMap {
                     "Where the error lives: {} test rollouts, mean RMSE ≤ {} s {:.3e} m",
                     self.rollouts.len(),
                     self.long_seconds,
-                    self.motion.mean_8s
+                    self.motion.long.mean
                 ),
                 18,
             )?;

@@ -8,8 +8,7 @@
 //! | `error_map.json`, `error_map.png` | the run's free rollouts: per-rollout RMSE and the per-particle time-averaged error ([`error_map`]) |
 //! | `diagnose.md` | the headline numbers, also printed |
 //!
-//! The run is opened as `report` opens it ([`report::check_finished`], [`train::load_surrogate`],
-//! [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
+//! The run is opened as every command opens it ([`train::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
 
 pub mod chaos;
 pub mod error_map;
@@ -30,7 +29,7 @@ use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::report::{self, plot};
 use crate::sim::Physics;
-use crate::train::{self, RunDir, Truth};
+use crate::train::{self, Truth};
 
 pub use chaos::ChaosFloor;
 pub use error_map::ErrorMap;
@@ -202,15 +201,15 @@ fn check_fresh(dir: &Path, force: bool) -> Result<()> {
 
 /// Opens a finished spring run and its test rollouts.
 pub fn open(run_dir: &Path, options: &DiagnoseOptions, progress: &Progress) -> Result<Inputs> {
-    let run = RunDir::new(run_dir);
-    report::check_finished(&run)?;
-    let mut config = Config::load(&run.config(), &[])
-        .with_context(|| format!("cannot read {}", run.config().display()))?;
-    if let Some(b) = options.backend {
-        config.backend = b;
-    }
-    let device = config.backend.device()?;
-    let (_, topology, model, mass) = train::load_surrogate(run_dir, &device)?;
+    let run = train::Run::open(run_dir, &[], options.backend)?;
+    let model = run.springs()?.clone();
+    let mass = run.particle_mass();
+    let train::Run {
+        config,
+        device,
+        topology,
+        ..
+    } = run;
     let files = report::data_files(&config, options.data.as_deref())?;
     if files.test.is_empty() {
         bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
@@ -308,7 +307,7 @@ pub fn headline(
         format!("run's motion RMSE, mean ≤ {short} s / ≤ {long} s"),
         format!(
             "{:.3e} / {:.3e} m",
-            errors.motion.mean_0_8s, errors.motion.mean_8s
+            errors.motion.short.mean, errors.motion.long.mean
         ),
     );
     for l in &floor.levels {

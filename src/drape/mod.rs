@@ -32,7 +32,7 @@ use crate::model::ForceModel;
 use crate::progress::Progress;
 use crate::sim::{Contact, ContactAt, ContactParams, Physics};
 use crate::source::{ClothSim, FemCloth, SourceConfig, SourceKind, SpringCloth};
-use crate::train::{self, RunDir, Trained};
+use crate::train::{Run, Trained};
 
 type V3 = [f64; 3];
 
@@ -322,13 +322,6 @@ struct Draped {
     recording: Option<Recording>,
 }
 
-/// A run, loaded for draping.
-struct LoadedModel {
-    dir: PathBuf,
-    loaded: train::LoadedRun,
-    device: Device,
-}
-
 /// The source config of a run with the fine mesh's resolution, damping per unit mass kept.
 fn fine_config(src: &SourceConfig, fine: usize) -> SourceConfig {
     let mut s = src.clone();
@@ -378,53 +371,104 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
         .iter()
         .map(|p| Scene::load(p, &options.set))
         .collect::<Result<Vec<_>>>()?;
-    let mut models = Vec::new();
-    for dir in &options.runs {
-        let run = RunDir::new(dir);
-        run.finished()?;
-        let backend = match options.backend {
-            Some(b) => b,
-            None => {
-                crate::config::Config::load(&run.config(), &[])
-                    .with_context(|| format!("{} is not a run directory", dir.display()))?
-                    .backend
-            }
-        };
-        let device = backend.device()?;
-        let loaded = train::load_run(dir, &[], &device)?;
-        models.push(LoadedModel {
-            dir: dir.clone(),
-            loaded,
-            device,
-        });
-    }
-    let first = &models[0].loaded;
-    let (width, height) = (first.meta.width, first.meta.height);
-    let size = width.max(height);
-    let frame_dt = first.meta.frame_dt;
-    let sim_cfg = &first.config.sim;
-    let h = frame_dt / sim_cfg.substeps.or(1) as f64;
-    let source = first.config.source.clone();
-    // The stiffest surrogate's own stability number (the automatic contact keeps to the rest).
-    let number = models
+    let models = options
+        .runs
         .iter()
-        .filter_map(|m| match &m.loaded.model {
-            Trained::Springs(s) => {
-                let l = &m.loaded;
-                let physics = Physics::new(&l.config.sim, frame_dt, l.meta.particle_mass);
-                Some(physics.stability_of(&l.topology, s).number())
-            }
-            _ => None,
-        })
-        .fold(0.0, f64::max);
+        .map(|dir| Run::open(dir, &[], options.backend))
+        .collect::<Result<Vec<_>>>()?;
+    let job = Job::new(&models, progress)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-
     let mut results = BTreeMap::new();
     for scene in &scenes {
-        let scene_start = Instant::now();
-        let params = scene.params(size, h, number);
+        results.insert(scene.name.clone(), job.scene(scene, out)?);
+    }
+    let report = DrapeReport {
+        scenes: results,
+        runs: options.runs.clone(),
+        wall_seconds: start.elapsed().as_secs_f64(),
+        build: crate::BuildInfo::current(),
+    };
+    crate::io::write_json(&json, &report)?;
+    // Let each run's report find this drape.
+    let here = std::fs::canonicalize(out).unwrap_or_else(|_| out.clone());
+    for m in &models {
+        let list = m.dir.drapes();
+        let mut dirs = read_drapes(&list);
+        if !dirs.contains(&here) {
+            dirs.push(here.clone());
+            crate::io::write_json(&list, &dirs)?;
+        }
+    }
+    Ok(report)
+}
+
+/// What every scene of one drape job shares: the runs, their common sheet and frame step, and
+/// the source that generated their data.
+struct Job<'a> {
+    models: &'a [Run],
+    width: f64,
+    height: f64,
+    frame_dt: f64,
+    /// The surrogates' simulation step, s.
+    step: f64,
+    /// The stiffest surrogate's own stability number (the automatic contact keeps to the rest).
+    number: f64,
+    source: Option<SourceConfig>,
+    progress: &'a Progress,
+}
+
+/// One scene's timing: frames simulated and recorded.
+#[derive(Clone, Copy)]
+struct Frames {
+    /// Data frames simulated.
+    total: usize,
+    /// Data frames per recorded frame.
+    every: usize,
+    /// Time between recorded frames, s.
+    record_dt: f64,
+}
+
+impl<'a> Job<'a> {
+    /// Checks that the runs share one data set (sheet and frame step).
+    fn new(models: &'a [Run], progress: &'a Progress) -> Result<Self> {
+        let first = &models[0];
+        let (width, height, frame_dt) = (first.meta.width, first.meta.height, first.meta.frame_dt);
+        for m in models {
+            if m.meta.frame_dt != frame_dt || m.meta.width != width || m.meta.height != height {
+                bail!(
+                    "{} has another frame step or sheet than {}: drape runs of one data set together",
+                    m.dir.dir.display(),
+                    first.dir.dir.display()
+                );
+            }
+        }
+        let number = models
+            .iter()
+            .filter_map(|m| match &m.model {
+                Trained::Springs(s) => {
+                    Some(m.physics(frame_dt).stability_of(&m.topology, s).number())
+                }
+                _ => None,
+            })
+            .fold(0.0, f64::max);
+        Ok(Self {
+            models,
+            width,
+            height,
+            frame_dt,
+            step: frame_dt / first.config.sim.substeps.or(1) as f64,
+            number,
+            source: first.config.source.clone(),
+            progress,
+        })
+    }
+
+    /// Drapes the references and every model over one scene; writes its figure and curves.
+    fn scene(&self, scene: &Scene, out: &Path) -> Result<SceneResult> {
+        let start = Instant::now();
+        let params = scene.params(self.width.max(self.height), self.step, self.number);
         let cfg = &scene.config;
-        progress.note(&format!(
+        self.progress.note(&format!(
             "drape {}: {} collider(s), {:.1} s, contact thickness {:.4} m, κ = {:.3e}/s², ζ = {:.3e}/s",
             scene.name,
             scene.colliders.len(),
@@ -433,48 +477,15 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
             params.stiffness,
             params.damping
         ));
-        let record_frames = ((cfg.record_every / frame_dt).round() as usize).max(1);
-        let record_dt = record_frames as f64 * frame_dt;
-        let frames = (cfg.seconds / frame_dt).round() as usize;
-        let mut warnings = Vec::new();
-
-        // The references: the coarse source and the fine FEM mesh, side by side.
-        let host_run = |src: &SourceConfig| -> Result<Recording> {
-            let sim: Box<dyn ClothSim> = match src.kind {
-                SourceKind::Fem => Box::new(FemCloth::from_config(src)),
-                SourceKind::MassSpring => Box::new(SpringCloth::from_config(src)),
-            };
-            let dt = stable_step(sim.as_ref(), &params, src.dt);
-            let every = (record_dt / dt).round() as usize;
-            if every == 0 || (every as f64 * dt - record_dt).abs() > 1e-6 * record_dt {
-                bail!(
-                    "the source's step {dt} s does not divide the recorded interval {record_dt} s"
-                );
-            }
-            let steps = frames / record_frames * every;
-            let x0 = scene.release(sim.rest_uv(), src.width, src.height);
-            let contact = Contact::new(scene.colliders.clone(), params);
-            Ok(simulate_host(
-                &label_of(src),
-                sim.as_ref(),
-                (src.nx, src.ny),
-                x0,
-                &contact,
-                dt,
-                steps,
-                every,
-                progress,
-            ))
+        let every = ((cfg.record_every / self.frame_dt).round() as usize).max(1);
+        let frames = Frames {
+            total: (cfg.seconds / self.frame_dt).round() as usize,
+            every,
+            record_dt: every as f64 * self.frame_dt,
         };
-        let (coarse, fine) = match &source {
-            Some(src) => {
-                let fine_src = (src.kind == SourceKind::Fem).then(|| fine_config(src, cfg.fine));
-                let (c, f) = rayon::join(
-                    || host_run(src),
-                    || fine_src.as_ref().map(&host_run).transpose(),
-                );
-                (Some(c?), f?)
-            }
+        let mut warnings = Vec::new();
+        let (coarse, fine) = match &self.source {
+            Some(src) => self.references(scene, &params, src, frames)?,
             None => {
                 warnings.push(
                     "the run has no [source]: no reference drape, only the models' contact figures"
@@ -483,172 +494,27 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
                 (None, None)
             }
         };
-
-        // The models.
-        let mut recs: Vec<Draped> = Vec::new();
-        for m in &models {
-            let l = &m.loaded;
-            let kind = l.config.model.kind.name().to_string();
-            if l.meta.frame_dt != frame_dt || l.meta.width != width || l.meta.height != height {
-                bail!(
-                    "{} has another frame step or sheet than {}: drape runs of one data set together",
-                    m.dir.display(),
-                    models[0].dir.display()
-                );
-            }
-            let physics = Physics::new(&l.config.sim, frame_dt, l.meta.particle_mass);
-            let model: &dyn ForceModel = match &l.model {
-                Trained::Springs(s) => {
-                    physics
-                        .stability_of(&l.topology, s)
-                        .with_contact(&params)
-                        .check(
-                            &format!("{} in scene {}", m.dir.display(), scene.name),
-                            l.config.sim.allow_unstable,
-                        )?;
-                    s
-                }
-                Trained::NeuralOde(o) => o,
-                Trained::Gnn(_) => {
-                    recs.push(Draped {
-                        kind,
-                        run: m.dir.clone(),
-                        recording: None,
-                    });
-                    continue;
-                }
-            };
-            let x0 = scene.release(&l.topology.rest_uv, width, height);
-            let contact = Contact::new(scene.colliders.clone(), params);
-            let rec = simulate_model(
-                &kind,
-                model,
-                &physics,
-                &l.topology,
-                &x0,
-                &contact,
-                frames / record_frames * record_frames,
-                record_frames,
-                &m.device,
-                progress,
-            );
-            recs.push(Draped {
-                kind,
-                run: m.dir.clone(),
-                recording: Some(rec),
-            });
-        }
-
-        // Metrics.
-        let fine_end = fine
+        let recs = self.simulate_models(scene, &params, frames)?;
+        let score = Score {
+            coarse: coarse.as_ref(),
+            fine: fine.as_ref(),
+            thickness: params.thickness,
+            record_dt: frames.record_dt,
+        };
+        let source_ref = coarse
             .as_ref()
-            .filter(|f| f.diverged.is_none())
-            .and_then(|f| f.frames.last());
-        let vs_fine = |rec: &Recording| -> Option<f64> {
-            let f = fine.as_ref()?;
-            let end = fine_end?;
-            if rec.diverged.is_some() {
-                return None;
-            }
-            let res = Resampler::new(&f.rest_uv, &rec.rest_uv);
-            Some(eval::frame_rmse(rec.frames.last()?, &resample(&res, end)))
-        };
-        let mut check = |who: &str, rec: &Recording| {
-            if rec.deepest > params.thickness {
-                warnings.push(format!(
-                    "{who}: penetrated {:.4} m into the contact layer of {:.4} m: it reached the \
-                     collider's surface",
-                    rec.deepest, params.thickness
-                ));
-            }
-            if let Some(d) = &rec.diverged {
-                warnings.push(d.clone());
-            }
-        };
-        let reference = |rec: &Recording| Reference {
-            label: rec.label.clone(),
-            dt: rec.dt,
-            steady_rmse_vs_fine: vs_fine(rec),
-            max_penetration: rec.deepest,
-            kinetic_energy_end: rec.kinetic_energy_end,
-            diverged: rec.diverged.is_some(),
-            wall_seconds: rec.wall_seconds,
-        };
-        let source_ref = coarse.as_ref().map(|c| {
-            check("source", c);
-            reference(c)
-        });
+            .map(|c| score.reference(c, "source", &mut warnings));
         let fine_ref = fine.as_ref().map(|f| {
-            check("fine reference", f);
-            let mut r = reference(f);
+            let mut r = score.reference(f, "fine reference", &mut warnings);
             r.steady_rmse_vs_fine = Some(0.0);
             r
         });
-        let mut model_results = BTreeMap::new();
-        for Draped {
-            kind,
-            run: dir,
-            recording,
-        } in &recs
-        {
-            let Some(rec) = recording else {
-                model_results.insert(
-                    kind.clone(),
-                    ModelResult {
-                        run: dir.clone(),
-                        applicable: false,
-                        motion_rmse_end: None,
-                        motion_rmse_mean: None,
-                        steady_rmse_vs_fine: None,
-                        max_penetration: None,
-                        kinetic_energy_end: None,
-                        diverged: false,
-                        note: Some(GNN_NOT_APPLICABLE.into()),
-                        motion_rmse_over_time: Vec::new(),
-                        wall_seconds: 0.0,
-                    },
-                );
-                continue;
-            };
-            check(kind, rec);
-            let curve: Vec<[f64; 2]> = match &coarse {
-                Some(c) => {
-                    let res = Resampler::new(&c.rest_uv, &rec.rest_uv);
-                    rec.frames
-                        .iter()
-                        .zip(&c.frames)
-                        .enumerate()
-                        .map(|(r, (x, y))| {
-                            [
-                                r as f64 * record_dt,
-                                eval::frame_rmse(x, &resample(&res, y)),
-                            ]
-                        })
-                        .collect()
-                }
-                None => Vec::new(),
-            };
-            let complete = rec.diverged.is_none() && !curve.is_empty();
-            model_results.insert(
-                kind.clone(),
-                ModelResult {
-                    run: dir.clone(),
-                    applicable: true,
-                    motion_rmse_end: curve.last().filter(|_| complete).map(|c| c[1]),
-                    motion_rmse_mean: complete
-                        .then(|| curve.iter().map(|c| c[1]).sum::<f64>() / curve.len() as f64),
-                    steady_rmse_vs_fine: vs_fine(rec),
-                    max_penetration: Some(rec.deepest),
-                    kinetic_energy_end: rec.kinetic_energy_end,
-                    diverged: rec.diverged.is_some(),
-                    note: rec.diverged.clone(),
-                    motion_rmse_over_time: curve,
-                    wall_seconds: rec.wall_seconds,
-                },
-            );
-        }
-        for (who, r) in &model_results {
-            progress.note(&format!(
+        let models: BTreeMap<String, ModelResult> = recs
+            .iter()
+            .map(|d| (d.kind.clone(), score.model(d, &mut warnings)))
+            .collect();
+        for (who, r) in &models {
+            self.progress.note(&format!(
                 "  {who}: motion RMSE at the end {}, to the fine mesh {}, deepest {:.4} m, {:.1} s wall{}",
                 fmt_m(r.motion_rmse_end),
                 fmt_m(r.steady_rmse_vs_fine),
@@ -658,7 +524,7 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
             ));
         }
         if let Some(s) = &source_ref {
-            progress.note(&format!(
+            self.progress.note(&format!(
                 "  source {}: to the fine mesh {}, deepest {:.4} m, {:.1} s wall",
                 s.label,
                 fmt_m(s.steady_rmse_vs_fine),
@@ -675,46 +541,227 @@ pub fn run(options: &DrapeOptions, progress: &Progress) -> Result<DrapeReport> {
             scene,
             &params,
             &drawn,
-            &model_results,
+            &models,
         )?;
         write_curves(
             &out.join(format!("{}_motion_rmse.csv", scene.name)),
-            &model_results,
+            &models,
         )?;
-        results.insert(
-            scene.name.clone(),
-            SceneResult {
-                scene_file: scene.path.clone(),
-                scene: scene.config.clone(),
-                contact_thickness: params.thickness,
-                contact: params,
-                record_dt,
-                source: source_ref,
-                fine: fine_ref,
-                models: model_results,
-                warnings,
-                wall_seconds: scene_start.elapsed().as_secs_f64(),
-            },
-        );
+        Ok(SceneResult {
+            scene_file: scene.path.clone(),
+            scene: scene.config.clone(),
+            contact_thickness: params.thickness,
+            contact: params,
+            record_dt: frames.record_dt,
+            source: source_ref,
+            fine: fine_ref,
+            models,
+            warnings,
+            wall_seconds: start.elapsed().as_secs_f64(),
+        })
     }
-    let report = DrapeReport {
-        scenes: results,
-        runs: options.runs.clone(),
-        wall_seconds: start.elapsed().as_secs_f64(),
-        build: crate::BuildInfo::current(),
-    };
-    crate::io::write_json(&json, &report)?;
-    // Let each run's report find this drape.
-    let here = std::fs::canonicalize(out).unwrap_or_else(|_| out.clone());
-    for m in &models {
-        let list = RunDir::new(&m.dir).drapes();
-        let mut dirs = read_drapes(&list);
-        if !dirs.contains(&here) {
-            dirs.push(here.clone());
-            crate::io::write_json(&list, &dirs)?;
+
+    /// The coarse source and (for an FEM source) the fine FEM mesh over the scene, side by side.
+    fn references(
+        &self,
+        scene: &Scene,
+        params: &ContactParams,
+        src: &SourceConfig,
+        frames: Frames,
+    ) -> Result<(Option<Recording>, Option<Recording>)> {
+        let host_run = |src: &SourceConfig| -> Result<Recording> {
+            let sim: Box<dyn ClothSim> = match src.kind {
+                SourceKind::Fem => Box::new(FemCloth::from_config(src)),
+                SourceKind::MassSpring => Box::new(SpringCloth::from_config(src)),
+            };
+            let dt = stable_step(sim.as_ref(), params, src.dt);
+            let record_dt = frames.record_dt;
+            let every = (record_dt / dt).round() as usize;
+            if every == 0 || (every as f64 * dt - record_dt).abs() > 1e-6 * record_dt {
+                bail!(
+                    "the source's step {dt} s does not divide the recorded interval {record_dt} s"
+                );
+            }
+            let steps = frames.total / frames.every * every;
+            let x0 = scene.release(sim.rest_uv(), src.width, src.height);
+            let contact = Contact::new(scene.colliders.clone(), *params);
+            Ok(simulate_host(
+                &label_of(src),
+                sim.as_ref(),
+                (src.nx, src.ny),
+                x0,
+                &contact,
+                dt,
+                steps,
+                every,
+                self.progress,
+            ))
+        };
+        let fine_src = (src.kind == SourceKind::Fem).then(|| fine_config(src, scene.config.fine));
+        let (c, f) = rayon::join(
+            || host_run(src),
+            || fine_src.as_ref().map(&host_run).transpose(),
+        );
+        Ok((Some(c?), f?))
+    }
+
+    /// Every model over the scene (the GNN is recorded as not applicable).
+    fn simulate_models(
+        &self,
+        scene: &Scene,
+        params: &ContactParams,
+        frames: Frames,
+    ) -> Result<Vec<Draped>> {
+        let mut recs = Vec::new();
+        for m in self.models {
+            let kind = m.config.model.kind.name().to_string();
+            let physics = m.physics(self.frame_dt);
+            let model: &dyn ForceModel = match &m.model {
+                Trained::Springs(s) => {
+                    physics
+                        .stability_of(&m.topology, s)
+                        .with_contact(params)
+                        .check(
+                            &format!("{} in scene {}", m.dir.dir.display(), scene.name),
+                            m.config.sim.allow_unstable,
+                        )?;
+                    s
+                }
+                Trained::NeuralOde(o) => o,
+                Trained::Gnn(_) => {
+                    recs.push(Draped {
+                        kind,
+                        run: m.dir.dir.clone(),
+                        recording: None,
+                    });
+                    continue;
+                }
+            };
+            let x0 = scene.release(&m.topology.rest_uv, self.width, self.height);
+            let contact = Contact::new(scene.colliders.clone(), *params);
+            let rec = simulate_model(
+                &kind,
+                model,
+                &physics,
+                &m.topology,
+                &x0,
+                &contact,
+                frames.total / frames.every * frames.every,
+                frames.every,
+                &m.device,
+                self.progress,
+            );
+            recs.push(Draped {
+                kind,
+                run: m.dir.dir.clone(),
+                recording: Some(rec),
+            });
+        }
+        Ok(recs)
+    }
+}
+
+/// Scores one scene's recordings against its references.
+struct Score<'a> {
+    coarse: Option<&'a Recording>,
+    fine: Option<&'a Recording>,
+    thickness: f64,
+    record_dt: f64,
+}
+
+impl Score<'_> {
+    /// RMSE of the last frame to the fine mesh's last frame (resampled), when both finished.
+    fn vs_fine(&self, rec: &Recording) -> Option<f64> {
+        let f = self.fine?;
+        if f.diverged.is_some() || rec.diverged.is_some() {
+            return None;
+        }
+        let res = Resampler::new(&f.rest_uv, &rec.rest_uv);
+        Some(eval::frame_rmse(
+            rec.frames.last()?,
+            &resample(&res, f.frames.last()?),
+        ))
+    }
+
+    /// Warns when `rec` reached the collider's surface or diverged.
+    fn warn(&self, who: &str, rec: &Recording, warnings: &mut Vec<String>) {
+        if rec.deepest > self.thickness {
+            warnings.push(format!(
+                "{who}: penetrated {:.4} m into the contact layer of {:.4} m: it reached the \
+                 collider's surface",
+                rec.deepest, self.thickness
+            ));
+        }
+        if let Some(d) = &rec.diverged {
+            warnings.push(d.clone());
         }
     }
-    Ok(report)
+
+    /// A reference simulation's figures.
+    fn reference(&self, rec: &Recording, who: &str, warnings: &mut Vec<String>) -> Reference {
+        self.warn(who, rec, warnings);
+        Reference {
+            label: rec.label.clone(),
+            dt: rec.dt,
+            steady_rmse_vs_fine: self.vs_fine(rec),
+            max_penetration: rec.deepest,
+            kinetic_energy_end: rec.kinetic_energy_end,
+            diverged: rec.diverged.is_some(),
+            wall_seconds: rec.wall_seconds,
+        }
+    }
+
+    /// A model's figures: motion RMSE to the coarse source over time, to the fine mesh at rest.
+    fn model(&self, draped: &Draped, warnings: &mut Vec<String>) -> ModelResult {
+        let Some(rec) = &draped.recording else {
+            return ModelResult {
+                run: draped.run.clone(),
+                applicable: false,
+                motion_rmse_end: None,
+                motion_rmse_mean: None,
+                steady_rmse_vs_fine: None,
+                max_penetration: None,
+                kinetic_energy_end: None,
+                diverged: false,
+                note: Some(GNN_NOT_APPLICABLE.into()),
+                motion_rmse_over_time: Vec::new(),
+                wall_seconds: 0.0,
+            };
+        };
+        self.warn(&draped.kind, rec, warnings);
+        let curve: Vec<[f64; 2]> = match self.coarse {
+            Some(c) => {
+                let res = Resampler::new(&c.rest_uv, &rec.rest_uv);
+                rec.frames
+                    .iter()
+                    .zip(&c.frames)
+                    .enumerate()
+                    .map(|(r, (x, y))| {
+                        [
+                            r as f64 * self.record_dt,
+                            eval::frame_rmse(x, &resample(&res, y)),
+                        ]
+                    })
+                    .collect()
+            }
+            None => Vec::new(),
+        };
+        let complete = rec.diverged.is_none() && !curve.is_empty();
+        ModelResult {
+            run: draped.run.clone(),
+            applicable: true,
+            motion_rmse_end: curve.last().filter(|_| complete).map(|c| c[1]),
+            motion_rmse_mean: complete
+                .then(|| curve.iter().map(|c| c[1]).sum::<f64>() / curve.len() as f64),
+            steady_rmse_vs_fine: self.vs_fine(rec),
+            max_penetration: Some(rec.deepest),
+            kinetic_energy_end: rec.kinetic_energy_end,
+            diverged: rec.diverged.is_some(),
+            note: rec.diverged.clone(),
+            motion_rmse_over_time: curve,
+            wall_seconds: rec.wall_seconds,
+        }
+    }
 }
 
 /// The drape folders listed in a run's `drapes.json` (none when it is missing or unreadable).

@@ -24,9 +24,9 @@ use crate::sim::{self, Physics, State};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct EvalConfig {
-    /// The short horizon of Table 2, s (`mean_0_8s`).
+    /// The short horizon of Table 2, s (`motion_rmse.short`).
     pub short_seconds: f64,
-    /// The long horizon, s (`mean_8s`).
+    /// The long horizon, s (`motion_rmse.long`).
     pub long_seconds: f64,
     /// Test rollouts simulated together.
     pub batch: usize,
@@ -49,44 +49,83 @@ impl Default for EvalConfig {
     }
 }
 
+/// Motion RMSE over the frames within a horizon of the start.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Horizon {
+    /// The horizon, s (`eval.short_seconds` or `eval.long_seconds`).
+    pub seconds: f64,
+    /// Mean over those frames of every rollout, m.
+    pub mean: f64,
+    /// Its standard deviation, m.
+    pub std: f64,
+}
+
 /// Motion RMSE statistics over every frame of every test rollout (Eq. 14).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(from = "MotionRmseFile")]
 pub struct MotionRmse {
     /// Mean over all frames of all rollouts, m.
     pub mean: f64,
     /// Standard deviation over all frames of all rollouts, m.
     pub std: f64,
-    /// Mean over the frames within `short_seconds` of the start.
-    pub mean_0_8s: f64,
-    /// Its standard deviation.
-    pub std_0_8s: f64,
-    /// Mean over the frames within `long_seconds` of the start.
-    pub mean_8s: f64,
-    /// Its standard deviation.
-    pub std_8s: f64,
+    /// Over the short horizon (Table 2's 0.8 s by default).
+    pub short: Horizon,
+    /// Over the long horizon (Table 2's 8 s by default).
+    pub long: Horizon,
     /// Mean over rollouts at each simulated frame, m.
     pub per_frame: Vec<f64>,
     /// Time since the start of each entry of `per_frame`, s.
-    #[serde(default)]
     pub times: Vec<f64>,
     /// Time between frames, s.
     pub frame_dt: f64,
     /// Rollouts evaluated.
     pub rollouts: usize,
-    /// The short horizon of `mean_0_8s`, s (`eval.short_seconds`; 0.8 in files without it).
-    #[serde(default = "default_short_seconds")]
-    pub short_seconds: f64,
-    /// The long horizon of `mean_8s`, s (`eval.long_seconds`; 8 in files without it).
-    #[serde(default = "default_long_seconds")]
-    pub long_seconds: f64,
 }
 
-fn default_short_seconds() -> f64 {
-    0.8
+/// `motion_rmse` as stored in `eval.json`, now (`short`, `long`) or by an older springtime
+/// (`mean_0_8s`, `std_0_8s`, `mean_8s`, `std_8s`, optional `short_seconds`, `long_seconds`).
+#[derive(Deserialize)]
+struct MotionRmseFile {
+    mean: f64,
+    std: f64,
+    short: Option<Horizon>,
+    long: Option<Horizon>,
+    mean_0_8s: Option<f64>,
+    std_0_8s: Option<f64>,
+    mean_8s: Option<f64>,
+    std_8s: Option<f64>,
+    short_seconds: Option<f64>,
+    long_seconds: Option<f64>,
+    per_frame: Vec<f64>,
+    #[serde(default)]
+    times: Vec<f64>,
+    frame_dt: f64,
+    rollouts: usize,
 }
 
-fn default_long_seconds() -> f64 {
-    8.0
+impl From<MotionRmseFile> for MotionRmse {
+    fn from(f: MotionRmseFile) -> Self {
+        let old =
+            |seconds: Option<f64>, default: f64, mean: Option<f64>, std: Option<f64>| Horizon {
+                seconds: seconds.unwrap_or(default),
+                mean: mean.unwrap_or(f64::NAN),
+                std: std.unwrap_or(f64::NAN),
+            };
+        Self {
+            mean: f.mean,
+            std: f.std,
+            short: f
+                .short
+                .unwrap_or_else(|| old(f.short_seconds, 0.8, f.mean_0_8s, f.std_0_8s)),
+            long: f
+                .long
+                .unwrap_or_else(|| old(f.long_seconds, 8.0, f.mean_8s, f.std_8s)),
+            per_frame: f.per_frame,
+            times: f.times,
+            frame_dt: f.frame_dt,
+            rollouts: f.rollouts,
+        }
+    }
 }
 
 /// Inference cost measured while evaluating: the model's steps only, batched as `eval.batch`.
@@ -453,8 +492,10 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
         (mean, var.sqrt())
     };
     let (mean, std) = stats(f64::INFINITY);
-    let (mean_0_8s, std_0_8s) = stats(short);
-    let (mean_8s, std_8s) = stats(long);
+    let horizon = |seconds: f64| {
+        let (mean, std) = stats(seconds);
+        Horizon { seconds, mean, std }
+    };
     let longest = curves.iter().map(Vec::len).max().unwrap_or(0);
     let times = curves
         .iter()
@@ -473,16 +514,12 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
     MotionRmse {
         mean,
         std,
-        mean_0_8s,
-        std_0_8s,
-        mean_8s,
-        std_8s,
+        short: horizon(short),
+        long: horizon(long),
         per_frame,
         times,
         frame_dt,
         rollouts: curves.len(),
-        short_seconds: short,
-        long_seconds: long,
     }
 }
 
@@ -671,45 +708,58 @@ pub fn simulate_track(
 /// Writes per-rollout motion RMSE curves as CSV: `time,rollout_0,…` (empty where a rollout
 /// is shorter than the longest).
 pub fn write_curves_csv(path: &std::path::Path, curves: &[Curve]) -> Result<()> {
-    use std::fmt::Write;
-    let mut s = String::from("time");
-    for i in 0..curves.len() {
-        write!(s, ",rollout_{i}")?;
-    }
-    s.push('\n');
+    let mut header = vec!["time".to_string()];
+    header.extend((0..curves.len()).map(|i| format!("rollout_{i}")));
     let longest = curves.iter().max_by_key(|c| c.len());
-    for (j, &(t, _)) in longest.into_iter().flatten().enumerate() {
-        write!(s, "{t:.6}")?;
-        for c in curves {
-            match c.get(j) {
-                Some(&(_, e)) => write!(s, ",{e:.6e}")?,
-                None => s.push(','),
-            }
+    crate::io::write_atomic(path, |file| {
+        let mut w = csv::Writer::from_writer(file);
+        w.write_record(&header)?;
+        for (j, &(t, _)) in longest.into_iter().flatten().enumerate() {
+            let mut row = vec![format!("{t:.6}")];
+            row.extend(
+                curves
+                    .iter()
+                    .map(|c| c.get(j).map_or(String::new(), |e| format!("{:.6e}", e.1))),
+            );
+            w.write_record(&row)?;
         }
-        s.push('\n');
-    }
-    crate::io::write_text(path, &s)
+        w.flush()?;
+        Ok(())
+    })
 }
 
-/// Reads the curves that [`write_curves_csv`] wrote.
+/// Reads the curves that [`write_curves_csv`] wrote; errors name the file, line and column.
 pub fn read_curves_csv(path: &std::path::Path) -> Result<Vec<Curve>> {
     use anyhow::Context;
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut lines = text.lines();
-    let header = lines
-        .next()
-        .with_context(|| format!("{} is empty", path.display()))?;
-    let n = header.split(',').count().saturating_sub(1);
-    let mut curves = vec![Vec::new(); n];
-    for (row, line) in lines.enumerate() {
-        let mut cells = line.split(',');
-        let bad = || anyhow::anyhow!("{}: row {} is malformed", path.display(), row + 2);
-        let t: f64 = cells.next().and_then(|c| c.parse().ok()).ok_or_else(bad)?;
-        for curve in curves.iter_mut() {
-            let cell = cells.next().ok_or_else(bad)?;
-            if !cell.is_empty() {
-                curve.push((t, cell.parse().map_err(|_| bad())?));
+    let mut reader =
+        csv::Reader::from_path(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let header = reader
+        .headers()
+        .with_context(|| format!("{} has no header", path.display()))?
+        .clone();
+    if header.get(0) != Some("time") {
+        anyhow::bail!("{}: the first column must be `time`", path.display());
+    }
+    let mut curves = vec![Vec::new(); header.len().saturating_sub(1)];
+    for record in reader.records() {
+        let record = record.with_context(|| format!("{} is malformed", path.display()))?;
+        let line = record.position().map_or(0, |p| p.line());
+        let cell = |c: usize| -> Result<Option<f64>> {
+            match record.get(c).unwrap_or("") {
+                "" => Ok(None),
+                v => v.parse().map(Some).with_context(|| {
+                    format!(
+                        "{}: line {line}, column `{}` is not a number: {v}",
+                        path.display(),
+                        &header[c]
+                    )
+                }),
+            }
+        };
+        let t = cell(0)?.with_context(|| format!("{}: line {line} has no time", path.display()))?;
+        for (i, curve) in curves.iter_mut().enumerate() {
+            if let Some(e) = cell(i + 1)? {
+                curve.push((t, e));
             }
         }
     }
@@ -732,6 +782,57 @@ mod tests {
     use super::*;
     use crate::cloth::GridSpec;
     use crate::source::{Diagonal, fem::grid_triangles};
+
+    #[test]
+    fn motion_rmse_stores_horizons_with_their_seconds_and_reads_old_files() {
+        let curves = vec![vec![(0.1, 1.0), (0.2, 3.0), (0.3, 5.0)]];
+        let m = summarize(&curves, 0.1, 0.2, 0.3);
+        assert_eq!(
+            (m.short.seconds, m.short.mean, m.short.std),
+            (0.2, 2.0, 1.0)
+        );
+        assert_eq!((m.long.seconds, m.long.mean), (0.3, 3.0));
+        let json = serde_json::to_value(&m).unwrap();
+        assert_eq!(json["short"]["seconds"], 0.2);
+        assert_eq!(json["long"]["mean"], 3.0);
+        assert!(json.get("mean_8s").is_none());
+        let back: MotionRmse = serde_json::from_value(json).unwrap();
+        assert_eq!(back, m);
+        // An eval.json of an older springtime: fixed names, horizons absent (0.8 s and 8 s).
+        let old: MotionRmse = serde_json::from_str(
+            r#"{"mean":1.0,"std":0.5,"mean_0_8s":0.1,"std_0_8s":0.01,"mean_8s":0.9,
+                "std_8s":0.2,"per_frame":[0.1],"frame_dt":0.01,"rollouts":2}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            (old.short.seconds, old.short.mean, old.short.std),
+            (0.8, 0.1, 0.01)
+        );
+        assert_eq!(
+            (old.long.seconds, old.long.mean, old.long.std),
+            (8.0, 0.9, 0.2)
+        );
+    }
+
+    #[test]
+    fn motion_curves_csv_round_trips_rollouts_of_different_lengths() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("motion_rmse.csv");
+        let curves = vec![
+            vec![(0.01, 1.5e-3), (0.02, 2.5e-3), (0.03, 4.0e-3)],
+            vec![(0.01, 7.0e-4)],
+        ];
+        write_curves_csv(&path, &curves).unwrap();
+        assert_eq!(read_curves_csv(&path).unwrap(), curves);
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.starts_with("time,rollout_0,rollout_1\n"), "{text}");
+        std::fs::write(&path, "time,rollout_0\n0.01,1e-3\n0.02,oops\n").unwrap();
+        let e = format!("{:#}", read_curves_csv(&path).unwrap_err());
+        assert!(
+            e.contains("line 3") && e.contains("rollout_0") && e.contains("oops"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn spearman_handles_ties_and_monotone_maps() {

@@ -3,16 +3,15 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 
 use crate::backend::Backend;
 use crate::cloth::Resampler;
-use crate::config::Config;
 use crate::data::Rollout;
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
 use crate::sim::Physics;
-use crate::train::{self, RunDir, Trained};
+use crate::train::{self, Trained};
 
 /// Evaluates a run and writes its `eval.json`.
 pub fn evaluate(
@@ -23,19 +22,9 @@ pub fn evaluate(
     progress: &Progress,
 ) -> Result<EvalReport> {
     let start = Instant::now();
-    let run = RunDir::new(run_dir);
-    let mut overrides = set.to_vec();
-    if let Some(b) = backend {
-        overrides.push(format!("backend={b}"));
-    }
-    let device = match backend {
-        Some(b) => b.device()?,
-        None => Config::load(&run.config(), set)
-            .with_context(|| format!("{} is not a run directory", run_dir.display()))?
-            .backend
-            .device()?,
-    };
-    let loaded = train::load_run(run_dir, &overrides, &device)?;
+    let loaded = train::Run::open(run_dir, set, backend)?;
+    let device = loaded.device.clone();
+    let run = loaded.dir.clone();
     let mut config = loaded.config;
     if let Some(d) = data {
         config.data.test_dir = Some(d.to_path_buf());

@@ -27,15 +27,15 @@ use serde::Serialize;
 
 use crate::backend::Backend;
 use crate::cloth::Resampler;
-use crate::config::Config;
 use crate::data::npz::Array;
 use crate::data::{Rollout, Track};
 use crate::eval;
 use crate::import::pc2::PointCache;
+use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::Physics;
 use crate::source::{Diagonal, fem::grid_triangles};
-use crate::train::{self, RunDir};
+use crate::train::Run;
 
 /// Export file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -294,6 +294,8 @@ struct Plan {
     first: usize,
     frames: usize,
     keep: Vec<usize>,
+    /// Frames per second of the kept frames.
+    fps: f64,
     /// The rollout or scene file it starts from.
     from: PathBuf,
     contact: Option<crate::sim::Contact>,
@@ -314,6 +316,48 @@ pub struct ExportSummary {
     pub note: Option<String>,
 }
 
+/// The simulated sequence, as written.
+#[derive(Default)]
+struct Sequence {
+    /// Pinned particles (the starting rollout's).
+    pinned: Vec<usize>,
+    /// Frames written.
+    frames: usize,
+    /// Positions `[frames, P, 3]` and times of a glTF animation (empty for the other formats).
+    animation: (Vec<f32>, Vec<f64>),
+}
+
+/// The files of one export.
+struct Paths {
+    /// `rest.<ext>` (or `cloth.gltf`/`.glb`).
+    mesh: PathBuf,
+    json: PathBuf,
+    npz: PathBuf,
+    pc2: PathBuf,
+    /// Directory of per-frame meshes.
+    frames: PathBuf,
+}
+
+impl Paths {
+    fn frame(&self, i: usize, ext: &str) -> PathBuf {
+        self.frames.join(format!("frame_{i:04}.{ext}"))
+    }
+}
+
+/// An export under way: the opened run, its surrogate and the rest sheet's mesh.
+struct Export<'a> {
+    run_dir: &'a Path,
+    options: &'a ExportOptions,
+    run: &'a Run,
+    model: &'a SpringNet,
+    paths: Paths,
+    triangles: Vec<[usize; 3]>,
+    /// Texture coordinates of the particles (the rest rectangle scaled to [0, 1]²).
+    uv: Vec<[f64; 2]>,
+    /// Rest positions `[P, 3]`.
+    rest: Vec<f32>,
+}
+
 /// Exports a finished run (see the module documentation).
 pub fn export_run(
     run_dir: &Path,
@@ -328,220 +372,284 @@ pub fn export_run(
     {
         bail!("--seconds must be positive, is {s}");
     }
-    let run = RunDir::new(run_dir);
-    crate::report::check_finished(&run)?;
-    let mut config = Config::load(&run.config(), &[])
-        .with_context(|| format!("cannot read {}", run.config().display()))?;
-    if let Some(b) = options.backend {
-        config.backend = b;
-    }
-    let device = config.backend.device()?;
-    let (_, topo, model, mass) = train::load_surrogate(run_dir, &device)?;
-    // The rollout (or the drape scene) to start from.
-    let (init, note) = match (&options.init, &options.scene) {
-        (_, Some(_)) => (None, None),
-        (Some(p), None) => (Some(p.clone()), None),
-        (None, None) => {
-            let mut data = config.data.clone();
-            if let Some(d) = &options.data {
-                data.test_dir = Some(d.clone());
-            }
-            match data.split() {
-                Ok(s) if !s.test.is_empty() => (Some(s.test[0].clone()), None),
-                Ok(_) => (
-                    None,
-                    Some("the run's data lists no test rollouts".to_string()),
-                ),
-                Err(e) => (None, Some(format!("{e:#}"))),
-            }
-        }
-    };
-    let rollout = init.as_deref().map(Rollout::load).transpose()?;
-    let ext = options.format.extension();
+    let run = Run::open(run_dir, &[], options.backend)?;
+    let model = run.springs()?;
+    let ex = Export::new(run_dir, options, &run, model);
+    let (plan, note) = ex.plan()?;
+    ex.check_fresh(plan.as_ref())?;
     let out = &options.out;
-    let seq_dir = out.join("rollout");
-    // The frames to write.
-    let stability = |physics: &Physics, contact: Option<&crate::sim::Contact>| {
-        let st = physics.stability_of(&topo, &model);
-        let st = match contact {
-            Some(c) => st.with_contact(&c.params),
-            None => st,
-        };
-        st.check("the trained surrogate", config.sim.allow_unstable)
-    };
-    let plan_for = |frame_dt: f64, seconds: f64| {
-        let frames = ((seconds / frame_dt).round() as usize).max(1);
-        let stride = ((1.0 / (options.fps * frame_dt)).round() as usize).max(1);
-        let keep: Vec<usize> = (0..=frames).step_by(stride).collect();
-        (frames, keep, 1.0 / (stride as f64 * frame_dt))
-    };
-    let mut plan: Option<Plan> = None;
-    let mut fps = 0.0;
-    if let Some(scene_path) = &options.scene {
-        let scene = crate::drape::Scene::load(scene_path, &[])?;
-        let meta = crate::train::run::ModelMeta::read(&run.meta())?;
-        let physics = Physics::new(&config.sim, meta.frame_dt, mass);
-        let number = physics.stability_of(&topo, &model).number();
-        let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt(), number);
-        stability(&physics, Some(&contact))?;
-        let x0 = scene.release(&topo.rest_uv, topo.width, topo.height);
-        let track = Track::at_rest(&x0);
-        let (frames, keep, f) = plan_for(
-            meta.frame_dt,
-            options.seconds.unwrap_or(scene.config.seconds),
-        );
-        fps = f;
-        plan = Some(Plan {
-            physics,
-            track,
-            first: 0,
-            frames,
-            keep,
-            from: scene_path.clone(),
-            contact: Some(contact),
-        });
-    } else if let Some(r) = &rollout {
-        let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
-        let track = Track::new(r, &res);
-        let first = if r.velocities.is_some() { 0 } else { 1 };
-        let physics = Physics::new(&config.sim, r.frame_dt, mass);
-        stability(&physics, None)?;
-        let seconds = options
-            .seconds
-            .unwrap_or((r.frames - 1 - first) as f64 * r.frame_dt);
-        let (frames, keep, f) = plan_for(r.frame_dt, seconds);
-        fps = f;
-        plan = Some(Plan {
-            physics,
-            track,
-            first,
-            frames,
-            keep,
-            from: r.path.clone(),
-            contact: None,
-        });
-    }
-    let frame_path = |i: usize| seq_dir.join(format!("frame_{i:04}.{ext}"));
-    let gltf = matches!(options.format, Format::Gltf | Format::Glb);
-    let mut paths = vec![
-        out.join(format!("{}.{ext}", if gltf { "cloth" } else { "rest" })),
-        out.join("surrogate.json"),
-        out.join("surrogate.npz"),
-    ];
-    let pc2_path = out.join("rollout.pc2");
-    if let Some(plan) = &plan {
-        match options.format {
-            f if f.per_frame() => paths.extend((0..plan.keep.len()).map(frame_path)),
-            Format::Pc2 => paths.push(pc2_path.clone()),
-            _ => {}
-        }
-    }
-    let existing: Vec<&PathBuf> = paths.iter().filter(|p| p.exists()).collect();
-    if let Some(first) = existing.first()
-        && !options.force
-    {
-        bail!(
-            "{} exists{}; pass --force to overwrite",
-            first.display(),
-            match existing.len() {
-                1 => String::new(),
-                n => format!(" (and {} more of the files to write)", n - 1),
-            }
-        );
-    }
-    if options.force && seq_dir.is_dir() {
-        // Stale frames of an earlier, longer export would join the sequence.
-        for e in std::fs::read_dir(&seq_dir)?.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with("frame_") && (name.ends_with(".obj") || name.ends_with(".ply")) {
-                std::fs::remove_file(e.path())
-                    .with_context(|| format!("cannot remove {}", e.path().display()))?;
-            }
-        }
-    }
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let tris = grid_triangles(topo.nx, topo.ny, Diagonal::Main);
-    let uv: Vec<[f64; 2]> = topo
-        .rest_uv
-        .iter()
-        .map(|p| [p[0] / topo.width, p[1] / topo.height])
-        .collect();
-    let write_mesh = |path: &Path, comment: &str, pos: &[f32]| match options.format {
-        Format::Ply => write_ply(path, comment, pos, Some(&uv), &tris, false),
-        Format::PlyAscii => write_ply(path, comment, pos, Some(&uv), &tris, true),
-        _ => write_obj(path, comment, pos, Some(&uv), &tris),
-    };
-    let rest: Vec<f32> = topo
-        .rest_positions()
-        .iter()
-        .flat_map(|p| p.map(|c| c as f32))
-        .collect();
     let mut files = Vec::new();
+    let gltf = matches!(options.format, Format::Gltf | Format::Glb);
     if !gltf {
-        write_mesh(
-            &paths[0],
+        let topo = &run.topology;
+        ex.write_mesh(
+            &ex.paths.mesh,
             &format!(
                 "springtime surrogate of {}: rest sheet, {} x {} particles, metres",
                 run_dir.display(),
                 topo.nx,
                 topo.ny
             ),
-            &rest,
+            &ex.rest,
         )?;
-        files.push(paths[0].clone());
+        files.push(ex.paths.mesh.clone());
     }
-    let mut pinned = Vec::new();
-    let mut frames_written = 0;
-    let mut animation: (Vec<f32>, Vec<f64>) = (Vec::new(), Vec::new());
-    if let Some(Plan {
-        physics,
-        track,
-        first,
-        frames,
-        keep,
-        from,
-        contact,
-    }) = &plan
-    {
-        pinned = track
-            .pinned
-            .iter()
-            .enumerate()
-            .filter_map(|(i, &p)| p.then_some(i))
-            .collect();
-        let bar = progress.bar(*frames as u64, "simulate");
+    let sequence = match &plan {
+        Some(plan) => ex.write_sequence(plan, &mut files, progress)?,
+        None => Sequence::default(),
+    };
+    if gltf {
+        let mesh = gltf::AnimatedMesh {
+            name: "cloth",
+            rest: &ex.rest,
+            uv: &ex.uv,
+            triangles: &ex.triangles,
+            frames: &sequence.animation.0,
+            times: &sequence.animation.1,
+        };
+        gltf::write(&ex.paths.mesh, &mesh, options.format == Format::Glb)?;
+        files.push(ex.paths.mesh.clone());
+    }
+    ex.write_surrogate(&sequence.pinned, plan.as_ref().map(|p| p.physics.sim_dt()))?;
+    files.push(ex.paths.json.clone());
+    files.push(ex.paths.npz.clone());
+    Ok(ExportSummary {
+        files,
+        rollout: plan.as_ref().map(|p| p.from.clone()),
+        frames: sequence.frames,
+        fps: plan.as_ref().map_or(0.0, |p| p.fps),
+        note,
+    })
+}
+
+impl<'a> Export<'a> {
+    fn new(
+        run_dir: &'a Path,
+        options: &'a ExportOptions,
+        run: &'a Run,
+        model: &'a SpringNet,
+    ) -> Self {
+        let topo = &run.topology;
+        let out = &options.out;
+        let ext = options.format.extension();
+        let gltf = matches!(options.format, Format::Gltf | Format::Glb);
+        Self {
+            run_dir,
+            options,
+            run,
+            model,
+            paths: Paths {
+                mesh: out.join(format!("{}.{ext}", if gltf { "cloth" } else { "rest" })),
+                json: out.join("surrogate.json"),
+                npz: out.join("surrogate.npz"),
+                pc2: out.join("rollout.pc2"),
+                frames: out.join("rollout"),
+            },
+            triangles: grid_triangles(topo.nx, topo.ny, Diagonal::Main),
+            uv: topo
+                .rest_uv
+                .iter()
+                .map(|p| [p[0] / topo.width, p[1] / topo.height])
+                .collect(),
+            rest: topo
+                .rest_positions()
+                .iter()
+                .flat_map(|p| p.map(|c| c as f32))
+                .collect(),
+        }
+    }
+
+    /// The rollout the sequence starts from: `--init`, else the run's first test rollout
+    /// (`None` with the reason when there is none, or with a scene).
+    fn start(&self) -> Result<(Option<Rollout>, Option<String>)> {
+        let (init, note) = match (&self.options.init, &self.options.scene) {
+            (_, Some(_)) => (None, None),
+            (Some(p), None) => (Some(p.clone()), None),
+            (None, None) => {
+                let mut data = self.run.config.data.clone();
+                if let Some(d) = &self.options.data {
+                    data.test_dir = Some(d.clone());
+                }
+                match data.split() {
+                    Ok(s) if !s.test.is_empty() => (Some(s.test[0].clone()), None),
+                    Ok(_) => (
+                        None,
+                        Some("the run's data lists no test rollouts".to_string()),
+                    ),
+                    Err(e) => (None, Some(format!("{e:#}"))),
+                }
+            }
+        };
+        Ok((init.as_deref().map(Rollout::load).transpose()?, note))
+    }
+
+    /// What to simulate: the drape scene, or the starting rollout; checked for stability.
+    fn plan(&self) -> Result<(Option<Plan>, Option<String>)> {
+        let (topo, model, config) = (&self.run.topology, self.model, &self.run.config);
+        let stability = |physics: &Physics, contact: Option<&crate::sim::Contact>| {
+            let st = physics.stability_of(topo, model);
+            let st = match contact {
+                Some(c) => st.with_contact(&c.params),
+                None => st,
+            };
+            st.check("the trained surrogate", config.sim.allow_unstable)
+        };
+        let plan = |physics: Physics, track, first, seconds: f64, from, contact| {
+            let frame_dt = physics.frame_dt;
+            let frames = ((seconds / frame_dt).round() as usize).max(1);
+            let stride = ((1.0 / (self.options.fps * frame_dt)).round() as usize).max(1);
+            Plan {
+                physics,
+                track,
+                first,
+                frames,
+                keep: (0..=frames).step_by(stride).collect(),
+                fps: 1.0 / (stride as f64 * frame_dt),
+                from,
+                contact,
+            }
+        };
+        if let Some(scene_path) = &self.options.scene {
+            let scene = crate::drape::Scene::load(scene_path, &[])?;
+            let physics = self.run.physics(self.run.meta.frame_dt);
+            let number = physics.stability_of(topo, model).number();
+            let contact = scene.contact(topo.width.max(topo.height), physics.sim_dt(), number);
+            stability(&physics, Some(&contact))?;
+            let x0 = scene.release(&topo.rest_uv, topo.width, topo.height);
+            let seconds = self.options.seconds.unwrap_or(scene.config.seconds);
+            let track = Track::at_rest(&x0);
+            return Ok((
+                Some(plan(
+                    physics,
+                    track,
+                    0,
+                    seconds,
+                    scene_path.clone(),
+                    Some(contact),
+                )),
+                None,
+            ));
+        }
+        let (rollout, note) = self.start()?;
+        let Some(r) = rollout else {
+            return Ok((None, note));
+        };
+        let track = Track::new(&r, &Resampler::new(&r.rest_uv, &topo.rest_uv));
+        let first = if r.velocities.is_some() { 0 } else { 1 };
+        let physics = self.run.physics(r.frame_dt);
+        stability(&physics, None)?;
+        let seconds = self
+            .options
+            .seconds
+            .unwrap_or((r.frames - 1 - first) as f64 * r.frame_dt);
+        Ok((
+            Some(plan(physics, track, first, seconds, r.path.clone(), None)),
+            note,
+        ))
+    }
+
+    /// Refuses to overwrite any file of this export unless `--force`; with it, removes stale
+    /// frames of an earlier, longer export (they would join the sequence).
+    fn check_fresh(&self, plan: Option<&Plan>) -> Result<()> {
+        let (paths, options) = (&self.paths, self.options);
+        let ext = options.format.extension();
+        let mut all = vec![paths.mesh.clone(), paths.json.clone(), paths.npz.clone()];
+        if let Some(plan) = plan {
+            match options.format {
+                f if f.per_frame() => all.extend((0..plan.keep.len()).map(|i| paths.frame(i, ext))),
+                Format::Pc2 => all.push(paths.pc2.clone()),
+                _ => {}
+            }
+        }
+        let existing: Vec<&PathBuf> = all.iter().filter(|p| p.exists()).collect();
+        if let Some(first) = existing.first()
+            && !options.force
+        {
+            bail!(
+                "{} exists{}; pass --force to overwrite",
+                first.display(),
+                match existing.len() {
+                    1 => String::new(),
+                    n => format!(" (and {} more of the files to write)", n - 1),
+                }
+            );
+        }
+        if options.force && paths.frames.is_dir() {
+            for e in std::fs::read_dir(&paths.frames)?.flatten() {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with("frame_") && (name.ends_with(".obj") || name.ends_with(".ply"))
+                {
+                    std::fs::remove_file(e.path())
+                        .with_context(|| format!("cannot remove {}", e.path().display()))?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes one mesh of the sheet in the export's format (OBJ or PLY).
+    fn write_mesh(&self, path: &Path, comment: &str, pos: &[f32]) -> Result<()> {
+        let (uv, tris) = (Some(self.uv.as_slice()), &self.triangles);
+        match self.options.format {
+            Format::Ply => write_ply(path, comment, pos, uv, tris, false),
+            Format::PlyAscii => write_ply(path, comment, pos, uv, tris, true),
+            _ => write_obj(path, comment, pos, uv, tris),
+        }
+    }
+
+    /// Simulates the plan and writes its frames (per-frame meshes or a point cache; a glTF
+    /// animation is returned to be written with the mesh).
+    fn write_sequence(
+        &self,
+        plan: &Plan,
+        files: &mut Vec<PathBuf>,
+        progress: &Progress,
+    ) -> Result<Sequence> {
+        let bar = progress.bar(plan.frames as u64, "simulate");
         let sim = eval::simulate_track(
-            &model,
-            physics,
-            contact.as_ref(),
-            track,
-            *first,
-            *frames,
-            keep,
-            &device,
+            self.model,
+            &plan.physics,
+            plan.contact.as_ref(),
+            &plan.track,
+            plan.first,
+            plan.frames,
+            &plan.keep,
+            &self.run.device,
             |_| bar.inc(1),
         )?;
         bar.finish();
-        let p = topo.num_particles();
-        frames_written = sim.frames.len();
+        let p = self.run.topology.num_particles();
+        let mut seq = Sequence {
+            pinned: plan
+                .track
+                .pinned
+                .iter()
+                .enumerate()
+                .filter_map(|(i, &p)| p.then_some(i))
+                .collect(),
+            frames: sim.frames.len(),
+            animation: Default::default(),
+        };
         let times: Vec<f64> = sim
             .frames
             .iter()
-            .map(|&j| j as f64 * physics.frame_dt)
+            .map(|&j| j as f64 * plan.physics.frame_dt)
             .collect();
-        match options.format {
+        let positions = &sim.positions[..seq.frames * p * 3];
+        match self.options.format {
             f if f.per_frame() => {
-                let bar = progress.bar(sim.frames.len() as u64, "export");
+                let bar = progress.bar(seq.frames as u64, "export");
                 for (i, t) in times.iter().enumerate() {
-                    let path = frame_path(i);
-                    write_mesh(
+                    let path = self.paths.frame(i, f.extension());
+                    self.write_mesh(
                         &path,
                         &format!(
                             "springtime surrogate of {}: frame {i}, t = {t:.6} s, simulated from {}",
-                            run_dir.display(),
-                            from.display()
+                            self.run_dir.display(),
+                            plan.from.display()
                         ),
-                        &sim.positions[i * p * 3..(i + 1) * p * 3],
+                        &positions[i * p * 3..(i + 1) * p * 3],
                     )?;
                     files.push(path);
                     bar.inc(1);
@@ -553,74 +661,56 @@ pub fn export_run(
                     start_frame: 0.0,
                     sample_rate: 1.0,
                     points: p,
-                    samples: frames_written,
-                    positions: sim.positions[..frames_written * p * 3].to_vec(),
+                    samples: seq.frames,
+                    positions: positions.to_vec(),
                 }
-                .write(&pc2_path)?;
-                files.push(pc2_path.clone());
+                .write(&self.paths.pc2)?;
+                files.push(self.paths.pc2.clone());
             }
-            _ => animation = (sim.positions[..frames_written * p * 3].to_vec(), times),
+            _ => seq.animation = (positions.to_vec(), times),
         }
+        Ok(seq)
     }
-    if gltf {
-        let mesh = gltf::AnimatedMesh {
-            name: "cloth",
-            rest: &rest,
-            uv: &uv,
-            triangles: &tris,
-            frames: &animation.0,
-            times: &animation.1,
+
+    /// `surrogate.json` and `surrogate.npz`: the springs, masses, rest state and constants.
+    fn write_surrogate(&self, pinned: &[usize], dt: Option<f64>) -> Result<()> {
+        let (topo, config) = (&self.run.topology, &self.run.config);
+        let mass = self.run.particle_mass();
+        let (k, b) = (self.model.k_values(), self.model.b_values());
+        let rayleigh = config.sim.rayleigh.or(crate::sim::RAYLEIGH);
+        let gravity = config.sim.gravity.or(crate::sim::GRAVITY);
+        let p = topo.num_particles();
+        let json = SurrogateJson {
+            format: "springtime-surrogate/1".into(),
+            units: "SI: m, kg, s, N/m, N·s/m".into(),
+            grid: [topo.nx, topo.ny],
+            width: topo.width,
+            height: topo.height,
+            masses: vec![mass; p],
+            rest_positions: topo.rest_positions(),
+            springs: topo.springs.clone(),
+            family: topo.family.iter().map(|f| f.name().to_string()).collect(),
+            rest_length: topo.rest_length.clone(),
+            k: k.iter().map(|&x| x as f32).collect(),
+            b: b.iter().map(|&x| x as f32).collect(),
+            pinned: pinned.to_vec(),
+            rayleigh,
+            gravity,
+            dt,
         };
-        gltf::write(&paths[0], &mesh, options.format == Format::Glb)?;
-        files.push(paths[0].clone());
+        crate::io::write_text(&self.paths.json, &json.to_text()?)?;
+        let mut npz = crate::train::run::springs_npz(topo, &k, &b, mass);
+        npz.insert("mass", Array::f64(&[p], &vec![mass; p]));
+        npz.insert("rest_positions", Array::f32(&[p, 3], &self.rest));
+        let mut pin_mask = vec![false; p];
+        for &i in pinned {
+            pin_mask[i] = true;
+        }
+        npz.insert("pinned", Array::bool(&[p], &pin_mask));
+        npz.insert("rayleigh", Array::scalar(rayleigh));
+        npz.insert("gravity", Array::f64(&[3], &gravity));
+        npz.write(&self.paths.npz)
     }
-    let (k, b) = (model.k_values(), model.b_values());
-    let json = SurrogateJson {
-        format: "springtime-surrogate/1".into(),
-        units: "SI: m, kg, s, N/m, N·s/m".into(),
-        grid: [topo.nx, topo.ny],
-        width: topo.width,
-        height: topo.height,
-        masses: vec![mass; topo.num_particles()],
-        rest_positions: topo.rest_positions(),
-        springs: topo.springs.clone(),
-        family: topo.family.iter().map(|f| f.name().to_string()).collect(),
-        rest_length: topo.rest_length.clone(),
-        k: k.iter().map(|&x| x as f32).collect(),
-        b: b.iter().map(|&x| x as f32).collect(),
-        pinned: pinned.clone(),
-        rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
-        gravity: config.sim.gravity.or(crate::sim::GRAVITY),
-        dt: plan.as_ref().map(|p| p.physics.sim_dt()),
-    };
-    crate::io::write_text(&paths[1], &json.to_text()?)?;
-    files.push(paths[1].clone());
-    let mut npz = crate::train::run::springs_npz(&topo, &k, &b, mass);
-    let p = topo.num_particles();
-    npz.insert("mass", Array::f64(&[p], &vec![mass; p]));
-    npz.insert("rest_positions", Array::f32(&[p, 3], &rest));
-    let mut pin_mask = vec![false; p];
-    for &i in &pinned {
-        pin_mask[i] = true;
-    }
-    npz.insert("pinned", Array::bool(&[p], &pin_mask));
-    npz.insert(
-        "rayleigh",
-        Array::scalar(config.sim.rayleigh.or(crate::sim::RAYLEIGH)),
-    );
-    npz.insert(
-        "gravity",
-        Array::f64(&[3], &config.sim.gravity.or(crate::sim::GRAVITY)),
-    );
-    npz.write(&paths[2])?;
-    files.push(paths[2].clone());
-    Ok(ExportSummary {
-        files,
-        rollout: plan.as_ref().map(|p| p.from.clone()),
-        frames: frames_written,
-        fps,
-        note,
-    })
 }
 
 /// Counts the vertices and faces of an OBJ or PLY (ASCII or binary) file (for checks).

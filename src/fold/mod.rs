@@ -332,16 +332,17 @@ fn settle_case(
 /// The spring surrogate of a finished run as a host cloth (the same Eq. 4 forces as the
 /// surrogate's simulator), damped for settling.
 fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
-    let device = crate::backend::Backend::Flex.device()?;
-    let (config, topology, model, mass) = crate::train::load_surrogate(run_dir, &device)?;
-    let n = topology.nx;
+    let run = crate::train::Run::open(run_dir, &[], Some(crate::backend::Backend::Flex))?;
+    let model = run.springs()?;
+    let mass = run.particle_mass();
+    let n = run.topology.nx;
     let cloth = SpringCloth {
         k: model.k_values(),
         b: model.b_values(),
         mass,
         rayleigh: cfg.fold.settle.damping_rate * mass,
-        gravity: config.sim.gravity.or(crate::sim::GRAVITY),
-        topology,
+        gravity: run.config.sim.gravity.or(crate::sim::GRAVITY),
+        topology: run.topology.clone(),
     };
     Ok(Setup {
         sim: Box::new(cloth),

@@ -33,7 +33,7 @@ use crate::eval::{self, Curve, EvalReport};
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::Physics;
-use crate::train::{self, RunDir, RunState};
+use crate::train::{self, MetricsRow, Run, RunState};
 
 use anim::{Layer, View};
 use plot::{Area, Series};
@@ -61,106 +61,6 @@ pub struct ReportSummary {
 /// The report directory of a run: `<run-dir>/report`.
 pub fn report_dir(run_dir: &Path) -> PathBuf {
     run_dir.join("report")
-}
-
-/// One row of `metrics.csv`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct MetricsRow {
-    /// Iteration over all passes, from 1.
-    pub iteration: usize,
-    /// Pass name (`stiffness`, `damping`, `single`).
-    pub pass: String,
-    /// Loss terms by column name: `loss`, `force`, `impulse`, `position`, `k_neg`, `b_neg`.
-    pub terms: Vec<(String, f64)>,
-    /// `rmse_k`, when the data has ground truth.
-    pub rmse_k: Option<f64>,
-    /// `rmse_b`, when the data has ground truth.
-    pub rmse_b: Option<f64>,
-}
-
-const TERMS: [&str; 6] = ["loss", "force", "impulse", "position", "k_neg", "b_neg"];
-
-/// Reads a run's `metrics.csv` (columns by header name); errors name the file and line.
-pub fn read_metrics(path: &Path) -> Result<Vec<MetricsRow>> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read {} (the run's metrics)", path.display()))?;
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines
-        .next()
-        .with_context(|| format!("{} is empty", path.display()))?
-        .split(',')
-        .collect();
-    let col = |name: &str| -> Result<usize> {
-        header
-            .iter()
-            .position(|h| *h == name)
-            .with_context(|| format!("{} has no column `{name}`", path.display()))
-    };
-    let (it, pass) = (col("iteration")?, col("pass")?);
-    let terms: Vec<(String, usize)> = TERMS
-        .iter()
-        .filter_map(|t| col(t).ok().map(|c| (t.to_string(), c)))
-        .collect();
-    let (rk, rb) = (col("rmse_k").ok(), col("rmse_b").ok());
-    let mut rows = Vec::new();
-    for (n, line) in lines.enumerate() {
-        if line.trim().is_empty() {
-            continue;
-        }
-        let cells: Vec<&str> = line.split(',').collect();
-        let bad = || format!("{}: line {} is malformed: {line}", path.display(), n + 2);
-        let num = |c: usize| -> Result<f64> {
-            cells
-                .get(c)
-                .and_then(|s| s.parse::<f64>().ok())
-                .with_context(bad)
-        };
-        let opt = |c: Option<usize>| {
-            c.and_then(|c| cells.get(c))
-                .and_then(|s| s.parse::<f64>().ok())
-        };
-        rows.push(MetricsRow {
-            iteration: cells
-                .get(it)
-                .and_then(|s| s.parse().ok())
-                .with_context(bad)?,
-            pass: cells.get(pass).with_context(bad)?.to_string(),
-            terms: terms
-                .iter()
-                .map(|(name, c)| Ok((name.clone(), num(*c)?)))
-                .collect::<Result<_>>()?,
-            rmse_k: opt(rk),
-            rmse_b: opt(rb),
-        });
-    }
-    Ok(rows)
-}
-
-/// Refuses a run that is missing or not finished, naming the file, or that holds no spring
-/// surrogate (the report and export draw springs).
-pub fn check_finished(run: &RunDir) -> Result<RunState> {
-    let state = run.finished()?;
-    // A baseline run has no springs to draw or export: say so before looking for them.
-    if let Ok(meta) = train::ModelMeta::read(&run.meta())
-        && meta.kind != crate::model::ModelKind::Springs
-    {
-        bail!(
-            "{} holds a {} model, not a spring surrogate: only `springtime eval` and `compare` \
-             take baseline runs",
-            run.dir.display(),
-            meta.kind.name()
-        );
-    }
-    for f in [run.config(), run.springs(), run.metrics()] {
-        if !f.exists() {
-            bail!(
-                "{} not found: the run in {} is incomplete",
-                f.display(),
-                run.dir.display()
-            );
-        }
-    }
-    Ok(state)
 }
 
 /// A run's test and training rollout files, as its config (or `--data`) names them.
@@ -215,16 +115,19 @@ pub fn build(
     options: &ReportOptions,
     progress: &Progress,
 ) -> Result<ReportSummary> {
-    let run = RunDir::new(run_dir);
-    let state = check_finished(&run)?;
-    let mut config = Config::load(&run.config(), &[])
-        .with_context(|| format!("cannot read {}", run.config().display()))?;
-    if let Some(b) = options.backend {
-        config.backend = b;
-    }
-    let device = config.backend.device()?;
-    let (_, topology, model, mass) = train::load_surrogate(run_dir, &device)?;
-    let metrics = read_metrics(&run.metrics())?;
+    let opened = Run::open(run_dir, &[], options.backend)?;
+    let model = opened.springs()?.clone();
+    let Run {
+        dir: run,
+        state,
+        config,
+        device,
+        topology,
+        meta,
+        ..
+    } = opened;
+    let mass = meta.particle_mass;
+    let metrics = train::run::read_metrics(&run.metrics(), false)?;
     let eval: Option<EvalReport> = match std::fs::read_to_string(run.eval()) {
         Ok(text) => Some(
             serde_json::from_str(&text)
@@ -390,14 +293,14 @@ fn training_curves(dir: &Path, inputs: &Inputs) -> Result<Figure> {
             .train
             .passes(crate::model::ModelKind::Springs)
             .into_iter()
-            .find(|p| p.0 == *pass)
-            .map(|p| p.1.weights.clone());
+            .find(|p| p.name == *pass)
+            .map(|p| p.config.weights.clone());
         let mut series = Vec::new();
         let mut total = None;
-        for (t, name) in TERMS.iter().enumerate() {
+        for (t, (name, _)) in MetricsRow::default().terms().iter().enumerate() {
             let pts: Vec<(f64, f64)> = mine
                 .iter()
-                .filter_map(|r| r.terms.get(t).map(|v| (r.iteration as f64, v.1)))
+                .map(|r| (r.iteration as f64, r.terms()[t].1))
                 .collect();
             if !pts.iter().any(|p| p.1 > 0.0 && p.1.is_finite()) {
                 continue;
@@ -1094,8 +997,18 @@ fn data_uri(path: &Path) -> Result<String> {
     ))
 }
 
-/// Learned values grouped by true level: `(level, count, mean, std, min, max)`.
-fn per_level(truth: &[f64], learned: &[f64]) -> Vec<(f64, usize, f64, f64, f64, f64)> {
+/// The learned values of the springs that share one true value.
+struct Level {
+    truth: f64,
+    count: usize,
+    mean: f64,
+    std: f64,
+    min: f64,
+    max: f64,
+}
+
+/// Learned values grouped by true level, in increasing order of the true value.
+fn per_level(truth: &[f64], learned: &[f64]) -> Vec<Level> {
     let mut by: BTreeMap<i64, (f64, Vec<f64>)> = BTreeMap::new();
     for (t, l) in truth.iter().zip(learned) {
         let key = (t * 1e6).round() as i64;
@@ -1108,7 +1021,14 @@ fn per_level(truth: &[f64], learned: &[f64]) -> Vec<(f64, usize, f64, f64, f64, 
             let std = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n).sqrt();
             let min = v.iter().copied().fold(f64::INFINITY, f64::min);
             let max = v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-            (t, v.len(), mean, std, min, max)
+            Level {
+                truth: t,
+                count: v.len(),
+                mean,
+                std,
+                min,
+                max,
+            }
         })
         .collect()
 }
@@ -1180,11 +1100,11 @@ fn html_page(inputs: &Inputs, figures: &[Figure], notes: &[String]) -> Result<St
                 m.std,
                 m.rollouts,
                 inputs.config.eval.short_seconds,
-                m.mean_0_8s,
-                m.std_0_8s,
+                m.short.mean,
+                m.short.std,
                 inputs.config.eval.long_seconds,
-                m.mean_8s,
-                m.std_8s
+                m.long.mean,
+                m.long.std
             ),
         ));
     }
@@ -1204,11 +1124,16 @@ fn html_page(inputs: &Inputs, figures: &[Figure], notes: &[String]) -> Result<St
                 "<table>\n<tr><th>true {sym} ({unit})</th><th>springs</th><th>learned mean</th>\
                  <th>std</th><th>min</th><th>max</th></tr>"
             )?;
-            for (t, n, mean, std, min, max) in levels {
+            for l in levels {
                 writeln!(
                     h,
-                    "<tr><td>{}</td><td>{n}</td><td>{mean:.3}</td><td>{std:.3}</td><td>{min:.3}</td><td>{max:.3}</td></tr>",
-                    plot::tick(t)
+                    "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td></tr>",
+                    plot::tick(l.truth),
+                    l.count,
+                    l.mean,
+                    l.std,
+                    l.min,
+                    l.max
                 )?;
             }
             h.push_str("</table>\n");
@@ -1271,39 +1196,11 @@ mod tests {
     }
 
     #[test]
-    fn metrics_are_read_by_column_name_and_errors_name_the_line() {
-        let dir = std::env::temp_dir().join(format!("springtime-metrics-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("metrics.csv");
-        std::fs::write(
-            &path,
-            format!(
-                "{}\n1,stiffness,1e-2,1e-2,1e-5,0,0,0,3.5,2.0,0.1\n2,damping,1e-3,1e-3,1e-6,0,0,0,,,0.2\n",
-                crate::train::run::METRICS_HEADER
-            ),
-        )
-        .unwrap();
-        let rows = read_metrics(&path).unwrap();
-        assert_eq!(rows.len(), 2);
-        assert_eq!(rows[0].pass, "stiffness");
-        assert_eq!(rows[0].rmse_k, Some(3.5));
-        assert_eq!(rows[1].rmse_b, None);
-        assert_eq!(rows[1].terms[0], ("loss".to_string(), 1e-3));
-        std::fs::write(
-            &path,
-            format!("{}\n1,stiffness,x\n", crate::train::run::METRICS_HEADER),
-        )
-        .unwrap();
-        let e = format!("{:#}", read_metrics(&path).unwrap_err());
-        assert!(e.contains("line 2"), "{e}");
-        let _ = std::fs::remove_dir_all(&dir);
-    }
-
-    #[test]
     fn per_level_groups_by_true_value() {
         let levels = per_level(&[10.0, 10.0, 50.0], &[9.0, 11.0, 50.0]);
         assert_eq!(levels.len(), 2);
-        assert_eq!(levels[0].1, 2);
-        assert!((levels[0].2 - 10.0).abs() < 1e-12 && (levels[0].3 - 1.0).abs() < 1e-12);
+        assert_eq!((levels[0].truth, levels[0].count), (10.0, 2));
+        assert!((levels[0].mean - 10.0).abs() < 1e-12 && (levels[0].std - 1.0).abs() < 1e-12);
+        assert_eq!((levels[0].min, levels[0].max), (9.0, 11.0));
     }
 }

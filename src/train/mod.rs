@@ -10,13 +10,13 @@ pub mod run;
 pub use losses::{
     ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget, motion_loss,
 };
-pub use run::{ModelMeta, RunDir, RunState, Status};
+pub use run::{MetricsRow, ModelMeta, Run, RunDir, RunState, Status};
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use burn::module::{Module, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
@@ -191,26 +191,39 @@ impl TrainConfig {
         Ok(())
     }
 
-    /// The passes to run for a model family: name, config, whether `k` and `b` are trained.
-    /// Spring networks follow `mode`; the Neural ODE trains in one pass (`train.single`), the
-    /// GNN in its own (`train.gnn`).
-    pub fn passes(&self, kind: ModelKind) -> Vec<(&'static str, &PassConfig, bool, bool)> {
+    /// The passes to run for a model family. Spring networks follow `mode`; the Neural ODE
+    /// trains in one pass (`train.single`), the GNN in its own (`train.gnn`).
+    pub fn passes(&self, kind: ModelKind) -> Vec<Pass<'_>> {
+        let pass = |name, config, train_k, train_b| Pass {
+            name,
+            config,
+            train_k,
+            train_b,
+        };
         match (kind, self.mode) {
             (ModelKind::Springs, Mode::Dual) => vec![
-                ("stiffness", &self.stiffness, true, false),
-                ("damping", &self.damping, false, true),
+                pass("stiffness", &self.stiffness, true, false),
+                pass("damping", &self.damping, false, true),
             ],
             (ModelKind::Springs, Mode::Single) | (ModelKind::NeuralOde, _) => {
-                vec![("single", &self.single, true, true)]
+                vec![pass("single", &self.single, true, true)]
             }
-            (ModelKind::Gnn, _) => vec![("gnn", &self.gnn, true, true)],
+            (ModelKind::Gnn, _) => vec![pass("gnn", &self.gnn, true, true)],
         }
     }
+}
 
-    /// Total iterations over all passes of a model family.
-    pub fn total_iterations(&self, kind: ModelKind) -> usize {
-        self.passes(kind).iter().map(|p| p.1.iterations).sum()
-    }
+/// One training pass of a model family (see [`TrainConfig::passes`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Pass<'a> {
+    /// Its name in `metrics.csv` (`stiffness`, `damping`, `single`, `gnn`).
+    pub name: &'static str,
+    /// Its iterations, learning rate and loss weights.
+    pub config: &'a PassConfig,
+    /// Whether the springs' `k` are trained in it (always for the baselines' parameters).
+    pub train_k: bool,
+    /// Whether the springs' `b` are trained in it.
+    pub train_b: bool,
 }
 
 /// Command-line choices of a training job.
@@ -744,7 +757,7 @@ impl Fit<'_> {
         }
         model.check_start(job)?;
         let passes = config.train.passes(config.model.kind);
-        let total: usize = passes.iter().map(|p| p.1.iterations).sum();
+        let total: usize = passes.iter().map(|p| p.config.iterations).sum();
         let started = Instant::now();
         let prior_wall = self.previous.map_or(0.0, |s| s.wall_seconds);
         let mut state = RunState {
@@ -766,7 +779,13 @@ impl Fit<'_> {
         let mut clamped_total = 0usize;
         let mut skipped = 0usize;
         let mut dropped_clips = 0usize;
-        for (pass_index, (name, pass, train_k, train_b)) in passes.into_iter().enumerate() {
+        for (pass_index, stage) in passes.into_iter().enumerate() {
+            let Pass {
+                name,
+                config: pass,
+                train_k,
+                train_b,
+            } = stage;
             let pass_start = global;
             global += pass.iterations;
             if start_iteration >= global {
@@ -860,19 +879,20 @@ impl Fit<'_> {
                     rmse_now = model.parameter_rmse(job.truth);
                 }
                 let elapsed = prior_wall + started.elapsed().as_secs_f64();
-                let (rk, rb) = rmse_now.map_or((String::new(), String::new()), |(k, b)| {
-                    (format!("{k:.6}"), format!("{b:.6}"))
+                pending.push(MetricsRow {
+                    iteration: it + 1,
+                    pass: name.to_string(),
+                    loss: values.total,
+                    force: values.force,
+                    impulse: values.impulse,
+                    position: values.position,
+                    k_neg: values.k_neg,
+                    b_neg: values.b_neg,
+                    rmse_k: rmse_now.map(|r| r.0),
+                    rmse_b: rmse_now.map(|r| r.1),
+                    seconds: elapsed,
+                    clamped,
                 });
-                pending.push(format!(
-                    "{},{name},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{:.8e},{rk},{rb},{elapsed:.3},{clamped}",
-                    it + 1,
-                    values.total,
-                    values.force,
-                    values.impulse,
-                    values.position,
-                    values.k_neg,
-                    values.b_neg
-                ));
                 bar.set_message(match rmse_now {
                     Some((k, b)) => format!(
                         "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
@@ -1041,110 +1061,4 @@ impl ModelMeta {
             .ok_or_else(|| anyhow::anyhow!("model.json of a GNN run has no `gnn_stats`"))?;
         Ok(Gnn::new(&config.model.gnn, stats, device))
     }
-}
-
-/// A trained run: its configuration, grid, model, particle mass and constants.
-pub struct LoadedRun {
-    /// The run's configuration (with `--set` overrides).
-    pub config: Config,
-    /// The particles' grid.
-    pub topology: Topology,
-    /// The model.
-    pub model: Trained,
-    /// The model's constants.
-    pub meta: ModelMeta,
-}
-
-/// Loads the trained model of a run directory (`model.json` + `model.bpk`; spring networks
-/// from `springs.npz`).
-pub fn load_run(run_dir: &Path, set: &[String], device: &Device) -> Result<LoadedRun> {
-    let run = RunDir::new(run_dir);
-    let config = Config::load(&run.config(), set)
-        .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
-    if !run.meta().exists() {
-        bail!(
-            "{} has no model.json: the run is not finished (or was trained by an older springtime)",
-            run_dir.display()
-        );
-    }
-    let meta = ModelMeta::read(&run.meta())?;
-    let topology = topology(&config, meta.width, meta.height);
-    let model = match meta.kind {
-        ModelKind::Springs => {
-            let (_, _, model, _) = load_surrogate(run_dir, device)?;
-            Trained::Springs(model)
-        }
-        kind => {
-            let path = run.model();
-            let record = burn::store::ModuleRecord::load(&path).map_err(|e| {
-                anyhow::anyhow!(
-                    "{} has no trained model (is the run finished?): {e}",
-                    path.display()
-                )
-            })?;
-            let load_err =
-                |e| anyhow::anyhow!("{} does not fit the run's config: {e}", path.display());
-            match kind {
-                ModelKind::NeuralOde => Trained::NeuralOde(
-                    meta.neural_ode(&config, device)
-                        .try_load_record(record)
-                        .map_err(load_err)?,
-                ),
-                _ => Trained::Gnn(
-                    meta.gnn(&config, device)?
-                        .try_load_record(record)
-                        .map_err(load_err)?,
-                ),
-            }
-        }
-    };
-    Ok(LoadedRun {
-        config,
-        topology,
-        model,
-        meta,
-    })
-}
-
-/// Loads the trained surrogate of a run directory from its `springs.npz`.
-pub fn load_surrogate(
-    run_dir: &Path,
-    device: &Device,
-) -> Result<(Config, Topology, SpringNet, f64)> {
-    let run = RunDir::new(run_dir);
-    let config = Config::load(&run.config(), &[])
-        .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
-    if config.model.kind != ModelKind::Springs {
-        bail!(
-            "{} holds a {} model, not a spring surrogate: only `springtime eval` and `compare` \
-             take baseline runs",
-            run_dir.display(),
-            config.model.kind.name()
-        );
-    }
-    let npz = crate::data::npz::Npz::read(&run.springs()).with_context(|| {
-        format!(
-            "{} has no trained surrogate (is the run finished?)",
-            run_dir.display()
-        )
-    })?;
-    let width = npz.scalar("width")?;
-    let height = npz.scalar("height")?;
-    let mass = npz.scalar("particle_mass")?;
-    let topo = topology(&config, width, height);
-    let s = topo.num_springs();
-    let k: Vec<f64> = npz
-        .f32("k", &[Some(s)])?
-        .0
-        .into_iter()
-        .map(f64::from)
-        .collect();
-    let b: Vec<f64> = npz
-        .f32("b", &[Some(s)])?
-        .0
-        .into_iter()
-        .map(f64::from)
-        .collect();
-    let model = SpringNet::new(&topo, &k, &b, device).with_kernel(config.model.kernel);
-    Ok((config, topo, model, mass))
 }

@@ -8,11 +8,17 @@ use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use serde::{Deserialize, Serialize};
 
+use burn::tensor::Device;
+
+use super::Trained;
+use crate::backend::Backend;
 use crate::cloth::Topology;
+use crate::config::Config;
 use crate::data::npz::{Array, Npz};
-use crate::model::ModelKind;
 use crate::model::gnn::GnnStats;
 use crate::model::neural_ode::OdeScales;
+use crate::model::{ModelKind, SpringNet};
+use crate::sim::Physics;
 
 /// Status of a run (`run.json`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -53,9 +59,92 @@ pub struct RunDir {
     pub dir: PathBuf,
 }
 
-/// Metrics columns, in order.
+/// One row of `metrics.csv`: one training iteration (read and written with the `csv` crate;
+/// columns are matched by header name).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub struct MetricsRow {
+    /// Iteration over all passes, from 1.
+    pub iteration: usize,
+    /// Pass name (`stiffness`, `damping`, `single`, `gnn`).
+    pub pass: String,
+    /// The weighted loss.
+    pub loss: f64,
+    /// Force loss.
+    pub force: f64,
+    /// Impulse loss.
+    pub impulse: f64,
+    /// Position loss.
+    pub position: f64,
+    /// Negative-stiffness penalty.
+    pub k_neg: f64,
+    /// Negative-damping penalty.
+    pub b_neg: f64,
+    /// RMSE of `k` against the data's springs, when it has them.
+    pub rmse_k: Option<f64>,
+    /// RMSE of `b`, when known.
+    pub rmse_b: Option<f64>,
+    /// Training wall time so far, s.
+    #[serde(default)]
+    pub seconds: f64,
+    /// Springs clamped back into the stable region after this step.
+    #[serde(default)]
+    pub clamped: usize,
+}
+
+impl MetricsRow {
+    /// The loss terms by column name, the weighted sum first.
+    pub fn terms(&self) -> [(&'static str, f64); 6] {
+        [
+            ("loss", self.loss),
+            ("force", self.force),
+            ("impulse", self.impulse),
+            ("position", self.position),
+            ("k_neg", self.k_neg),
+            ("b_neg", self.b_neg),
+        ]
+    }
+}
+
+/// Metrics columns, in order (the header [`MetricsRow`] writes).
 pub const METRICS_HEADER: &str =
     "iteration,pass,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b,seconds,clamped";
+
+/// Reads a `metrics.csv` (columns by header name). With `lenient`, rows that do not parse (the
+/// last line of a killed process) are dropped; otherwise they are errors that name the file and
+/// line.
+pub fn read_metrics(path: &Path, lenient: bool) -> Result<Vec<MetricsRow>> {
+    let mut reader = csv::ReaderBuilder::new()
+        .flexible(lenient)
+        .from_path(path)
+        .with_context(|| format!("cannot read {} (the run's metrics)", path.display()))?;
+    let mut rows = Vec::new();
+    for row in reader.deserialize::<MetricsRow>() {
+        match row {
+            Ok(r) => rows.push(r),
+            Err(_) if lenient => {}
+            Err(e) => {
+                let line = e.position().map_or(0, |p| p.line());
+                bail!("{}: line {line} is malformed: {e}", path.display());
+            }
+        }
+    }
+    Ok(rows)
+}
+
+/// Writes `rows` to `to` as CSV, with the header when `header`.
+fn write_metrics<W: Write>(to: W, rows: &[MetricsRow], header: bool) -> Result<()> {
+    let mut w = csv::WriterBuilder::new()
+        .has_headers(header)
+        .from_writer(to);
+    if header && rows.is_empty() {
+        w.write_record(METRICS_HEADER.split(','))?;
+    }
+    for r in rows {
+        w.serialize(r)?;
+    }
+    w.flush()?;
+    Ok(())
+}
 
 /// An exclusive hold on a run directory for one training process: an OS file lock on
 /// `.<name>.lock` beside the directory (the directory itself may be cleared and recreated
@@ -253,38 +342,44 @@ impl RunDir {
         }
         std::fs::create_dir_all(self.dir.join("checkpoints"))
             .with_context(|| format!("cannot create {}", self.dir.display()))?;
-        crate::io::write_text(&self.metrics(), &format!("{METRICS_HEADER}\n"))
+        self.write_metrics(&[])
     }
 
-    /// Keeps the metrics rows up to `iteration` (used when resuming from a checkpoint).
+    /// Replaces `metrics.csv` by `rows` (atomically, with the header).
+    fn write_metrics(&self, rows: &[MetricsRow]) -> Result<()> {
+        crate::io::write_atomic_with_path(&self.metrics(), |tmp| {
+            write_metrics(std::fs::File::create(tmp)?, rows, true)
+        })
+    }
+
+    /// Keeps the metrics rows up to `iteration` (used when resuming from a checkpoint; a row
+    /// cut short by a kill is dropped).
     pub fn truncate_metrics(&self, iteration: usize) -> Result<()> {
         let path = self.metrics();
-        let text = std::fs::read_to_string(&path).unwrap_or_default();
-        let mut out = format!("{METRICS_HEADER}\n");
-        for line in text.lines().skip(1) {
-            let it: Option<usize> = line.split(',').next().and_then(|s| s.parse().ok());
-            if it.is_some_and(|it| it <= iteration) {
-                out.push_str(line);
-                out.push('\n');
-            }
-        }
-        crate::io::write_text(&path, &out)
+        let rows = if path.exists() {
+            read_metrics(&path, true)?
+        } else {
+            Vec::new()
+        };
+        let keep: Vec<MetricsRow> = rows
+            .into_iter()
+            .filter(|r| r.iteration <= iteration)
+            .collect();
+        self.write_metrics(&keep)
     }
 
     /// Appends metrics rows.
-    pub fn append_metrics(&self, rows: &[String]) -> Result<()> {
+    pub fn append_metrics(&self, rows: &[MetricsRow]) -> Result<()> {
         if rows.is_empty() {
             return Ok(());
         }
-        let mut f = std::fs::OpenOptions::new()
+        let f = std::fs::OpenOptions::new()
             .append(true)
             .create(true)
             .open(self.metrics())
             .with_context(|| format!("cannot append to {}", self.metrics().display()))?;
-        for r in rows {
-            writeln!(f, "{r}")?;
-        }
-        Ok(())
+        write_metrics(f, rows, false)
+            .with_context(|| format!("cannot append to {}", self.metrics().display()))
     }
 
     /// Saves a module to `path` atomically (burnpack).
@@ -392,4 +487,183 @@ pub fn peak_rss_mib() -> f64 {
                 .and_then(|kb| kb.parse::<f64>().ok())
         })
         .map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// A finished run opened once, for every command that uses a trained model (`eval`,
+/// `simulate`, `report`, `export`, `diagnose`, `drape`, `fold`, the Python `load_run`): its
+/// directory, configuration (with `--set` and `--backend` applied), device, grid, model and
+/// constants.
+pub struct Run {
+    /// The directory's paths.
+    pub dir: RunDir,
+    /// `run.json` (status `finished`).
+    pub state: RunState,
+    /// The run's configuration (with `--set` overrides and `--backend`).
+    pub config: Config,
+    /// The device the model lives on (`config.backend`).
+    pub device: Device,
+    /// The particles' grid.
+    pub topology: Topology,
+    /// The model.
+    pub model: Trained,
+    /// The model's constants (`model.json`).
+    pub meta: ModelMeta,
+}
+
+impl Run {
+    /// Opens the finished run in `run_dir`: refuses a directory that is not a run or whose run
+    /// is not finished (naming the file), reads `config.toml` with `set` applied, places the
+    /// model on `backend` (the config's when `None`) and loads it (`springs.npz` for a spring
+    /// network, `model.bpk` for a baseline).
+    pub fn open(run_dir: &Path, set: &[String], backend: Option<Backend>) -> Result<Self> {
+        let dir = RunDir::new(run_dir);
+        let state = dir.finished()?;
+        let mut config = Config::load(&dir.config(), set)
+            .with_context(|| format!("{} is not a run directory", run_dir.display()))?;
+        if let Some(b) = backend {
+            config.backend = b;
+        }
+        let device = config.backend.device()?;
+        let incomplete = |file: PathBuf| -> Result<()> {
+            if !file.exists() {
+                bail!(
+                    "{} not found: the run in {} is incomplete",
+                    file.display(),
+                    run_dir.display()
+                );
+            }
+            Ok(())
+        };
+        incomplete(dir.meta())?;
+        let meta = ModelMeta::read(&dir.meta())?;
+        let topology = super::topology(&config, meta.width, meta.height);
+        incomplete(match meta.kind {
+            ModelKind::Springs => dir.springs(),
+            _ => dir.model(),
+        })?;
+        let model = match meta.kind {
+            ModelKind::Springs => {
+                Trained::Springs(read_springs(&dir, &config, &topology, &device)?)
+            }
+            kind => {
+                let path = dir.model();
+                let record = burn::store::ModuleRecord::load(&path)
+                    .map_err(|e| anyhow::anyhow!("{} has no trained model: {e}", path.display()))?;
+                let load_err =
+                    |e| anyhow::anyhow!("{} does not fit the run's config: {e}", path.display());
+                match kind {
+                    ModelKind::NeuralOde => Trained::NeuralOde(
+                        meta.neural_ode(&config, &device)
+                            .try_load_record(record)
+                            .map_err(load_err)?,
+                    ),
+                    _ => Trained::Gnn(
+                        meta.gnn(&config, &device)?
+                            .try_load_record(record)
+                            .map_err(load_err)?,
+                    ),
+                }
+            }
+        };
+        Ok(Self {
+            dir,
+            state,
+            config,
+            device,
+            topology,
+            model,
+            meta,
+        })
+    }
+
+    /// The spring network, or a refusal naming the run for a baseline (commands that need
+    /// per-spring `k` and `b`).
+    pub fn springs(&self) -> Result<&SpringNet> {
+        match &self.model {
+            Trained::Springs(m) => Ok(m),
+            _ => bail!(
+                "{} holds a {} model, not a spring surrogate: only `springtime eval`, `compare` \
+                 and `drape` take baseline runs",
+                self.dir.dir.display(),
+                self.meta.kind.name()
+            ),
+        }
+    }
+
+    /// Mass of one particle, kg.
+    pub fn particle_mass(&self) -> f64 {
+        self.meta.particle_mass
+    }
+
+    /// The integrator constants of the run's model at a data frame step of `frame_dt`.
+    pub fn physics(&self, frame_dt: f64) -> Physics {
+        Physics::new(&self.config.sim, frame_dt, self.meta.particle_mass)
+    }
+}
+
+/// The trained spring network of a run from its `springs.npz`.
+fn read_springs(
+    dir: &RunDir,
+    config: &Config,
+    topology: &Topology,
+    device: &Device,
+) -> Result<SpringNet> {
+    let path = dir.springs();
+    let npz = Npz::read(&path)
+        .with_context(|| format!("{} has no trained surrogate", dir.dir.display()))?;
+    let s = topology.num_springs();
+    let read = |key: &str| -> Result<Vec<f64>> {
+        Ok(npz
+            .f32(key, &[Some(s)])?
+            .0
+            .into_iter()
+            .map(f64::from)
+            .collect())
+    };
+    Ok(SpringNet::new(topology, &read("k")?, &read("b")?, device).with_kernel(config.model.kernel))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_rows_round_trip_by_column_name_and_errors_name_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = RunDir::new(dir.path().join("run"));
+        run.create_fresh().unwrap();
+        let text = std::fs::read_to_string(run.metrics()).unwrap();
+        assert_eq!(text.trim_end(), METRICS_HEADER);
+        let row = |iteration, pass: &str, rmse| MetricsRow {
+            iteration,
+            pass: pass.into(),
+            loss: 1e-2 / iteration as f64,
+            force: 3.25e-3,
+            rmse_k: rmse,
+            rmse_b: rmse,
+            seconds: 0.1 * iteration as f64,
+            ..MetricsRow::default()
+        };
+        let rows = vec![row(1, "stiffness", Some(3.5)), row(2, "damping, 2nd", None)];
+        run.append_metrics(&rows).unwrap();
+        assert_eq!(read_metrics(&run.metrics(), false).unwrap(), rows);
+        // Columns are found by name, in any order; a row cut short by a kill is dropped on
+        // resume and is an error naming the line otherwise.
+        std::fs::write(
+            run.metrics(),
+            "pass,iteration,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b\n\
+             single,1,1,2,3,4,5,6,,\nsingle,2,1,2",
+        )
+        .unwrap();
+        let read = read_metrics(&run.metrics(), true).unwrap();
+        assert_eq!(read.len(), 1);
+        assert_eq!(
+            (read[0].iteration, read[0].b_neg, read[0].rmse_k),
+            (1, 6.0, None)
+        );
+        let e = format!("{:#}", read_metrics(&run.metrics(), false).unwrap_err());
+        assert!(e.contains("metrics.csv") && e.contains("line 3"), "{e}");
+        run.truncate_metrics(5).unwrap();
+        assert_eq!(read_metrics(&run.metrics(), false).unwrap().len(), 1);
+    }
 }
