@@ -25,6 +25,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::{ClothSim, SourceConfig, StiffnessMap};
+use crate::cloth::triangles::{self, Hinge, RestTriangle, V3, add_to, cross, dot, scale};
 use crate::data::MeshTruth;
 use crate::sim::Stability;
 
@@ -122,26 +123,12 @@ impl FemConfig {
     }
 }
 
-/// One triangle's rest data.
+/// One triangle: its rest frame and Lamé constants.
 #[derive(Debug, Clone, Copy)]
 struct Element {
-    v: [usize; 3],
-    /// `Dm⁻¹`, row-major 2 × 2.
-    dm_inv: [[f64; 2]; 2],
-    area: f64,
+    tri: RestTriangle,
     mu: f64,
     lambda: f64,
-}
-
-/// An interior edge `(a, b)` between the triangles holding the wings `c` and `d`.
-#[derive(Debug, Clone, Copy)]
-struct Hinge {
-    a: usize,
-    b: usize,
-    c: usize,
-    d: usize,
-    /// `k_b · 3|ē|² / (Ā₁ + Ā₂)`.
-    weight: f64,
 }
 
 /// A triangle-mesh cloth with a per-triangle stiffness map.
@@ -150,6 +137,8 @@ pub struct FemCloth {
     rest_uv: Vec<[f64; 2]>,
     elements: Vec<Element>,
     hinges: Vec<Hinge>,
+    /// `k_b · 3|ē|² / (Ā₁ + Ā₂)` of each hinge.
+    hinge_weight: Vec<f64>,
     /// Lumped vertex masses, kg.
     mass: Vec<f64>,
     /// Young's modulus of every triangle, N/m (the ground-truth map).
@@ -160,35 +149,6 @@ pub struct FemCloth {
     gravity: [f64; 3],
     /// Summary of the material for messages.
     material: String,
-}
-
-type V3 = [f64; 3];
-
-#[inline]
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-#[inline]
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-#[inline]
-fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-#[inline]
-fn scale(a: V3, s: f64) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-#[inline]
-fn add_to(acc: &mut V3, a: V3) {
-    acc[0] += a[0];
-    acc[1] += a[1];
-    acc[2] += a[2];
 }
 
 /// The triangles of an `nx × ny` grid (counter-clockwise in the rest rectangle).
@@ -266,60 +226,33 @@ impl FemCloth {
         let mut mass = vec![0.0; n];
         let mut elements = Vec::with_capacity(triangles.len());
         for (t, &y) in triangles.iter().zip(youngs) {
-            let [p0, p1, p2] = t.map(|i| rest_uv[i]);
-            let dm = [
-                [p1[0] - p0[0], p2[0] - p0[0]],
-                [p1[1] - p0[1], p2[1] - p0[1]],
-            ];
-            let det = dm[0][0] * dm[1][1] - dm[0][1] * dm[1][0];
-            assert!(det.abs() > 0.0, "degenerate triangle {t:?}");
-            let area = 0.5 * det.abs();
-            let dm_inv = [
-                [dm[1][1] / det, -dm[0][1] / det],
-                [-dm[1][0] / det, dm[0][0] / det],
-            ];
+            let tri = RestTriangle::new(&rest_uv, *t)
+                .unwrap_or_else(|| panic!("degenerate triangle {t:?}"));
             for &i in t {
-                mass[i] += material.areal_density * area / 3.0;
+                mass[i] += material.areal_density * tri.area / 3.0;
             }
             elements.push(Element {
-                v: *t,
-                dm_inv,
-                area,
+                tri,
                 mu: y / (2.0 * (1.0 + nu)),
                 lambda: y * nu / (1.0 - nu * nu),
             });
         }
-        // Interior edges: the two triangles sharing each edge, with their opposite corners.
-        let mut edges: std::collections::HashMap<(usize, usize), Vec<(usize, usize)>> =
-            std::collections::HashMap::new();
-        for (e, t) in triangles.iter().enumerate() {
-            for k in 0..3 {
-                let (a, b, c) = (t[k], t[(k + 1) % 3], t[(k + 2) % 3]);
-                edges.entry((a.min(b), a.max(b))).or_default().push((c, e));
-            }
-        }
-        let mut hinges: Vec<Hinge> = edges
-            .into_iter()
-            .filter(|(_, w)| w.len() == 2)
-            .map(|((a, b), w)| {
-                let len2 = (rest_uv[b][0] - rest_uv[a][0]).powi(2)
-                    + (rest_uv[b][1] - rest_uv[a][1]).powi(2);
-                let areas = elements[w[0].1].area + elements[w[1].1].area;
-                Hinge {
-                    a,
-                    b,
-                    c: w[0].0,
-                    d: w[1].0,
-                    weight: material.bending * 3.0 * len2 / areas,
-                }
+        let hinges = triangles::hinges(triangles);
+        let hinge_weight = hinges
+            .iter()
+            .map(|h| {
+                let len2 = (rest_uv[h.b][0] - rest_uv[h.a][0]).powi(2)
+                    + (rest_uv[h.b][1] - rest_uv[h.a][1]).powi(2);
+                let areas = elements[h.triangles[0]].tri.area + elements[h.triangles[1]].tri.area;
+                material.bending * 3.0 * len2 / areas
             })
             .collect();
-        hinges.sort_by_key(|h| (h.a, h.b));
         let ymax = youngs.iter().copied().fold(0.0, f64::max);
         Self {
             rest_uv,
             elements,
             hinges,
+            hinge_weight,
             mass,
             youngs: youngs.to_vec(),
             beta: material.strain_damping,
@@ -336,7 +269,7 @@ impl FemCloth {
 
     /// Triangles of the mesh.
     pub fn triangles(&self) -> Vec<[usize; 3]> {
-        self.elements.iter().map(|e| e.v).collect()
+        self.elements.iter().map(|e| e.tri.v).collect()
     }
 
     /// Lumped vertex masses, kg.
@@ -358,7 +291,7 @@ impl FemCloth {
     pub fn membrane_energy(&self, x: &[V3]) -> f64 {
         self.elements
             .iter()
-            .map(|el| el.area * elastic(el, deformation(el, x), self.membrane).1)
+            .map(|el| el.tri.area * elastic(el, deformation(el, x), self.membrane).1)
             .sum()
     }
 
@@ -366,7 +299,8 @@ impl FemCloth {
     pub fn bending_energy(&self, x: &[V3]) -> f64 {
         self.hinges
             .iter()
-            .map(|h| h.weight * dihedral(h, x).0.powi(2))
+            .zip(&self.hinge_weight)
+            .map(|(h, w)| w * triangles::dihedral(h, x).0.powi(2))
             .sum()
     }
 
@@ -400,24 +334,25 @@ impl FemCloth {
             for r in 0..3 {
                 for c in 0..2 {
                     // (Dm⁻ᵀ)[k][c] = Dm⁻¹[c][k]
-                    h[r][c] = -el.area * (p[r][0] * el.dm_inv[c][0] + p[r][1] * el.dm_inv[c][1]);
+                    h[r][c] = -el.tri.area
+                        * (p[r][0] * el.tri.dm_inv[c][0] + p[r][1] * el.tri.dm_inv[c][1]);
                 }
             }
             let f1 = [h[0][0], h[1][0], h[2][0]];
             let f2 = [h[0][1], h[1][1], h[2][1]];
-            add_to(&mut out[el.v[1]], f1);
-            add_to(&mut out[el.v[2]], f2);
+            add_to(&mut out[el.tri.v[1]], f1);
+            add_to(&mut out[el.tri.v[2]], f2);
             add_to(
-                &mut out[el.v[0]],
+                &mut out[el.tri.v[0]],
                 scale([f1[0] + f2[0], f1[1] + f2[1], f1[2] + f2[2]], -1.0),
             );
         }
-        for hinge in &self.hinges {
-            let (theta, grads) = dihedral(hinge, x);
+        for (hinge, &weight) in self.hinges.iter().zip(&self.hinge_weight) {
+            let (theta, grads) = triangles::dihedral(hinge, x);
             if theta == 0.0 {
                 continue;
             }
-            let coef = -2.0 * hinge.weight * theta;
+            let coef = -2.0 * weight * theta;
             for (i, g) in [hinge.c, hinge.d, hinge.a, hinge.b].into_iter().zip(grads) {
                 add_to(&mut out[i], scale(g, coef));
             }
@@ -497,36 +432,13 @@ pub struct FemMaterial {
 /// `F = Ds Dm⁻¹` (3 × 2) of a triangle at positions `x`.
 #[inline]
 fn deformation(el: &Element, x: &[V3]) -> [[f64; 2]; 3] {
-    shape_map(el, x)
+    el.tri.deformation(x)
 }
 
 /// `Ḟ = Dv Dm⁻¹` at velocities `v`.
 #[inline]
 fn rate(el: &Element, v: &[V3]) -> [[f64; 2]; 3] {
-    shape_map(el, v)
-}
-
-#[inline]
-fn shape_map(el: &Element, x: &[V3]) -> [[f64; 2]; 3] {
-    let (x0, x1, x2) = (x[el.v[0]], x[el.v[1]], x[el.v[2]]);
-    let (d1, d2) = (sub(x1, x0), sub(x2, x0));
-    let m = el.dm_inv;
-    std::array::from_fn(|r| {
-        [
-            d1[r] * m[0][0] + d2[r] * m[1][0],
-            d1[r] * m[0][1] + d2[r] * m[1][1],
-        ]
-    })
-}
-
-/// Green strain `½(FᵀF − I)`.
-#[inline]
-fn green(f: [[f64; 2]; 3]) -> [[f64; 2]; 2] {
-    let c = |i: usize, j: usize| f[0][i] * f[0][j] + f[1][i] * f[1][j] + f[2][i] * f[2][j];
-    [
-        [0.5 * (c(0, 0) - 1.0), 0.5 * c(0, 1)],
-        [0.5 * c(1, 0), 0.5 * (c(1, 1) - 1.0)],
-    ]
+    el.tri.deformation(v)
 }
 
 /// The first Piola–Kirchhoff stress `P = ∂Ψ/∂F` (3 × 2) and the energy density `Ψ` of a
@@ -535,7 +447,7 @@ fn green(f: [[f64; 2]; 3]) -> [[f64; 2]; 2] {
 fn elastic(el: &Element, f: [[f64; 2]; 3], model: Membrane) -> ([[f64; 2]; 3], f64) {
     match model {
         Membrane::Stvk => {
-            let e = green(f);
+            let e = triangles::green(f);
             let s = stress(el, e);
             let tr = e[0][0] + e[1][1];
             let ee = e[0][0] * e[0][0] + 2.0 * e[0][1] * e[0][1] + e[1][1] * e[1][1];
@@ -619,39 +531,6 @@ fn stress(el: &Element, e: [[f64; 2]; 2]) -> [[f64; 2]; 2] {
     ]
 }
 
-/// Signed dihedral angle of a hinge and its gradient with respect to `(c, d, a, b)`.
-///
-/// With `N₁ = (x_c − x_a) × (x_c − x_b)`, `N₂ = (x_d − x_b) × (x_d − x_a)`, `E = x_b − x_a`:
-/// `θ = atan2((N₂ × N₁)·Ê, N₁·N₂)` (0 when flat) and
-/// `∇_c θ = |E| N₁/|N₁|²`, `∇_d θ = |E| N₂/|N₂|²`,
-/// `∇_a θ = (x_c − x_b)·E/|E| N₁/|N₁|² + (x_d − x_b)·E/|E| N₂/|N₂|²`,
-/// `∇_b θ = −(x_c − x_a)·E/|E| N₁/|N₁|² − (x_d − x_a)·E/|E| N₂/|N₂|²`.
-#[inline]
-fn dihedral(h: &Hinge, x: &[V3]) -> (f64, [V3; 4]) {
-    let (xa, xb, xc, xd) = (x[h.a], x[h.b], x[h.c], x[h.d]);
-    let e = sub(xb, xa);
-    let len = dot(e, e).sqrt();
-    let n1 = cross(sub(xc, xa), sub(xc, xb));
-    let n2 = cross(sub(xd, xb), sub(xd, xa));
-    let (q1, q2) = (dot(n1, n1), dot(n2, n2));
-    if len == 0.0 || q1 == 0.0 || q2 == 0.0 {
-        return (0.0, [[0.0; 3]; 4]);
-    }
-    let theta = dot(cross(n2, n1), e).atan2(dot(n1, n2) * len);
-    let (u1, u2) = (scale(n1, 1.0 / q1), scale(n2, 1.0 / q2));
-    let ga = {
-        let s1 = dot(sub(xc, xb), e) / len;
-        let s2 = dot(sub(xd, xb), e) / len;
-        [0, 1, 2].map(|i| s1 * u1[i] + s2 * u2[i])
-    };
-    let gb = {
-        let s1 = dot(sub(xc, xa), e) / len;
-        let s2 = dot(sub(xd, xa), e) / len;
-        [0, 1, 2].map(|i| -s1 * u1[i] - s2 * u2[i])
-    };
-    (theta, [scale(u1, len), scale(u2, len), ga, gb])
-}
-
 impl ClothSim for FemCloth {
     fn rest_uv(&self) -> &[[f64; 2]] {
         &self.rest_uv
@@ -706,6 +585,7 @@ impl ClothSim for FemCloth {
         });
         let damping_only = Self {
             hinges: Vec::new(),
+            hinge_weight: Vec::new(),
             ..self.clone()
         };
         let gamma_springs = if self.beta > 0.0 {
@@ -740,6 +620,7 @@ impl ClothSim for FemCloth {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cloth::triangles::sub;
     use crate::source::Layout;
 
     fn cloth(diagonal: Diagonal, layout: Layout, gravity: [f64; 3], rayleigh: f64) -> FemCloth {
@@ -825,7 +706,7 @@ mod tests {
             assert!(
                 c.hinges
                     .iter()
-                    .all(|h| dihedral(h, &stretched).0.abs() < 1e-12)
+                    .all(|h| triangles::dihedral(h, &stretched).0.abs() < 1e-12)
             );
             assert_eq!(c.energy(&x), 0.0);
         }
@@ -871,14 +752,16 @@ mod tests {
         let c = cloth(Diagonal::Main, Layout::Uniform, [0.0; 3], 0.0);
         let (x, _) = deformed(&c, 1.7);
         for hinge in &c.hinges {
-            let (theta, g) = dihedral(hinge, &x);
+            let (theta, g) = triangles::dihedral(hinge, &x);
             assert!(theta.abs() < 1.5);
             for (slot, vtx) in [hinge.c, hinge.d, hinge.a, hinge.b].into_iter().enumerate() {
                 for k in 0..3 {
                     let (mut up, mut down) = (x.clone(), x.clone());
                     up[vtx][k] += 1e-7;
                     down[vtx][k] -= 1e-7;
-                    let fd = (dihedral(hinge, &up).0 - dihedral(hinge, &down).0) / 2e-7;
+                    let fd = (triangles::dihedral(hinge, &up).0
+                        - triangles::dihedral(hinge, &down).0)
+                        / 2e-7;
                     assert!((fd - g[slot][k]).abs() < 1e-6, "{fd} vs {}", g[slot][k]);
                 }
             }

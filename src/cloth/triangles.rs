@@ -1,0 +1,189 @@
+//! Triangle-mesh cloth maths shared by the FEM source and the XPBD estimator: a triangle's rest
+//! frame, its deformation gradient and Green strain, the interior hinges of a mesh and their
+//! signed dihedral angle with its gradient.
+
+/// A point or vector in 3-D.
+pub type V3 = [f64; 3];
+
+/// `a − b`.
+#[inline]
+pub fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+/// `a · b`.
+#[inline]
+pub fn dot(a: V3, b: V3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+/// `a × b`.
+#[inline]
+pub fn cross(a: V3, b: V3) -> V3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// `s a`.
+#[inline]
+pub fn scale(a: V3, s: f64) -> V3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+
+/// `acc += a`.
+#[inline]
+pub fn add_to(acc: &mut V3, a: V3) {
+    for c in 0..3 {
+        acc[c] += a[c];
+    }
+}
+
+/// A triangle's rest frame in the material (u, v) plane.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RestTriangle {
+    /// Its vertices.
+    pub v: [usize; 3],
+    /// `Dm⁻¹` (row-major 2 × 2), `Dm = [X₁ − X₀, X₂ − X₀]` in (u, v).
+    pub dm_inv: [[f64; 2]; 2],
+    /// Rest area.
+    pub area: f64,
+}
+
+impl RestTriangle {
+    /// The rest frame of triangle `v` over the rest coordinates `rest_uv`; `None` when it is
+    /// degenerate (zero area).
+    pub fn new(rest_uv: &[[f64; 2]], v: [usize; 3]) -> Option<Self> {
+        let [p0, p1, p2] = v.map(|i| rest_uv[i]);
+        let dm = [
+            [p1[0] - p0[0], p2[0] - p0[0]],
+            [p1[1] - p0[1], p2[1] - p0[1]],
+        ];
+        let det = dm[0][0] * dm[1][1] - dm[0][1] * dm[1][0];
+        if det.abs() <= 0.0 || !det.is_finite() {
+            return None;
+        }
+        Some(Self {
+            v,
+            dm_inv: [
+                [dm[1][1] / det, -dm[0][1] / det],
+                [-dm[1][0] / det, dm[0][0] / det],
+            ],
+            area: 0.5 * det.abs(),
+        })
+    }
+
+    /// `F = Ds Dm⁻¹` (3 × 2; columns `f_u`, `f_v`) at positions (or velocities) `x`.
+    #[inline]
+    pub fn deformation(&self, x: &[V3]) -> [[f64; 2]; 3] {
+        let (x0, x1, x2) = (x[self.v[0]], x[self.v[1]], x[self.v[2]]);
+        let (d1, d2) = (sub(x1, x0), sub(x2, x0));
+        let m = self.dm_inv;
+        std::array::from_fn(|r| {
+            [
+                d1[r] * m[0][0] + d2[r] * m[1][0],
+                d1[r] * m[0][1] + d2[r] * m[1][1],
+            ]
+        })
+    }
+
+    /// The gradient of `Σ_rc P[r][c] F[r][c]` with respect to the three vertices: the force
+    /// map of a first Piola–Kirchhoff stress `P` (3 × 2), `[∂/∂x₀, ∂/∂x₁, ∂/∂x₂]`.
+    #[inline]
+    pub fn pull_back(&self, p: [[f64; 2]; 3]) -> [V3; 3] {
+        let m = self.dm_inv;
+        let g1: V3 = std::array::from_fn(|r| p[r][0] * m[0][0] + p[r][1] * m[0][1]);
+        let g2: V3 = std::array::from_fn(|r| p[r][0] * m[1][0] + p[r][1] * m[1][1]);
+        [
+            [-(g1[0] + g2[0]), -(g1[1] + g2[1]), -(g1[2] + g2[2])],
+            g1,
+            g2,
+        ]
+    }
+}
+
+/// Green strain `½(FᵀF − I)` (2 × 2, symmetric).
+#[inline]
+pub fn green(f: [[f64; 2]; 3]) -> [[f64; 2]; 2] {
+    let c = |i: usize, j: usize| f[0][i] * f[0][j] + f[1][i] * f[1][j] + f[2][i] * f[2][j];
+    [
+        [0.5 * (c(0, 0) - 1.0), 0.5 * c(0, 1)],
+        [0.5 * c(1, 0), 0.5 * (c(1, 1) - 1.0)],
+    ]
+}
+
+/// An interior edge `(a, b)` between the triangles holding the wings `c` and `d`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Hinge {
+    /// First end of the shared edge (the smaller index).
+    pub a: usize,
+    /// Second end.
+    pub b: usize,
+    /// Wing vertex of the first triangle.
+    pub c: usize,
+    /// Wing vertex of the second triangle.
+    pub d: usize,
+    /// The two triangles (indices into the mesh's triangle list), `c`'s first.
+    pub triangles: [usize; 2],
+}
+
+/// Every interior edge of a triangle mesh, sorted by `(a, b)`.
+pub fn hinges(triangles: &[[usize; 3]]) -> Vec<Hinge> {
+    let mut edges: std::collections::HashMap<(usize, usize), Vec<(usize, usize)>> =
+        std::collections::HashMap::new();
+    for (e, t) in triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b, c) = (t[k], t[(k + 1) % 3], t[(k + 2) % 3]);
+            edges.entry((a.min(b), a.max(b))).or_default().push((c, e));
+        }
+    }
+    let mut out: Vec<Hinge> = edges
+        .into_iter()
+        .filter(|(_, w)| w.len() == 2)
+        .map(|((a, b), w)| Hinge {
+            a,
+            b,
+            c: w[0].0,
+            d: w[1].0,
+            triangles: [w[0].1, w[1].1],
+        })
+        .collect();
+    out.sort_by_key(|h| (h.a, h.b));
+    out
+}
+
+/// Signed dihedral angle of a hinge and its gradient with respect to `(c, d, a, b)`.
+///
+/// With `N₁ = (x_c − x_a) × (x_c − x_b)`, `N₂ = (x_d − x_b) × (x_d − x_a)`, `E = x_b − x_a`:
+/// `θ = atan2((N₂ × N₁)·Ê, N₁·N₂)` (0 when flat, smooth through it, unlike an `arccos` of the
+/// normals' product) and
+/// `∇_c θ = |E| N₁/|N₁|²`, `∇_d θ = |E| N₂/|N₂|²`,
+/// `∇_a θ = (x_c − x_b)·E/|E| N₁/|N₁|² + (x_d − x_b)·E/|E| N₂/|N₂|²`,
+/// `∇_b θ = −(x_c − x_a)·E/|E| N₁/|N₁|² − (x_d − x_a)·E/|E| N₂/|N₂|²`.
+#[inline]
+pub fn dihedral(h: &Hinge, x: &[V3]) -> (f64, [V3; 4]) {
+    let (xa, xb, xc, xd) = (x[h.a], x[h.b], x[h.c], x[h.d]);
+    let e = sub(xb, xa);
+    let len = dot(e, e).sqrt();
+    let n1 = cross(sub(xc, xa), sub(xc, xb));
+    let n2 = cross(sub(xd, xb), sub(xd, xa));
+    let (q1, q2) = (dot(n1, n1), dot(n2, n2));
+    if len == 0.0 || q1 == 0.0 || q2 == 0.0 {
+        return (0.0, [[0.0; 3]; 4]);
+    }
+    let theta = dot(cross(n2, n1), e).atan2(dot(n1, n2) * len);
+    let (u1, u2) = (scale(n1, 1.0 / q1), scale(n2, 1.0 / q2));
+    let ga = {
+        let s1 = dot(sub(xc, xb), e) / len;
+        let s2 = dot(sub(xd, xb), e) / len;
+        [0, 1, 2].map(|i| s1 * u1[i] + s2 * u2[i])
+    };
+    let gb = {
+        let s1 = dot(sub(xc, xa), e) / len;
+        let s2 = dot(sub(xd, xa), e) / len;
+        [0, 1, 2].map(|i| -s1 * u1[i] - s2 * u2[i])
+    };
+    (theta, [scale(u1, len), scale(u2, len), ga, gb])
+}
