@@ -78,6 +78,12 @@ pub enum Command {
         #[command(subcommand)]
         command: DataCommand,
     },
+    /// Static cloth parameters from drapes (paper 001): `xpbd estimate CONFIG --out DIR`.
+    Xpbd {
+        /// What to do.
+        #[command(subcommand)]
+        command: XpbdCommand,
+    },
     /// Convert other tools' cloth motion (OBJ frames, .pc2 point caches, CSV tracks) into a
     /// springtime rollout file.
     Import {
@@ -346,6 +352,28 @@ pub enum DataCommand {
     },
 }
 
+/// `springtime xpbd` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum XpbdCommand {
+    /// The sim-to-sim experiment of paper 001 §4.2: targets from the XPBD cloth with the
+    /// config's true material in its scenarios, γ = (C00, C11, C01, C22, b) fitted from its
+    /// initial guess by Levenberg–Marquardt on the shape descriptor and the clamps' reactions.
+    /// Writes DIR/estimate.json (γ in SI and CGS, relative errors, iterations, objective).
+    #[command(
+        after_help = "Example:\n  springtime xpbd estimate configs/xpbd_cotton.toml --out runs/xpbd_cotton"
+    )]
+    Estimate {
+        /// The job's TOML (`configs/xpbd_cotton.toml`).
+        config: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite an earlier estimate in DIR.
+        #[arg(long)]
+        force: bool,
+    },
+}
+
 /// What `springtime import` reads.
 #[derive(Debug, Subcommand)]
 pub enum ImportCommand {
@@ -484,6 +512,9 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Import { source } => import(&source),
+        Command::Xpbd {
+            command: XpbdCommand::Estimate { config, out, force },
+        } => xpbd_estimate(&config, out, force, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
         } => data_check(&dir, config.as_deref(), &set),
@@ -671,6 +702,43 @@ fn import(source: &ImportCommand) -> Result<()> {
         summary.height,
         summary.rest_from
     );
+    Ok(())
+}
+
+/// `springtime xpbd estimate`: the fit, then the fitted γ beside the truth.
+fn xpbd_estimate(config: &Path, out: PathBuf, force: bool, progress: &Progress) -> Result<()> {
+    use crate::xpbd::estimate;
+    let cfg = estimate::XpbdConfig::load(config)?;
+    let r = estimate::estimate(
+        &cfg,
+        &estimate::EstimateOptions {
+            out: out.clone(),
+            force,
+        },
+        progress,
+    )?;
+    println!(
+        "{:<6} {:>14} {:>14} {:>14} {:>10}",
+        "γ", "truth", "initial", "fitted", "error"
+    );
+    let (t, i, f) = (r.truth.to_array(), r.initial.to_array(), r.gamma.to_array());
+    for (k, name) in crate::xpbd::material::NAMES.iter().enumerate() {
+        println!(
+            "{name:<6} {:>14.6e} {:>14.6e} {:>14.6e} {:>9.3}%",
+            t[k],
+            i[k],
+            f[k],
+            100.0 * r.signed_error[*name]
+        );
+    }
+    println!(
+        "{} Levenberg–Marquardt steps, objective {:.3e} → {:.3e}, {:.1} s",
+        r.iterations,
+        r.objective.first().copied().unwrap_or(f64::NAN),
+        r.objective.last().copied().unwrap_or(f64::NAN),
+        r.wall_seconds
+    );
+    println!("estimate: {}", out.join("estimate.json").display());
     Ok(())
 }
 

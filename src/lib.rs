@@ -5,7 +5,8 @@
 //! and cuts clips, [`cloth`] builds the surrogate grid and resamples landmarks to it, [`model`]
 //! holds the per-spring parameters and the spring forces, [`sim`] rolls the surrogate out,
 //! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it; [`report`]
-//! draws a run's figures and [`export`] writes it for other tools. See `ARCHITECTURE.md`.
+//! draws a run's figures and [`export`] writes it for other tools. [`xpbd`] holds the static
+//! parameter estimation of the second seed paper. See `ARCHITECTURE.md`.
 #![warn(missing_docs)]
 // `!(x >= 0.0)` is deliberate: it rejects NaN along with negative values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -30,6 +31,7 @@ pub mod report;
 pub mod sim;
 pub mod source;
 pub mod train;
+pub mod xpbd;
 
 use anyhow::{Result, bail};
 use serde::Serialize;

@@ -1,0 +1,134 @@
+//! The phase-free shape descriptor of paper 001 (Eq. 9, `s_FFT`): the magnitude of the 2-D
+//! discrete Fourier transform of the grid's vertex positions, per coordinate, orthonormally
+//! scaled, without the mean (DC) bin. Magnitudes drop the phase, so a wrinkle pattern shifted
+//! along the grid (another equilibrium of the same material) has the same descriptor, while a
+//! change of amplitude or wavelength changes it. Any grid size (a dense DFT, not a radix-2 FFT).
+
+use crate::cloth::triangles::V3;
+
+/// `|DFT₂(x_c)[k, l]| / √(nx·ny)` for every coordinate `c` and frequency `(k, l) ≠ (0, 0)` of
+/// positions on an `nx × ny` row-major grid (row `r`, column `c` at `r·nx + c`); `nx·ny − 1`
+/// values per coordinate, x's first.
+pub fn fft_descriptor(x: &[V3], nx: usize, ny: usize) -> Vec<f64> {
+    assert_eq!(x.len(), nx * ny, "positions must fill the {nx} × {ny} grid");
+    let tw = |n: usize| -> Vec<(f64, f64)> {
+        (0..n)
+            .map(|j| {
+                let a = -2.0 * std::f64::consts::PI * j as f64 / n as f64;
+                (a.cos(), a.sin())
+            })
+            .collect()
+    };
+    let (wx, wy) = (tw(nx), tw(ny));
+    let norm = 1.0 / ((nx * ny) as f64).sqrt();
+    let mut out = Vec::with_capacity(3 * (nx * ny - 1));
+    for c in 0..3 {
+        // Along rows first: R[r][l] = Σ_col x[r][col] e^{−2πi l col / nx}.
+        let mut rows = vec![(0.0, 0.0); nx * ny];
+        for r in 0..ny {
+            for l in 0..nx {
+                let (mut re, mut im) = (0.0, 0.0);
+                for col in 0..nx {
+                    let (cs, sn) = wx[(l * col) % nx];
+                    let v = x[r * nx + col][c];
+                    re += v * cs;
+                    im += v * sn;
+                }
+                rows[r * nx + l] = (re, im);
+            }
+        }
+        for k in 0..ny {
+            for l in 0..nx {
+                if k == 0 && l == 0 {
+                    continue;
+                }
+                let (mut re, mut im) = (0.0, 0.0);
+                for r in 0..ny {
+                    let (cs, sn) = wy[(k * r) % ny];
+                    let (a, b) = rows[r * nx + l];
+                    re += a * cs - b * sn;
+                    im += a * sn + b * cs;
+                }
+                out.push(norm * (re * re + im * im).sqrt());
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field(nx: usize, ny: usize, shift: (usize, usize)) -> Vec<V3> {
+        // Periodic wrinkles: exact circular-shift invariance holds for periodic fields.
+        (0..ny)
+            .flat_map(|r| {
+                (0..nx).map(move |c| {
+                    let (rr, cc) = ((r + shift.0) % ny, (c + shift.1) % nx);
+                    let (u, v) = (cc as f64 / nx as f64, rr as f64 / ny as f64);
+                    let t = std::f64::consts::TAU;
+                    [
+                        0.3 * (t * 2.0 * u).sin() + 0.1 * (t * v).cos(),
+                        0.2 * (t * (u + 3.0 * v)).cos(),
+                        0.05 * (t * 3.0 * u).sin() * (t * 2.0 * v).cos() + 0.01 * cc as f64,
+                    ]
+                })
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_dft_descriptor_matches_a_naive_dft_and_is_invariant_to_translation_and_shift() {
+        let (nx, ny) = (7, 5);
+        let x = field(nx, ny, (0, 0));
+        let d = fft_descriptor(&x, nx, ny);
+        assert_eq!(d.len(), 3 * (nx * ny - 1));
+        // A naive 2-D DFT.
+        let mut naive = Vec::new();
+        for c in 0..3 {
+            for k in 0..ny {
+                for l in 0..nx {
+                    if k == 0 && l == 0 {
+                        continue;
+                    }
+                    let (mut re, mut im) = (0.0, 0.0);
+                    for r in 0..ny {
+                        for q in 0..nx {
+                            let a = -std::f64::consts::TAU
+                                * (k as f64 * r as f64 / ny as f64
+                                    + l as f64 * q as f64 / nx as f64);
+                            re += x[r * nx + q][c] * a.cos();
+                            im += x[r * nx + q][c] * a.sin();
+                        }
+                    }
+                    naive.push((re * re + im * im).sqrt() / ((nx * ny) as f64).sqrt());
+                }
+            }
+        }
+        for (a, b) in d.iter().zip(&naive) {
+            assert!((a - b).abs() < 1e-12, "{a} vs {b}");
+        }
+        // Translation: exactly invariant (the DC bin is left out).
+        let moved: Vec<V3> = x
+            .iter()
+            .map(|p| [p[0] + 1.5, p[1] - 0.25, p[2] + 3.0])
+            .collect();
+        for (a, b) in d.iter().zip(fft_descriptor(&moved, nx, ny)) {
+            assert!((a - b).abs() < 1e-12);
+        }
+        // A circular shift of the grid (the same wrinkles elsewhere): exactly invariant.
+        let shifted = field(nx, ny, (2, 3));
+        for (a, b) in d.iter().zip(fft_descriptor(&shifted, nx, ny)) {
+            assert!((a - b).abs() < 1e-12, "{a} vs {b}");
+        }
+        // A larger amplitude is not.
+        let taller: Vec<V3> = x.iter().map(|p| [p[0], p[1], 2.0 * p[2]]).collect();
+        let diff: f64 = d
+            .iter()
+            .zip(fft_descriptor(&taller, nx, ny))
+            .map(|(a, b)| (a - b).abs())
+            .sum();
+        assert!(diff > 0.05, "{diff}");
+    }
+}

@@ -1,0 +1,266 @@
+//! The equilibrium `∇U(x) = f` beyond XPBD's iterates: a Newton polish (so that targets and
+//! fits are true equilibria, whatever XPBD's step left), and its derivatives with respect to
+//! γ by the implicit-function theorem (paper 001 §3.3.2; the paper accumulates forward-mode
+//! derivatives through the iterations instead, which at a converged equilibrium give the same
+//! values). The energy is linear in γ, `U = Σ_k γ_k U_k`, so
+//! `dx_f/dγ_k = −H_ff⁻¹ ∇_f U_k` over the free coordinates `f`, and a clamp group's reaction
+//! `R_G = Σ_{i∈G} (∇_i U − f_i)` changes by `Σ_{i∈G} (H_{i f} dx_f/dγ_k + ∇_i U_k)`.
+//! The Hessian's columns are central differences of the exact gradient.
+
+use anyhow::{Result, bail};
+use nalgebra::{DMatrix, DVector};
+
+use super::cloth::{Load, XpbdCloth};
+use super::material::Gamma;
+use crate::cloth::triangles::{V3, add_to, dot};
+
+/// The derivatives of an equilibrium with respect to γ.
+#[derive(Debug, Clone)]
+pub struct Sensitivity {
+    /// `dx/dγ_k` for each of the five parameters, per vertex (zero on clamped vertices).
+    pub dx: [Vec<V3>; 5],
+    /// `dR_G/dγ_k` per clamp group (outer index: group).
+    pub reactions: Vec<[V3; 5]>,
+}
+
+/// The free vertices of a load.
+fn free_vertices(load: &Load) -> Vec<usize> {
+    (0..load.clamped.len())
+        .filter(|&i| load.clamped[i].is_none())
+        .collect()
+}
+
+/// Columns `∂(∇U)/∂x_j` for every free coordinate `j` (rows: every coordinate).
+fn hessian_columns(cloth: &XpbdCloth, gamma: &Gamma, x: &[V3], free: &[usize]) -> DMatrix<f64> {
+    let n = x.len();
+    let size = cloth
+        .rest_uv
+        .iter()
+        .fold(0.0f64, |m, p| m.max(p[0].abs()).max(p[1].abs()))
+        .max(1e-9);
+    let eps = 1e-7 * size;
+    let mut h = DMatrix::zeros(3 * n, 3 * free.len());
+    let (mut gp, mut gm) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
+    let mut y = x.to_vec();
+    for (col, &v) in free.iter().enumerate() {
+        for c in 0..3 {
+            y[v][c] = x[v][c] + eps;
+            cloth.gradient(gamma, &y, &mut gp);
+            y[v][c] = x[v][c] - eps;
+            cloth.gradient(gamma, &y, &mut gm);
+            y[v][c] = x[v][c];
+            for i in 0..n {
+                for d in 0..3 {
+                    h[(3 * i + d, 3 * col + c)] = (gp[i][d] - gm[i][d]) / (2.0 * eps);
+                }
+            }
+        }
+    }
+    // Symmetrise the free block (the differences are symmetric only to rounding).
+    for (a, &va) in free.iter().enumerate() {
+        for (b, &vb) in free.iter().enumerate().skip(a) {
+            for ca in 0..3 {
+                for cb in 0..3 {
+                    let (r1, c1) = (3 * va + ca, 3 * b + cb);
+                    let (r2, c2) = (3 * vb + cb, 3 * a + ca);
+                    let m = 0.5 * (h[(r1, c1)] + h[(r2, c2)]);
+                    h[(r1, c1)] = m;
+                    h[(r2, c2)] = m;
+                }
+            }
+        }
+    }
+    h
+}
+
+/// The free-by-free block of [`hessian_columns`].
+fn free_block(h: &DMatrix<f64>, free: &[usize]) -> DMatrix<f64> {
+    let nf = 3 * free.len();
+    DMatrix::from_fn(nf, nf, |r, c| h[(3 * free[r / 3] + r % 3, c)])
+}
+
+/// `Π(x) = U(x) − f·x`, the potential whose stationary points are the equilibria.
+fn potential(cloth: &XpbdCloth, gamma: &Gamma, load: &Load, x: &[V3]) -> f64 {
+    cloth.energy(gamma, x)
+        - x.iter()
+            .zip(&load.force)
+            .map(|(a, b)| dot(*a, *b))
+            .sum::<f64>()
+}
+
+/// Newton steps on `∇U = f` from `x` (clamped vertices held), each with a backtracking line
+/// search on `Π`, until the relative residual is below `tolerance` or `iterations` are done.
+/// Returns the residual reached.
+pub fn polish(
+    cloth: &XpbdCloth,
+    gamma: &Gamma,
+    load: &Load,
+    x: &mut [V3],
+    iterations: usize,
+    tolerance: f64,
+) -> Result<f64> {
+    let free = free_vertices(load);
+    let n = x.len();
+    let mut g = vec![[0.0; 3]; n];
+    let mut residual = cloth.residual(gamma, load, x);
+    for _ in 0..iterations {
+        if residual < tolerance {
+            break;
+        }
+        cloth.gradient(gamma, x, &mut g);
+        let r = DVector::from_fn(3 * free.len(), |k, _| {
+            let (v, c) = (free[k / 3], k % 3);
+            g[v][c] - load.force[v][c]
+        });
+        let h = free_block(&hessian_columns(cloth, gamma, x, &free), &free);
+        let mut step = match h.clone().cholesky() {
+            Some(ch) => ch.solve(&(-&r)),
+            None => h.lu().solve(&(-&r)).unwrap_or_else(|| -&r),
+        };
+        if step.dot(&r) >= 0.0 {
+            // Not a descent direction (an indefinite Hessian near a buckle): steepest descent.
+            step = -&r * (1.0 / r.norm().max(1e-300)) * 1e-4;
+        }
+        let p0 = potential(cloth, gamma, load, x);
+        let base = x.to_vec();
+        let mut alpha = 1.0;
+        let mut improved = false;
+        for _ in 0..30 {
+            for (k, &v) in free.iter().enumerate() {
+                for c in 0..3 {
+                    x[v][c] = base[v][c] + alpha * step[3 * k + c];
+                }
+            }
+            if potential(cloth, gamma, load, x) <= p0 {
+                improved = true;
+                break;
+            }
+            alpha *= 0.5;
+        }
+        if !improved {
+            x.copy_from_slice(&base);
+            break;
+        }
+        residual = cloth.residual(gamma, load, x);
+    }
+    if !residual.is_finite() {
+        bail!("the equilibrium polish diverged (residual {residual})");
+    }
+    Ok(residual)
+}
+
+/// The derivatives of the equilibrium `x` of `load` with respect to γ, and of the reactions of
+/// the clamp `groups`.
+pub fn sensitivity(
+    cloth: &XpbdCloth,
+    gamma: &Gamma,
+    load: &Load,
+    x: &[V3],
+    groups: &[Vec<usize>],
+) -> Result<Sensitivity> {
+    let free = free_vertices(load);
+    let n = x.len();
+    let h = hessian_columns(cloth, gamma, x, &free);
+    let hf = free_block(&h, &free);
+    let lu = hf.lu();
+    let mut dx: [Vec<V3>; 5] = std::array::from_fn(|_| vec![[0.0; 3]; n]);
+    let mut reactions = vec![[[0.0; 3]; 5]; groups.len()];
+    let mut gk = vec![[0.0; 3]; n];
+    for k in 0..5 {
+        let mut unit = [0.0; 5];
+        unit[k] = 1.0;
+        cloth.gradient(&Gamma::from_array(unit), x, &mut gk);
+        let rhs = DVector::from_fn(3 * free.len(), |j, _| -gk[free[j / 3]][j % 3]);
+        let Some(sol) = lu.solve(&rhs) else {
+            bail!("the equilibrium's Hessian is singular: its derivatives are undefined here");
+        };
+        for (j, &v) in free.iter().enumerate() {
+            dx[k][v] = [sol[3 * j], sol[3 * j + 1], sol[3 * j + 2]];
+        }
+        let hx = &h * &sol;
+        for (g, group) in groups.iter().enumerate() {
+            for &i in group {
+                add_to(
+                    &mut reactions[g][k],
+                    [0, 1, 2].map(|c| hx[3 * i + c] + gk[i][c]),
+                );
+            }
+        }
+    }
+    Ok(Sensitivity { dx, reactions })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::xpbd::cloth::{Solve, Sweep};
+
+    #[test]
+    fn implicit_derivatives_of_the_equilibrium_equal_finite_differences() {
+        // A 5 × 5 sheet clamped along one edge, pulled sideways at the other, under gravity.
+        let cloth = XpbdCloth::grid(5, 5, 0.1, 0.1, 0.2).unwrap();
+        let rest = cloth.rest();
+        let mut load = Load::gravity(&cloth, [0.0, 0.0, -9.81]);
+        for c in 0..5 {
+            load.clamped[c] = Some(rest[c]);
+            load.clamped[20 + c] = Some([rest[20 + c][0] + 0.01, rest[20 + c][1] + 0.006, 0.0]);
+        }
+        let group: Vec<usize> = (20..25).collect();
+        let gamma = Gamma::from_engineering(180.0, 500.0, 40.0, 0.3, 5e-5);
+        let solve = Solve {
+            steps: 3000,
+            sweep: Sweep::GaussSeidel,
+            tolerance: 1e-9,
+            ..Solve::default()
+        };
+        let settle = |g: &Gamma, start: &[V3]| {
+            let mut x = cloth.solve(g, &load, start, &solve).unwrap().x;
+            let r = polish(&cloth, g, &load, &mut x, 30, 1e-12).unwrap();
+            assert!(r < 1e-9, "polished residual {r}");
+            x
+        };
+        let x = settle(&gamma, &rest);
+        let sens = sensitivity(&cloth, &gamma, &load, &x, std::slice::from_ref(&group)).unwrap();
+        let params = gamma.to_array();
+        for k in 0..5 {
+            let step = 1e-4 * params[k];
+            let (mut up, mut dn) = (params, params);
+            up[k] += step;
+            dn[k] -= step;
+            let (xu, xd) = (
+                settle(&Gamma::from_array(up), &x),
+                settle(&Gamma::from_array(dn), &x),
+            );
+            let scale = sens.dx[k]
+                .iter()
+                .flatten()
+                .fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(scale > 0.0);
+            for i in 0..x.len() {
+                for c in 0..3 {
+                    let fd = (xu[i][c] - xd[i][c]) / (2.0 * step);
+                    assert!(
+                        (fd - sens.dx[k][i][c]).abs() < 1e-3 * scale,
+                        "γ{k} vertex {i}.{c}: {fd} vs {}",
+                        sens.dx[k][i][c]
+                    );
+                }
+            }
+            let (ru, rd) = (
+                cloth.reaction(&Gamma::from_array(up), &load, &xu, &group),
+                cloth.reaction(&Gamma::from_array(dn), &load, &xd, &group),
+            );
+            let rscale = sens.reactions[0][k]
+                .iter()
+                .fold(0.0f64, |m, v| m.max(v.abs()));
+            for c in 0..3 {
+                let fd = (ru[c] - rd[c]) / (2.0 * step);
+                assert!(
+                    (fd - sens.reactions[0][k][c]).abs() < 1e-3 * rscale.max(1e-12),
+                    "reaction γ{k}.{c}: {fd} vs {}",
+                    sens.reactions[0][k][c]
+                );
+            }
+        }
+    }
+}

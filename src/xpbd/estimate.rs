@@ -1,0 +1,553 @@
+//! `springtime xpbd estimate <config> --out D`: the sim-to-sim experiment of paper 001 §4.2.
+//! Targets are equilibria of the XPBD cloth with the config's true γ in its scenarios; γ is
+//! then fitted from the config's initial guess by Levenberg–Marquardt on the shape descriptor
+//! of every target plus the magnitudes of the clamps' reactions, with the paper's Poisson
+//! penalty (Eq. 8), every equilibrium solved from its target's shape as the paper does, and
+//! the Jacobian from the implicit-function derivatives of the equilibria. Writes
+//! `D/estimate.json`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+
+use super::cloth::{Solve, XpbdCloth};
+use super::descriptor::fft_descriptor;
+use super::equilibrium::{polish, sensitivity};
+use super::lm::{self, LeastSquares, Lm};
+use super::material::{Gamma, NAMES};
+use super::scenario::{Scenario, Setup};
+use crate::cloth::triangles::{V3, dot};
+use crate::progress::Progress;
+
+/// Engineering constants in the paper's CGS units (its Tables 1–3): moduli in dyn/cm, bending
+/// in erg.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Engineering {
+    /// Warp Young's modulus, dyn/cm.
+    pub e_u: f64,
+    /// Weft Young's modulus, dyn/cm.
+    pub e_v: f64,
+    /// Shear modulus, dyn/cm.
+    pub mu: f64,
+    /// Poisson ratio ν_uv.
+    pub nu: f64,
+    /// Bending stiffness, erg.
+    pub b: f64,
+}
+
+impl Engineering {
+    /// γ in SI.
+    pub fn gamma(&self) -> Gamma {
+        let g = Gamma::from_engineering(self.e_u, self.e_v, self.mu, self.nu, self.b);
+        Gamma::from_cgs(g.to_array())
+    }
+}
+
+/// The swatch: a square grid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Swatch {
+    /// Side, m.
+    pub size: f64,
+    /// Vertices per side.
+    pub n: usize,
+    /// Areal density, kg/m².
+    pub density: f64,
+    /// Gravity, m/s².
+    pub gravity: V3,
+}
+
+impl Default for Swatch {
+    fn default() -> Self {
+        // The paper's 15 cm validation swatch; cotton's density from its Table 2.
+        Self {
+            size: 0.15,
+            n: 11,
+            density: 0.224,
+            gravity: [0.0, 0.0, -9.81],
+        }
+    }
+}
+
+/// The shape descriptor of the fit (paper Eq. 9).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Descriptor {
+    /// The phase-free DFT magnitudes of the grid positions.
+    Fft,
+    /// The positions themselves.
+    Positions,
+}
+
+/// `[fit]`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FitConfig {
+    /// Shape descriptor.
+    pub descriptor: Descriptor,
+    /// Levenberg–Marquardt's accepted steps at most.
+    pub max_iterations: usize,
+    /// Weight of the reactions' relative errors beside the descriptors'.
+    pub force_weight: f64,
+    /// The Poisson penalty's scale `s_ν` (Eq. 8).
+    pub poisson_penalty: f64,
+    /// Bounds: every parameter within this factor of its initial value.
+    pub bounds_factor: f64,
+    /// XPBD steps each of the fit's equilibria takes from its target's shape before the
+    /// Newton polish (the targets themselves take `solve.steps`).
+    pub xpbd_steps: usize,
+    /// Newton steps polishing every equilibrium.
+    pub polish_iterations: usize,
+    /// Out-of-plane perturbation of the targets' starts, m.
+    pub noise: f64,
+    /// Seed of the perturbation.
+    pub seed: u64,
+}
+
+impl Default for FitConfig {
+    fn default() -> Self {
+        Self {
+            descriptor: Descriptor::Fft,
+            max_iterations: 20,
+            force_weight: 1.0,
+            poisson_penalty: 1e8,
+            bounds_factor: 100.0,
+            xpbd_steps: 200,
+            polish_iterations: 30,
+            noise: 1e-4,
+            seed: 0,
+        }
+    }
+}
+
+/// An estimation job (`configs/xpbd_*.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct XpbdConfig {
+    /// Name of the job.
+    #[serde(default = "default_name")]
+    pub name: String,
+    /// The swatch.
+    #[serde(default)]
+    pub swatch: Swatch,
+    /// The material of the synthetic targets (CGS).
+    pub truth: Engineering,
+    /// The fit's starting guess (CGS).
+    pub initial: Engineering,
+    /// The equilibrium solve (`dt = 0`: chosen from the stiffest element, `dt² C / m = 0.1`).
+    #[serde(default)]
+    pub solve: Solve,
+    /// The fit.
+    #[serde(default)]
+    pub fit: FitConfig,
+    /// The target scenarios.
+    pub scenarios: Vec<Scenario>,
+}
+
+fn default_name() -> String {
+    "xpbd".into()
+}
+
+impl XpbdConfig {
+    /// Reads a config; errors name the file and the key.
+    pub fn load(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let de = toml::Deserializer::parse(&text)
+            .with_context(|| format!("{} is not valid TOML", path.display()))?;
+        let cfg: Self = serde_path_to_error::deserialize(de).map_err(|e| {
+            anyhow::anyhow!("{}: key `{}`: {}", path.display(), e.path(), e.inner())
+        })?;
+        cfg.validate()
+            .with_context(|| format!("{} is not a valid xpbd config", path.display()))?;
+        Ok(cfg)
+    }
+
+    fn validate(&self) -> Result<()> {
+        let s = &self.swatch;
+        if s.n < 3 || !(s.size > 0.0) || !(s.density > 0.0) {
+            bail!("`swatch` needs n ≥ 3, size > 0 and density > 0");
+        }
+        if self.scenarios.is_empty() {
+            bail!("`scenarios` is empty: give at least one [[scenarios]]");
+        }
+        for (key, e) in [("truth", &self.truth), ("initial", &self.initial)] {
+            let g = e.gamma();
+            let d = 1.0 - g.c01 * g.c01 / (g.c00 * g.c11);
+            if !(g.c00 > 0.0 && g.c11 > 0.0 && g.c22 > 0.0 && g.b >= 0.0 && d > 0.0) {
+                bail!("`{key}` is not a stable material (moduli > 0, ν_uv ν_vu < 1): {e:?}");
+            }
+        }
+        if !(self.solve.damping > 0.0 && self.solve.damping <= 1.0) {
+            bail!("`solve.damping` must be in (0, 1]");
+        }
+        Ok(())
+    }
+}
+
+/// `estimate.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct EstimateReport {
+    /// Job name.
+    pub name: String,
+    /// The fitted γ, SI (N/m, J).
+    pub gamma: Gamma,
+    /// The fitted γ in the paper's CGS units (dyn/cm, erg), as `C00 … b`.
+    pub gamma_cgs: std::collections::BTreeMap<String, f64>,
+    /// The fitted engineering constants `E_u, E_v, μ` (dyn/cm) and `ν`, as the paper's tables.
+    pub engineering_cgs: std::collections::BTreeMap<String, f64>,
+    /// The true γ of the targets, SI.
+    pub truth: Gamma,
+    /// The starting γ, SI.
+    pub initial: Gamma,
+    /// `|fitted − true| / true` per parameter, and `iterations`.
+    pub relative_error: std::collections::BTreeMap<String, f64>,
+    /// `(fitted − true) / true` per parameter.
+    pub signed_error: std::collections::BTreeMap<String, f64>,
+    /// Accepted Levenberg–Marquardt steps.
+    pub iterations: usize,
+    /// `½‖r‖²` at the start and after every accepted step.
+    pub objective: Vec<f64>,
+    /// The descriptor.
+    pub descriptor: Descriptor,
+    /// Per scenario: name and the fitted equilibrium's largest vertex distance to its target, m.
+    pub scenarios: Vec<ScenarioFit>,
+    /// The equilibrium solve used (with its resolved step).
+    pub solve: Solve,
+    /// Wall time, s.
+    pub wall_seconds: f64,
+}
+
+/// One scenario's fit.
+#[derive(Debug, Clone, Serialize)]
+pub struct ScenarioFit {
+    /// Scenario name.
+    pub name: String,
+    /// Largest vertex distance between the fitted equilibrium and the target, m.
+    pub max_vertex_error: f64,
+    /// The target's equilibrium residual.
+    pub target_residual: f64,
+    /// The target's reaction magnitude, N.
+    pub target_reaction: f64,
+}
+
+/// A target: its scenario set up, the equilibrium with the true γ and what the fit compares.
+struct Target {
+    name: String,
+    setup: Setup,
+    x: Vec<V3>,
+    residual: f64,
+    reactions: Vec<f64>,
+    descriptor: Vec<f64>,
+}
+
+/// The fit as a least-squares problem over γ (SI, `[C00, C11, C01, C22, b]`).
+struct Problem<'a> {
+    cloth: &'a XpbdCloth,
+    cfg: &'a XpbdConfig,
+    solve: Solve,
+    targets: &'a [Target],
+}
+
+/// The config's shape descriptor of positions `x`.
+fn describe(cfg: &XpbdConfig, x: &[V3]) -> Vec<f64> {
+    match cfg.fit.descriptor {
+        Descriptor::Fft => fft_descriptor(x, cfg.swatch.n, cfg.swatch.n),
+        Descriptor::Positions => x.iter().flatten().copied().collect(),
+    }
+}
+
+impl Problem<'_> {
+    fn descriptor(&self, x: &[V3]) -> Vec<f64> {
+        describe(self.cfg, x)
+    }
+
+    /// The equilibrium of a scenario with γ, from the target's shape (paper §3.4.1).
+    fn equilibrium(&self, gamma: &Gamma, t: &Target) -> Result<Vec<V3>> {
+        let solve = Solve {
+            steps: self.cfg.fit.xpbd_steps,
+            ..self.solve
+        };
+        let mut x = self.cloth.solve(gamma, &t.setup.load, &t.x, &solve)?.x;
+        polish(
+            self.cloth,
+            gamma,
+            &t.setup.load,
+            &mut x,
+            self.cfg.fit.polish_iterations,
+            1e-10,
+        )?;
+        Ok(x)
+    }
+
+    fn evaluate(&self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
+        let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
+        let (mut r, mut j) = (Vec::new(), Vec::new());
+        for t in self.targets {
+            let x = self.equilibrium(&gamma, t)?;
+            let s = self.descriptor(&x);
+            let norm = t
+                .descriptor
+                .iter()
+                .map(|v| v * v)
+                .sum::<f64>()
+                .sqrt()
+                .max(1e-300);
+            r.extend(s.iter().zip(&t.descriptor).map(|(a, b)| (a - b) / norm));
+            let sens = if with_jacobian {
+                Some(sensitivity(
+                    self.cloth,
+                    &gamma,
+                    &t.setup.load,
+                    &x,
+                    &t.setup.groups,
+                )?)
+            } else {
+                None
+            };
+            if let Some(sens) = &sens {
+                // Descriptor derivatives along each dx/dγ_k, by central differences.
+                let mut cols = Vec::new();
+                for dx in &sens.dx {
+                    let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+                    let eps = if big > 0.0 {
+                        1e-6 * self.cfg.swatch.size / big
+                    } else {
+                        0.0
+                    };
+                    let col: Vec<f64> = if eps == 0.0 {
+                        vec![0.0; s.len()]
+                    } else {
+                        let shifted = |sign: f64| -> Vec<V3> {
+                            x.iter()
+                                .zip(dx)
+                                .map(|(a, d)| [0, 1, 2].map(|c| a[c] + sign * eps * d[c]))
+                                .collect()
+                        };
+                        let (up, dn) = (
+                            self.descriptor(&shifted(1.0)),
+                            self.descriptor(&shifted(-1.0)),
+                        );
+                        up.iter()
+                            .zip(&dn)
+                            .map(|(a, b)| (a - b) / (2.0 * eps * norm))
+                            .collect()
+                    };
+                    cols.push(col);
+                }
+                for row in 0..s.len() {
+                    j.push((0..5).map(|k| cols[k][row]).collect());
+                }
+            }
+            for (g, group) in t.setup.groups.iter().enumerate() {
+                let react = self.cloth.reaction(&gamma, &t.setup.load, &x, group);
+                let mag = dot(react, react).sqrt();
+                let target = t.reactions[g].max(1e-300);
+                let w = self.cfg.fit.force_weight;
+                r.push(w * (mag - t.reactions[g]) / target);
+                if let Some(sens) = &sens {
+                    let unit = [0, 1, 2].map(|c| react[c] / mag.max(1e-300));
+                    j.push(
+                        (0..5)
+                            .map(|k| w * dot(unit, sens.reactions[g][k]) / target)
+                            .collect(),
+                    );
+                }
+            }
+        }
+        // The Poisson penalty, as a residual: √s_ν · max(0, ν_uv − 0.5), ν_uv = C01 / C11.
+        let root = self.cfg.fit.poisson_penalty.sqrt();
+        let nu = p[2] / p[1];
+        r.push(root * (nu - 0.5).max(0.0));
+        if with_jacobian {
+            let mut row = vec![0.0; 5];
+            if nu > 0.5 {
+                row[1] = -root * p[2] / (p[1] * p[1]);
+                row[2] = root / p[1];
+            }
+            j.push(row);
+        }
+        Ok((r, j))
+    }
+}
+
+impl LeastSquares for Problem<'_> {
+    fn residuals(&mut self, p: &[f64]) -> Result<Vec<f64>> {
+        // A trial γ whose equilibrium cannot be found is a rejected step, not an error.
+        match self.evaluate(p, false) {
+            Ok((r, _)) => Ok(r),
+            Err(_) => Ok(vec![f64::INFINITY]),
+        }
+    }
+
+    fn jacobian(&mut self, p: &[f64]) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
+        self.evaluate(p, true)
+    }
+}
+
+/// The solve with its step resolved: `dt = 0` becomes `√(0.1 m_min / C_max)`.
+fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth) -> Solve {
+    let mut solve = cfg.solve;
+    if solve.dt <= 0.0 {
+        let g = cfg.truth.gamma();
+        let stiff = g
+            .c00
+            .max(g.c11)
+            .max(g.c22)
+            .max(cfg.initial.gamma().c00)
+            .max(cfg.initial.gamma().c11);
+        let m = cloth.mass.iter().copied().fold(f64::INFINITY, f64::min);
+        solve.dt = (0.1 * m / stiff).sqrt();
+    }
+    solve
+}
+
+/// What `estimate` takes from the command line.
+#[derive(Debug, Clone)]
+pub struct EstimateOptions {
+    /// Output directory.
+    pub out: PathBuf,
+    /// Overwrite an earlier estimate there.
+    pub force: bool,
+}
+
+/// Runs the sim-to-sim estimation of a config and writes `estimate.json`.
+pub fn estimate(
+    cfg: &XpbdConfig,
+    options: &EstimateOptions,
+    progress: &Progress,
+) -> Result<EstimateReport> {
+    let start = Instant::now();
+    let json = options.out.join("estimate.json");
+    if json.exists() && !options.force {
+        bail!("{} exists; pass --force to overwrite it", json.display());
+    }
+    let sw = cfg.swatch;
+    let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
+    let solve = resolved_solve(cfg, &cloth);
+    let truth = cfg.truth.gamma();
+    let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
+    let mut targets = Vec::new();
+    for (i, sc) in cfg.scenarios.iter().enumerate() {
+        let setup = sc.setup(
+            &cloth,
+            sw.n,
+            sw.size,
+            sw.gravity,
+            cfg.fit.noise,
+            cfg.fit.seed + i as u64,
+        );
+        let mut x = cloth.solve(&truth, &setup.load, &setup.start, &solve)?.x;
+        let residual = polish(&cloth, &truth, &setup.load, &mut x, 50, 1e-11)?;
+        let reactions = setup
+            .groups
+            .iter()
+            .map(|g| {
+                let r = cloth.reaction(&truth, &setup.load, &x, g);
+                dot(r, r).sqrt()
+            })
+            .collect();
+        targets.push(Target {
+            name: sc.name(),
+            descriptor: Vec::new(),
+            setup,
+            x,
+            residual,
+            reactions,
+        });
+        bar.inc(1);
+    }
+    bar.finish();
+    for t in &mut targets {
+        t.descriptor = describe(cfg, &t.x);
+    }
+    let mut problem = Problem {
+        cloth: &cloth,
+        cfg,
+        solve,
+        targets: &targets,
+    };
+    let initial = cfg.initial.gamma();
+    let p0 = initial.to_array();
+    let f = cfg.fit.bounds_factor;
+    let lower: Vec<f64> = p0
+        .iter()
+        .enumerate()
+        .map(|(k, v)| if k == 2 { 0.0 } else { v / f })
+        .collect();
+    let upper: Vec<f64> = p0.iter().map(|v| v * f).collect();
+    progress.note(&format!(
+        "fitting γ from {} targets ({} descriptor, step {:.2e} s)",
+        targets.len(),
+        match cfg.fit.descriptor {
+            Descriptor::Fft => "FFT",
+            Descriptor::Positions => "position",
+        },
+        solve.dt
+    ));
+    let fit = lm::minimize(
+        &mut problem,
+        &p0,
+        &lower,
+        &upper,
+        &Lm {
+            max_iterations: cfg.fit.max_iterations,
+            ..Lm::default()
+        },
+    )?;
+    let gamma = Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]);
+    let mut scenarios = Vec::new();
+    for t in &targets {
+        let x = problem.equilibrium(&gamma, t)?;
+        let err = x
+            .iter()
+            .zip(&t.x)
+            .map(|(a, b)| {
+                let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+                dot(d, d).sqrt()
+            })
+            .fold(0.0, f64::max);
+        scenarios.push(ScenarioFit {
+            name: t.name.clone(),
+            max_vertex_error: err,
+            target_residual: t.residual,
+            target_reaction: t.reactions.first().copied().unwrap_or(0.0),
+        });
+    }
+    let (fitted, true_) = (gamma.to_array(), truth.to_array());
+    let mut relative_error = std::collections::BTreeMap::new();
+    let mut signed_error = std::collections::BTreeMap::new();
+    for k in 0..5 {
+        let e = (fitted[k] - true_[k]) / true_[k];
+        relative_error.insert(NAMES[k].to_string(), e.abs());
+        signed_error.insert(NAMES[k].to_string(), e);
+    }
+    relative_error.insert("iterations".into(), fit.iterations as f64);
+    let cgs = gamma.to_cgs();
+    let eng = Gamma::from_array(cgs).engineering();
+    let report = EstimateReport {
+        name: cfg.name.clone(),
+        gamma,
+        gamma_cgs: NAMES.iter().map(|n| n.to_string()).zip(cgs).collect(),
+        engineering_cgs: ["E_u", "E_v", "mu", "nu"]
+            .iter()
+            .map(|n| n.to_string())
+            .zip(eng)
+            .collect(),
+        truth,
+        initial,
+        relative_error,
+        signed_error,
+        iterations: fit.iterations,
+        objective: fit.history,
+        descriptor: cfg.fit.descriptor,
+        scenarios,
+        solve,
+        wall_seconds: start.elapsed().as_secs_f64(),
+    };
+    crate::io::write_json(&json, &report)?;
+    Ok(report)
+}

@@ -1,0 +1,18 @@
+//! Static cloth parameters from drapes (paper 001): an XPBD cloth with
+//! an orthotropic StVK membrane and dihedral bending solved quasi-statically to equilibrium
+//! (`cloth`), its parameters γ = (C00, C11, C01, C22, b) in SI and the paper's CGS units
+//! (`material`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
+//! box-constrained Levenberg–Marquardt solver (`lm`), the equilibrium's Newton polish and
+//! implicit-function derivatives (`equilibrium`), the loading scenarios (`scenario`) and the
+//! sim-to-sim estimation of `springtime xpbd estimate` (`estimate`).
+
+pub mod cloth;
+pub mod descriptor;
+pub mod equilibrium;
+pub mod estimate;
+pub mod lm;
+pub mod material;
+pub mod scenario;
+
+pub use cloth::{Equilibrium, Load, Solve, Sweep, XpbdCloth};
+pub use material::Gamma;
