@@ -982,7 +982,7 @@ fn simulate(
     let rollout = Rollout::load(init)?;
     let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
     let track = Track::new(&rollout, &res);
-    let first = if rollout.velocities.is_some() { 0 } else { 1 };
+    let first = rollout.first_usable_frame();
     let physics = Physics::new(&config.sim, rollout.frame_dt, mass);
     physics
         .stability_of(topo, model)

@@ -567,14 +567,14 @@ mod tests {
         for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/configs")).unwrap() {
             let path = entry.unwrap().path();
             if path.extension().is_some_and(|e| e == "toml") {
-                // A fold job (`springtime fold`) embeds a training config under [surrogate].
+                // A fold job (`springtime fold`) embeds a training config under [surrogate]; an
+                // `xpbd estimate` job has a [truth] material.
                 let text = std::fs::read_to_string(&path).unwrap();
-                let fold = text
-                    .parse::<toml::Table>()
-                    .unwrap()
-                    .contains_key("surrogate");
-                let parsed = if fold {
+                let table = text.parse::<toml::Table>().unwrap();
+                let parsed = if table.contains_key("surrogate") {
                     crate::fold::FoldConfig::load(&path, &[]).map(|_| ())
+                } else if table.contains_key("truth") {
+                    crate::xpbd::estimate::XpbdConfig::load(&path).map(|_| ())
                 } else {
                     Config::load(&path, &[]).map(|_| ())
                 };

@@ -385,7 +385,7 @@ impl ClipSet {
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
-            let first = if rollout.velocities.is_some() { 0 } else { 1 };
+            let first = rollout.first_usable_frame();
             let plan = clips.plan(&name, rollout.timeline_frames(), this.frame_dt, first);
             for c in plan {
                 let steps = clips.steps_for(this.frame_dt);

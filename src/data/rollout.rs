@@ -112,6 +112,12 @@ pub const KEYS: &[&str] = &[
 ];
 
 impl Rollout {
+    /// The first frame a simulation can start from: frame 0 when velocities are stored, else
+    /// frame 1 (its velocity is the backward difference to frame 0).
+    pub fn first_usable_frame(&self) -> usize {
+        if self.velocities.is_some() { 0 } else { 1 }
+    }
+
     /// Reads and validates a rollout file.
     pub fn load(path: &Path) -> Result<Self> {
         Self::from_npz(&Npz::read(path)?)

@@ -199,7 +199,7 @@ impl TestTrack {
         Ok(Self {
             path: path.to_path_buf(),
             track: Track::new(&r, &res),
-            first: if r.velocities.is_some() { 0 } else { 1 },
+            first: r.first_usable_frame(),
             frame_dt: r.frame_dt,
         })
     }

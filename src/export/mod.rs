@@ -536,7 +536,7 @@ impl<'a> Export<'a> {
             return Ok((None, note));
         };
         let track = Track::new(&r, &Resampler::new(&r.rest_uv, &topo.rest_uv));
-        let first = if r.velocities.is_some() { 0 } else { 1 };
+        let first = r.first_usable_frame();
         let physics = self.run.physics(r.frame_dt);
         stability(&physics, None)?;
         let seconds = self

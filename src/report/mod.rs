@@ -759,7 +759,7 @@ fn rollout_figures(
     let topo = &inputs.topology;
     let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
     let track = Track::new(&r, &res);
-    let first = if r.velocities.is_some() { 0 } else { 1 };
+    let first = r.first_usable_frame();
     let frames = r.frames - 1 - first;
     let physics = physics_for(inputs, r.frame_dt);
     let keep = animation_frames(frames, 80);

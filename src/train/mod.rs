@@ -737,24 +737,58 @@ struct Fit<'a> {
 }
 
 impl Fit<'_> {
-    fn run<M: Trainable>(&self, mut model: M) -> Result<(TrainSummary, M)> {
-        let (run, job, config) = (self.run, self.job, self.job.config);
-        let clips = self.clips;
-        let mut start_iteration = 0;
+    /// The model of the last checkpoint of an interrupted run and the iteration to go on from
+    /// (the metrics after it dropped), or the fresh model and 0.
+    fn resume<M: Trainable>(&self, model: M) -> Result<(M, usize)> {
+        let run = self.run;
+        let mut out = (model, 0);
         if let Some(state) = self.previous
             && state.checkpoint > 0
         {
             let path = run.checkpoint(state.checkpoint);
             let record = burn::store::ModuleRecord::load(&path)
                 .map_err(|e| anyhow::anyhow!("cannot read checkpoint {}: {e}", path.display()))?;
-            model = model
+            out.0 = out
+                .0
                 .try_load_record(record)
                 .map_err(|e| anyhow::anyhow!("checkpoint does not fit this config: {e}"))?;
-            start_iteration = state.checkpoint;
+            out.1 = state.checkpoint;
         }
         if self.previous.is_some() {
-            run.truncate_metrics(start_iteration)?;
+            run.truncate_metrics(out.1)?;
         }
+        Ok(out)
+    }
+
+    /// Says what training did besides plain Adam steps: skipped steps, clips left out of a
+    /// gradient, springs clamped into the stable region.
+    fn note_interventions(&self, skipped: usize, dropped_clips: usize, clamped: usize) {
+        if skipped > 0 {
+            self.progress.note(&format!(
+                "{skipped} step(s) skipped: the loss was finite but its gradient was not"
+            ));
+        }
+        if dropped_clips > 0 {
+            self.progress.note(&format!(
+                "{dropped_clips} clip(s) left out of their step's gradient: their adjoint was not \
+                 finite or over {}× the batch's median (a buckling clip; shorter \
+                 `data.clips.steps` leave out fewer)",
+                crate::model::kernels::rollout::CHUNK_OUTLIER_RATIO
+            ));
+        }
+        if clamped > 0 {
+            self.progress.note(&format!(
+                "the stability limit was active: {clamped} spring values clamped so that \
+                 dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT} (see the `clamped` column of metrics.csv)"
+            ));
+        }
+    }
+
+    fn run<M: Trainable>(&self, mut model: M) -> Result<(TrainSummary, M)> {
+        let (run, job, config) = (self.run, self.job, self.job.config);
+        let clips = self.clips;
+        let (resumed, mut start_iteration) = self.resume(model)?;
+        model = resumed;
         model.check_start(job)?;
         let passes = config.train.passes(config.model.kind);
         let total: usize = passes.iter().map(|p| p.config.iterations).sum();
@@ -925,25 +959,7 @@ impl Fit<'_> {
             start_iteration = global;
         }
         bar.finish();
-        if skipped > 0 {
-            self.progress.note(&format!(
-                "{skipped} step(s) skipped: the loss was finite but its gradient was not"
-            ));
-        }
-        if dropped_clips > 0 {
-            self.progress.note(&format!(
-                "{dropped_clips} clip(s) left out of their step's gradient: their adjoint was not \
-                 finite or over {}× the batch's median (a buckling clip; shorter \
-                 `data.clips.steps` leave out fewer)",
-                crate::model::kernels::rollout::CHUNK_OUTLIER_RATIO
-            ));
-        }
-        if clamped_total > 0 {
-            self.progress.note(&format!(
-                "the stability limit was active: {clamped_total} spring values clamped so that \
-                 dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT} (see the `clamped` column of metrics.csv)"
-            ));
-        }
+        self.note_interventions(skipped, dropped_clips, clamped_total);
         run.append_metrics(&pending)?;
         let model = model.valid();
         RunDir::save_module(&model, &run.model())?;
