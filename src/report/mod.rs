@@ -776,139 +776,54 @@ fn rollout_figures(
         |_| bar.inc(1),
     )?;
     bar.finish();
-    let (p, n) = (topo.num_particles(), r.landmarks);
-    let src = |j: usize| &r.positions[(first + j) * n * 3..(first + j + 1) * n * 3];
-    let sur = |i: usize| &sim.positions[i * p * 3..(i + 1) * p * 3];
-    let view = View::default();
-    let bounds = view.bounds(
-        sim.frames
+    let mut scene = RolloutScene {
+        name: test
+            .file_name()
+            .map(|f| f.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        src_edges: source_edges(&r),
+        structural: topo
+            .springs
             .iter()
-            .map(|&j| src(j))
-            .chain((0..sim.frames.len()).map(sur)),
-    );
-    let src_edges = source_edges(&r);
-    let structural: Vec<[usize; 2]> = topo
-        .springs
-        .iter()
-        .zip(&topo.family)
-        .filter(|(_, f)| **f == SpringFamily::Structural)
-        .map(|(s, _)| *s)
-        .collect();
-    let pinned_sur = &track.pinned;
-    let name = test
-        .file_name()
-        .map(|f| f.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let draw_pair = |area: &Area, i: usize, src_caption: &str, sur_caption: &str| -> Result<()> {
-        let j = sim.frames[i];
-        let halves = area.split_evenly((1, 2));
-        plot_pair(
-            &halves[0],
-            &halves[1],
-            &view,
-            bounds,
-            (src(j), &src_edges, &r.pinned),
-            (sur(i), &structural, pinned_sur),
-            (src_caption, sur_caption),
-        )
+            .zip(&topo.family)
+            .filter(|(_, f)| **f == SpringFamily::Structural)
+            .map(|(s, _)| *s)
+            .collect(),
+        pinned: track.pinned.clone(),
+        view: View::default(),
+        bounds: ((0.0, 0.0), (0.0, 0.0)),
+        particles: topo.num_particles(),
+        first,
+        frames,
+        r,
+        sim,
     };
-    // The animation: each frame shown for its time in the rollout (rounded to the GIF's
-    // hundredths of a second without drifting), the last held.
-    let (w, h) = (760u32, 430u32);
-    let duration = frames as f64 * r.frame_dt;
-    let mut rgb_frames = Vec::with_capacity(sim.frames.len());
-    let mut delays = Vec::with_capacity(sim.frames.len());
-    let cs = |j: usize| (j as f64 * r.frame_dt * 100.0).round() as i64;
-    for (i, &j) in sim.frames.iter().enumerate() {
-        let t = j as f64 * r.frame_dt;
-        rgb_frames.push(plot::render(w, h, |root| {
-            let body = plot::title(
-                root,
-                &format!("test rollout {name}   t = {t:.3} s of {duration:.2} s"),
-                16,
-            )?;
-            let (pair, legend) = body.split_vertically(h - plot::TITLE_HEIGHT - 22);
-            draw_pair(&pair, i, "source: landmarks", "surrogate: learned springs")?;
-            legend
-                .draw(&Text::new(
-                    "red: pinned, following the data  ·  grey dots (right): the source  ·  \
-                     fixed oblique view, z up",
-                    (12, 2),
-                    plot::text(12).color(&RGBColor(90, 90, 90)),
-                ))
-                .map_err(|e| anyhow::anyhow!("drawing failed: {e}"))?;
-            Ok(())
-        })?);
-        let delay = match sim.frames.get(i + 1) {
-            Some(&next) => cs(next) - cs(j),
-            None => 150, // hold the last state
-        };
-        delays.push(delay.clamp(2, u16::MAX as i64) as u16);
-    }
-    let gif = dir.join("rollout.gif");
-    plot::write_gif(&gif, w, h, &rgb_frames, &delays)?;
-    // Key frames: the start, early motion and the end.
-    let picks: Vec<usize> = [0.0, 0.05, 0.15, 0.4, 1.0]
-        .iter()
-        .map(|f| {
-            let target = (f * frames as f64).round() as usize;
-            (0..sim.frames.len())
-                .min_by_key(|&i| sim.frames[i].abs_diff(target))
-                .unwrap_or(0)
-        })
-        .collect::<std::collections::BTreeSet<_>>()
-        .into_iter()
-        .collect();
-    let (cw, ch) = (270u32, 250u32);
-    let stills = dir.join("rollout_frames.png");
-    plot::png_figure(
-        &stills,
-        cw * picks.len() as u32,
-        2 * ch + plot::TITLE_HEIGHT,
-        |root| {
-            let body = plot::title(
-                root,
-                &format!("test rollout {name}: source (top) and surrogate (bottom)"),
-                16,
-            )?;
-            let cells = body.split_evenly((2, picks.len()));
-            for (c, &i) in picks.iter().enumerate() {
-                let t = sim.frames[i] as f64 * r.frame_dt;
-                let end = if sim.frames[i] == frames {
-                    " (end)"
-                } else {
-                    ""
-                };
-                plot_pair(
-                    &cells[c],
-                    &cells[picks.len() + c],
-                    &view,
-                    bounds,
-                    (src(sim.frames[i]), &src_edges, &r.pinned),
-                    (sur(i), &structural, pinned_sur),
-                    (
-                        &format!("source, t = {t:.2} s{end}"),
-                        &format!("surrogate, t = {t:.2} s{end}"),
-                    ),
-                )?;
-            }
-            Ok(())
-        },
-    )?;
+    scene.bounds = scene.view.bounds(
+        scene
+            .sim
+            .frames
+            .iter()
+            .map(|&j| scene.src(j))
+            .chain((0..scene.sim.frames.len()).map(|i| scene.sur(i))),
+    );
+    scene.write_gif(&dir.join("rollout.gif"))?;
+    scene.write_stills(&dir.join("rollout_frames.png"))?;
     let caption = |what: &str| {
         format!(
-            "{what} Test rollout {name}: on the left (top) the source's landmarks{}, on the right \
+            "{what} Test rollout {}: on the left (top) the source's landmarks{}, on the right \
              (bottom) the surrogate's particles and structural springs simulated freely from the \
              first frame, its pinned particles (red) following the data; light grey dots behind \
              the surrogate are the source, so any gap is the motion error. A fixed oblique view \
              (z up, gravity along −z; the triad shows the axes), the same scale in every frame.",
-            if src_edges.is_empty() {
+            scene.name,
+            if scene.src_edges.is_empty() {
                 ""
             } else {
                 " and their edges"
             }
         )
     };
+    let duration = frames as f64 * scene.r.frame_dt;
     Ok(vec![
         figure(
             dir,
@@ -916,7 +831,7 @@ fn rollout_figures(
             "Rollout animation",
             caption(&format!(
                 "{} frames over {duration:.2} s, played in real time, holding the last frame.",
-                sim.frames.len(),
+                scene.sim.frames.len(),
             )),
         ),
         figure(
@@ -926,6 +841,154 @@ fn rollout_figures(
             caption("The start, early motion and the last frame of the rollout."),
         ),
     ])
+}
+
+/// A test rollout and the surrogate's free rollout beside it, ready to draw.
+struct RolloutScene {
+    name: String,
+    r: Rollout,
+    sim: eval::FreeRollout,
+    src_edges: Vec<[usize; 2]>,
+    structural: Vec<[usize; 2]>,
+    /// The surrogate's pinned particles.
+    pinned: Vec<bool>,
+    view: View,
+    bounds: ((f64, f64), (f64, f64)),
+    particles: usize,
+    /// The rollout's first usable frame.
+    first: usize,
+    /// Frames simulated.
+    frames: usize,
+}
+
+impl RolloutScene {
+    /// The source's landmarks at simulated frame `j`.
+    fn src(&self, j: usize) -> &[f32] {
+        let n = self.r.landmarks;
+        &self.r.positions[(self.first + j) * n * 3..(self.first + j + 1) * n * 3]
+    }
+
+    /// The surrogate's particles at kept frame `i`.
+    fn sur(&self, i: usize) -> &[f32] {
+        let p = self.particles;
+        &self.sim.positions[i * p * 3..(i + 1) * p * 3]
+    }
+
+    /// Source (left or top) and surrogate (right or bottom) at kept frame `i`.
+    fn pair(&self, left: &Area, right: &Area, i: usize, captions: (&str, &str)) -> Result<()> {
+        plot_pair(
+            left,
+            right,
+            &self.view,
+            self.bounds,
+            (
+                self.src(self.sim.frames[i]),
+                &self.src_edges,
+                &self.r.pinned,
+            ),
+            (self.sur(i), &self.structural, &self.pinned),
+            captions,
+        )
+    }
+
+    /// The animation: each frame shown for its time in the rollout (rounded to the GIF's
+    /// hundredths of a second without drifting), the last held.
+    fn write_gif(&self, path: &Path) -> Result<()> {
+        let (w, h) = (760u32, 430u32);
+        let dt = self.r.frame_dt;
+        let duration = self.frames as f64 * dt;
+        let frames = &self.sim.frames;
+        let mut rgb_frames = Vec::with_capacity(frames.len());
+        let mut delays = Vec::with_capacity(frames.len());
+        let cs = |j: usize| (j as f64 * dt * 100.0).round() as i64;
+        for (i, &j) in frames.iter().enumerate() {
+            let t = j as f64 * dt;
+            rgb_frames.push(plot::render(w, h, |root| {
+                let body = plot::title(
+                    root,
+                    &format!(
+                        "test rollout {}   t = {t:.3} s of {duration:.2} s",
+                        self.name
+                    ),
+                    16,
+                )?;
+                let (pair, legend) = body.split_vertically(h - plot::TITLE_HEIGHT - 22);
+                let halves = pair.split_evenly((1, 2));
+                self.pair(
+                    &halves[0],
+                    &halves[1],
+                    i,
+                    ("source: landmarks", "surrogate: learned springs"),
+                )?;
+                legend
+                    .draw(&Text::new(
+                        "red: pinned, following the data  ·  grey dots (right): the source  ·  \
+                         fixed oblique view, z up",
+                        (12, 2),
+                        plot::text(12).color(&RGBColor(90, 90, 90)),
+                    ))
+                    .map_err(|e| anyhow::anyhow!("drawing failed: {e}"))?;
+                Ok(())
+            })?);
+            let delay = match frames.get(i + 1) {
+                Some(&next) => cs(next) - cs(j),
+                None => 150, // hold the last state
+            };
+            delays.push(delay.clamp(2, u16::MAX as i64) as u16);
+        }
+        plot::write_gif(path, w, h, &rgb_frames, &delays)
+    }
+
+    /// Key frames: the start, early motion and the end, source above surrogate.
+    fn write_stills(&self, path: &Path) -> Result<()> {
+        let frames = &self.sim.frames;
+        let picks: Vec<usize> = [0.0, 0.05, 0.15, 0.4, 1.0]
+            .iter()
+            .map(|f| {
+                let target = (f * self.frames as f64).round() as usize;
+                (0..frames.len())
+                    .min_by_key(|&i| frames[i].abs_diff(target))
+                    .unwrap_or(0)
+            })
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        let (cw, ch) = (270u32, 250u32);
+        plot::png_figure(
+            path,
+            cw * picks.len() as u32,
+            2 * ch + plot::TITLE_HEIGHT,
+            |root| {
+                let body = plot::title(
+                    root,
+                    &format!(
+                        "test rollout {}: source (top) and surrogate (bottom)",
+                        self.name
+                    ),
+                    16,
+                )?;
+                let cells = body.split_evenly((2, picks.len()));
+                for (c, &i) in picks.iter().enumerate() {
+                    let t = frames[i] as f64 * self.r.frame_dt;
+                    let end = if frames[i] == self.frames {
+                        " (end)"
+                    } else {
+                        ""
+                    };
+                    self.pair(
+                        &cells[c],
+                        &cells[picks.len() + c],
+                        i,
+                        (
+                            &format!("source, t = {t:.2} s{end}"),
+                            &format!("surrogate, t = {t:.2} s{end}"),
+                        ),
+                    )?;
+                }
+                Ok(())
+            },
+        )
+    }
 }
 
 type Cloth<'a> = (&'a [f32], &'a [[usize; 2]], &'a [bool]);
