@@ -389,112 +389,14 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
     progress.note(&format!(
         "fold: settling FEM {coarse}×{coarse} and {fine}×{fine} (k_b = {bending} and 0), aligned and misaligned"
     ));
-    let systems = [
-        (System::FemCoarse, coarse, None),
-        (System::FemFine, fine, None),
-        (System::FemFineNoBending, fine, Some(0.0)),
-    ];
-    // The fine meshes first (they take longest); one task per settling, as many at a time as
-    // there are cores.
-    let tasks: Vec<(System, usize, Option<f64>, FoldCase)> = systems
-        .iter()
-        .rev()
-        .flat_map(|&(system, n, kb)| FoldCase::ALL.map(|case| (system, n, kb, case)))
-        .collect();
-    let mut settled = tasks
-        .into_par_iter()
-        .with_max_len(1)
-        .map(|(system, n, kb, case)| -> Result<Settled> {
-            let setup = fem_setup(cfg, n, kb);
-            let label = system.label(coarse, fine);
-            let bar_note = |t: f64| {
-                if n > coarse {
-                    progress.note(&format!("  {label} {}: t = {t:.2} s", case.name()));
-                }
-            };
-            let (mut r, x) = settle_case(cfg, &setup, case, bar_note)?;
-            r.system = label;
-            progress.note(&format!(
-                "  {} {}: α = {:.1}°, sag {:.3} m, membrane share {:.2}, settled in {:.2} s \
-                 ({} steps of {:.2e} s, {:.0} s wall{})",
-                r.system,
-                case.name(),
-                r.alpha_deg,
-                r.sag_m,
-                r.membrane_share.unwrap_or(f64::NAN),
-                r.settle_seconds,
-                (r.settle_seconds / r.dt).round(),
-                r.dt,
-                r.wall_seconds,
-                if r.converged { "" } else { ", NOT converged" }
-            ));
-            Ok((system, r, x))
-        })
-        .collect::<Result<Vec<_>>>()?;
+    let mut settled = settle_references(cfg, coarse, fine, progress)?;
 
     // 2. The surrogate: trained on random rollouts of the coarse mesh only.
-    let run = RunDir::new(&run_dir);
-    let finished = matches!(
-        run.state().ok().flatten().map(|s| s.status),
-        Some(crate::train::Status::Finished)
-    );
-    let summary = if finished && !options.force {
-        progress.note(&format!(
-            "fold: reusing the trained surrogate in {}",
-            run_dir.display()
-        ));
-        None
-    } else {
-        progress.note(&format!(
-            "fold: training the surrogate on random rollouts of FEM {coarse}×{coarse} into {}",
-            run_dir.display()
-        ));
-        Some(crate::train::train(
-            &train_cfg,
-            &TrainOptions {
-                out: Some(run_dir.clone()),
-                resume: false,
-                force: true,
-            },
-            progress,
-        )?)
-    };
-    let setup = surrogate_setup(cfg, &run_dir)?;
-    for case in FoldCase::ALL {
-        let (mut r, x) = settle_case(cfg, &setup, case, |_| {})?;
-        r.system = System::Surrogate.label(coarse, fine);
-        progress.note(&format!(
-            "  surrogate {}: α = {:.1}°, sag {:.3} m, settled in {:.2} s{}",
-            case.name(),
-            r.alpha_deg,
-            r.sag_m,
-            r.settle_seconds,
-            if r.converged { "" } else { " (NOT converged)" }
-        ));
-        settled.push((System::Surrogate, r, x));
-    }
+    let summary = train_surrogate(&train_cfg, &run_dir, options.force, coarse, progress)?;
+    settled.extend(settle_surrogate(cfg, &run_dir, coarse, fine, progress)?);
 
     // 3. Metrics against the fine meshes on the shared points.
-    let find = |s: System, c: FoldCase| {
-        settled
-            .iter()
-            .position(|(sys, r, _)| *sys == s && r.case == c)
-            .expect("settled")
-    };
-    let mut results = Vec::new();
-    for system in System::ALL {
-        for case in FoldCase::ALL {
-            let i = find(system, case);
-            let (_, r, x) = &settled[i];
-            let at = metrics::nested_indices(r.n, fine)?;
-            let fine_x = &settled[find(System::FemFine, case)].2;
-            let flat_x = &settled[find(System::FemFineNoBending, case)].2;
-            let mut r = r.clone();
-            r.rmse_fine_m = metrics::shape_rmse(x, fine_x, &at);
-            r.rmse_fine_no_bending_m = metrics::shape_rmse(x, flat_x, &at);
-            results.push(r);
-        }
-    }
+    let results = shape_errors(&settled, fine)?;
     let get = |s: System, c: FoldCase| {
         let label = s.label(coarse, fine);
         results
@@ -532,6 +434,145 @@ pub fn run(cfg: &FoldConfig, options: &FoldOptions, progress: &Progress) -> Resu
     };
     crate::io::write_json(&json, &report)?;
     Ok(report)
+}
+
+/// Settles the FEM references (coarse; fine; fine without bending) in both cases, as many at a
+/// time as there are cores, the fine meshes first (they take longest).
+fn settle_references(
+    cfg: &FoldConfig,
+    coarse: usize,
+    fine: usize,
+    progress: &Progress,
+) -> Result<Vec<Settled>> {
+    let systems = [
+        (System::FemCoarse, coarse, None),
+        (System::FemFine, fine, None),
+        (System::FemFineNoBending, fine, Some(0.0)),
+    ];
+    // The fine meshes first (they take longest); one task per settling, as many at a time as
+    // there are cores.
+    let tasks: Vec<(System, usize, Option<f64>, FoldCase)> = systems
+        .iter()
+        .rev()
+        .flat_map(|&(system, n, kb)| FoldCase::ALL.map(|case| (system, n, kb, case)))
+        .collect();
+    tasks
+        .into_par_iter()
+        .with_max_len(1)
+        .map(|(system, n, kb, case)| -> Result<Settled> {
+            let setup = fem_setup(cfg, n, kb);
+            let label = system.label(coarse, fine);
+            let bar_note = |t: f64| {
+                if n > coarse {
+                    progress.note(&format!("  {label} {}: t = {t:.2} s", case.name()));
+                }
+            };
+            let (mut r, x) = settle_case(cfg, &setup, case, bar_note)?;
+            r.system = label;
+            progress.note(&format!(
+                "  {} {}: α = {:.1}°, sag {:.3} m, membrane share {:.2}, settled in {:.2} s \
+                 ({} steps of {:.2e} s, {:.0} s wall{})",
+                r.system,
+                case.name(),
+                r.alpha_deg,
+                r.sag_m,
+                r.membrane_share.unwrap_or(f64::NAN),
+                r.settle_seconds,
+                (r.settle_seconds / r.dt).round(),
+                r.dt,
+                r.wall_seconds,
+                if r.converged { "" } else { ", NOT converged" }
+            ));
+            Ok((system, r, x))
+        })
+        .collect::<Result<Vec<_>>>()
+}
+
+/// Trains the surrogate on random rollouts of the coarse mesh, or reuses a finished one
+/// (`None`).
+fn train_surrogate(
+    train_cfg: &Config,
+    run_dir: &Path,
+    force: bool,
+    coarse: usize,
+    progress: &Progress,
+) -> Result<Option<crate::train::TrainSummary>> {
+    let run = RunDir::new(run_dir);
+    let finished = matches!(
+        run.state().ok().flatten().map(|s| s.status),
+        Some(crate::train::Status::Finished)
+    );
+    if finished && !force {
+        progress.note(&format!(
+            "fold: reusing the trained surrogate in {}",
+            run_dir.display()
+        ));
+        return Ok(None);
+    }
+    progress.note(&format!(
+        "fold: training the surrogate on random rollouts of FEM {coarse}×{coarse} into {}",
+        run_dir.display()
+    ));
+    Ok(Some(crate::train::train(
+        train_cfg,
+        &TrainOptions {
+            out: Some(run_dir.to_path_buf()),
+            resume: false,
+            force: true,
+        },
+        progress,
+    )?))
+}
+
+/// Settles the trained surrogate in both cases.
+fn settle_surrogate(
+    cfg: &FoldConfig,
+    run_dir: &Path,
+    coarse: usize,
+    fine: usize,
+    progress: &Progress,
+) -> Result<Vec<Settled>> {
+    let setup = surrogate_setup(cfg, run_dir)?;
+    let mut settled = Vec::new();
+    for case in FoldCase::ALL {
+        let (mut r, x) = settle_case(cfg, &setup, case, |_| {})?;
+        r.system = System::Surrogate.label(coarse, fine);
+        progress.note(&format!(
+            "  surrogate {}: α = {:.1}°, sag {:.3} m, settled in {:.2} s{}",
+            case.name(),
+            r.alpha_deg,
+            r.sag_m,
+            r.settle_seconds,
+            if r.converged { "" } else { " (NOT converged)" }
+        ));
+        settled.push((System::Surrogate, r, x));
+    }
+    Ok(settled)
+}
+
+/// Every system's results with its shape RMSE to the fine meshes on the shared points.
+fn shape_errors(settled: &[Settled], fine: usize) -> Result<Vec<CaseResult>> {
+    let find = |s: System, c: FoldCase| {
+        settled
+            .iter()
+            .position(|(sys, r, _)| *sys == s && r.case == c)
+            .expect("settled")
+    };
+    let mut results = Vec::new();
+    for system in System::ALL {
+        for case in FoldCase::ALL {
+            let i = find(system, case);
+            let (_, r, x) = &settled[i];
+            let at = metrics::nested_indices(r.n, fine)?;
+            let fine_x = &settled[find(System::FemFine, case)].2;
+            let flat_x = &settled[find(System::FemFineNoBending, case)].2;
+            let mut r = r.clone();
+            r.rmse_fine_m = metrics::shape_rmse(x, fine_x, &at);
+            r.rmse_fine_no_bending_m = metrics::shape_rmse(x, flat_x, &at);
+            results.push(r);
+        }
+    }
+    Ok(results)
 }
 
 /// Fails when `data_dir` or `run_dir` (left by an interrupted job) came from another config
