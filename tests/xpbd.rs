@@ -97,3 +97,36 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
         "{err}"
     );
 }
+
+#[test]
+fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
+    let dir = common::temp_dir("xpbd-bending-first");
+    let cfg = SMALL.replace(
+        "max_iterations = 20",
+        "max_iterations = 20\nschedule = \"bending_first\"\nrounds = 2\nstarts = 2",
+    ) + "\n[[scenarios]]\nkind = \"cantilever\"\n";
+    std::fs::write(dir.join("bf.toml"), cfg).unwrap();
+    let out = springtime(&["xpbd", "estimate", "bf.toml", "--out", "est"], &dir);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("est/estimate.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["schedule"], "bending_first");
+    let starts = json["starts"].as_array().unwrap();
+    assert_eq!(starts.len(), 2);
+    // The second start differs from the first (a random guess around it).
+    assert_ne!(starts[0]["start"]["C00"], starts[1]["start"]["C00"]);
+    for key in ["C00", "C11", "C01", "C22", "b"] {
+        let e = json["relative_error"][key].as_f64().unwrap();
+        assert!(e < 5e-3, "relative error of {key}: {e}");
+    }
+    let best = starts
+        .iter()
+        .map(|s| s["objective"].as_f64().unwrap())
+        .fold(f64::INFINITY, f64::min);
+    assert_eq!(json["final_objective"].as_f64().unwrap(), best);
+}

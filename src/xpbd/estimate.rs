@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
+use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
 use super::cloth::{Solve, XpbdCloth};
@@ -82,14 +83,35 @@ pub enum Descriptor {
     Positions,
 }
 
+/// How the parameters are fitted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Schedule {
+    /// All five at once on every target.
+    Joint,
+    /// The paper's §5 schedule: `b` alone on the bending targets (cantilevers), then the four
+    /// membrane parameters on the others, `rounds` times.
+    BendingFirst,
+}
+
 /// `[fit]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct FitConfig {
     /// Shape descriptor.
     pub descriptor: Descriptor,
-    /// Levenberg–Marquardt's accepted steps at most.
+    /// Levenberg–Marquardt's accepted steps at most (per pass).
     pub max_iterations: usize,
+    /// Joint or bending-first.
+    pub schedule: Schedule,
+    /// Rounds of the bending-first schedule.
+    pub rounds: usize,
+    /// Starts: the initial guess, then guesses with every parameter scaled by a factor drawn
+    /// log-uniformly within `1/start_spread … start_spread` (seeded by `seed`); the start
+    /// whose fit has the lowest objective over every target wins.
+    pub starts: usize,
+    /// See `starts`.
+    pub start_spread: f64,
     /// Weight of the reactions' relative errors beside the descriptors'.
     pub force_weight: f64,
     /// The Poisson penalty's scale `s_ν` (Eq. 8).
@@ -112,6 +134,10 @@ impl Default for FitConfig {
         Self {
             descriptor: Descriptor::Fft,
             max_iterations: 20,
+            schedule: Schedule::Joint,
+            rounds: 3,
+            starts: 1,
+            start_spread: 2.0,
             force_weight: 1.0,
             poisson_penalty: 1e8,
             bounds_factor: 100.0,
@@ -211,6 +237,12 @@ pub struct EstimateReport {
     pub iterations: usize,
     /// `½‖r‖²` at the start and after every accepted step.
     pub objective: Vec<f64>,
+    /// `½‖r‖²` of the chosen fit over every target (the bending-first passes each see a part).
+    pub final_objective: f64,
+    /// The schedule.
+    pub schedule: Schedule,
+    /// Every start's guess, fit and objective over every target.
+    pub starts: Vec<StartFit>,
     /// The descriptor.
     pub descriptor: Descriptor,
     /// Per scenario: name and the fitted equilibrium's largest vertex distance to its target, m.
@@ -219,6 +251,19 @@ pub struct EstimateReport {
     pub solve: Solve,
     /// Wall time, s.
     pub wall_seconds: f64,
+}
+
+/// One start of the fit.
+#[derive(Debug, Clone, Serialize)]
+pub struct StartFit {
+    /// Its initial guess, SI.
+    pub start: Gamma,
+    /// Its result, SI.
+    pub fitted: Gamma,
+    /// `½‖r‖²` over every target at its result.
+    pub objective: f64,
+    /// Its accepted Levenberg–Marquardt steps.
+    pub iterations: usize,
 }
 
 /// One scenario's fit.
@@ -237,6 +282,7 @@ pub struct ScenarioFit {
 /// A target: its scenario set up, the equilibrium with the true γ and what the fit compares.
 struct Target {
     name: String,
+    bending: bool,
     setup: Setup,
     x: Vec<V3>,
     residual: f64,
@@ -249,7 +295,7 @@ struct Problem<'a> {
     cloth: &'a XpbdCloth,
     cfg: &'a XpbdConfig,
     solve: Solve,
-    targets: &'a [Target],
+    targets: Vec<&'a Target>,
 }
 
 /// The config's shape descriptor of positions `x`.
@@ -286,7 +332,7 @@ impl Problem<'_> {
     fn evaluate(&self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
         let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
         let (mut r, mut j) = (Vec::new(), Vec::new());
-        for t in self.targets {
+        for &t in &self.targets {
             let x = self.equilibrium(&gamma, t)?;
             let s = self.descriptor(&x);
             let norm = t
@@ -452,6 +498,7 @@ pub fn estimate(
             .collect();
         targets.push(Target {
             name: sc.name(),
+            bending: sc.is_bending(),
             descriptor: Vec::new(),
             setup,
             x,
@@ -464,11 +511,11 @@ pub fn estimate(
     for t in &mut targets {
         t.descriptor = describe(cfg, &t.x);
     }
-    let mut problem = Problem {
+    let problem = |subset: &dyn Fn(&Target) -> bool| Problem {
         cloth: &cloth,
         cfg,
         solve,
-        targets: &targets,
+        targets: targets.iter().filter(|t| subset(t)).collect(),
     };
     let initial = cfg.initial.gamma();
     let p0 = initial.to_array();
@@ -480,24 +527,89 @@ pub fn estimate(
         .collect();
     let upper: Vec<f64> = p0.iter().map(|v| v * f).collect();
     progress.note(&format!(
-        "fitting γ from {} targets ({} descriptor, step {:.2e} s)",
+        "fitting γ from {} targets ({} descriptor, {:?} schedule, {} start(s), step {:.2e} s)",
         targets.len(),
         match cfg.fit.descriptor {
             Descriptor::Fft => "FFT",
             Descriptor::Positions => "position",
         },
+        cfg.fit.schedule,
+        cfg.fit.starts.max(1),
         solve.dt
     ));
-    let fit = lm::minimize(
-        &mut problem,
-        &p0,
-        &lower,
-        &upper,
-        &Lm {
-            max_iterations: cfg.fit.max_iterations,
-            ..Lm::default()
-        },
-    )?;
+    let lm = Lm {
+        max_iterations: cfg.fit.max_iterations,
+        ..Lm::default()
+    };
+    let mut all = problem(&|_| true);
+    let mut rng = StdRng::seed_from_u64(cfg.fit.seed);
+    let mut best: Option<(lm::Fit, StartFit)> = None;
+    let mut start_fits = Vec::new();
+    for start in 0..cfg.fit.starts.max(1) {
+        let s0: Vec<f64> = p0
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| {
+                let factor = if start == 0 {
+                    1.0
+                } else {
+                    cfg.fit.start_spread.powf(rng.random_range(-1.0..1.0))
+                };
+                (v * factor).clamp(lower[k], upper[k])
+            })
+            .collect();
+        let fit = match cfg.fit.schedule {
+            Schedule::Joint => lm::minimize(&mut all, &s0, &lower, &upper, &lm)?,
+            Schedule::BendingFirst => {
+                let (mut p, mut history, mut iterations) = (s0.clone(), Vec::new(), 0);
+                for _ in 0..cfg.fit.rounds.max(1) {
+                    for bending in [true, false] {
+                        let mut part = problem(&|t: &Target| t.bending == bending);
+                        if part.targets.is_empty() {
+                            continue;
+                        }
+                        // Hold the other parameters at their current values.
+                        let (lo, hi): (Vec<f64>, Vec<f64>) = (0..5)
+                            .map(|k| {
+                                if (k == 4) == bending {
+                                    (lower[k], upper[k])
+                                } else {
+                                    (p[k], p[k])
+                                }
+                            })
+                            .unzip();
+                        let pass = lm::minimize(&mut part, &p, &lo, &hi, &lm)?;
+                        p = pass.p;
+                        iterations += pass.iterations;
+                        history.extend(pass.history);
+                    }
+                }
+                let r = all.residuals(&p)?;
+                let cost = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
+                lm::Fit {
+                    p,
+                    cost,
+                    iterations,
+                    history,
+                }
+            }
+        };
+        // Every start is judged on every target.
+        let r = all.residuals(&fit.p)?;
+        let objective = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
+        let record = StartFit {
+            start: Gamma::from_array([s0[0], s0[1], s0[2], s0[3], s0[4]]),
+            fitted: Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]),
+            objective,
+            iterations: fit.iterations,
+        };
+        start_fits.push(record.clone());
+        if best.as_ref().is_none_or(|b| objective < b.1.objective) {
+            best = Some((fit, record));
+        }
+    }
+    let (fit, chosen) = best.expect("at least one start");
+    let problem = all;
     let gamma = Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]);
     let mut scenarios = Vec::new();
     for t in &targets {
@@ -543,6 +655,9 @@ pub fn estimate(
         signed_error,
         iterations: fit.iterations,
         objective: fit.history,
+        final_objective: chosen.objective,
+        schedule: cfg.fit.schedule,
+        starts: start_fits,
         descriptor: cfg.fit.descriptor,
         scenarios,
         solve,

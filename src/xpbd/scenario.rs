@@ -29,6 +29,10 @@ pub enum Scenario {
         #[serde(default)]
         axis: Axis,
     },
+    /// A cantilever: the first two rows (`v = 0` and the next) held flat, the rest hanging
+    /// under gravity. Its shape is set by bending mostly: the bending targets of the
+    /// bending-first schedule. Reaction: the held rows.
+    Cantilever,
     /// The corner `(0, 0)` held, the opposite corner moved out along the diagonal by
     /// `strain` times its length. Reaction: that corner.
     DiagonalPull {
@@ -60,6 +64,12 @@ pub struct Setup {
 }
 
 impl Scenario {
+    /// Whether the scenario's shape is set by bending (the bending pass of the bending-first
+    /// schedule) rather than by the membrane.
+    pub fn is_bending(&self) -> bool {
+        matches!(self, Scenario::Cantilever)
+    }
+
     /// A short name for files and tables.
     pub fn name(&self) -> String {
         match self {
@@ -72,6 +82,7 @@ impl Scenario {
                 }
             ),
             Scenario::DiagonalPull { strain } => format!("diagonal_pull_{strain}"),
+            Scenario::Cantilever => "cantilever".into(),
         }
     }
 
@@ -131,6 +142,14 @@ impl Scenario {
                     q[c] *= 1.0 + strain;
                     q
                 })
+            }
+            Scenario::Cantilever => {
+                let held: Vec<usize> = (0..2 * n).collect();
+                for &i in &held {
+                    load.clamped[i] = Some(rest[i]);
+                }
+                groups.push(held);
+                Box::new(|p: V3| p)
             }
             Scenario::DiagonalPull { strain } => {
                 let far = id(n - 1, n - 1);
