@@ -15,7 +15,6 @@ use crate::config::Config;
 use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
-use crate::sim::Physics;
 use crate::train::{self, TrainOptions};
 
 /// Learn simulatable mass-spring cloth models from motion.
@@ -978,12 +977,11 @@ fn simulate(
     }
     let run = train::Run::open(run_dir, set, backend)?;
     let (model, topo, config) = (run.springs()?, &run.topology, &run.config);
-    let mass = run.particle_mass();
     let rollout = Rollout::load(init)?;
     let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
     let track = Track::new(&rollout, &res);
     let first = rollout.first_usable_frame();
-    let physics = Physics::new(&config.sim, rollout.frame_dt, mass);
+    let physics = run.physics(rollout.frame_dt);
     physics
         .stability_of(topo, model)
         .check("the trained surrogate", config.sim.allow_unstable)?;
@@ -1012,7 +1010,7 @@ fn simulate(
         rest_uv: topo.rest_uv.clone(),
         pinned: track.pinned.clone(),
         frame_dt: physics.frame_dt,
-        total_mass: mass * p as f64,
+        total_mass: physics.mass * p as f64,
         width: topo.width,
         height: topo.height,
         segments: vec![Segment {

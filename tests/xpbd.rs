@@ -49,6 +49,11 @@ strain = 0.03
 axis = "v"
 "#;
 
+/// `est/estimate.json` under `dir`.
+fn estimate_json(dir: &std::path::Path) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join("est/estimate.json")).unwrap()).unwrap()
+}
+
 #[test]
 fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
     let dir = common::temp_dir("xpbd-estimate");
@@ -59,9 +64,7 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("est/estimate.json")).unwrap())
-            .unwrap();
+    let json = estimate_json(&dir);
     let rel = &json["relative_error"];
     for key in ["C00", "C11", "C01", "C22", "b"] {
         let e = rel[key]
@@ -112,9 +115,7 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("est/estimate.json")).unwrap())
-            .unwrap();
+    let json = estimate_json(&dir);
     assert_eq!(json["schedule"], "bending_first");
     let starts = json["starts"].as_array().unwrap();
     assert_eq!(starts.len(), 2);

@@ -10,7 +10,6 @@ use crate::cloth::Resampler;
 use crate::data::Rollout;
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
-use crate::sim::Physics;
 use crate::train::{self, Trained};
 
 /// Evaluates a run and writes its `eval.json`.
@@ -22,15 +21,16 @@ pub fn evaluate(
     progress: &Progress,
 ) -> Result<EvalReport> {
     let start = Instant::now();
-    let loaded = train::Run::open(run_dir, set, backend)?;
-    let device = loaded.device.clone();
-    let run = loaded.dir.clone();
-    let mut config = loaded.config;
+    let mut loaded = train::Run::open(run_dir, set, backend)?;
     if let Some(d) = data {
-        config.data.test_dir = Some(d.to_path_buf());
+        loaded.config.data.test_dir = Some(d.to_path_buf());
     }
-    let topo = loaded.topology;
-    let mass = loaded.meta.particle_mass;
+    let (config, topo, device, run) = (
+        &loaded.config,
+        &loaded.topology,
+        &loaded.device,
+        &loaded.dir,
+    );
     let split = config.data.split()?;
     let mut files = split.test.clone();
     if files.is_empty() {
@@ -40,13 +40,13 @@ pub fn evaluate(
         files.truncate(config.eval.max_rollouts);
     }
     let first = Rollout::load(&files[0])?;
-    let physics = Physics::new(&config.sim, first.frame_dt, mass);
+    let physics = loaded.physics(first.frame_dt);
     let (curves, frame_dt) = match &loaded.model {
         Trained::Springs(_) | Trained::NeuralOde(_) => {
             let model: &dyn crate::model::ForceModel = match &loaded.model {
                 Trained::Springs(springs) => {
                     physics
-                        .stability_of(&topo, springs)
+                        .stability_of(topo, springs)
                         .check("the trained surrogate", config.sim.allow_unstable)?;
                     springs
                 }
@@ -56,10 +56,10 @@ pub fn evaluate(
             let c = eval::motion_curves(
                 model,
                 &physics,
-                &topo,
+                topo,
                 &files,
                 config.eval.batch,
-                &device,
+                device,
                 progress,
             )?;
             (c, first.frame_dt)
@@ -69,10 +69,10 @@ pub fn evaluate(
             let c = eval::gnn_motion_curves(
                 model,
                 ds,
-                &topo,
+                topo,
                 &files,
                 config.eval.batch,
-                &device,
+                device,
                 progress,
             )?;
             (c, first.frame_dt * ds as f64)
@@ -88,19 +88,19 @@ pub fn evaluate(
     if let Trained::Springs(model) = &loaded.model {
         let truth = first.springs.as_ref().and_then(|t| {
             let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
-            train::matching_truth(t, &topo, &res)
+            train::matching_truth(t, topo, &res)
         });
         if let Some((k, b)) = truth {
             rmse_k = Some(train::rmse(&model.k_values(), &k));
             rmse_b = Some(train::rmse(&model.b_values(), &b));
         }
         stiffness_map_corr = first.mesh.as_ref().and_then(|mesh| {
-            eval::stiffness_map_corr(&topo, &model.k_values(), &first.rest_uv, mesh)
+            eval::stiffness_map_corr(topo, &model.k_values(), &first.rest_uv, mesh)
         });
     }
     let uniform_baseline = match &loaded.model {
         Trained::Springs(_) if config.eval.uniform_baseline => Some(eval::uniform::search(
-            &topo,
+            topo,
             &physics,
             config.model.k_init.or(50.0),
             config.model.b_init.or(0.0),
@@ -108,7 +108,7 @@ pub fn evaluate(
             &files,
             &motion,
             &config.eval,
-            &device,
+            device,
             progress,
         )?),
         _ => None,

@@ -462,7 +462,12 @@ fn membrane_block(
         }
         rhs[r] = -(0..3).map(|m| ak[r][m] * c[m]).sum::<f64>() - lambda[r];
     }
-    let dl = solve3(a, rhs).map(|v| relax * v);
+    // The system is I plus a positive semi-definite product: never singular in practice.
+    let dl = nalgebra::Matrix3::from_fn(|r, c| a[r][c])
+        .lu()
+        .solve(&nalgebra::Vector3::from(rhs))
+        .unwrap_or_else(nalgebra::Vector3::zeros);
+    let dl: [f64; 3] = std::array::from_fn(|r| relax * dl[r]);
     for r in 0..3 {
         lambda[r] += dl[r];
     }
@@ -503,38 +508,6 @@ fn apply(v: &[usize], corr: &[V3], x: &mut [V3], dx: &mut [V3], jacobi: bool) {
             add_to(&mut x[i], *d);
         }
     }
-}
-
-/// Solves a 3 × 3 system by Gaussian elimination with partial pivoting.
-fn solve3(mut a: [[f64; 3]; 3], mut b: [f64; 3]) -> [f64; 3] {
-    for col in 0..3 {
-        let p = (col..3)
-            .max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))
-            .unwrap_or(col);
-        a.swap(col, p);
-        b.swap(col, p);
-        let d = a[col][col];
-        if d == 0.0 {
-            continue;
-        }
-        for r in col + 1..3 {
-            let f = a[r][col] / d;
-            for q in col..3 {
-                a[r][q] -= f * a[col][q];
-            }
-            b[r] -= f * b[col];
-        }
-    }
-    let mut out = [0.0; 3];
-    for r in (0..3).rev() {
-        let s: f64 = (r + 1..3).map(|q| a[r][q] * out[q]).sum();
-        out[r] = if a[r][r] == 0.0 {
-            0.0
-        } else {
-            (b[r] - s) / a[r][r]
-        };
-    }
-    out
 }
 
 #[cfg(test)]

@@ -296,6 +296,9 @@ struct Problem<'a> {
     cfg: &'a XpbdConfig,
     solve: Solve,
     targets: Vec<&'a Target>,
+    /// The equilibria of the last γ evaluated: Levenberg–Marquardt asks for the Jacobian at
+    /// the very γ whose residuals it has just accepted.
+    last: Option<(Vec<f64>, Vec<Vec<V3>>)>,
 }
 
 /// The config's shape descriptor of positions `x`.
@@ -329,11 +332,29 @@ impl Problem<'_> {
         Ok(x)
     }
 
-    fn evaluate(&self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
+    /// The equilibria of every target at `p`, solved once per `p`.
+    fn equilibria(&mut self, p: &[f64]) -> Result<Vec<Vec<V3>>> {
+        if let Some((q, xs)) = self.last.take()
+            && q == p
+        {
+            self.last = Some((q, xs.clone()));
+            return Ok(xs);
+        }
+        let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
+        let xs = self
+            .targets
+            .iter()
+            .map(|t| self.equilibrium(&gamma, t))
+            .collect::<Result<Vec<_>>>()?;
+        self.last = Some((p.to_vec(), xs.clone()));
+        Ok(xs)
+    }
+
+    fn evaluate(&mut self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
         let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
         let (mut r, mut j) = (Vec::new(), Vec::new());
-        for &t in &self.targets {
-            let x = self.equilibrium(&gamma, t)?;
+        let xs = self.equilibria(p)?;
+        for (&t, x) in self.targets.iter().zip(xs) {
             let s = self.descriptor(&x);
             let norm = t
                 .descriptor
@@ -516,6 +537,7 @@ pub fn estimate(
         cfg,
         solve,
         targets: targets.iter().filter(|t| subset(t)).collect(),
+        last: None,
     };
     let initial = cfg.initial.gamma();
     let p0 = initial.to_array();
@@ -609,11 +631,10 @@ pub fn estimate(
         }
     }
     let (fit, chosen) = best.expect("at least one start");
-    let problem = all;
+    let mut problem = all;
     let gamma = Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]);
     let mut scenarios = Vec::new();
-    for t in &targets {
-        let x = problem.equilibrium(&gamma, t)?;
+    for (t, x) in targets.iter().zip(problem.equilibria(&fit.p)?) {
         let err = x
             .iter()
             .zip(&t.x)
