@@ -307,45 +307,10 @@ impl FemCloth {
     /// Internal forces (membrane, strain-rate damping, bending) at `(x, v)`, added to `out`.
     pub fn internal_forces(&self, x: &[V3], v: &[V3], out: &mut [V3]) {
         for el in &self.elements {
-            let f = deformation(el, x);
-            let (mut p, _) = elastic(el, f, self.membrane);
-            if self.beta > 0.0 {
-                let fd = rate(el, v);
-                // Ė = ½(ḞᵀF + FᵀḞ); the damping stress β(λ tr(Ė) I + 2μĖ) maps to F S_d.
-                let mut ed = [[0.0; 2]; 2];
-                for i in 0..2 {
-                    for j in 0..2 {
-                        let mut acc = 0.0;
-                        for r in 0..3 {
-                            acc += fd[r][i] * f[r][j] + f[r][i] * fd[r][j];
-                        }
-                        ed[i][j] = 0.5 * acc;
-                    }
-                }
-                let sd = stress(el, ed);
-                for r in 0..3 {
-                    for c in 0..2 {
-                        p[r][c] += self.beta * (f[r][0] * sd[0][c] + f[r][1] * sd[1][c]);
-                    }
-                }
+            let f = self.membrane_forces(el, x, v);
+            for (&i, fi) in el.tri.v.iter().zip(f) {
+                add_to(&mut out[i], fi);
             }
-            // H = −A P Dm⁻ᵀ (3 × 2): the forces on corners 1 and 2.
-            let mut h = [[0.0; 2]; 3];
-            for r in 0..3 {
-                for c in 0..2 {
-                    // (Dm⁻ᵀ)[k][c] = Dm⁻¹[c][k]
-                    h[r][c] = -el.tri.area
-                        * (p[r][0] * el.tri.dm_inv[c][0] + p[r][1] * el.tri.dm_inv[c][1]);
-                }
-            }
-            let f1 = [h[0][0], h[1][0], h[2][0]];
-            let f2 = [h[0][1], h[1][1], h[2][1]];
-            add_to(&mut out[el.tri.v[1]], f1);
-            add_to(&mut out[el.tri.v[2]], f2);
-            add_to(
-                &mut out[el.tri.v[0]],
-                scale([f1[0] + f2[0], f1[1] + f2[1], f1[2] + f2[2]], -1.0),
-            );
         }
         for (hinge, &weight) in self.hinges.iter().zip(&self.hinge_weight) {
             let (theta, grads) = triangles::dihedral(hinge, x);
@@ -357,6 +322,128 @@ impl FemCloth {
                 add_to(&mut out[i], scale(g, coef));
             }
         }
+    }
+
+    /// Membrane and strain-rate damping forces on a triangle's corners (in the order of
+    /// `el.tri.v`) at `(x, v)`.
+    fn membrane_forces(&self, el: &Element, x: &[V3], v: &[V3]) -> [V3; 3] {
+        let f = deformation(el, x);
+        let (mut p, _) = elastic(el, f, self.membrane);
+        if self.beta > 0.0 {
+            let fd = rate(el, v);
+            // Ė = ½(ḞᵀF + FᵀḞ); the damping stress β(λ tr(Ė) I + 2μĖ) maps to F S_d.
+            let mut ed = [[0.0; 2]; 2];
+            for i in 0..2 {
+                for j in 0..2 {
+                    let mut acc = 0.0;
+                    for r in 0..3 {
+                        acc += fd[r][i] * f[r][j] + f[r][i] * fd[r][j];
+                    }
+                    ed[i][j] = 0.5 * acc;
+                }
+            }
+            let sd = stress(el, ed);
+            for r in 0..3 {
+                for c in 0..2 {
+                    p[r][c] += self.beta * (f[r][0] * sd[0][c] + f[r][1] * sd[1][c]);
+                }
+            }
+        }
+        // H = −A P Dm⁻ᵀ (3 × 2): the forces on corners 1 and 2.
+        let mut h = [[0.0; 2]; 3];
+        for r in 0..3 {
+            for c in 0..2 {
+                // (Dm⁻ᵀ)[k][c] = Dm⁻¹[c][k]
+                h[r][c] =
+                    -el.tri.area * (p[r][0] * el.tri.dm_inv[c][0] + p[r][1] * el.tri.dm_inv[c][1]);
+            }
+        }
+        let f1 = [h[0][0], h[1][0], h[2][0]];
+        let f2 = [h[0][1], h[1][1], h[2][1]];
+        [
+            scale([f1[0] + f2[0], f1[1] + f2[1], f1[2] + f2[2]], -1.0),
+            f1,
+            f2,
+        ]
+    }
+
+    /// The elastic energy's Hessian, element by element: one block per triangle (its membrane,
+    /// 9 × 9) and one per hinge (its bending, 12 × 12), each by central differences of the
+    /// element's exact forces (so it is as accurate as the step allows, about 1e-8 relative),
+    /// symmetrised. Damping is left out. The blocks are not projected: a Newton solver projects
+    /// them to positive semi-definite before assembly.
+    pub fn hessian_blocks(&self, x: &[V3]) -> Vec<HessianBlock> {
+        let size = self
+            .rest_uv
+            .iter()
+            .fold(0.0f64, |m, p| m.max(p[0].abs()).max(p[1].abs()))
+            .max(1e-12);
+        let eps = 1e-6 * size;
+        let elastic_only = Self {
+            beta: 0.0,
+            ..self.clone()
+        };
+        let mut blocks = Vec::with_capacity(self.elements.len() + self.hinges.len());
+        for el in &self.elements {
+            let local = Element {
+                tri: RestTriangle {
+                    v: [0, 1, 2],
+                    ..el.tri
+                },
+                ..*el
+            };
+            let corners = el.tri.v.map(|i| x[i]);
+            let zero = [[0.0; 3]; 3];
+            let forces = |y: &[V3]| elastic_only.membrane_forces(&local, y, &zero).to_vec();
+            blocks.push(HessianBlock::by_differences(
+                el.tri.v.to_vec(),
+                &corners,
+                eps,
+                forces,
+            ));
+        }
+        for (hinge, &weight) in self.hinges.iter().zip(&self.hinge_weight) {
+            let local = Hinge {
+                c: 0,
+                d: 1,
+                a: 2,
+                b: 3,
+                ..*hinge
+            };
+            let vertices = vec![hinge.c, hinge.d, hinge.a, hinge.b];
+            let corners: Vec<V3> = vertices.iter().map(|&i| x[i]).collect();
+            let forces = |y: &[V3]| {
+                let (theta, grads) = triangles::dihedral(&local, y);
+                grads.map(|g| scale(g, -2.0 * weight * theta)).to_vec()
+            };
+            blocks.push(HessianBlock::by_differences(
+                vertices, &corners, eps, forces,
+            ));
+        }
+        blocks
+    }
+
+    /// The membrane's constitutive law.
+    pub fn membrane(&self) -> Membrane {
+        self.membrane
+    }
+
+    /// Gravity on the lumped masses, m/s².
+    pub fn gravity(&self) -> [f64; 3] {
+        self.gravity
+    }
+
+    /// The membrane elements: rest frame and Lamé constants `(μ, λ)` of every triangle.
+    pub fn elements(&self) -> impl Iterator<Item = (RestTriangle, f64, f64)> + '_ {
+        self.elements.iter().map(|e| (e.tri, e.mu, e.lambda))
+    }
+
+    /// The bending hinges and their weights `k_b · 3|ē|² / (Ā₁ + Ā₂)` (energy `w θ²`).
+    pub fn weighted_hinges(&self) -> impl Iterator<Item = (Hinge, f64)> + '_ {
+        self.hinges
+            .iter()
+            .copied()
+            .zip(self.hinge_weight.iter().copied())
     }
 
     /// Net force: internal forces, gravity on the lumped masses and Rayleigh damping.
@@ -427,6 +514,51 @@ pub struct FemMaterial {
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
+}
+
+/// One element's block of the elastic energy's Hessian `∂²E/∂x²` over its vertices.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HessianBlock {
+    /// The element's vertices; the block's rows are `3 · k + c` for vertex `vertices[k]`,
+    /// coordinate `c`.
+    pub vertices: Vec<usize>,
+    /// The block, row-major, `3k × 3k`.
+    pub matrix: Vec<f64>,
+}
+
+impl HessianBlock {
+    /// The block of an element with forces `forces(corners)` (one per corner): `−∂f/∂x` by
+    /// central differences of step `eps`, symmetrised.
+    fn by_differences(
+        vertices: Vec<usize>,
+        corners: &[V3],
+        eps: f64,
+        forces: impl Fn(&[V3]) -> Vec<V3>,
+    ) -> Self {
+        let m = 3 * corners.len();
+        let mut matrix = vec![0.0; m * m];
+        let mut y = corners.to_vec();
+        for col in 0..m {
+            let (k, c) = (col / 3, col % 3);
+            y[k][c] = corners[k][c] + eps;
+            let plus = forces(&y);
+            y[k][c] = corners[k][c] - eps;
+            let minus = forces(&y);
+            y[k][c] = corners[k][c];
+            for row in 0..m {
+                let (r, rc) = (row / 3, row % 3);
+                matrix[row * m + col] = -(plus[r][rc] - minus[r][rc]) / (2.0 * eps);
+            }
+        }
+        for i in 0..m {
+            for j in 0..i {
+                let s = 0.5 * (matrix[i * m + j] + matrix[j * m + i]);
+                matrix[i * m + j] = s;
+                matrix[j * m + i] = s;
+            }
+        }
+        Self { vertices, matrix }
+    }
 }
 
 /// `F = Ds Dm⁻¹` (3 × 2) of a triangle at positions `x`.
