@@ -83,6 +83,13 @@ pub enum Command {
         #[command(subcommand)]
         command: XpbdCommand,
     },
+    /// Latent-space cloth dynamics (paper 002): `latent generate|train CONFIG`,
+    /// `latent eval|bench RUN`.
+    Latent {
+        /// What to do.
+        #[command(subcommand)]
+        command: LatentCommand,
+    },
     /// Convert other tools' cloth motion (OBJ frames, .pc2 point caches, CSV tracks) into a
     /// springtime rollout file.
     Import {
@@ -373,6 +380,69 @@ pub enum XpbdCommand {
     },
 }
 
+/// `springtime latent` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum LatentCommand {
+    /// Simulate the config's full-space reference (implicit Euler, Newton) into
+    /// DIR/rollout.npz and DIR/generate.json.
+    #[command(
+        after_help = "Example:\n  springtime latent generate configs/latent_cloth.toml --out runs/latent_ref"
+    )]
+    Generate {
+        /// The job's TOML (`configs/latent_cloth.toml`).
+        config: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite an earlier rollout in DIR.
+        #[arg(long)]
+        force: bool,
+        /// Override config values, `section.key=value` (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Train the autoencoder, then the latent integrator (self-supervised by default;
+    /// `--set integrator.loss=supervised` for the baseline). Simulates the reference first
+    /// unless --data names one.
+    #[command(
+        after_help = "Example:\n  springtime latent train configs/latent_cloth.toml --out runs/latent_cloth"
+    )]
+    Train {
+        /// The job's TOML (`configs/latent_cloth.toml`).
+        config: PathBuf,
+        /// The run directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// A reference rollout (from `latent generate`) to train on.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Reuse a finished run's reference and autoencoder; train only the integrator.
+        #[arg(long, value_name = "RUN")]
+        autoencoder_from: Option<PathBuf>,
+        /// Overwrite a finished run in DIR.
+        #[arg(long)]
+        force: bool,
+        /// Override config values, `section.key=value` (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// Roll the trained model out over the unseen frames; writes RUN/latent_eval.json
+    /// (frames, diverged, rmse, max_error, pinned_max_error in metres).
+    Eval {
+        /// The run directory.
+        run: PathBuf,
+    },
+    /// Time one latent frame (integrator + decoder, plain Rust and Burn) against the
+    /// full-space Newton step; prints one JSON object as its last line, writes RUN/bench.json.
+    Bench {
+        /// The run directory.
+        run: PathBuf,
+        /// Full-space steps to time.
+        #[arg(long, default_value_t = 100)]
+        full_frames: usize,
+    },
+}
+
 /// What `springtime import` reads.
 #[derive(Debug, Subcommand)]
 pub enum ImportCommand {
@@ -514,6 +584,7 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Xpbd {
             command: XpbdCommand::Estimate { config, out, force },
         } => xpbd_estimate(&config, out, force, &progress),
+        Command::Latent { command } => latent(command, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
         } => data_check(&dir, config.as_deref(), &set),
@@ -701,6 +772,90 @@ fn import(source: &ImportCommand) -> Result<()> {
         summary.height,
         summary.rest_from
     );
+    Ok(())
+}
+
+/// `springtime latent …`.
+fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
+    use crate::latent::{LatentConfig, eval, train};
+    match command {
+        LatentCommand::Generate {
+            config,
+            out,
+            force,
+            set,
+        } => {
+            let cfg = LatentConfig::load(&config, &set)?;
+            let (_, stats) = train::generate_reference(&cfg, &out, force, progress)?;
+            println!(
+                "{} frames, {:.2} Newton iterations per step (at most {}), {:.1} ms per step",
+                stats.frames,
+                stats.mean_iterations,
+                stats.max_iterations,
+                stats.us_per_step / 1e3
+            );
+            println!("reference: {}", out.join("rollout.npz").display());
+        }
+        LatentCommand::Train {
+            config,
+            out,
+            data,
+            autoencoder_from,
+            force,
+            set,
+        } => {
+            let cfg = LatentConfig::load(&config, &set)?;
+            let options = train::TrainOptions {
+                out: out.clone(),
+                data,
+                force,
+                autoencoder_from,
+            };
+            let meta = train::train(&cfg, &options, progress)?;
+            println!(
+                "autoencoder: {} epochs in {:.0} s, reconstruction RMSE {:.3} mm (train) / {:.3} mm (unseen)",
+                meta.autoencoder.epochs,
+                meta.autoencoder.seconds,
+                meta.reconstruction_rmse_train * 1e3,
+                meta.reconstruction_rmse_test * 1e3
+            );
+            println!(
+                "integrator: {} epochs in {:.0} s, final loss {:.5e}",
+                meta.integrator.epochs, meta.integrator.seconds, meta.integrator.final_loss
+            );
+            println!("run: {}", out.display());
+        }
+        LatentCommand::Eval { run } => {
+            let r = eval::evaluate(&run)?;
+            println!(
+                "{} unseen frames from frame {}: RMSE {:.2} mm, max error {:.2} mm, pinned within {:.3} mm, {}",
+                r.frames,
+                r.first_frame,
+                r.rmse * 1e3,
+                r.max_error * 1e3,
+                r.pinned_max_error * 1e3,
+                if r.diverged {
+                    "DIVERGED"
+                } else {
+                    "no divergence"
+                }
+            );
+            println!("eval: {}", run.join("latent_eval.json").display());
+        }
+        LatentCommand::Bench { run, full_frames } => {
+            let r = eval::bench(&run, full_frames)?;
+            println!(
+                "latent frame {:.1} µs (integrator {:.1} + decoder {:.1}; Burn {:.0} µs), full-space step {:.0} µs: {:.0}× faster",
+                r.latent_us_per_frame,
+                r.integrator_us,
+                r.decoder_us,
+                r.burn_us_per_frame,
+                r.full_us_per_frame,
+                r.speedup
+            );
+            println!("{}", serde_json::to_string(&r)?);
+        }
+    }
     Ok(())
 }
 

@@ -6,7 +6,8 @@
 //! holds the per-spring parameters and the spring forces, [`sim`] rolls the surrogate out,
 //! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it; [`report`]
 //! draws a run's figures and [`export`] writes it for other tools. [`xpbd`] holds the static
-//! parameter estimation of the second seed paper. See `ARCHITECTURE.md`.
+//! parameter estimation of the second seed paper, [`latent`] the latent-space dynamics of the
+//! third. See `ARCHITECTURE.md`.
 #![warn(missing_docs)]
 // `!(x >= 0.0)` is deliberate: it rejects NaN along with negative values.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
@@ -25,6 +26,7 @@ pub mod export;
 pub mod fold;
 pub mod import;
 pub mod io;
+pub mod latent;
 pub mod model;
 pub mod progress;
 pub mod report;

@@ -1,0 +1,898 @@
+//! `springtime latent train <config> --out R`: the reference (generated, or read with
+//! `--data`), then the two stages of the latent paper — the autoencoder on the training frames,
+//! then the integrator through the frozen decoder with the self-supervised loss (Eq. 4), noise
+//! (Eq. 5) and balancing (Eq. 6), or the supervised latent-L2 baseline.
+//!
+//! A run directory holds `config.toml`, `rollout.npz` (the reference) and `generate.json` (its
+//! cost), `autoencoder.bpk`, `integrator.bpk`, `train_log.csv` and `latent.json`, written last:
+//! a directory with `latent.json` is a finished run and is not overwritten without `--force`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor, TensorData};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use serde::{Deserialize, Serialize};
+
+use super::LatentConfig;
+use super::autoencoder::{Autoencoder, Decoder, Pca};
+use super::energy::Potential;
+use super::integrator::{Integrator, LossKind, boundary_features, mean};
+use super::scenario::{GenerateStats, Scene, generate};
+use crate::cloth::triangles::V3;
+use crate::data::Rollout;
+use crate::progress::Progress;
+
+/// The files of a latent run.
+#[derive(Debug, Clone)]
+pub struct LatentRun {
+    /// The directory.
+    pub dir: PathBuf,
+}
+
+impl LatentRun {
+    /// The run in `dir`.
+    pub fn new(dir: &Path) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+        }
+    }
+    /// The resolved config.
+    pub fn config(&self) -> PathBuf {
+        self.dir.join("config.toml")
+    }
+    /// The reference rollout.
+    pub fn rollout(&self) -> PathBuf {
+        self.dir.join("rollout.npz")
+    }
+    /// The reference's cost.
+    pub fn generate(&self) -> PathBuf {
+        self.dir.join("generate.json")
+    }
+    /// The autoencoder's weights.
+    pub fn autoencoder(&self) -> PathBuf {
+        self.dir.join("autoencoder.bpk")
+    }
+    /// The integrator's weights.
+    pub fn integrator(&self) -> PathBuf {
+        self.dir.join("integrator.bpk")
+    }
+    /// The loss per epoch.
+    pub fn log(&self) -> PathBuf {
+        self.dir.join("train_log.csv")
+    }
+    /// What a finished run needs besides its weights; written last.
+    pub fn meta(&self) -> PathBuf {
+        self.dir.join("latent.json")
+    }
+}
+
+/// One training stage's summary.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Stage {
+    /// Epochs run.
+    pub epochs: usize,
+    /// Loss of the last epoch (mean over its batches).
+    pub final_loss: f64,
+    /// Wall time, s.
+    pub seconds: f64,
+    /// The integrator's self-supervised loss on the clean training steps at its own latents.
+    #[serde(default)]
+    pub potential_at_fit: Option<f64>,
+    /// The same at the encoded reference's latents.
+    #[serde(default)]
+    pub potential_at_reference: Option<f64>,
+}
+
+/// `latent.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LatentMeta {
+    /// Job name.
+    pub name: String,
+    /// Vertices of the sheet.
+    pub vertices: usize,
+    /// Degrees of freedom (`3 × vertices`).
+    pub dof: usize,
+    /// The pinned vertices.
+    pub pinned: Vec<usize>,
+    /// PCA modes' standard deviations, m.
+    pub pca_std: Vec<f64>,
+    /// Latent means over the training frames (the integrator's standardisation).
+    pub z_mean: Vec<f32>,
+    /// Latent deviations over the training frames.
+    pub z_std: Vec<f32>,
+    /// Length that divides the boundary features, m.
+    pub length: f64,
+    /// Boundary features per step.
+    pub features: usize,
+    /// Frames `0 .. train_frames` trained.
+    pub train_frames: usize,
+    /// Autoencoder reconstruction RMSE over the training frames, m.
+    pub reconstruction_rmse_train: f64,
+    /// Autoencoder reconstruction RMSE over the unseen frames, m.
+    pub reconstruction_rmse_test: f64,
+    /// The autoencoder stage.
+    pub autoencoder: Stage,
+    /// The integrator stage.
+    pub integrator: Stage,
+    /// The reference's cost.
+    pub generate: Option<GenerateStats>,
+    /// The springtime build that trained it (`version (commit)`).
+    pub build: String,
+}
+
+/// Loads an autoencoder of `config`'s shape for `dof`-dimensional frames from `path`.
+pub fn load_autoencoder(
+    config: &LatentConfig,
+    dof: usize,
+    path: &Path,
+    device: &Device,
+) -> Result<Autoencoder> {
+    let record = burn::store::ModuleRecord::load(path)
+        .map_err(|e| anyhow::anyhow!("cannot read {}: {e}", path.display()))?;
+    Autoencoder::new(&config.autoencoder, dof, device)
+        .try_load_record(record)
+        .map_err(|e| anyhow::anyhow!("{} does not fit the config: {e}", path.display()))
+}
+
+/// Reads a finished run's `latent.json`; errors name the file.
+pub fn read_meta(run: &LatentRun) -> Result<LatentMeta> {
+    if !run.meta().exists() {
+        bail!(
+            "{} is not a finished latent run (no latent.json); train one with `springtime latent \
+             train CONFIG --out {}`",
+            run.dir.display(),
+            run.dir.display()
+        );
+    }
+    let text = std::fs::read_to_string(run.meta())
+        .with_context(|| format!("cannot read {}", run.meta().display()))?;
+    serde_json::from_str(&text)
+        .with_context(|| format!("{} is not a latent.json", run.meta().display()))
+}
+
+/// The reference motion in the form training and evaluation read it.
+#[derive(Debug, Clone)]
+pub struct Reference {
+    /// Positions of every frame, m.
+    pub frames: Vec<Vec<V3>>,
+    /// The pinned vertices.
+    pub pinned: Vec<usize>,
+    /// Time step, s.
+    pub dt: f64,
+}
+
+impl Reference {
+    /// Reads a rollout for the sheet of `config`; errors name the file.
+    pub fn from_rollout(rollout: &Rollout, config: &LatentConfig) -> Result<Self> {
+        let shown = rollout.path.display();
+        let n = config.cloth.nx * config.cloth.ny;
+        if rollout.landmarks != n {
+            bail!(
+                "{shown}: {} vertices, but the config's cloth has nx × ny = {n}",
+                rollout.landmarks
+            );
+        }
+        let pinned: Vec<usize> = (0..n).filter(|&i| rollout.pinned[i]).collect();
+        if pinned.is_empty() {
+            bail!(
+                "{shown}: key `pinned` marks no vertex; the latent model needs Dirichlet vertices"
+            );
+        }
+        if rollout.frames < 4 {
+            bail!("{shown}: {} frames; at least 4 are needed", rollout.frames);
+        }
+        let frames = (0..rollout.frames)
+            .map(|f| {
+                (0..n)
+                    .map(|i| rollout.position(f, i).map(|v| v as f64))
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            frames,
+            pinned,
+            dt: rollout.frame_dt,
+        })
+    }
+
+    /// The pinned vertices' positions at frame `f`.
+    pub fn targets(&self, f: usize) -> Vec<V3> {
+        self.pinned.iter().map(|&i| self.frames[f][i]).collect()
+    }
+
+    /// The mean of the pinned vertices at frame `f` (the frame's origin for the autoencoder).
+    pub fn centre(&self, f: usize) -> V3 {
+        mean(&self.targets(f))
+    }
+
+    /// Frame `f` relative to its centre, flattened.
+    pub fn relative(&self, f: usize) -> Vec<f64> {
+        let c = self.centre(f);
+        self.frames[f]
+            .iter()
+            .flat_map(|p| [0, 1, 2].map(|k| p[k] - c[k]))
+            .collect()
+    }
+
+    /// The boundary features of step `t` (`t ≥ 2`).
+    pub fn features(&self, t: usize, length: f64) -> Vec<f32> {
+        boundary_features(
+            &self.targets(t),
+            &self.targets(t - 1),
+            &self.targets(t - 2),
+            length,
+        )
+    }
+}
+
+/// Where `latent train` writes and what it reads.
+#[derive(Debug, Clone)]
+pub struct TrainOptions {
+    /// The run directory.
+    pub out: PathBuf,
+    /// A reference rollout to train on instead of generating one.
+    pub data: Option<PathBuf>,
+    /// Overwrite a finished run.
+    pub force: bool,
+    /// A finished run whose reference and autoencoder to reuse (the integrator ablations
+    /// share one autoencoder, as the paper's do); its config's cloth and autoencoder must match.
+    pub autoencoder_from: Option<PathBuf>,
+}
+
+/// `latent generate`: simulates the config's scenario into `out/rollout.npz` and
+/// `out/generate.json`.
+pub fn generate_reference(
+    config: &LatentConfig,
+    out: &Path,
+    force: bool,
+    progress: &Progress,
+) -> Result<(Rollout, GenerateStats)> {
+    let run = LatentRun::new(out);
+    if run.rollout().exists() && !force {
+        bail!(
+            "{} exists; pass --force to overwrite it",
+            run.rollout().display()
+        );
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let scene = Scene::new(&config.cloth, &config.scenario);
+    let (mut rollout, stats) = generate(&config.cloth, &scene, config.solver, progress)?;
+    rollout.path = run.rollout();
+    rollout.save(&run.rollout())?;
+    crate::io::write_json(&run.generate(), &stats)?;
+    Ok((rollout, stats))
+}
+
+/// Trains a latent model; returns its `latent.json`.
+pub fn train(
+    config: &LatentConfig,
+    options: &TrainOptions,
+    progress: &Progress,
+) -> Result<LatentMeta> {
+    let run = LatentRun::new(&options.out);
+    if run.meta().exists() && !options.force {
+        bail!(
+            "{} holds a finished latent run; pass --force to overwrite it",
+            run.dir.display()
+        );
+    }
+    std::fs::create_dir_all(&run.dir)
+        .with_context(|| format!("cannot create {}", run.dir.display()))?;
+    for stale in [run.meta(), run.log()] {
+        if stale.exists() {
+            std::fs::remove_file(&stale)
+                .with_context(|| format!("cannot remove {}", stale.display()))?;
+        }
+    }
+    crate::io::write_text(&run.config(), &toml::to_string(config)?)?;
+    let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
+    let data = match (&options.data, &reused) {
+        (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
+        (None, Some(r)) => Some(r.rollout()),
+        (d, None) => d.clone(),
+    };
+    let (rollout, generated) = match &data {
+        Some(path) => (Rollout::load(path)?, None),
+        None => {
+            progress.note("simulating the full-space reference (implicit Euler, Newton)");
+            let (r, s) = generate_reference(config, &run.dir, true, progress)?;
+            (r, Some(s))
+        }
+    };
+    if data.is_some() {
+        rollout.save(&run.rollout())?;
+    }
+    let reference = Reference::from_rollout(&rollout, config)?;
+    if reference.frames.len() < config.integrator.train_frames + 2 {
+        bail!(
+            "{}: {} frames, fewer than integrator.train_frames + 2 = {}",
+            rollout.path.display(),
+            reference.frames.len(),
+            config.integrator.train_frames + 2
+        );
+    }
+    let device = config.backend.device()?;
+    device.seed(config.seed);
+    let ad = device.clone().autodiff();
+    let mut log = TrainLog::create(&run.log())?;
+
+    let (ae, pca_std, ae_stage) = match &reused {
+        None => {
+            let (ae, pca, stage) = train_autoencoder(config, &reference, &ad, &mut log, progress)?;
+            (ae, pca.std, stage)
+        }
+        Some(from) => {
+            let meta: LatentMeta = read_meta(from)?;
+            let ae = load_autoencoder(
+                config,
+                3 * reference.frames[0].len(),
+                &from.autoencoder(),
+                &ad,
+            )?;
+            progress.note(&format!("autoencoder reused from {}", from.dir.display()));
+            (ae, meta.pca_std, meta.autoencoder)
+        }
+    };
+    crate::train::run::RunDir::save_module(&ae, &run.autoencoder())?;
+    // Everything after reads the saved autoencoder, as `latent eval` will (BatchNorm's running
+    // statistics are synchronised on saving).
+    let ae = load_autoencoder(
+        config,
+        3 * reference.frames[0].len(),
+        &run.autoencoder(),
+        &ad,
+    )?;
+    let plain = ae.valid();
+    let latents = encode_all(&plain, &reference, &device);
+    let t = config.integrator.train_frames;
+    let rmse = |range: std::ops::Range<usize>| {
+        let decoded = decode(&plain.decoder, &latents[range.clone()], &device);
+        let mut se = 0.0;
+        for (k, f) in range.clone().enumerate() {
+            let rel = reference.relative(f);
+            se += rel
+                .iter()
+                .zip(&decoded[k])
+                .map(|(a, b)| (a - *b as f64).powi(2))
+                .sum::<f64>();
+        }
+        (se / (range.len() * reference.frames[0].len()) as f64).sqrt()
+    };
+    let (rec_train, rec_test) = (rmse(0..t), rmse(t..reference.frames.len()));
+    progress.note(&format!(
+        "autoencoder: reconstruction RMSE {:.3} mm on the training frames, {:.3} mm unseen",
+        rec_train * 1e3,
+        rec_test * 1e3
+    ));
+
+    let scales = Scales::new(&latents[..t], config.cloth.width.max(config.cloth.height));
+    let (integrator, int_stage) = train_integrator(
+        config, &reference, &ae, &latents, &scales, &ad, &mut log, progress,
+    )?;
+    crate::train::run::RunDir::save_module(&integrator, &run.integrator())?;
+    let meta = LatentMeta {
+        name: config.name.clone(),
+        vertices: reference.frames[0].len(),
+        dof: 3 * reference.frames[0].len(),
+        pinned: reference.pinned.clone(),
+        pca_std,
+        z_mean: scales.mean.clone(),
+        z_std: scales.std.clone(),
+        length: scales.length,
+        features: 9 * reference.pinned.len(),
+        train_frames: t,
+        reconstruction_rmse_train: rec_train,
+        reconstruction_rmse_test: rec_test,
+        autoencoder: ae_stage,
+        integrator: int_stage,
+        generate: generated,
+        build: {
+            let b = crate::BuildInfo::current();
+            format!("{} ({})", b.version, b.commit)
+        },
+    };
+    crate::io::write_json(&run.meta(), &meta)?;
+    Ok(meta)
+}
+
+/// The integrator's standardisation of the latents and the boundary features' length.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scales {
+    /// Latent means.
+    pub mean: Vec<f32>,
+    /// Latent deviations.
+    pub std: Vec<f32>,
+    /// Length dividing the boundary features, m.
+    pub length: f64,
+}
+
+impl Scales {
+    fn new(latents: &[Vec<f32>], length: f64) -> Self {
+        let l = latents[0].len();
+        let n = latents.len() as f64;
+        let mean: Vec<f32> = (0..l)
+            .map(|k| (latents.iter().map(|z| z[k] as f64).sum::<f64>() / n) as f32)
+            .collect();
+        let std = (0..l)
+            .map(|k| {
+                let v = latents
+                    .iter()
+                    .map(|z| (z[k] - mean[k]) as f64)
+                    .map(|d| d * d)
+                    .sum::<f64>()
+                    / n;
+                (v.sqrt() as f32).max(1e-6)
+            })
+            .collect();
+        Self { mean, std, length }
+    }
+
+    /// From a finished run's `latent.json`.
+    pub fn of(meta: &LatentMeta) -> Self {
+        Self {
+            mean: meta.z_mean.clone(),
+            std: meta.z_std.clone(),
+            length: meta.length,
+        }
+    }
+
+    /// `(z − μ)/σ`.
+    pub fn standardise(&self, z: &[f32]) -> Vec<f32> {
+        z.iter()
+            .zip(&self.mean)
+            .zip(&self.std)
+            .map(|((v, m), s)| (v - m) / s)
+            .collect()
+    }
+
+    /// `μ + σ ẑ`.
+    pub fn restore(&self, z: &[f32]) -> Vec<f32> {
+        z.iter()
+            .zip(&self.mean)
+            .zip(&self.std)
+            .map(|((v, m), s)| m + s * v)
+            .collect()
+    }
+}
+
+/// `train_log.csv`: `stage, epoch, loss, seconds`.
+struct TrainLog {
+    writer: csv::Writer<std::fs::File>,
+}
+
+impl TrainLog {
+    fn create(path: &Path) -> Result<Self> {
+        let mut writer = csv::Writer::from_path(path)
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        writer.write_record(["stage", "epoch", "loss", "seconds"])?;
+        Ok(Self { writer })
+    }
+
+    fn row(&mut self, stage: &str, epoch: usize, loss: f64, seconds: f64) -> Result<()> {
+        self.writer.write_record([
+            stage.to_string(),
+            epoch.to_string(),
+            format!("{loss:.8e}"),
+            format!("{seconds:.3}"),
+        ])?;
+        self.writer.flush()?;
+        Ok(())
+    }
+}
+
+fn rows_tensor(rows: &[&[f32]], device: &Device) -> Tensor<2> {
+    let d = rows.first().map_or(0, |r| r.len());
+    let data: Vec<f32> = rows.iter().flat_map(|r| r.iter().copied()).collect();
+    Tensor::from_data(TensorData::new(data, [rows.len(), d]), device)
+}
+
+fn to_rows(t: Tensor<2>) -> Vec<Vec<f32>> {
+    let [_, d] = t.dims();
+    let v: Vec<f32> = t
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor");
+    v.chunks(d.max(1)).map(|c| c.to_vec()).collect()
+}
+
+/// Encodes every frame of the reference (inference mode).
+pub fn encode_all(ae: &Autoencoder, reference: &Reference, device: &Device) -> Vec<Vec<f32>> {
+    let rows: Vec<Vec<f32>> = (0..reference.frames.len())
+        .map(|f| reference.relative(f).iter().map(|&v| v as f32).collect())
+        .collect();
+    rows.chunks(512)
+        .flat_map(|chunk| {
+            let refs: Vec<&[f32]> = chunk.iter().map(|r| r.as_slice()).collect();
+            to_rows(ae.encoder.forward(rows_tensor(&refs, device)))
+        })
+        .collect()
+}
+
+/// Decodes latents (inference mode) to relative positions.
+pub fn decode(decoder: &Decoder, latents: &[Vec<f32>], device: &Device) -> Vec<Vec<f32>> {
+    latents
+        .chunks(512)
+        .flat_map(|chunk| {
+            let refs: Vec<&[f32]> = chunk.iter().map(|r| r.as_slice()).collect();
+            to_rows(decoder.forward(rows_tensor(&refs, device)))
+        })
+        .collect()
+}
+
+fn train_autoencoder(
+    config: &LatentConfig,
+    reference: &Reference,
+    ad: &Device,
+    log: &mut TrainLog,
+    progress: &Progress,
+) -> Result<(Autoencoder, Pca, Stage)> {
+    let c = &config.autoencoder;
+    let t = config.integrator.train_frames;
+    let d = 3 * reference.frames[0].len();
+    let data: Vec<f64> = (0..t).flat_map(|f| reference.relative(f)).collect();
+    let pca = Pca::fit(&data, t, d, c.pca_modes)?;
+    let mut ae = Autoencoder::new(c, d, ad).with_pca(&pca, ad);
+    let rows: Vec<Vec<f32>> = (0..t)
+        .map(|f| reference.relative(f).iter().map(|&v| v as f32).collect())
+        .collect();
+    let mut optim = AdamConfig::new().init();
+    let mut rng = StdRng::seed_from_u64(config.seed);
+    let mut order: Vec<usize> = (0..t).collect();
+    let bar = progress.bar(c.epochs as u64, "autoencoder");
+    let clock = Instant::now();
+    let mut last = f64::NAN;
+    for epoch in 0..c.epochs {
+        order.shuffle(&mut rng);
+        let (mut sum, mut batches) = (0.0, 0);
+        for chunk in order.chunks(c.batch) {
+            // BatchNorm needs more than one frame in a batch.
+            if chunk.len() < 2 {
+                continue;
+            }
+            let refs: Vec<&[f32]> = chunk.iter().map(|&i| rows[i].as_slice()).collect();
+            let x = rows_tensor(&refs, ad);
+            let loss = (ae.forward(x.clone()) - x).powi_scalar(2).mean();
+            let value = loss.clone().into_scalar::<f32>() as f64;
+            if !value.is_finite() {
+                bail!("autoencoder training diverged at epoch {epoch} (loss {value})");
+            }
+            let grads = GradientsParams::from_grads(loss.backward(), &ae);
+            ae = optim.step(c.rate(epoch, c.epochs), ae, grads);
+            sum += value;
+            batches += 1;
+        }
+        last = sum / batches.max(1) as f64;
+        log.row("autoencoder", epoch, last, clock.elapsed().as_secs_f64())?;
+        bar.set_message(format!("RMSE {:.3} mm", last.sqrt() * 1e3));
+        bar.inc(1);
+    }
+    bar.finish();
+    Ok((
+        ae,
+        pca,
+        Stage {
+            epochs: c.epochs,
+            final_loss: last,
+            seconds: clock.elapsed().as_secs_f64(),
+            potential_at_fit: None,
+            potential_at_reference: None,
+        },
+    ))
+}
+
+/// One training step's host data: the integrator's input, the potential's `x̃`, the step's
+/// centre and pinned targets, its balancing weight and the encoded reference latent.
+struct Sample {
+    input: Vec<f32>,
+    x_tilde: Vec<f32>,
+    centre: [f32; 3],
+    targets: Vec<f32>,
+    weight: f32,
+    truth: Vec<f32>,
+}
+
+/// The balancing weight `1 / max(|v̄|, floor)` of a step whose previous states are `x1`, `x2`
+/// (absolute, flattened).
+fn balance_weight(x1: &[f32], x2: &[f32], dt: f64, floor: f64) -> f32 {
+    let n = (x1.len() / 3) as f64;
+    let mut v = [0.0f64; 3];
+    for (i, (a, b)) in x1.iter().zip(x2).enumerate() {
+        v[i % 3] += (*a - *b) as f64 / dt / n;
+    }
+    let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    (1.0 / speed.max(floor)) as f32
+}
+
+fn absolute(relative: &[f32], centre: V3) -> Vec<f32> {
+    relative
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v + centre[i % 3] as f32)
+        .collect()
+}
+
+#[allow(clippy::too_many_arguments)]
+fn train_integrator(
+    config: &LatentConfig,
+    reference: &Reference,
+    ae: &Autoencoder,
+    latents: &[Vec<f32>],
+    scales: &Scales,
+    ad: &Device,
+    log: &mut TrainLog,
+    progress: &Progress,
+) -> Result<(Integrator, Stage)> {
+    let c = &config.integrator;
+    let plain_device = ad.clone().inner();
+    let plain = ae.valid();
+    let frozen = ae.decoder.clone().freeze();
+    let l = latents[0].len();
+    let n = reference.frames[0].len();
+    let p = reference.pinned.len();
+    let t_end = c.train_frames;
+    let decoded = decode(&plain.decoder, &latents[..t_end], &plain_device);
+    let abs: Vec<Vec<f32>> = decoded
+        .iter()
+        .enumerate()
+        .map(|(f, r)| absolute(r, reference.centre(f)))
+        .collect();
+    let std: Vec<Vec<f32>> = latents.iter().map(|z| scales.standardise(z)).collect();
+    let samples: Vec<Sample> = (2..t_end)
+        .map(|t| {
+            let mut input = std[t - 1].clone();
+            input.extend(&std[t - 2]);
+            input.extend(reference.features(t, scales.length));
+            let x_tilde = abs[t - 1]
+                .iter()
+                .zip(&abs[t - 2])
+                .map(|(a, b)| 2.0 * a - b)
+                .collect();
+            let centre = reference.centre(t).map(|v| v as f32);
+            let targets = reference
+                .targets(t)
+                .iter()
+                .flat_map(|q| q.map(|v| v as f32))
+                .collect();
+            Sample {
+                input,
+                x_tilde,
+                centre,
+                targets,
+                weight: balance_weight(&abs[t - 1], &abs[t - 2], reference.dt, c.velocity_floor),
+                truth: std[t].clone(),
+            }
+        })
+        .collect();
+    let potential = Potential::new(
+        &config.cloth.fem(),
+        reference.dt,
+        &reference.pinned,
+        c.w_bc,
+        ad,
+    )?;
+    let features = 9 * p;
+    let mut integrator = Integrator::new(c, l, features, ad);
+    let mut optim = AdamConfig::new().init();
+    let mut rng = StdRng::seed_from_u64(config.seed.wrapping_add(1));
+    let mut order: Vec<usize> = (0..samples.len()).collect();
+    let bar = progress.bar(c.epochs as u64, "integrator");
+    let clock = Instant::now();
+    let mut last = f64::NAN;
+    let z_mean = Tensor::<2>::from_data(TensorData::new(scales.mean.clone(), [1, l]), ad);
+    let z_std = Tensor::<2>::from_data(TensorData::new(scales.std.clone(), [1, l]), ad);
+    let loss_of = SelfLoss {
+        decoder: &frozen,
+        potential: &potential,
+        z_mean: z_mean.clone(),
+        z_std: z_std.clone(),
+        balance: c.balance,
+        vertices: n,
+        pinned: p,
+    };
+    for epoch in 0..c.epochs {
+        order.shuffle(&mut rng);
+        let (mut sum, mut batches) = (0.0, 0);
+        for chunk in order.chunks(c.batch) {
+            let mut batch: Vec<Sample> = chunk
+                .iter()
+                .map(|&i| {
+                    let s = &samples[i];
+                    Sample {
+                        input: s.input.clone(),
+                        x_tilde: s.x_tilde.clone(),
+                        centre: s.centre,
+                        targets: s.targets.clone(),
+                        weight: s.weight,
+                        truth: s.truth.clone(),
+                    }
+                })
+                .collect();
+            if c.noise > 0.0 && c.loss == LossKind::SelfSupervised {
+                let noisy = noisy_copies(
+                    &batch,
+                    chunk,
+                    c.noise,
+                    &plain.decoder,
+                    scales,
+                    reference,
+                    l,
+                    &plain_device,
+                    c.velocity_floor,
+                    &mut rng,
+                );
+                batch.extend(noisy);
+            }
+            let input = rows_tensor(
+                &batch.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
+                ad,
+            );
+            let z_hat = integrator.forward(input);
+            let loss = match c.loss {
+                LossKind::Supervised => {
+                    let truth = rows_tensor(
+                        &batch.iter().map(|s| s.truth.as_slice()).collect::<Vec<_>>(),
+                        ad,
+                    );
+                    (z_hat - truth).powi_scalar(2).mean()
+                }
+                LossKind::SelfSupervised => loss_of.potential(&batch, z_hat).mean(),
+            };
+            let value = loss.clone().into_scalar::<f32>() as f64;
+            if !value.is_finite() {
+                bail!("integrator training diverged at epoch {epoch} (loss {value})");
+            }
+            let grads = GradientsParams::from_grads(loss.backward(), &integrator);
+            integrator = optim.step(c.rate(epoch, c.epochs), integrator, grads);
+            sum += value;
+            batches += 1;
+        }
+        last = sum / batches.max(1) as f64;
+        log.row("integrator", epoch, last, clock.elapsed().as_secs_f64())?;
+        bar.set_message(format!("loss {last:.5e}"));
+        bar.inc(1);
+    }
+    bar.finish();
+    // The self-supervised loss on the clean training steps at the integrator's latents and at
+    // the encoded reference's: a fit below the reference means the loss's minimum over the
+    // decoder's manifold lies away from the reference (an autoencoder not accurate enough).
+    let (mut at_fit, mut at_truth) = (0.0, 0.0);
+    for chunk in samples.chunks(512) {
+        let input = rows_tensor(
+            &chunk.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
+            ad,
+        );
+        let truth = rows_tensor(
+            &chunk.iter().map(|s| s.truth.as_slice()).collect::<Vec<_>>(),
+            ad,
+        );
+        let sum = |t: Tensor<1>| t.sum().into_scalar::<f32>() as f64;
+        at_fit += sum(loss_of.potential(chunk, integrator.forward(input)));
+        at_truth += sum(loss_of.potential(chunk, truth));
+    }
+    let count = samples.len().max(1) as f64;
+    Ok((
+        integrator,
+        Stage {
+            epochs: c.epochs,
+            final_loss: last,
+            seconds: clock.elapsed().as_secs_f64(),
+            potential_at_fit: Some(at_fit / count),
+            potential_at_reference: Some(at_truth / count),
+        },
+    ))
+}
+
+/// The self-supervised loss (Eq. 4, balanced by Eq. 6 when asked) of a batch's standardised
+/// latents, through the frozen decoder.
+struct SelfLoss<'a> {
+    decoder: &'a Decoder,
+    potential: &'a Potential,
+    z_mean: Tensor<2>,
+    z_std: Tensor<2>,
+    balance: bool,
+    vertices: usize,
+    pinned: usize,
+}
+
+impl SelfLoss<'_> {
+    /// Per step, `[B]`.
+    fn potential(&self, batch: &[Sample], z_hat: Tensor<2>) -> Tensor<1> {
+        let device = z_hat.device();
+        let (b, n) = (batch.len(), self.vertices);
+        let z = z_hat * self.z_std.clone() + self.z_mean.clone();
+        let centre: Vec<f32> = batch.iter().flat_map(|s| s.centre).collect();
+        let centre = Tensor::<3>::from_data(TensorData::new(centre, [b, 1, 3]), &device);
+        let x = self.decoder.forward(z).reshape([b, n, 3]) + centre;
+        let cat = |f: &dyn Fn(&Sample) -> &[f32], k: usize| {
+            let v: Vec<f32> = batch.iter().flat_map(|s| f(s).iter().copied()).collect();
+            Tensor::<3>::from_data(TensorData::new(v, [b, k, 3]), &device)
+        };
+        let x_tilde = cat(&|s| &s.x_tilde, n);
+        let targets = cat(&|s| &s.targets, self.pinned);
+        let phi = self.potential.incremental(x, x_tilde, targets);
+        if self.balance {
+            let w: Vec<f32> = batch.iter().map(|s| s.weight).collect();
+            phi * Tensor::<1>::from_data(TensorData::new(w, [b]), &device)
+        } else {
+            phi
+        }
+    }
+}
+
+/// Eq. 5's perturbation: uniform noise in `±noise · σ_k` on the first `dims` coordinates of
+/// every row, `σ_k` the batch's deviation of coordinate `k`; the other coordinates unchanged.
+/// `noise = 0` returns the rows as they are.
+pub fn perturb(rows: &[Vec<f32>], dims: usize, noise: f64, rng: &mut StdRng) -> Vec<Vec<f32>> {
+    let b = rows.len().max(1) as f64;
+    let spread: Vec<f32> = (0..dims)
+        .map(|k| {
+            let m = rows.iter().map(|r| r[k] as f64).sum::<f64>() / b;
+            let v = rows.iter().map(|r| (r[k] as f64 - m).powi(2)).sum::<f64>() / b;
+            (noise * v.sqrt()) as f32
+        })
+        .collect();
+    rows.iter()
+        .map(|r| {
+            let mut r = r.clone();
+            if noise > 0.0 {
+                for k in 0..dims {
+                    r[k] += spread[k] * rng.random_range(-1.0f32..=1.0);
+                }
+            }
+            r
+        })
+        .collect()
+}
+
+/// The noisy copies of a batch (Eq. 5): uniform noise of `noise` × the batch's deviation per
+/// latent coordinate on `ẑ_{t−1}` and `ẑ_{t−2}`, the previous states decoded from the noisy
+/// latents (gap G12), the boundary features unchanged.
+#[allow(clippy::too_many_arguments)]
+fn noisy_copies(
+    batch: &[Sample],
+    steps: &[usize],
+    noise: f64,
+    decoder: &Decoder,
+    scales: &Scales,
+    reference: &Reference,
+    l: usize,
+    device: &Device,
+    floor: f64,
+    rng: &mut StdRng,
+) -> Vec<Sample> {
+    let clean: Vec<Vec<f32>> = batch.iter().map(|s| s.input.clone()).collect();
+    let inputs = perturb(&clean, 2 * l, noise, rng);
+    let restore = |k0: usize| -> Vec<Vec<f32>> {
+        inputs
+            .iter()
+            .map(|i| scales.restore(&i[k0..k0 + l]))
+            .collect()
+    };
+    let (prev, prev2) = (
+        decode(decoder, &restore(0), device),
+        decode(decoder, &restore(l), device),
+    );
+    batch
+        .iter()
+        .zip(steps)
+        .enumerate()
+        .map(|(k, (s, &i))| {
+            let t = i + 2;
+            let x1 = absolute(&prev[k], reference.centre(t - 1));
+            let x2 = absolute(&prev2[k], reference.centre(t - 2));
+            Sample {
+                input: inputs[k].clone(),
+                x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
+                centre: s.centre,
+                targets: s.targets.clone(),
+                weight: balance_weight(&x1, &x2, reference.dt, floor),
+                truth: s.truth.clone(),
+            }
+        })
+        .collect()
+}
