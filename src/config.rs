@@ -568,13 +568,15 @@ mod tests {
             let path = entry.unwrap().path();
             if path.extension().is_some_and(|e| e == "toml") {
                 // A fold job (`springtime fold`) embeds a training config under [surrogate]; an
-                // `xpbd estimate` job has a [truth] material.
+                // `xpbd estimate` job has a [truth] material; a `latent` job an [autoencoder].
                 let text = std::fs::read_to_string(&path).unwrap();
                 let table = text.parse::<toml::Table>().unwrap();
                 let parsed = if table.contains_key("surrogate") {
                     crate::fold::FoldConfig::load(&path, &[]).map(|_| ())
                 } else if table.contains_key("truth") {
                     crate::xpbd::estimate::XpbdConfig::load(&path).map(|_| ())
+                } else if table.contains_key("autoencoder") {
+                    crate::latent::LatentConfig::load(&path, &[]).map(|_| ())
                 } else {
                     Config::load(&path, &[]).map(|_| ())
                 };
