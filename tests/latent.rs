@@ -288,6 +288,23 @@ fn tiny_config(loss: LossKind) -> LatentConfig {
     cfg
 }
 
+/// Trains `cfg` into `dir` (no --force).
+fn train_in(
+    dir: &std::path::Path,
+    cfg: &LatentConfig,
+) -> anyhow::Result<springtime::latent::train::LatentMeta> {
+    train(
+        cfg,
+        &TrainOptions {
+            out: dir.to_path_buf(),
+            data: None,
+            force: false,
+            autoencoder_from: None,
+        },
+        &Progress::quiet(),
+    )
+}
+
 #[test]
 fn the_moving_corner_scene_follows_its_path_and_generates_a_rollout() {
     let cfg = tiny_config(LossKind::SelfSupervised);
@@ -323,17 +340,7 @@ fn the_moving_corner_scene_follows_its_path_and_generates_a_rollout() {
 fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_copy() {
     let dir = common::temp_dir("latent");
     let cfg = tiny_config(LossKind::SelfSupervised);
-    let meta = train(
-        &cfg,
-        &TrainOptions {
-            out: dir.to_path_buf(),
-            data: None,
-            force: false,
-            autoencoder_from: None,
-        },
-        &Progress::quiet(),
-    )
-    .unwrap();
+    let meta = train_in(&dir, &cfg).unwrap();
     // The autoencoder reconstructs the training frames to well below the motion's extent
     // (the corners move ±5 cm; the sheet swings by more).
     assert!(
@@ -391,16 +398,7 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
     assert!(report.pinned_max_error < 5e-3, "{report:?}");
     assert!(dir.join("latent_eval.json").exists());
     // A finished run is not overwritten without --force.
-    let again = train(
-        &cfg,
-        &TrainOptions {
-            out: dir.to_path_buf(),
-            data: None,
-            force: false,
-            autoencoder_from: None,
-        },
-        &Progress::quiet(),
-    );
+    let again = train_in(&dir, &cfg);
     assert!(format!("{:#}", again.unwrap_err()).contains("--force"));
 }
 
@@ -410,17 +408,7 @@ fn the_supervised_integrator_overfits_a_short_sequence() {
     let mut cfg = tiny_config(LossKind::Supervised);
     // Overfitting 38 steps takes a few thousand Adam steps.
     cfg.integrator.epochs = 2000;
-    train(
-        &cfg,
-        &TrainOptions {
-            out: dir.to_path_buf(),
-            data: None,
-            force: false,
-            autoencoder_from: None,
-        },
-        &Progress::quiet(),
-    )
-    .unwrap();
+    train_in(&dir, &cfg).unwrap();
     let model = LatentModel::open(&dir).unwrap();
     // One-step predictions on the training frames, from the encoded reference.
     let r = &model.reference;

@@ -367,22 +367,31 @@ impl FemCloth {
         ]
     }
 
+    /// The step of central differences of the forces: `1e-6` of the sheet's size.
+    fn difference_step(&self) -> f64 {
+        let size = self
+            .rest_uv
+            .iter()
+            .fold(0.0f64, |m, p| m.max(p[0].abs()).max(p[1].abs()))
+            .max(1e-12);
+        1e-6 * size
+    }
+
+    /// The same cloth without strain-rate damping (its forces are the elastic ones).
+    fn without_damping(&self) -> Self {
+        Self {
+            beta: 0.0,
+            ..self.clone()
+        }
+    }
+
     /// The elastic energy's Hessian, element by element: one block per triangle (its membrane,
     /// 9 × 9) and one per hinge (its bending, 12 × 12), each by central differences of the
     /// element's exact forces (so it is as accurate as the step allows, about 1e-8 relative),
     /// symmetrised. Damping is left out. The blocks are not projected: a Newton solver projects
     /// them to positive semi-definite before assembly.
     pub fn hessian_blocks(&self, x: &[V3]) -> Vec<HessianBlock> {
-        let size = self
-            .rest_uv
-            .iter()
-            .fold(0.0f64, |m, p| m.max(p[0].abs()).max(p[1].abs()))
-            .max(1e-12);
-        let eps = 1e-6 * size;
-        let elastic_only = Self {
-            beta: 0.0,
-            ..self.clone()
-        };
+        let (eps, elastic_only) = (self.difference_step(), self.without_damping());
         let mut blocks = Vec::with_capacity(self.elements.len() + self.hinges.len());
         for el in &self.elements {
             let local = Element {
@@ -687,16 +696,7 @@ impl ClothSim for FemCloth {
         let rest: Vec<V3> = self.rest_uv.iter().map(|p| [p[0], p[1], 0.0]).collect();
         let n = rest.len();
         let zero = vec![[0.0; 3]; n];
-        let size = self
-            .rest_uv
-            .iter()
-            .fold(0.0f64, |m, p| m.max(p[0].abs()).max(p[1].abs()))
-            .max(1e-12);
-        let eps = 1e-6 * size;
-        let elastic_only = Self {
-            beta: 0.0,
-            ..self.clone()
-        };
+        let (eps, elastic_only) = (self.difference_step(), self.without_damping());
         let omega2 = self.mass_weighted_max(|y, out| {
             let plus: Vec<V3> = rest
                 .iter()
