@@ -351,7 +351,7 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
     let model = LatentModel::open(&dir).unwrap();
     // The saved autoencoder (BatchNorm statistics included) reconstructs as the trained one did.
     let r = &model.reference;
-    let latents = springtime::latent::train::encode_all(&model.autoencoder, r, &model.device);
+    let latents = &model.latents;
     let decoded = springtime::latent::train::decode(
         &model.autoencoder.decoder,
         &latents[..cfg.integrator.train_frames],
@@ -411,16 +411,12 @@ fn the_supervised_integrator_overfits_a_short_sequence() {
     train_in(&dir, &cfg).unwrap();
     let model = LatentModel::open(&dir).unwrap();
     // One-step predictions on the training frames, from the encoded reference.
-    let r = &model.reference;
-    let latents = springtime::latent::train::encode_all(&model.autoencoder, r, &model.device);
+    let latents = &model.latents;
     let l = cfg.autoencoder.latent;
     let mut scratch = (Vec::new(), Vec::new());
     let (mut err, mut spread) = (0.0f64, 0.0f64);
     for t in 2..cfg.integrator.train_frames {
-        let mut input = model.scales.standardise(&latents[t - 1]);
-        input.extend(model.scales.standardise(&latents[t - 2]));
-        input.extend(r.features(t, model.scales.length));
-        let z = model.plain.step(&input, l, &mut scratch);
+        let z = model.plain.step(&model.teacher_input(t), l, &mut scratch);
         let truth = model.scales.standardise(&latents[t]);
         err += z
             .iter()

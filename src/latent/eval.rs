@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 use super::LatentConfig;
 use super::autoencoder::Autoencoder;
 use super::infer::PlainModel;
-use super::integrator::Integrator;
+use super::integrator::{Integrator, step_input};
 use super::train::{
     LatentMeta, LatentRun, Reference, Scales, encode_all, load_autoencoder, read_meta,
 };
@@ -46,6 +46,8 @@ pub struct LatentModel {
     pub scales: Scales,
     /// The device of the Burn networks.
     pub device: Device,
+    /// The encoded reference, every frame (not standardised).
+    pub latents: Vec<Vec<f32>>,
 }
 
 impl LatentModel {
@@ -75,7 +77,9 @@ impl LatentModel {
         .try_load_record(load(&run.integrator())?)
         .map_err(fit(&run.integrator()))?;
         let plain = PlainModel::new(&autoencoder, &integrator);
+        let latents = encode_all(&autoencoder, &reference, &device);
         Ok(Self {
+            latents,
             scales: Scales::of(&meta),
             run,
             config,
@@ -92,16 +96,13 @@ impl LatentModel {
     /// frame; returns the positions of frames `start ..`.
     pub fn rollout(&self, start: usize) -> Vec<Vec<V3>> {
         let r = &self.reference;
-        let latents = encode_all(&self.autoencoder, r, &self.device);
         let l = self.config.autoencoder.latent;
-        let mut z2 = self.scales.standardise(&latents[start - 2]);
-        let mut z1 = self.scales.standardise(&latents[start - 1]);
+        let mut z2 = self.scales.standardise(&self.latents[start - 2]);
+        let mut z1 = self.scales.standardise(&self.latents[start - 1]);
         let mut scratch = (Vec::new(), Vec::new());
         let mut out = Vec::with_capacity(r.frames.len() - start);
         for t in start..r.frames.len() {
-            let mut input = z1.clone();
-            input.extend(&z2);
-            input.extend(r.features(t, self.scales.length));
+            let input = step_input(&z1, &z2, &r.features(t, self.scales.length));
             let z = self.plain.step(&input, l, &mut scratch);
             let rel = self
                 .plain
@@ -116,6 +117,16 @@ impl LatentModel {
             z2 = std::mem::replace(&mut z1, z);
         }
         out
+    }
+
+    /// The integrator's input of step `t` from the encoded reference frames `t − 1`, `t − 2`
+    /// (teacher forcing: one step without accumulated error).
+    pub fn teacher_input(&self, t: usize) -> Vec<f32> {
+        step_input(
+            &self.scales.standardise(&self.latents[t - 1]),
+            &self.scales.standardise(&self.latents[t - 2]),
+            &self.reference.features(t, self.scales.length),
+        )
     }
 
     /// Decodes standardised latents with the Burn decoder (for the parity test and bench).
@@ -221,9 +232,11 @@ pub fn evaluate(dir: &Path) -> Result<EvalReport> {
         }
     }
     let frames = rolled.len();
-    let latents = encode_all(&model.autoencoder, r, &model.device);
-    let decoded =
-        super::train::decode(&model.autoencoder.decoder, &latents[start..], &model.device);
+    let decoded = super::train::decode(
+        &model.autoencoder.decoder,
+        &model.latents[start..],
+        &model.device,
+    );
     let rec: f64 = decoded
         .iter()
         .enumerate()
@@ -239,10 +252,7 @@ pub fn evaluate(dir: &Path) -> Result<EvalReport> {
     let mut scratch = (Vec::new(), Vec::new());
     let mut one_step = 0.0;
     for t in start..r.frames.len() {
-        let mut input = model.scales.standardise(&latents[t - 1]);
-        input.extend(model.scales.standardise(&latents[t - 2]));
-        input.extend(r.features(t, model.scales.length));
-        let z = model.plain.step(&input, l, &mut scratch);
+        let z = model.plain.step(&model.teacher_input(t), l, &mut scratch);
         let y = model
             .plain
             .decoder
@@ -305,14 +315,8 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
     let r = &model.reference;
     let l = model.config.autoencoder.latent;
     let start = model.meta.train_frames;
-    let latents = encode_all(&model.autoencoder, r, &model.device);
     let inputs: Vec<Vec<f32>> = (start..r.frames.len())
-        .map(|t| {
-            let mut input = model.scales.standardise(&latents[t - 1]);
-            input.extend(model.scales.standardise(&latents[t - 2]));
-            input.extend(r.features(t, model.scales.length));
-            input
-        })
+        .map(|t| model.teacher_input(t))
         .collect();
     let mut scratch = (Vec::new(), Vec::new());
     let mut sink = 0.0f32;

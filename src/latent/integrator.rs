@@ -160,6 +160,11 @@ impl Integrator {
     }
 }
 
+/// The integrator's input `[ẑ_{t−1}, ẑ_{t−2}, p]`.
+pub fn step_input(z1: &[f32], z2: &[f32], features: &[f32]) -> Vec<f32> {
+    [z1, z2, features].concat()
+}
+
 /// The boundary features `p` of step `t` from the pinned targets at `t`, `t − 1`, `t − 2`
 /// (each `[P]`), relative to the mean at `t − 1`, over `length`.
 pub fn boundary_features(now: &[V3], prev: &[V3], prev2: &[V3], length: f64) -> Vec<f32> {

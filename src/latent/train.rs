@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
-use burn::optim::{AdamConfig, GradientsParams};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng, rngs::StdRng};
@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 use super::LatentConfig;
 use super::autoencoder::{Autoencoder, Decoder, Pca};
 use super::energy::Potential;
-use super::integrator::{Integrator, LossKind, boundary_features, mean};
+use super::integrator::{Integrator, LossKind, boundary_features, mean, step_input};
 use super::scenario::{GenerateStats, Scene, generate};
 use crate::cloth::triangles::V3;
 use crate::data::Rollout;
@@ -524,6 +524,24 @@ pub fn decode(decoder: &Decoder, latents: &[Vec<f32>], device: &Device) -> Vec<V
         .collect()
 }
 
+/// One Adam step of `module` on the scalar `loss` at rate `lr`; returns the module and the
+/// loss's value, or an error naming the stage and epoch when the loss is not finite.
+fn descend<M: Module>(
+    optim: &mut ModuleOptimizer,
+    module: M,
+    loss: Tensor<1>,
+    lr: f64,
+    stage: &str,
+    epoch: usize,
+) -> Result<(M, f64)> {
+    let value = loss.clone().into_scalar::<f32>() as f64;
+    if !value.is_finite() {
+        bail!("{stage} training diverged at epoch {epoch} (loss {value})");
+    }
+    let grads = GradientsParams::from_grads(loss.backward(), &module);
+    Ok((optim.step(lr, module, grads), value))
+}
+
 fn train_autoencoder(
     config: &LatentConfig,
     reference: &Reference,
@@ -557,12 +575,15 @@ fn train_autoencoder(
             let refs: Vec<&[f32]> = chunk.iter().map(|&i| rows[i].as_slice()).collect();
             let x = rows_tensor(&refs, ad);
             let loss = (ae.forward(x.clone()) - x).powi_scalar(2).mean();
-            let value = loss.clone().into_scalar::<f32>() as f64;
-            if !value.is_finite() {
-                bail!("autoencoder training diverged at epoch {epoch} (loss {value})");
-            }
-            let grads = GradientsParams::from_grads(loss.backward(), &ae);
-            ae = optim.step(c.rate(epoch, c.epochs), ae, grads);
+            let value;
+            (ae, value) = descend(
+                &mut optim,
+                ae,
+                loss,
+                c.rate(epoch, c.epochs),
+                "autoencoder",
+                epoch,
+            )?;
             sum += value;
             batches += 1;
         }
@@ -644,9 +665,11 @@ fn train_integrator(
     let std: Vec<Vec<f32>> = latents.iter().map(|z| scales.standardise(z)).collect();
     let samples: Vec<Sample> = (2..t_end)
         .map(|t| {
-            let mut input = std[t - 1].clone();
-            input.extend(&std[t - 2]);
-            input.extend(reference.features(t, scales.length));
+            let input = step_input(
+                &std[t - 1],
+                &std[t - 2],
+                &reference.features(t, scales.length),
+            );
             let x_tilde = abs[t - 1]
                 .iter()
                 .zip(&abs[t - 2])
@@ -698,23 +721,10 @@ fn train_integrator(
         order.shuffle(&mut rng);
         let (mut sum, mut batches) = (0.0, 0);
         for chunk in order.chunks(c.batch) {
-            let mut batch: Vec<Sample> = chunk
-                .iter()
-                .map(|&i| {
-                    let s = &samples[i];
-                    Sample {
-                        input: s.input.clone(),
-                        x_tilde: s.x_tilde.clone(),
-                        centre: s.centre,
-                        targets: s.targets.clone(),
-                        weight: s.weight,
-                        truth: s.truth.clone(),
-                    }
-                })
-                .collect();
-            if c.noise > 0.0 && c.loss == LossKind::SelfSupervised {
-                let noisy = noisy_copies(
-                    &batch,
+            let clean: Vec<&Sample> = chunk.iter().map(|&i| &samples[i]).collect();
+            let noisy = if c.noise > 0.0 && c.loss == LossKind::SelfSupervised {
+                noisy_copies(
+                    &clean,
                     chunk,
                     c.noise,
                     &plain.decoder,
@@ -724,9 +734,11 @@ fn train_integrator(
                     &plain_device,
                     c.velocity_floor,
                     &mut rng,
-                );
-                batch.extend(noisy);
-            }
+                )
+            } else {
+                Vec::new()
+            };
+            let batch: Vec<&Sample> = clean.into_iter().chain(&noisy).collect();
             let input = rows_tensor(
                 &batch.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
                 ad,
@@ -742,12 +754,15 @@ fn train_integrator(
                 }
                 LossKind::SelfSupervised => loss_of.potential(&batch, z_hat).mean(),
             };
-            let value = loss.clone().into_scalar::<f32>() as f64;
-            if !value.is_finite() {
-                bail!("integrator training diverged at epoch {epoch} (loss {value})");
-            }
-            let grads = GradientsParams::from_grads(loss.backward(), &integrator);
-            integrator = optim.step(c.rate(epoch, c.epochs), integrator, grads);
+            let value;
+            (integrator, value) = descend(
+                &mut optim,
+                integrator,
+                loss,
+                c.rate(epoch, c.epochs),
+                "integrator",
+                epoch,
+            )?;
             sum += value;
             batches += 1;
         }
@@ -762,6 +777,7 @@ fn train_integrator(
     // decoder's manifold lies away from the reference (an autoencoder not accurate enough).
     let (mut at_fit, mut at_truth) = (0.0, 0.0);
     for chunk in samples.chunks(512) {
+        let chunk: Vec<&Sample> = chunk.iter().collect();
         let input = rows_tensor(
             &chunk.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
             ad,
@@ -771,8 +787,8 @@ fn train_integrator(
             ad,
         );
         let sum = |t: Tensor<1>| t.sum().into_scalar::<f32>() as f64;
-        at_fit += sum(loss_of.potential(chunk, integrator.forward(input)));
-        at_truth += sum(loss_of.potential(chunk, truth));
+        at_fit += sum(loss_of.potential(&chunk, integrator.forward(input)));
+        at_truth += sum(loss_of.potential(&chunk, truth));
     }
     let count = samples.len().max(1) as f64;
     Ok((
@@ -801,7 +817,7 @@ struct SelfLoss<'a> {
 
 impl SelfLoss<'_> {
     /// Per step, `[B]`.
-    fn potential(&self, batch: &[Sample], z_hat: Tensor<2>) -> Tensor<1> {
+    fn potential(&self, batch: &[&Sample], z_hat: Tensor<2>) -> Tensor<1> {
         let device = z_hat.device();
         let (b, n) = (batch.len(), self.vertices);
         let z = z_hat * self.z_std.clone() + self.z_mean.clone();
@@ -854,7 +870,7 @@ pub fn perturb(rows: &[Vec<f32>], dims: usize, noise: f64, rng: &mut StdRng) -> 
 /// latents (gap G12), the boundary features unchanged.
 #[allow(clippy::too_many_arguments)]
 fn noisy_copies(
-    batch: &[Sample],
+    batch: &[&Sample],
     steps: &[usize],
     noise: f64,
     decoder: &Decoder,

@@ -377,21 +377,14 @@ impl FemCloth {
         1e-6 * size
     }
 
-    /// The same cloth without strain-rate damping (its forces are the elastic ones).
-    fn without_damping(&self) -> Self {
-        Self {
-            beta: 0.0,
-            ..self.clone()
-        }
-    }
-
     /// The elastic energy's Hessian, element by element: one block per triangle (its membrane,
     /// 9 × 9) and one per hinge (its bending, 12 × 12), each by central differences of the
     /// element's exact forces (so it is as accurate as the step allows, about 1e-8 relative),
-    /// symmetrised. Damping is left out. The blocks are not projected: a Newton solver projects
+    /// symmetrised. Damping is left out (the forces are taken at zero velocity, where the
+    /// strain-rate term vanishes). The blocks are not projected: a Newton solver projects
     /// them to positive semi-definite before assembly.
     pub fn hessian_blocks(&self, x: &[V3]) -> Vec<HessianBlock> {
-        let (eps, elastic_only) = (self.difference_step(), self.without_damping());
+        let eps = self.difference_step();
         let mut blocks = Vec::with_capacity(self.elements.len() + self.hinges.len());
         for el in &self.elements {
             let local = Element {
@@ -403,7 +396,7 @@ impl FemCloth {
             };
             let corners = el.tri.v.map(|i| x[i]);
             let zero = [[0.0; 3]; 3];
-            let forces = |y: &[V3]| elastic_only.membrane_forces(&local, y, &zero).to_vec();
+            let forces = |y: &[V3]| self.membrane_forces(&local, y, &zero).to_vec();
             blocks.push(HessianBlock::by_differences(
                 el.tri.v.to_vec(),
                 &corners,
@@ -696,7 +689,8 @@ impl ClothSim for FemCloth {
         let rest: Vec<V3> = self.rest_uv.iter().map(|p| [p[0], p[1], 0.0]).collect();
         let n = rest.len();
         let zero = vec![[0.0; 3]; n];
-        let (eps, elastic_only) = (self.difference_step(), self.without_damping());
+        // The forces at zero velocity are the elastic ones: the strain-rate term vanishes.
+        let eps = self.difference_step();
         let omega2 = self.mass_weighted_max(|y, out| {
             let plus: Vec<V3> = rest
                 .iter()
@@ -709,8 +703,8 @@ impl ClothSim for FemCloth {
                 .map(|(r, d)| [0, 1, 2].map(|c| r[c] - eps * d[c]))
                 .collect();
             let (mut fp, mut fm) = (vec![[0.0; 3]; n], vec![[0.0; 3]; n]);
-            elastic_only.internal_forces(&plus, &zero, &mut fp);
-            elastic_only.internal_forces(&minus, &zero, &mut fm);
+            self.internal_forces(&plus, &zero, &mut fp);
+            self.internal_forces(&minus, &zero, &mut fm);
             for i in 0..n {
                 out[i] = [0, 1, 2].map(|c| -(fp[i][c] - fm[i][c]) / (2.0 * eps));
             }
