@@ -502,4 +502,23 @@ train_frames = 30
         &dir,
     );
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nosie"));
+    // More PCA modes than training frames is refused up front, naming both keys.
+    let short = common::springtime(
+        &[
+            "latent",
+            "train",
+            cfg_s,
+            "--out",
+            run_s,
+            "--force",
+            "--set",
+            "autoencoder.pca_modes=31",
+        ],
+        &dir,
+    );
+    let err = String::from_utf8_lossy(&short.stderr);
+    assert!(
+        !short.status.success() && err.contains("pca_modes") && err.contains("train_frames"),
+        "{err}"
+    );
 }

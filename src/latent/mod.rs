@@ -86,6 +86,15 @@ impl LatentConfig {
         self.solver.validate()?;
         self.autoencoder.validate()?;
         self.integrator.validate()?;
+        // A PCA of `train_frames` frames has at most that many modes.
+        if self.autoencoder.pca_modes > self.integrator.train_frames {
+            bail!(
+                "autoencoder.pca_modes ({}) exceeds integrator.train_frames ({}): a PCA of that \
+                 many frames has fewer modes",
+                self.autoencoder.pca_modes,
+                self.integrator.train_frames
+            );
+        }
         let frames = self.scenario.frames;
         if self.integrator.train_frames + 2 > frames {
             bail!(
