@@ -229,6 +229,13 @@ fn bad_configs_name_the_key() {
         &["train.stiffness.batch"],
     );
     fails(
+        &springtime(
+            &["train", "tiny.toml", "--set", "train.damping.lr_decay=0"],
+            &dir,
+        ),
+        &["train.damping.lr_decay"],
+    );
+    fails(
         &springtime(&["train", "missing.toml"], &dir),
         &["missing.toml"],
     );

@@ -53,10 +53,25 @@ pub struct PassConfig {
     pub batch: usize,
     /// Adam learning rate.
     pub lr: f64,
+    /// The learning rate at the pass's last iteration as a fraction of `lr`, reached by a
+    /// geometric decay; 1 keeps it constant (the paper).
+    pub lr_decay: f64,
+    /// The fraction of the pass's iterations at the constant `lr` before the decay starts.
+    pub lr_hold: f64,
     /// Loss weights.
     pub weights: LossWeights,
     /// Where the clips come from.
     pub clips: ClipPool,
+}
+
+impl PassConfig {
+    /// The learning rate of the pass's `i`-th iteration (from 0): `lr` for the first
+    /// `lr_hold` of the pass, then decayed geometrically to `lr · lr_decay` at the last one.
+    pub fn lr_at(&self, i: usize) -> f64 {
+        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
+        let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
+        self.lr * self.lr_decay.powf(decayed)
+    }
 }
 
 impl Default for PassConfig {
@@ -65,6 +80,8 @@ impl Default for PassConfig {
             iterations: 128,
             batch: 32,
             lr: 1.0,
+            lr_decay: 1.0,
+            lr_hold: 0.0,
             weights: LossWeights::default(),
             clips: ClipPool::Regular,
         }
@@ -168,6 +185,15 @@ impl TrainConfig {
                     "`train.{name}.lr` must be a non-negative number, is {}",
                     p.lr
                 );
+            }
+            if !(p.lr_decay > 0.0 && p.lr_decay <= 1.0) {
+                bail!(
+                    "`train.{name}.lr_decay` must be in (0, 1], is {}",
+                    p.lr_decay
+                );
+            }
+            if !(0.0..1.0).contains(&p.lr_hold) {
+                bail!("`train.{name}.lr_hold` must be in [0, 1), is {}", p.lr_hold);
             }
             let w = &p.weights;
             for (key, v) in [
@@ -896,7 +922,7 @@ impl Fit<'_> {
                 };
                 dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
                 if model.gradients_finite(&grads) {
-                    model = optim.step(pass.lr, model, grads);
+                    model = optim.step(pass.lr_at(it - pass_start), model, grads);
                 } else {
                     skipped += 1; // a finite loss with a non-finite gradient: no step
                 }
@@ -1076,5 +1102,36 @@ impl ModelMeta {
             .gnn_stats
             .ok_or_else(|| anyhow::anyhow!("model.json of a GNN run has no `gnn_stats`"))?;
         Ok(Gnn::new(&config.model.gnn, stats, device))
+    }
+}
+
+#[cfg(test)]
+mod schedule_tests {
+    use super::PassConfig;
+
+    #[test]
+    fn the_learning_rate_decays_geometrically_from_lr_to_lr_times_decay() {
+        let pass = PassConfig {
+            iterations: 5,
+            lr: 2.0,
+            lr_decay: 0.01,
+            ..PassConfig::default()
+        };
+        assert_eq!(pass.lr_at(0), 2.0);
+        assert!((pass.lr_at(4) - 0.02).abs() < 1e-12);
+        assert!(
+            (pass.lr_at(2) - 0.2).abs() < 1e-12,
+            "the middle is the geometric mean"
+        );
+        let constant = PassConfig::default();
+        assert_eq!(constant.lr_at(0), constant.lr_at(127));
+        let held = PassConfig {
+            iterations: 11,
+            lr_hold: 0.5,
+            ..pass
+        };
+        assert_eq!(held.lr_at(5), 2.0, "held for the first half");
+        assert!((held.lr_at(10) - 0.02).abs() < 1e-12);
+        assert!(held.lr_at(8) < held.lr_at(7));
     }
 }
