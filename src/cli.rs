@@ -77,7 +77,8 @@ pub enum Command {
         #[command(subcommand)]
         command: DataCommand,
     },
-    /// Static cloth parameters from drapes (paper 001): `xpbd estimate CONFIG --out DIR`.
+    /// Static cloth parameters from drapes (paper 001): `xpbd estimate|descriptors CONFIG --out
+    /// DIR`.
     Xpbd {
         /// What to do.
         #[command(subcommand)]
@@ -377,6 +378,33 @@ pub enum XpbdCommand {
         /// Overwrite an earlier estimate in DIR.
         #[arg(long)]
         force: bool,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// The descriptor study of paper 001 §4.1: the config's estimate with each of the four
+    /// descriptors of Eq. 9 (positions, energy, strain, FFT; Fig. 5) into DIR/<descriptor>/,
+    /// and how well each tells Table 1's cotton, denim and silk apart against two wrinkle
+    /// branches of one material in the config's scenarios (Fig. 7). Writes
+    /// DIR/descriptors.json and prints the table.
+    #[command(
+        after_help = "Example:\n  springtime xpbd descriptors configs/xpbd_cotton.toml --out runs/xpbd_descriptors"
+    )]
+    Descriptors {
+        /// The job's TOML (`configs/xpbd_cotton.toml`).
+        config: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite an earlier study in DIR.
+        #[arg(long)]
+        force: bool,
+        /// Out-of-plane amplitude of the perturbed start (the other start is flat), m.
+        #[arg(long, default_value_t = 0.002)]
+        noise: f64,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
     },
 }
 
@@ -582,8 +610,24 @@ pub fn run(cli: Cli) -> Result<()> {
         }
         Command::Import { source } => import(&source),
         Command::Xpbd {
-            command: XpbdCommand::Estimate { config, out, force },
-        } => xpbd_estimate(&config, out, force, &progress),
+            command:
+                XpbdCommand::Estimate {
+                    config,
+                    out,
+                    force,
+                    set,
+                },
+        } => xpbd_estimate(&config, out, force, &set, &progress),
+        Command::Xpbd {
+            command:
+                XpbdCommand::Descriptors {
+                    config,
+                    out,
+                    force,
+                    noise,
+                    set,
+                },
+        } => xpbd_descriptors(&config, out, force, noise, &set, &progress),
         Command::Latent { command } => latent(command, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
@@ -860,9 +904,15 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
 }
 
 /// `springtime xpbd estimate`: the fit, then the fitted γ beside the truth.
-fn xpbd_estimate(config: &Path, out: PathBuf, force: bool, progress: &Progress) -> Result<()> {
+fn xpbd_estimate(
+    config: &Path,
+    out: PathBuf,
+    force: bool,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
     use crate::xpbd::estimate;
-    let cfg = estimate::XpbdConfig::load(config)?;
+    let cfg = estimate::XpbdConfig::load(config, set)?;
     let r = estimate::estimate(
         &cfg,
         &estimate::EstimateOptions {
@@ -893,6 +943,58 @@ fn xpbd_estimate(config: &Path, out: PathBuf, force: bool, progress: &Progress) 
         r.wall_seconds
     );
     println!("estimate: {}", out.join("estimate.json").display());
+    Ok(())
+}
+
+/// `springtime xpbd descriptors`: the study, then its two tables.
+fn xpbd_descriptors(
+    config: &Path,
+    out: PathBuf,
+    force: bool,
+    noise: f64,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
+    use crate::xpbd::{estimate::XpbdConfig, study};
+    let cfg = XpbdConfig::load(config, set)?;
+    let options = study::StudyOptions {
+        out: out.clone(),
+        force,
+        noise,
+    };
+    let r = study::study(&cfg, &options, progress)?;
+    println!(
+        "| descriptor | worst parameter error | steps | re-simulated, max vertex error (m) | discrimination: positive of |"
+    );
+    println!("|---|---|---|---|---|");
+    for f in &r.fits {
+        let worst = crate::xpbd::material::NAMES
+            .iter()
+            .map(|n| f.relative_error[*n])
+            .fold(0.0, f64::max);
+        let [p, n] = r.positive[f.descriptor.name()];
+        println!(
+            "| {} | {:.2e} | {} | {:.3e} | {p} of {n} |",
+            f.descriptor.name(),
+            worst,
+            f.relative_error["iterations"],
+            f.max_vertex_error
+        );
+    }
+    for s in &r.discrimination {
+        let branches: Vec<String> = s
+            .materials
+            .iter()
+            .zip(&s.branch_distance)
+            .map(|(m, d)| format!("{m} {:.2} mm", 1e3 * d))
+            .collect();
+        println!(
+            "{}: the two branches differ by {}",
+            s.scenario,
+            branches.join(", ")
+        );
+    }
+    println!("descriptors: {}", out.join("descriptors.json").display());
     Ok(())
 }
 

@@ -574,7 +574,7 @@ mod tests {
                 let parsed = if table.contains_key("surrogate") {
                     crate::fold::FoldConfig::load(&path, &[]).map(|_| ())
                 } else if table.contains_key("truth") {
-                    crate::xpbd::estimate::XpbdConfig::load(&path).map(|_| ())
+                    crate::xpbd::estimate::XpbdConfig::load(&path, &[]).map(|_| ())
                 } else if table.contains_key("autoencoder") {
                     crate::latent::LatentConfig::load(&path, &[]).map(|_| ())
                 } else {

@@ -1,6 +1,7 @@
 //! `springtime xpbd estimate` end to end on a small swatch: the sim-to-sim fit recovers the
 //! targets' material from another starting guess, writes `estimate.json` with the interface's
-//! keys, refuses to overwrite it, and a bad config names its key.
+//! keys, refuses to overwrite it, and a bad config names its key; `xpbd descriptors` fits with
+//! each of the four descriptors and counts their discrimination.
 
 mod common;
 
@@ -130,4 +131,77 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
         .map(|s| s["objective"].as_f64().unwrap())
         .fold(f64::INFINITY, f64::min);
     assert_eq!(json["final_objective"].as_f64().unwrap(), best);
+}
+
+#[test]
+fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination() {
+    let dir = common::temp_dir("xpbd-descriptors");
+    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
+    let out = springtime(
+        &[
+            "xpbd",
+            "descriptors",
+            "small.toml",
+            "--out",
+            "d",
+            "--noise",
+            "0.005",
+        ],
+        &dir,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("d/descriptors.json")).unwrap())
+            .unwrap();
+    let fits = json["fits"].as_array().unwrap();
+    let names: Vec<&str> = fits
+        .iter()
+        .map(|f| f["descriptor"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["positions", "energy", "strain", "fft"]);
+    for f in fits {
+        // Each fit is a full estimate of its own, beside the study.
+        let d = f["descriptor"].as_str().unwrap();
+        assert!(dir.join("d").join(d).join("estimate.json").exists());
+        // Position, strain and FFT residuals vanish only at the truth on these three targets.
+        if d != "energy" {
+            for key in ["C00", "C11", "C01", "C22", "b"] {
+                let e = f["relative_error"][key].as_f64().unwrap();
+                assert!(e < 5e-3, "{d}: relative error of {key}: {e}");
+            }
+            assert!(f["max_vertex_error"].as_f64().unwrap() < 1e-5);
+        }
+    }
+    // Three materials × another two × two starts each = 24 differences per scenario.
+    let scenarios = json["discrimination"].as_array().unwrap();
+    assert_eq!(scenarios.len(), 3);
+    for s in scenarios {
+        let branch = s["branch_distance"].as_array().unwrap();
+        for d in s["descriptors"].as_array().unwrap() {
+            let rel = d["relative"].as_array().unwrap();
+            assert_eq!(rel.len(), 24);
+            let positive = rel
+                .iter()
+                .filter(|r| r["value"].as_f64().unwrap() > 0.0)
+                .count();
+            assert_eq!(d["positive"].as_u64().unwrap() as usize, positive);
+            // The positions' difference is the two branches' distance: at least the largest
+            // vertex distance, at most √25 times it.
+            if d["descriptor"] == "positions" {
+                for (m, w) in d["within"].as_array().unwrap().iter().enumerate() {
+                    let (w, b) = (w.as_f64().unwrap(), branch[m].as_f64().unwrap());
+                    assert!(
+                        w >= b * (1.0 - 1e-12) && w <= 5.0 * b * (1.0 + 1e-12),
+                        "{w} {b}"
+                    );
+                }
+            }
+        }
+    }
+    let total = json["positive"]["fft"].as_array().unwrap();
+    assert_eq!(total[1].as_u64(), Some(72));
 }

@@ -215,17 +215,29 @@ impl XpbdCloth {
 
     /// Elastic energy (membrane and bending), J.
     pub fn energy(&self, gamma: &Gamma, x: &[V3]) -> f64 {
-        let membrane: f64 = self
+        self.element_energies(gamma, x).iter().sum()
+    }
+
+    /// Every element's energy, J: each triangle's membrane energy, then each hinge's bending
+    /// energy (paper 001 Eq. 9's `U_triangle`, `U_bend`).
+    pub fn element_energies(&self, gamma: &Gamma, x: &[V3]) -> Vec<f64> {
+        let membrane = self
             .triangles
             .iter()
-            .map(|t| t.area * gamma.membrane_density(strain(t, x).0))
-            .sum();
-        let bending: f64 = self
+            .map(|t| t.area * gamma.membrane_density(strain(t, x).0));
+        let bending = self
             .hinges
             .iter()
-            .map(|h| 0.5 * gamma.b * triangles::dihedral(h, x).0.powi(2))
-            .sum();
-        membrane + bending
+            .map(|h| 0.5 * gamma.b * triangles::dihedral(h, x).0.powi(2));
+        membrane.chain(bending).collect()
+    }
+
+    /// Every element's strain (the constraints `C` of the XPBD blocks): each triangle's Voigt
+    /// Green strain `(ε_uu, ε_vv, 2ε_uv)`, then each hinge's signed dihedral angle, rad.
+    pub fn element_strains(&self, x: &[V3]) -> Vec<f64> {
+        let membrane = self.triangles.iter().flat_map(|t| strain(t, x).0);
+        let bending = self.hinges.iter().map(|h| triangles::dihedral(h, x).0);
+        membrane.chain(bending).collect()
     }
 
     /// `∇U(x)`, written into `out`.

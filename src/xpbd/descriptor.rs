@@ -3,8 +3,64 @@
 //! scaled, without the mean (DC) bin. Magnitudes drop the phase, so a wrinkle pattern shifted
 //! along the grid (another equilibrium of the same material) has the same descriptor, while a
 //! change of amplitude or wavelength changes it. Any grid size (a dense DFT, not a radix-2 FFT).
+//! Beside it, the paper's other three descriptors: the positions, the per-element energies and
+//! the per-element strains.
 
+use serde::{Deserialize, Serialize};
+
+use super::cloth::XpbdCloth;
+use super::material::Gamma;
 use crate::cloth::triangles::V3;
+
+/// A shape descriptor of paper 001, Eq. 9.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Descriptor {
+    /// `s_FFT`: the phase-free DFT magnitudes of the grid positions.
+    Fft,
+    /// `s_pos`: the positions themselves.
+    Positions,
+    /// `s_energy`: every triangle's membrane and every hinge's bending energy (depends on γ).
+    Energy,
+    /// `s_strain`: every triangle's Green strain and every hinge's angle.
+    Strain,
+}
+
+impl Descriptor {
+    /// All four, in the paper's order of Eq. 9.
+    pub const ALL: [Descriptor; 4] = [
+        Descriptor::Positions,
+        Descriptor::Energy,
+        Descriptor::Strain,
+        Descriptor::Fft,
+    ];
+
+    /// The name in configs and files.
+    pub fn name(self) -> &'static str {
+        match self {
+            Descriptor::Fft => "fft",
+            Descriptor::Positions => "positions",
+            Descriptor::Energy => "energy",
+            Descriptor::Strain => "strain",
+        }
+    }
+
+    /// Whether it depends on γ besides the positions (then a target's descriptor changes with
+    /// the estimate, as the paper notes of `s_energy`).
+    pub fn depends_on_gamma(self) -> bool {
+        matches!(self, Descriptor::Energy)
+    }
+
+    /// The descriptor of positions `x` of `cloth`, an `nx × ny` row-major grid, at `gamma`.
+    pub fn of(self, cloth: &XpbdCloth, nx: usize, ny: usize, gamma: &Gamma, x: &[V3]) -> Vec<f64> {
+        match self {
+            Descriptor::Fft => fft_descriptor(x, nx, ny),
+            Descriptor::Positions => x.iter().flatten().copied().collect(),
+            Descriptor::Energy => cloth.element_energies(gamma, x),
+            Descriptor::Strain => cloth.element_strains(x),
+        }
+    }
+}
 
 /// `|DFT₂(x_c)[k, l]| / √(nx·ny)` for every coordinate `c` and frequency `(k, l) ≠ (0, 0)` of
 /// positions on an `nx × ny` row-major grid (row `r`, column `c` at `r·nx + c`); `nx·ny − 1`
@@ -130,5 +186,76 @@ mod tests {
             .map(|(a, b)| (a - b).abs())
             .sum();
         assert!(diff > 0.05, "{diff}");
+    }
+
+    #[test]
+    fn the_element_descriptors_ignore_rigid_motion_and_energy_is_linear_in_gamma() {
+        let n = 4;
+        let cloth = XpbdCloth::grid(n, n, 0.1, 0.1, 0.2).unwrap();
+        let gamma = Gamma::from_engineering(100.0, 280.0, 40.0, 0.4, 5e-6);
+        // At rest every strain and energy is zero.
+        let rest = cloth.rest();
+        for d in [Descriptor::Energy, Descriptor::Strain] {
+            let s = d.of(&cloth, n, n, &gamma, &rest);
+            assert_eq!(
+                s.len(),
+                cloth.triangles.len() * if d == Descriptor::Strain { 3 } else { 1 }
+                    + cloth.hinges.len()
+            );
+            assert!(s.iter().all(|v| v.abs() < 1e-15), "{d:?} at rest: {s:?}");
+        }
+        // A deformed, bent state, then the same rotated about an axis and moved.
+        let x: Vec<V3> = rest
+            .iter()
+            .map(|p| {
+                [
+                    1.05 * p[0] + 0.2 * p[1],
+                    0.97 * p[1],
+                    0.3 * (p[0] * 40.0).sin() * p[1],
+                ]
+            })
+            .collect();
+        let (c, s) = (0.8f64, 0.6f64);
+        let moved: Vec<V3> = x
+            .iter()
+            .map(|p| {
+                [
+                    c * p[0] - s * p[2] + 1.0,
+                    p[1] - 2.0,
+                    s * p[0] + c * p[2] + 0.5,
+                ]
+            })
+            .collect();
+        for d in [Descriptor::Energy, Descriptor::Strain] {
+            let (a, b) = (
+                d.of(&cloth, n, n, &gamma, &x),
+                d.of(&cloth, n, n, &gamma, &moved),
+            );
+            assert!(
+                a.iter().any(|v| v.abs() > 1e-6),
+                "{d:?} sees the deformation"
+            );
+            for (p, q) in a.iter().zip(&b) {
+                assert!((p - q).abs() < 1e-12 * (1.0 + p.abs()), "{d:?}: {p} vs {q}");
+            }
+        }
+        // The energies are linear in γ and sum to the cloth's energy.
+        let doubled = Gamma::from_array(gamma.to_array().map(|v| 2.0 * v));
+        let e1 = Descriptor::Energy.of(&cloth, n, n, &gamma, &x);
+        let e2 = Descriptor::Energy.of(&cloth, n, n, &doubled, &x);
+        for (p, q) in e1.iter().zip(&e2) {
+            assert!((2.0 * p - q).abs() < 1e-12 * q.abs().max(1e-30));
+        }
+        let total: f64 = e1.iter().sum();
+        assert!((total - cloth.energy(&gamma, &x)).abs() < 1e-12 * total);
+        // The strains do not depend on γ; the positions are the positions.
+        assert_eq!(
+            Descriptor::Strain.of(&cloth, n, n, &gamma, &x),
+            Descriptor::Strain.of(&cloth, n, n, &doubled, &x)
+        );
+        assert_eq!(
+            Descriptor::Positions.of(&cloth, n, n, &gamma, &x)[3..6],
+            x[1]
+        );
     }
 }

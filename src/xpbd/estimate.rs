@@ -14,7 +14,7 @@ use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
 use super::cloth::{Solve, XpbdCloth};
-use super::descriptor::fft_descriptor;
+use super::descriptor::Descriptor;
 use super::equilibrium::{polish, sensitivity};
 use super::lm::{self, LeastSquares, Lm};
 use super::material::{Gamma, NAMES};
@@ -47,6 +47,40 @@ impl Engineering {
     }
 }
 
+/// The paper's three synthetic materials (its Table 1, top), CGS.
+pub const TABLE_1: [(&str, Engineering); 3] = [
+    (
+        "cotton",
+        Engineering {
+            e_u: 1.0e5,
+            e_v: 2.8e5,
+            mu: 4.0e4,
+            nu: 0.4,
+            b: 50.0,
+        },
+    ),
+    (
+        "denim",
+        Engineering {
+            e_u: 5.0e5,
+            e_v: 7.0e5,
+            mu: 2.0e4,
+            nu: 0.45,
+            b: 200.0,
+        },
+    ),
+    (
+        "silk",
+        Engineering {
+            e_u: 2.0e5,
+            e_v: 3.0e5,
+            mu: 1.5e4,
+            nu: 0.35,
+            b: 10.0,
+        },
+    ),
+];
+
 /// The swatch: a square grid.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -71,16 +105,6 @@ impl Default for Swatch {
             gravity: [0.0, 0.0, -9.81],
         }
     }
-}
-
-/// The shape descriptor of the fit (paper Eq. 9).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Descriptor {
-    /// The phase-free DFT magnitudes of the grid positions.
-    Fft,
-    /// The positions themselves.
-    Positions,
 }
 
 /// How the parameters are fitted.
@@ -178,15 +202,12 @@ fn default_name() -> String {
 }
 
 impl XpbdConfig {
-    /// Reads a config; errors name the file and the key.
-    pub fn load(path: &Path) -> Result<Self> {
+    /// Reads a config with `key=value` overrides; errors name the file and the key.
+    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read {}", path.display()))?;
-        let de = toml::Deserializer::parse(&text)
-            .with_context(|| format!("{} is not valid TOML", path.display()))?;
-        let cfg: Self = serde_path_to_error::deserialize(de).map_err(|e| {
-            anyhow::anyhow!("{}: key `{}`: {}", path.display(), e.path(), e.inner())
-        })?;
+        let cfg: Self = crate::config::parse_toml(&text, overrides)
+            .with_context(|| format!("in config {}", path.display()))?;
         cfg.validate()
             .with_context(|| format!("{} is not a valid xpbd config", path.display()))?;
         Ok(cfg)
@@ -287,7 +308,8 @@ struct Target {
     x: Vec<V3>,
     residual: f64,
     reactions: Vec<f64>,
-    descriptor: Vec<f64>,
+    /// The norm of its descriptor at the initial γ: the scale of its residuals.
+    norm: f64,
 }
 
 /// The fit as a least-squares problem over γ (SI, `[C00, C11, C01, C22, b]`).
@@ -301,17 +323,11 @@ struct Problem<'a> {
     last: Option<(Vec<f64>, Vec<Vec<V3>>)>,
 }
 
-/// The config's shape descriptor of positions `x`.
-fn describe(cfg: &XpbdConfig, x: &[V3]) -> Vec<f64> {
-    match cfg.fit.descriptor {
-        Descriptor::Fft => fft_descriptor(x, cfg.swatch.n, cfg.swatch.n),
-        Descriptor::Positions => x.iter().flatten().copied().collect(),
-    }
-}
-
 impl Problem<'_> {
-    fn descriptor(&self, x: &[V3]) -> Vec<f64> {
-        describe(self.cfg, x)
+    /// The config's shape descriptor of positions `x` at `gamma`.
+    fn descriptor(&self, gamma: &Gamma, x: &[V3]) -> Vec<f64> {
+        let n = self.cfg.swatch.n;
+        self.cfg.fit.descriptor.of(self.cloth, n, n, gamma, x)
     }
 
     /// The equilibrium of a scenario with γ, from the target's shape (paper §3.4.1).
@@ -355,15 +371,10 @@ impl Problem<'_> {
         let (mut r, mut j) = (Vec::new(), Vec::new());
         let xs = self.equilibria(p)?;
         for (&t, x) in self.targets.iter().zip(xs) {
-            let s = self.descriptor(&x);
-            let norm = t
-                .descriptor
-                .iter()
-                .map(|v| v * v)
-                .sum::<f64>()
-                .sqrt()
-                .max(1e-300);
-            r.extend(s.iter().zip(&t.descriptor).map(|(a, b)| (a - b) / norm));
+            let s = self.descriptor(&gamma, &x);
+            let target = self.descriptor(&gamma, &t.x);
+            let norm = t.norm;
+            r.extend(s.iter().zip(&target).map(|(a, b)| (a - b) / norm));
             let sens = if with_jacobian {
                 Some(sensitivity(
                     self.cloth,
@@ -376,16 +387,17 @@ impl Problem<'_> {
                 None
             };
             if let Some(sens) = &sens {
-                // Descriptor derivatives along each dx/dγ_k, by central differences.
+                // Descriptor derivatives along each dx/dγ_k, by central differences; the energy
+                // descriptor also depends on γ directly (on both sides), linearly.
                 let mut cols = Vec::new();
-                for dx in &sens.dx {
+                for (k, dx) in sens.dx.iter().enumerate() {
                     let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
                     let eps = if big > 0.0 {
                         1e-6 * self.cfg.swatch.size / big
                     } else {
                         0.0
                     };
-                    let col: Vec<f64> = if eps == 0.0 {
+                    let mut col: Vec<f64> = if eps == 0.0 {
                         vec![0.0; s.len()]
                     } else {
                         let shifted = |sign: f64| -> Vec<V3> {
@@ -395,14 +407,28 @@ impl Problem<'_> {
                                 .collect()
                         };
                         let (up, dn) = (
-                            self.descriptor(&shifted(1.0)),
-                            self.descriptor(&shifted(-1.0)),
+                            self.descriptor(&gamma, &shifted(1.0)),
+                            self.descriptor(&gamma, &shifted(-1.0)),
                         );
                         up.iter()
                             .zip(&dn)
                             .map(|(a, b)| (a - b) / (2.0 * eps * norm))
                             .collect()
                     };
+                    if self.cfg.fit.descriptor.depends_on_gamma() {
+                        let h = 1e-6 * p[k].abs().max(1e-300);
+                        let at = |sign: f64| {
+                            let mut q = [p[0], p[1], p[2], p[3], p[4]];
+                            q[k] += sign * h;
+                            Gamma::from_array(q)
+                        };
+                        let (up, dn) = (at(1.0), at(-1.0));
+                        let (su, sd) = (self.descriptor(&up, &x), self.descriptor(&dn, &x));
+                        let (tu, td) = (self.descriptor(&up, &t.x), self.descriptor(&dn, &t.x));
+                        for (i, c) in col.iter_mut().enumerate() {
+                            *c += ((su[i] - sd[i]) - (tu[i] - td[i])) / (2.0 * h * norm);
+                        }
+                    }
                     cols.push(col);
                 }
                 for row in 0..s.len() {
@@ -455,17 +481,15 @@ impl LeastSquares for Problem<'_> {
     }
 }
 
-/// The solve with its step resolved: `dt = 0` becomes `√(0.1 m_min / C_max)`.
-fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth) -> Solve {
+/// The config's solve with its step resolved for the given materials: `dt = 0` becomes
+/// `√(0.1 m_min / C_max)` over their stiffest membrane modulus.
+pub fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth, materials: &[Gamma]) -> Solve {
     let mut solve = cfg.solve;
     if solve.dt <= 0.0 {
-        let g = cfg.truth.gamma();
-        let stiff = g
-            .c00
-            .max(g.c11)
-            .max(g.c22)
-            .max(cfg.initial.gamma().c00)
-            .max(cfg.initial.gamma().c11);
+        let stiff = materials
+            .iter()
+            .flat_map(|g| [g.c00, g.c11, g.c22])
+            .fold(0.0, f64::max);
         let m = cloth.mass.iter().copied().fold(f64::INFINITY, f64::min);
         solve.dt = (0.1 * m / stiff).sqrt();
     }
@@ -494,7 +518,7 @@ pub fn estimate(
     }
     let sw = cfg.swatch;
     let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
-    let solve = resolved_solve(cfg, &cloth);
+    let solve = resolved_solve(cfg, &cloth, &[cfg.truth.gamma(), cfg.initial.gamma()]);
     let truth = cfg.truth.gamma();
     let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
     let mut targets = Vec::new();
@@ -520,7 +544,7 @@ pub fn estimate(
         targets.push(Target {
             name: sc.name(),
             bending: sc.is_bending(),
-            descriptor: Vec::new(),
+            norm: 1.0,
             setup,
             x,
             residual,
@@ -529,8 +553,10 @@ pub fn estimate(
         bar.inc(1);
     }
     bar.finish();
+    let initial = cfg.initial.gamma();
     for t in &mut targets {
-        t.descriptor = describe(cfg, &t.x);
+        let d = cfg.fit.descriptor.of(&cloth, sw.n, sw.n, &initial, &t.x);
+        t.norm = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
     }
     let problem = |subset: &dyn Fn(&Target) -> bool| Problem {
         cloth: &cloth,
@@ -539,7 +565,6 @@ pub fn estimate(
         targets: targets.iter().filter(|t| subset(t)).collect(),
         last: None,
     };
-    let initial = cfg.initial.gamma();
     let p0 = initial.to_array();
     let f = cfg.fit.bounds_factor;
     let lower: Vec<f64> = p0
@@ -551,10 +576,7 @@ pub fn estimate(
     progress.note(&format!(
         "fitting γ from {} targets ({} descriptor, {:?} schedule, {} start(s), step {:.2e} s)",
         targets.len(),
-        match cfg.fit.descriptor {
-            Descriptor::Fft => "FFT",
-            Descriptor::Positions => "position",
-        },
+        cfg.fit.descriptor.name(),
         cfg.fit.schedule,
         cfg.fit.starts.max(1),
         solve.dt

@@ -4,7 +4,8 @@
 //! (`material`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
 //! box-constrained Levenberg–Marquardt solver (`lm`), the equilibrium's Newton polish and
 //! implicit-function derivatives (`equilibrium`), the loading scenarios (`scenario`) and the
-//! sim-to-sim estimation of `springtime xpbd estimate` (`estimate`).
+//! sim-to-sim estimation of `springtime xpbd estimate` (`estimate`) and the descriptor study of
+//! `springtime xpbd descriptors` (`study`).
 
 pub mod cloth;
 pub mod descriptor;
@@ -13,6 +14,7 @@ pub mod estimate;
 pub mod lm;
 pub mod material;
 pub mod scenario;
+pub mod study;
 
 pub use cloth::{Equilibrium, Load, Solve, Sweep, XpbdCloth};
 pub use material::Gamma;
