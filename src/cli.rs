@@ -400,7 +400,34 @@ pub enum XpbdCommand {
         #[arg(long)]
         force: bool,
         /// Out-of-plane amplitude of the perturbed start (the other start is flat), m.
-        #[arg(long, default_value_t = 0.002)]
+        #[arg(long, default_value_t = 0.01)]
+        noise: f64,
+        /// Override a config value: section.key=value (repeatable).
+        #[arg(long = "set", value_name = "KEY=VALUE")]
+        set: Vec<String>,
+    },
+    /// The wrinkle-seed invariance of paper 001: the config's estimate with targets from
+    /// SEEDS differently perturbed starts (wrinkle branches) and the fit's equilibria on a
+    /// branch of their own (from the flat start), with the FFT and the position descriptors.
+    /// Writes DIR/invariance.json (each parameter's coefficient of variation over the seeds)
+    /// and prints the table.
+    #[command(
+        after_help = "Example:\n  springtime xpbd invariance configs/xpbd_cotton.toml --out runs/xpbd_invariance"
+    )]
+    Invariance {
+        /// The job's TOML (`configs/xpbd_cotton.toml`).
+        config: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Overwrite an earlier experiment in DIR.
+        #[arg(long)]
+        force: bool,
+        /// Wrinkle seeds (targets).
+        #[arg(long, default_value_t = 5)]
+        seeds: u64,
+        /// Out-of-plane amplitude of the targets' perturbed starts, m.
+        #[arg(long, default_value_t = 0.01)]
         noise: f64,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -628,6 +655,17 @@ pub fn run(cli: Cli) -> Result<()> {
                     set,
                 },
         } => xpbd_descriptors(&config, out, force, noise, &set, &progress),
+        Command::Xpbd {
+            command:
+                XpbdCommand::Invariance {
+                    config,
+                    out,
+                    force,
+                    seeds,
+                    noise,
+                    set,
+                },
+        } => xpbd_invariance(&config, out, force, seeds, noise, &set, &progress),
         Command::Latent { command } => latent(command, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
@@ -995,6 +1033,46 @@ fn xpbd_descriptors(
         );
     }
     println!("descriptors: {}", out.join("descriptors.json").display());
+    Ok(())
+}
+
+/// `springtime xpbd invariance`: the fits over the seeds, then each descriptor's spread.
+fn xpbd_invariance(
+    config: &Path,
+    out: PathBuf,
+    force: bool,
+    seeds: u64,
+    noise: f64,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
+    use crate::xpbd::{estimate::XpbdConfig, material::NAMES, study};
+    let cfg = XpbdConfig::load(config, set)?;
+    let options = study::StudyOptions {
+        out: out.clone(),
+        force,
+        noise,
+    };
+    let r = study::invariance(&cfg, &options, seeds, progress)?;
+    println!(
+        "| descriptor | coefficient of variation over {seeds} seeds: C00, C11, C01, C22, b | mean relative error: C00, C11, C01, C22, b |"
+    );
+    println!("|---|---|---|");
+    for (name, s) in &r.summary {
+        let row = |m: &std::collections::BTreeMap<String, f64>| {
+            NAMES
+                .iter()
+                .map(|k| format!("{:.2}%", 100.0 * m[*k]))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        println!(
+            "| {name} | {} | {} |",
+            row(&s.cv),
+            row(&s.mean_relative_error)
+        );
+    }
+    println!("invariance: {}", out.join("invariance.json").display());
     Ok(())
 }
 

@@ -205,3 +205,87 @@ fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination(
     let total = json["positive"]["fft"].as_array().unwrap();
     assert_eq!(total[1].as_u64(), Some(72));
 }
+
+#[test]
+fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the_spread() {
+    let dir = common::temp_dir("xpbd-invariance");
+    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
+    let out = springtime(
+        &[
+            "xpbd",
+            "invariance",
+            "small.toml",
+            "--out",
+            "inv",
+            "--seeds",
+            "2",
+            "--noise",
+            "0.002",
+        ],
+        &dir,
+    );
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("inv/invariance.json")).unwrap())
+            .unwrap();
+    let fits = json["fits"].as_array().unwrap();
+    assert_eq!(fits.len(), 4, "two descriptors × two seeds");
+    for descriptor in ["fft", "positions"] {
+        let mine: Vec<&serde_json::Value> = fits
+            .iter()
+            .filter(|f| f["descriptor"] == descriptor)
+            .collect();
+        assert_eq!(mine.len(), 2);
+        // Each fit is a full estimate from the flat start's branch, in its own folder.
+        for f in &mine {
+            let seed = f["seed"].as_u64().unwrap();
+            let est: serde_json::Value = serde_json::from_str(
+                &std::fs::read_to_string(
+                    dir.join(format!("inv/{descriptor}_seed{seed}/estimate.json")),
+                )
+                .unwrap(),
+            )
+            .unwrap();
+            assert_eq!(est["gamma"], f["gamma"]);
+        }
+        // The reported spread is that of the two fits.
+        let s = &json["summary"][descriptor];
+        for key in ["C00", "C11", "C01", "C22", "b"] {
+            let (a, b) = (
+                mine[0]["gamma"][key].as_f64().unwrap(),
+                mine[1]["gamma"][key].as_f64().unwrap(),
+            );
+            let mean = 0.5 * (a + b);
+            let cv = (a - b).abs() / std::f64::consts::SQRT_2 / mean;
+            let got = s["cv"][key].as_f64().unwrap();
+            assert!(
+                (got - cv).abs() <= 1e-9 * (1.0 + cv),
+                "{descriptor} {key}: {got} vs {cv}"
+            );
+        }
+        let membrane = ["C00", "C11", "C01", "C22"]
+            .iter()
+            .map(|k| s["cv"][*k].as_f64().unwrap())
+            .fold(0.0, f64::max);
+        assert_eq!(s["cv_membrane"].as_f64().unwrap(), membrane);
+    }
+    // Too few seeds for a spread is refused.
+    let one = springtime(
+        &[
+            "xpbd",
+            "invariance",
+            "small.toml",
+            "--out",
+            "one",
+            "--seeds",
+            "1",
+        ],
+        &dir,
+    );
+    assert!(!one.status.success());
+    assert!(String::from_utf8_lossy(&one.stderr).contains("--seeds"));
+}

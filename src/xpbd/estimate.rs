@@ -2,7 +2,8 @@
 //! Targets are equilibria of the XPBD cloth with the config's true γ in its scenarios; γ is
 //! then fitted from the config's initial guess by Levenberg–Marquardt on the shape descriptor
 //! of every target plus the magnitudes of the clamps' reactions, with the paper's Poisson
-//! penalty (Eq. 8), every equilibrium solved from its target's shape as the paper does, and
+//! penalty (Eq. 8), every equilibrium solved from its target's shape as the paper does (or from
+//! a branch of its own, `fit.start = "flat"`), and
 //! the Jacobian from the implicit-function derivatives of the equilibria. Writes
 //! `D/estimate.json`.
 
@@ -118,6 +119,19 @@ pub enum Schedule {
     BendingFirst,
 }
 
+/// Where each of the fit's equilibria starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FitStart {
+    /// The target's own shape (paper §3.4.1): the fit stays on the target's wrinkle branch.
+    #[default]
+    Target,
+    /// The scenario's unperturbed (flat) start, solved to equilibrium with the initial guess:
+    /// a wrinkle branch of the fit's own, as when the target was captured elsewhere (the
+    /// invariance experiment).
+    Flat,
+}
+
 /// `[fit]`.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -149,6 +163,8 @@ pub struct FitConfig {
     pub polish_iterations: usize,
     /// Out-of-plane perturbation of the targets' starts, m.
     pub noise: f64,
+    /// Where the fit's equilibria start.
+    pub start: FitStart,
     /// Seed of the perturbation.
     pub seed: u64,
 }
@@ -168,6 +184,7 @@ impl Default for FitConfig {
             xpbd_steps: 200,
             polish_iterations: 30,
             noise: 1e-4,
+            start: FitStart::Target,
             seed: 0,
         }
     }
@@ -310,6 +327,8 @@ struct Target {
     reactions: Vec<f64>,
     /// The norm of its descriptor at the initial γ: the scale of its residuals.
     norm: f64,
+    /// Where the fit's equilibria start (`fit.start`).
+    branch: Vec<V3>,
 }
 
 /// The fit as a least-squares problem over γ (SI, `[C00, C11, C01, C22, b]`).
@@ -330,13 +349,14 @@ impl Problem<'_> {
         self.cfg.fit.descriptor.of(self.cloth, n, n, gamma, x)
     }
 
-    /// The equilibrium of a scenario with γ, from the target's shape (paper §3.4.1).
+    /// The equilibrium of a scenario with γ, from the target's shape (paper §3.4.1) or from the
+    /// fit's own branch (`fit.start = "flat"`).
     fn equilibrium(&self, gamma: &Gamma, t: &Target) -> Result<Vec<V3>> {
         let solve = Solve {
             steps: self.cfg.fit.xpbd_steps,
             ..self.solve
         };
-        let mut x = self.cloth.solve(gamma, &t.setup.load, &t.x, &solve)?.x;
+        let mut x = self.cloth.solve(gamma, &t.setup.load, &t.branch, &solve)?.x;
         polish(
             self.cloth,
             gamma,
@@ -545,6 +565,7 @@ pub fn estimate(
             name: sc.name(),
             bending: sc.is_bending(),
             norm: 1.0,
+            branch: x.clone(),
             setup,
             x,
             residual,
@@ -554,9 +575,16 @@ pub fn estimate(
     }
     bar.finish();
     let initial = cfg.initial.gamma();
-    for t in &mut targets {
+    for (i, t) in targets.iter_mut().enumerate() {
         let d = cfg.fit.descriptor.of(&cloth, sw.n, sw.n, &initial, &t.x);
         t.norm = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
+        if cfg.fit.start == FitStart::Flat {
+            let seed = cfg.fit.seed + i as u64;
+            let flat = cfg.scenarios[i].setup(&cloth, sw.n, sw.size, sw.gravity, 0.0, seed);
+            let mut x = cloth.solve(&initial, &flat.load, &flat.start, &solve)?.x;
+            polish(&cloth, &initial, &flat.load, &mut x, 50, 1e-11)?;
+            t.branch = x;
+        }
     }
     let problem = |subset: &dyn Fn(&Target) -> bool| Problem {
         cloth: &cloth,

@@ -9,6 +9,12 @@
 //!   descriptor, the within-material difference `Δ_m = ‖s_m(p₁) − s_m(p₂)‖` and, for every other
 //!   material `m₂` and starts `i, j`, `‖s_m(p_i) − s_m₂(p_j)‖ − Δ_m`: 3 × 2 × 4 = 24 values per
 //!   scenario, which should be positive.
+//!
+//! `springtime xpbd invariance <config> --out D` (the wrinkle-seed invariance): the config's
+//! estimate with targets from `--seeds` differently perturbed starts (each a wrinkle branch)
+//! and every fit's equilibria on a branch of their own (`fit.start = "flat"`), with the FFT
+//! and the position descriptors: the coefficient of variation of each fitted parameter over
+//! the seeds (`D/invariance.json`, each fit in `D/<descriptor>_seed<k>/`).
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -20,8 +26,9 @@ use serde::Serialize;
 use super::cloth::XpbdCloth;
 use super::descriptor::Descriptor;
 use super::equilibrium::polish;
-use super::estimate::{self, EstimateOptions, ScenarioFit, TABLE_1, XpbdConfig};
+use super::estimate::{self, EstimateOptions, FitStart, ScenarioFit, TABLE_1, XpbdConfig};
 use super::material::Gamma;
+use super::material::NAMES;
 use crate::cloth::triangles::V3;
 use crate::progress::Progress;
 
@@ -255,6 +262,125 @@ pub fn study(cfg: &XpbdConfig, options: &StudyOptions, progress: &Progress) -> R
         discrimination,
         positive,
         noise: options.noise,
+        wall_seconds: start.elapsed().as_secs_f64(),
+    };
+    crate::io::write_json(&json, &report)?;
+    Ok(report)
+}
+
+/// `invariance.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct InvarianceReport {
+    /// Job name.
+    pub name: String,
+    /// Out-of-plane amplitude of the targets' perturbed starts, m.
+    pub noise: f64,
+    /// Every fit.
+    pub fits: Vec<SeedFit>,
+    /// Per descriptor, per parameter: the coefficient of variation over the seeds
+    /// (sample standard deviation / mean), and the mean relative error.
+    pub summary: BTreeMap<String, InvarianceSummary>,
+    /// Wall time, s.
+    pub wall_seconds: f64,
+}
+
+/// One seed's fit with one descriptor.
+#[derive(Debug, Clone, Serialize)]
+pub struct SeedFit {
+    /// The descriptor.
+    pub descriptor: Descriptor,
+    /// The targets' perturbation seed.
+    pub seed: u64,
+    /// The fitted γ, SI.
+    pub gamma: Gamma,
+    /// `|fitted − true| / true` per parameter, and `iterations`.
+    pub relative_error: BTreeMap<String, f64>,
+}
+
+/// One descriptor over the seeds.
+#[derive(Debug, Clone, Serialize)]
+pub struct InvarianceSummary {
+    /// Coefficient of variation per parameter.
+    pub cv: BTreeMap<String, f64>,
+    /// Mean relative error per parameter.
+    pub mean_relative_error: BTreeMap<String, f64>,
+    /// The largest coefficient of variation of the four membrane parameters.
+    pub cv_membrane: f64,
+    /// That of `b`.
+    pub cv_b: f64,
+}
+
+/// Runs the invariance experiment over `seeds` seeds and writes `D/invariance.json`.
+pub fn invariance(
+    cfg: &XpbdConfig,
+    options: &StudyOptions,
+    seeds: u64,
+    progress: &Progress,
+) -> Result<InvarianceReport> {
+    let start = Instant::now();
+    let json = options.out.join("invariance.json");
+    if json.exists() && !options.force {
+        bail!("{} exists; pass --force to overwrite it", json.display());
+    }
+    if seeds < 2 {
+        bail!("--seeds must be at least 2 for a spread, is {seeds}");
+    }
+    let mut fits = Vec::new();
+    let mut summary = BTreeMap::new();
+    for d in [Descriptor::Fft, Descriptor::Positions] {
+        let mut gammas = Vec::new();
+        for seed in 0..seeds {
+            progress.note(&format!("{} descriptor, wrinkle seed {seed}", d.name()));
+            let mut c = cfg.clone();
+            c.fit.descriptor = d;
+            c.fit.seed = seed;
+            c.fit.noise = options.noise;
+            c.fit.start = FitStart::Flat;
+            let r = estimate::estimate(
+                &c,
+                &EstimateOptions {
+                    out: options.out.join(format!("{}_seed{seed}", d.name())),
+                    force: options.force,
+                },
+                progress,
+            )?;
+            gammas.push(r.gamma.to_array());
+            fits.push(SeedFit {
+                descriptor: d,
+                seed,
+                gamma: r.gamma,
+                relative_error: r.relative_error,
+            });
+        }
+        let truth = cfg.truth.gamma().to_array();
+        let n = gammas.len() as f64;
+        let (mut cv, mut mean_err) = (BTreeMap::new(), BTreeMap::new());
+        for (k, name) in NAMES.iter().enumerate() {
+            let mean = gammas.iter().map(|g| g[k]).sum::<f64>() / n;
+            let var = gammas.iter().map(|g| (g[k] - mean).powi(2)).sum::<f64>() / (n - 1.0);
+            cv.insert(name.to_string(), var.sqrt() / mean.abs());
+            let err = gammas
+                .iter()
+                .map(|g| ((g[k] - truth[k]) / truth[k]).abs())
+                .sum::<f64>()
+                / n;
+            mean_err.insert(name.to_string(), err);
+        }
+        summary.insert(
+            d.name().to_string(),
+            InvarianceSummary {
+                cv_membrane: NAMES[..4].iter().map(|k| cv[*k]).fold(0.0, f64::max),
+                cv_b: cv["b"],
+                cv,
+                mean_relative_error: mean_err,
+            },
+        );
+    }
+    let report = InvarianceReport {
+        name: cfg.name.clone(),
+        noise: options.noise,
+        fits,
+        summary,
         wall_seconds: start.elapsed().as_secs_f64(),
     };
     crate::io::write_json(&json, &report)?;
