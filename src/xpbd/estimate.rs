@@ -190,6 +190,28 @@ impl Default for FitConfig {
     }
 }
 
+/// `[targets]`: how the synthetic targets are made.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TargetsConfig {
+    /// Solve each target on a grid this many times finer and sample it at the template's
+    /// vertices (the grids are nested): another discretisation of the same material, standing
+    /// in for another simulator (paper 001 §5); 1 = the fit's own grid.
+    pub refine: usize,
+    /// Standard deviation of Gaussian noise added to every sampled target coordinate, m (a
+    /// registered scan's); seeded by `fit.seed`.
+    pub noise: f64,
+}
+
+impl Default for TargetsConfig {
+    fn default() -> Self {
+        Self {
+            refine: 1,
+            noise: 0.0,
+        }
+    }
+}
+
 /// An estimation job (`configs/xpbd_*.toml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -210,6 +232,9 @@ pub struct XpbdConfig {
     /// The fit.
     #[serde(default)]
     pub fit: FitConfig,
+    /// How the targets are made.
+    #[serde(default)]
+    pub targets: TargetsConfig,
     /// The target scenarios.
     pub scenarios: Vec<Scenario>,
 }
@@ -244,6 +269,14 @@ impl XpbdConfig {
             if !(g.c00 > 0.0 && g.c11 > 0.0 && g.c22 > 0.0 && g.b >= 0.0 && d > 0.0) {
                 bail!("`{key}` is not a stable material (moduli > 0, ν_uv ν_vu < 1): {e:?}");
             }
+        }
+        let t = &self.targets;
+        if t.refine == 0 || t.refine > 8 || !(t.noise >= 0.0 && t.noise.is_finite()) {
+            bail!(
+                "`targets.refine` must be 1 to 8 and `targets.noise` a length ≥ 0 (m), are {} and {}",
+                t.refine,
+                t.noise
+            );
         }
         if !(self.solve.damping > 0.0 && self.solve.damping <= 1.0) {
             bail!("`solve.damping` must be in (0, 1]");
@@ -516,6 +549,74 @@ pub fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth, materials: &[Gamma]) 
     solve
 }
 
+/// A scenario's target: the equilibrium with the true γ, solved on the fit's grid or on one
+/// `targets.refine` times finer and sampled at the fit's vertices, with `targets.noise`.
+fn make_target(
+    cfg: &XpbdConfig,
+    cloth: &XpbdCloth,
+    sc: &Scenario,
+    seed: u64,
+    progress: &Progress,
+) -> Result<Target> {
+    let (sw, truth) = (cfg.swatch, cfg.truth.gamma());
+    let setup = sc.setup(cloth, sw.n, sw.size, sw.gravity, cfg.fit.noise, seed);
+    let refine = cfg.targets.refine;
+    let nf = (sw.n - 1) * refine + 1;
+    let fine_cloth;
+    let (fine, fine_setup) = if refine == 1 {
+        (cloth, setup.clone())
+    } else {
+        fine_cloth = XpbdCloth::grid(nf, nf, sw.size, sw.size, sw.density)?;
+        let s = sc.setup(&fine_cloth, nf, sw.size, sw.gravity, cfg.fit.noise, seed);
+        (&fine_cloth, s)
+    };
+    let solve = resolved_solve(cfg, fine, &[truth, cfg.initial.gamma()]);
+    let mut xf = fine
+        .solve(&truth, &fine_setup.load, &fine_setup.start, &solve)?
+        .x;
+    let residual = polish(fine, &truth, &fine_setup.load, &mut xf, 50, 1e-11)?;
+    if residual > 1e-6 {
+        progress.note(&format!(
+            "warning: the target {} is not at equilibrium (relative residual {residual:.2e} after \
+             {} steps and the Newton polish): raise `solve.steps`",
+            sc.name(),
+            solve.steps
+        ));
+    }
+    let reactions = fine_setup
+        .groups
+        .iter()
+        .map(|g| {
+            let r = fine.reaction(&truth, &fine_setup.load, &xf, g);
+            dot(r, r).sqrt()
+        })
+        .collect();
+    let mut rng = StdRng::seed_from_u64(seed ^ 0x7A67_E75E);
+    let normal = rand_distr::Normal::new(0.0, cfg.targets.noise.max(f64::MIN_POSITIVE))?;
+    let x: Vec<V3> = (0..sw.n * sw.n)
+        .map(|k| {
+            let (r, c) = (k / sw.n, k % sw.n);
+            let mut p = xf[r * refine * nf + c * refine];
+            if cfg.targets.noise > 0.0 && setup.load.clamped[k].is_none() {
+                for v in &mut p {
+                    *v += rng.sample(normal);
+                }
+            }
+            p
+        })
+        .collect();
+    Ok(Target {
+        name: sc.name(),
+        bending: sc.is_bending(),
+        norm: 1.0,
+        branch: x.clone(),
+        setup,
+        x,
+        residual,
+        reactions,
+    })
+}
+
 /// What `estimate` takes from the command line.
 #[derive(Debug, Clone)]
 pub struct EstimateOptions {
@@ -543,34 +644,13 @@ pub fn estimate(
     let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
     let mut targets = Vec::new();
     for (i, sc) in cfg.scenarios.iter().enumerate() {
-        let setup = sc.setup(
+        targets.push(make_target(
+            cfg,
             &cloth,
-            sw.n,
-            sw.size,
-            sw.gravity,
-            cfg.fit.noise,
+            sc,
             cfg.fit.seed + i as u64,
-        );
-        let mut x = cloth.solve(&truth, &setup.load, &setup.start, &solve)?.x;
-        let residual = polish(&cloth, &truth, &setup.load, &mut x, 50, 1e-11)?;
-        let reactions = setup
-            .groups
-            .iter()
-            .map(|g| {
-                let r = cloth.reaction(&truth, &setup.load, &x, g);
-                dot(r, r).sqrt()
-            })
-            .collect();
-        targets.push(Target {
-            name: sc.name(),
-            bending: sc.is_bending(),
-            norm: 1.0,
-            branch: x.clone(),
-            setup,
-            x,
-            residual,
-            reactions,
-        });
+            progress,
+        )?);
         bar.inc(1);
     }
     bar.finish();
@@ -736,4 +816,72 @@ pub fn estimate(
     };
     crate::io::write_json(&json, &report)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(refine: usize, noise: f64) -> XpbdConfig {
+        let cotton = TABLE_1[0].1;
+        XpbdConfig {
+            name: "t".into(),
+            swatch: Swatch {
+                size: 0.1,
+                n: 5,
+                density: 0.224,
+                gravity: [0.0; 3],
+            },
+            truth: cotton,
+            initial: cotton,
+            solve: Solve {
+                steps: 4000,
+                ..Solve::auto()
+            },
+            fit: FitConfig {
+                noise: 0.0,
+                ..FitConfig::default()
+            },
+            targets: TargetsConfig { refine, noise },
+            scenarios: vec![Scenario::FrameShear { angle_deg: 10.0 }],
+        }
+    }
+
+    #[test]
+    fn a_refined_target_is_sampled_at_the_templates_vertices() {
+        // A picture frame sheared without gravity strains uniformly: the equilibrium is the
+        // frame's affine map on any grid (the solve starts there and stays), so the 9 × 9 target sampled at the 5 × 5 template's
+        // vertices must equal the 5 × 5 one, and the total reaction on the frame's side is the
+        // same traction.
+        let progress = Progress::quiet();
+        let (coarse_cfg, fine_cfg) = (config(1, 0.0), config(2, 0.0));
+        let cloth = XpbdCloth::grid(5, 5, 0.1, 0.1, 0.224).unwrap();
+        let sc = &coarse_cfg.scenarios[0];
+        let a = make_target(&coarse_cfg, &cloth, sc, 0, &progress).unwrap();
+        let b = make_target(&fine_cfg, &cloth, sc, 0, &progress).unwrap();
+        for (p, q) in a.x.iter().zip(&b.x) {
+            for c in 0..3 {
+                assert!((p[c] - q[c]).abs() < 1e-9, "{p:?} vs {q:?}");
+            }
+        }
+        let (ra, rb) = (a.reactions[0], b.reactions[0]);
+        assert!(ra > 0.0 && (ra - rb).abs() < 0.1 * ra, "{ra} vs {rb}");
+        // Noise moves the free vertices only, by about its standard deviation.
+        let noisy = make_target(&config(1, 1e-3), &cloth, sc, 0, &progress).unwrap();
+        let (mut moved, mut sum2) = (0, 0.0);
+        for (k, (p, q)) in noisy.x.iter().zip(&a.x).enumerate() {
+            let d2: f64 = (0..3).map(|c| (p[c] - q[c]).powi(2)).sum();
+            if a.setup.load.clamped[k].is_some() {
+                assert_eq!(d2, 0.0);
+            } else {
+                moved += 1;
+                sum2 += d2;
+            }
+        }
+        let rms = (sum2 / (3 * moved) as f64).sqrt();
+        assert!(
+            moved == 9 && (0.4e-3..2.5e-3).contains(&rms),
+            "{moved} {rms}"
+        );
+    }
 }
