@@ -289,3 +289,90 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
     assert!(!one.status.success());
     assert!(String::from_utf8_lossy(&one.stderr).contains("--seeds"));
 }
+
+#[test]
+fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named() {
+    use springtime::data::npz::{Array, Npz};
+    let dir = common::temp_dir("xpbd-targets");
+    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
+    let ok = |args: &[&str]| {
+        let out = springtime(args, &dir);
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    ok(&["xpbd", "generate", "small.toml", "--out", "tg"]);
+    ok(&["xpbd", "estimate", "small.toml", "--out", "synthetic"]);
+    // The same job without its truth, reading the files: a user's measured drapes.
+    let a = SMALL.find("[truth]").unwrap();
+    let b = SMALL.find("[initial]").unwrap();
+    let user = format!("{}{}\n[targets]\ndir = \"tg\"\n", &SMALL[..a], &SMALL[b..]);
+    std::fs::write(dir.join("user.toml"), &user).unwrap();
+    ok(&["xpbd", "estimate", "user.toml", "--out", "user"]);
+    let read = |p: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join(p)).unwrap()).unwrap()
+    };
+    let (s, u) = (read("synthetic/estimate.json"), read("user/estimate.json"));
+    assert!(u["truth"].is_null() && u["relative_error"]["C00"].is_null());
+    for key in ["C00", "C11", "C01", "C22", "b"] {
+        let (x, y) = (
+            s["gamma"][key].as_f64().unwrap(),
+            u["gamma"][key].as_f64().unwrap(),
+        );
+        assert!((x - y).abs() <= 1e-9 * x.abs(), "{key}: {x} vs {y}");
+    }
+    // The fitted γ re-simulated in a configuration the fit never saw.
+    ok(&[
+        "xpbd",
+        "resim",
+        "small.toml",
+        "--estimate",
+        "synthetic/estimate.json",
+        "--out",
+        "rs",
+        "--set",
+        "scenarios=[{kind=\"frame_shear\",angle_deg=25.0}]",
+    ]);
+    let rs = read("rs/resim.json");
+    assert!(rs["max_vertex_error"].as_f64().unwrap() < 1e-6, "{rs}");
+    // Bad files: each error names the file and the key or the scenario.
+    let fails = |cfg: &str, want: &[&str]| {
+        std::fs::write(dir.join("bad.toml"), cfg).unwrap();
+        let out = springtime(
+            &["xpbd", "estimate", "bad.toml", "--out", "bad", "--force"],
+            &dir,
+        );
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{cfg}");
+        for w in want {
+            assert!(err.contains(w), "`{w}` not in: {err}");
+        }
+    };
+    let target = dir.join("tg/stretch_u_0.03.npz");
+    let good = Npz::read(&target).unwrap();
+    let mut npz = good.clone();
+    npz.insert("grid", Array::i64(&[2], &[6, 6]));
+    npz.write(&target).unwrap();
+    fails(&user, &["stretch_u_0.03.npz", "grid"]);
+    let mut npz = good.clone();
+    let (mut p, _) = good.f64("positions", &[None, Some(3)]).unwrap();
+    p[40] = f64::NAN;
+    npz.insert("positions", Array::f64(&[25, 3], &p));
+    npz.write(&target).unwrap();
+    fails(&user, &["stretch_u_0.03.npz", "positions", "non-finite"]);
+    // Another scenario's shape: its clamps are elsewhere.
+    std::fs::copy(dir.join("tg/stretch_v_0.03.npz"), &target).unwrap();
+    fails(&user, &["stretch_u_0.03.npz", "positions", "clamped"]);
+    std::fs::remove_file(&target).unwrap();
+    fails(&user, &["stretch_u_0.03.npz", "no target"]);
+    // Neither a truth nor a folder of targets.
+    fails(
+        &user.replace("dir = \"tg\"", ""),
+        &["[truth]", "targets.dir"],
+    );
+    // generate does not overwrite without --force.
+    let again = springtime(&["xpbd", "generate", "small.toml", "--out", "tg"], &dir);
+    assert!(!again.status.success());
+}

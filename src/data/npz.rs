@@ -712,16 +712,31 @@ impl Npz {
 
     /// A float array as `f32`, checked against `shape` (`None` = any size) and for finiteness.
     pub fn f32(&self, key: &str, shape: &[Option<usize>]) -> Result<(Vec<f32>, Vec<usize>)> {
+        self.finite(key, shape, Array::to_f32)
+    }
+
+    /// A float array as `f64`, checked against `shape` (`None` = any size) and for finiteness.
+    pub fn f64(&self, key: &str, shape: &[Option<usize>]) -> Result<(Vec<f64>, Vec<usize>)> {
+        self.finite(key, shape, Array::to_f64)
+    }
+
+    /// `key` converted by `convert`, checked against `shape` and for finiteness.
+    fn finite<T: Copy + Into<f64> + std::fmt::Display>(
+        &self,
+        key: &str,
+        shape: &[Option<usize>],
+        convert: fn(&Array) -> Option<Vec<T>>,
+    ) -> Result<(Vec<T>, Vec<usize>)> {
         let a = self.get(key)?;
         self.check_shape(key, a, shape)?;
-        let v = a.to_f32().ok_or_else(|| {
+        let v = convert(a).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: key `{key}` has dtype {}, expected a float or integer type",
                 self.path.display(),
                 a.dtype.name()
             )
         })?;
-        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        if let Some(i) = v.iter().position(|x| !(*x).into().is_finite()) {
             bail!(
                 "{}: key `{key}` holds a non-finite value ({}) at flat index {i}{}",
                 self.path.display(),

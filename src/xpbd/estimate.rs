@@ -21,6 +21,7 @@ use super::lm::{self, LeastSquares, Lm};
 use super::material::{Gamma, NAMES};
 use super::scenario::{Scenario, Setup};
 use crate::cloth::triangles::{V3, dot};
+use crate::data::npz::{Array, Npz};
 use crate::progress::Progress;
 
 /// Engineering constants in the paper's CGS units (its Tables 1–3): moduli in dyn/cm, bending
@@ -191,7 +192,7 @@ impl Default for FitConfig {
 }
 
 /// `[targets]`: how the synthetic targets are made.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TargetsConfig {
     /// Solve each target on a grid this many times finer and sample it at the template's
@@ -201,6 +202,10 @@ pub struct TargetsConfig {
     /// Standard deviation of Gaussian noise added to every sampled target coordinate, m (a
     /// registered scan's); seeded by `fit.seed`.
     pub noise: f64,
+    /// Read the targets from this folder instead (`<scenario name>.npz` each, as `springtime
+    /// xpbd generate` writes them: `positions` [n², 3] on the template grid, `reactions` [G]):
+    /// a user's measured drapes.
+    pub dir: Option<PathBuf>,
 }
 
 impl Default for TargetsConfig {
@@ -208,6 +213,7 @@ impl Default for TargetsConfig {
         Self {
             refine: 1,
             noise: 0.0,
+            dir: None,
         }
     }
 }
@@ -222,8 +228,10 @@ pub struct XpbdConfig {
     /// The swatch.
     #[serde(default)]
     pub swatch: Swatch,
-    /// The material of the synthetic targets (CGS).
-    pub truth: Engineering,
+    /// The material of the synthetic targets (CGS); without it, the targets come from
+    /// `targets.dir` and the report has no errors against a truth.
+    #[serde(default)]
+    pub truth: Option<Engineering>,
     /// The fit's starting guess (CGS).
     pub initial: Engineering,
     /// The equilibrium solve (`dt = 0`: chosen from the stiffest element, `dt² C / m = 0.1`).
@@ -255,6 +263,16 @@ impl XpbdConfig {
         Ok(cfg)
     }
 
+    /// The materials of the job (the truth where given, the initial guess): what the solve's
+    /// step must be stable for.
+    pub fn materials(&self) -> Vec<Gamma> {
+        self.truth
+            .iter()
+            .chain([&self.initial])
+            .map(|e| e.gamma())
+            .collect()
+    }
+
     fn validate(&self) -> Result<()> {
         let s = &self.swatch;
         if s.n < 3 || !(s.size > 0.0) || !(s.density > 0.0) {
@@ -263,7 +281,11 @@ impl XpbdConfig {
         if self.scenarios.is_empty() {
             bail!("`scenarios` is empty: give at least one [[scenarios]]");
         }
-        for (key, e) in [("truth", &self.truth), ("initial", &self.initial)] {
+        let materials = [
+            ("truth", self.truth.as_ref()),
+            ("initial", Some(&self.initial)),
+        ];
+        for (key, e) in materials.into_iter().filter_map(|(k, e)| Some((k, e?))) {
             let g = e.gamma();
             let d = 1.0 - g.c01 * g.c01 / (g.c00 * g.c11);
             if !(g.c00 > 0.0 && g.c11 > 0.0 && g.c22 > 0.0 && g.b >= 0.0 && d > 0.0) {
@@ -277,6 +299,9 @@ impl XpbdConfig {
                 t.refine,
                 t.noise
             );
+        }
+        if self.truth.is_none() && self.targets.dir.is_none() {
+            bail!("give the targets' material `[truth]` or a folder of targets `targets.dir`");
         }
         if !(self.solve.damping > 0.0 && self.solve.damping <= 1.0) {
             bail!("`solve.damping` must be in (0, 1]");
@@ -296,8 +321,8 @@ pub struct EstimateReport {
     pub gamma_cgs: std::collections::BTreeMap<String, f64>,
     /// The fitted engineering constants `E_u, E_v, μ` (dyn/cm) and `ν`, as the paper's tables.
     pub engineering_cgs: std::collections::BTreeMap<String, f64>,
-    /// The true γ of the targets, SI.
-    pub truth: Gamma,
+    /// The true γ of the targets, SI (synthetic targets only).
+    pub truth: Option<Gamma>,
     /// The starting γ, SI.
     pub initial: Gamma,
     /// `|fitted − true| / true` per parameter, and `iterations`.
@@ -520,6 +545,31 @@ impl Problem<'_> {
     }
 }
 
+impl Problem<'_> {
+    /// Each target's equilibrium at `p` against the target: the largest vertex distance.
+    fn fits(&mut self, p: &[f64]) -> Result<Vec<ScenarioFit>> {
+        let xs = self.equilibria(p)?;
+        Ok(self
+            .targets
+            .iter()
+            .zip(xs)
+            .map(|(t, x)| ScenarioFit {
+                name: t.name.clone(),
+                max_vertex_error: x
+                    .iter()
+                    .zip(&t.x)
+                    .map(|(a, b)| {
+                        let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+                        dot(d, d).sqrt()
+                    })
+                    .fold(0.0, f64::max),
+                target_residual: t.residual,
+                target_reaction: t.reactions.first().copied().unwrap_or(0.0),
+            })
+            .collect())
+    }
+}
+
 impl LeastSquares for Problem<'_> {
     fn residuals(&mut self, p: &[f64]) -> Result<Vec<f64>> {
         // A trial γ whose equilibrium cannot be found is a rejected step, not an error.
@@ -558,7 +608,11 @@ fn make_target(
     seed: u64,
     progress: &Progress,
 ) -> Result<Target> {
-    let (sw, truth) = (cfg.swatch, cfg.truth.gamma());
+    let sw = cfg.swatch;
+    let truth = cfg
+        .truth
+        .context("generating targets needs the material `[truth]`")?
+        .gamma();
     let setup = sc.setup(cloth, sw.n, sw.size, sw.gravity, cfg.fit.noise, seed);
     let refine = cfg.targets.refine;
     let nf = (sw.n - 1) * refine + 1;
@@ -617,6 +671,174 @@ fn make_target(
     })
 }
 
+/// The job's targets: read from `targets.dir`, or generated with the true material.
+fn load_targets(cfg: &XpbdConfig, cloth: &XpbdCloth, progress: &Progress) -> Result<Vec<Target>> {
+    let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
+    let mut targets = Vec::new();
+    for (i, sc) in cfg.scenarios.iter().enumerate() {
+        let seed = cfg.fit.seed + i as u64;
+        targets.push(match &cfg.targets.dir {
+            Some(dir) => read_target(cfg, cloth, sc, &dir.join(format!("{}.npz", sc.name())))?,
+            None => make_target(cfg, cloth, sc, seed, progress)?,
+        });
+        bar.inc(1);
+    }
+    bar.finish();
+    Ok(targets)
+}
+
+/// A static target file: `positions` [n², 3] (m, the template grid row-major, `u` along a
+/// row) and `reactions` [G] (N, the magnitudes of the scenario's measured clamp groups), with
+/// `grid` [2] and `size` (m) to check it against the swatch.
+fn read_target(cfg: &XpbdConfig, cloth: &XpbdCloth, sc: &Scenario, path: &Path) -> Result<Target> {
+    let sw = cfg.swatch;
+    if !path.exists() {
+        bail!(
+            "{}: no target for scenario `{}` (targets.dir holds `<scenario name>.npz`)",
+            path.display(),
+            sc.name()
+        );
+    }
+    let npz = Npz::read(path)?;
+    let (grid, _) = npz.int("grid", &[Some(2)])?;
+    if grid != [sw.n as i64, sw.n as i64] {
+        bail!(
+            "{}: key `grid` is {grid:?}, but the config's swatch is {} × {}",
+            path.display(),
+            sw.n,
+            sw.n
+        );
+    }
+    let size = npz.scalar("size")?;
+    if (size - sw.size).abs() > 1e-9 * sw.size {
+        bail!(
+            "{}: key `size` is {size} m, but the config's swatch is {} m",
+            path.display(),
+            sw.size
+        );
+    }
+    let (p, _) = npz.f64("positions", &[Some(sw.n * sw.n), Some(3)])?;
+    let x: Vec<V3> = p.chunks(3).map(|c| [c[0], c[1], c[2]]).collect();
+    let setup = sc.setup(cloth, sw.n, sw.size, sw.gravity, 0.0, 0);
+    let (reactions, _) = npz.f64("reactions", &[Some(setup.groups.len())])?;
+    if let Some(r) = reactions.iter().find(|r| !(**r > 0.0)) {
+        bail!(
+            "{}: key `reactions` holds {r}: reactions are magnitudes > 0 (N)",
+            path.display()
+        );
+    }
+    // The clamped vertices must sit where the scenario clamps them.
+    for (k, c) in setup.load.clamped.iter().enumerate() {
+        if let Some(c) = c {
+            let d = [0, 1, 2].map(|i| x[k][i] - c[i]);
+            if dot(d, d).sqrt() > 0.01 * sw.size {
+                bail!(
+                    "{}: key `positions`: vertex {k} is clamped by scenario `{}` at {c:?} but is \
+                     at {:?} (more than 1 % of the swatch away): is this the scenario's target?",
+                    path.display(),
+                    sc.name(),
+                    x[k]
+                );
+            }
+        }
+    }
+    Ok(Target {
+        name: sc.name(),
+        bending: sc.is_bending(),
+        norm: 1.0,
+        branch: x.clone(),
+        setup,
+        x,
+        residual: f64::NAN,
+        reactions,
+    })
+}
+
+/// `springtime xpbd generate <config> --out D`: the config's targets (with `[targets]`'s
+/// refinement and noise) as the static-target files `targets.dir` reads.
+pub fn generate(
+    cfg: &XpbdConfig,
+    out: &Path,
+    force: bool,
+    progress: &Progress,
+) -> Result<Vec<PathBuf>> {
+    let sw = cfg.swatch;
+    let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
+    let paths: Vec<PathBuf> = cfg
+        .scenarios
+        .iter()
+        .map(|sc| out.join(format!("{}.npz", sc.name())))
+        .collect();
+    if !force && let Some(p) = paths.iter().find(|p| p.exists()) {
+        bail!("{} exists; pass --force to overwrite it", p.display());
+    }
+    let mut synthetic = cfg.clone();
+    synthetic.targets.dir = None;
+    let targets = load_targets(&synthetic, &cloth, progress)?;
+    std::fs::create_dir_all(out)?;
+    for (t, path) in targets.iter().zip(&paths) {
+        let mut npz = Npz::default();
+        let flat: Vec<f64> = t.x.iter().flatten().copied().collect();
+        npz.insert("positions", Array::f64(&[t.x.len(), 3], &flat));
+        npz.insert("reactions", Array::f64(&[t.reactions.len()], &t.reactions));
+        npz.insert("grid", Array::i64(&[2], &[sw.n as i64, sw.n as i64]));
+        npz.insert("size", Array::scalar(sw.size));
+        npz.write(path)?;
+    }
+    Ok(paths)
+}
+
+/// `resim.json`: a fitted γ re-simulated in the config's scenarios from its targets' shapes.
+#[derive(Debug, Clone, Serialize)]
+pub struct ResimReport {
+    /// The γ re-simulated, SI.
+    pub gamma: Gamma,
+    /// Per scenario: the largest vertex distance to the target.
+    pub scenarios: Vec<ScenarioFit>,
+    /// The largest over every scenario, m.
+    pub max_vertex_error: f64,
+}
+
+/// `springtime xpbd resim <config> --estimate E --out D`: the γ of an earlier estimate solved to
+/// equilibrium in the config's scenarios (from the targets' shapes, as the fit does) against
+/// those targets, e.g. configurations the fit never saw. Writes `D/resim.json`.
+pub fn resim(
+    cfg: &XpbdConfig,
+    gamma: Gamma,
+    out: &Path,
+    force: bool,
+    progress: &Progress,
+) -> Result<ResimReport> {
+    let json = out.join("resim.json");
+    if json.exists() && !force {
+        bail!("{} exists; pass --force to overwrite it", json.display());
+    }
+    let sw = cfg.swatch;
+    let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
+    let mut materials = cfg.materials();
+    materials.push(gamma);
+    let solve = resolved_solve(cfg, &cloth, &materials);
+    let targets = load_targets(cfg, &cloth, progress)?;
+    let mut problem = Problem {
+        cloth: &cloth,
+        cfg,
+        solve,
+        targets: targets.iter().collect(),
+        last: None,
+    };
+    let scenarios = problem.fits(&gamma.to_array())?;
+    let report = ResimReport {
+        gamma,
+        max_vertex_error: scenarios
+            .iter()
+            .map(|s| s.max_vertex_error)
+            .fold(0.0, f64::max),
+        scenarios,
+    };
+    crate::io::write_json(&json, &report)?;
+    Ok(report)
+}
+
 /// What `estimate` takes from the command line.
 #[derive(Debug, Clone)]
 pub struct EstimateOptions {
@@ -639,21 +861,9 @@ pub fn estimate(
     }
     let sw = cfg.swatch;
     let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
-    let solve = resolved_solve(cfg, &cloth, &[cfg.truth.gamma(), cfg.initial.gamma()]);
-    let truth = cfg.truth.gamma();
-    let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
-    let mut targets = Vec::new();
-    for (i, sc) in cfg.scenarios.iter().enumerate() {
-        targets.push(make_target(
-            cfg,
-            &cloth,
-            sc,
-            cfg.fit.seed + i as u64,
-            progress,
-        )?);
-        bar.inc(1);
-    }
-    bar.finish();
+    let solve = resolved_solve(cfg, &cloth, &cfg.materials());
+    let truth = cfg.truth.map(|e| e.gamma());
+    let mut targets = load_targets(cfg, &cloth, progress)?;
     let initial = cfg.initial.gamma();
     for (i, t) in targets.iter_mut().enumerate() {
         let d = cfg.fit.descriptor.of(&cloth, sw.n, sw.n, &initial, &t.x);
@@ -763,30 +973,16 @@ pub fn estimate(
     let (fit, chosen) = best.expect("at least one start");
     let mut problem = all;
     let gamma = Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]);
-    let mut scenarios = Vec::new();
-    for (t, x) in targets.iter().zip(problem.equilibria(&fit.p)?) {
-        let err = x
-            .iter()
-            .zip(&t.x)
-            .map(|(a, b)| {
-                let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-                dot(d, d).sqrt()
-            })
-            .fold(0.0, f64::max);
-        scenarios.push(ScenarioFit {
-            name: t.name.clone(),
-            max_vertex_error: err,
-            target_residual: t.residual,
-            target_reaction: t.reactions.first().copied().unwrap_or(0.0),
-        });
-    }
-    let (fitted, true_) = (gamma.to_array(), truth.to_array());
+    let scenarios = problem.fits(&fit.p)?;
     let mut relative_error = std::collections::BTreeMap::new();
     let mut signed_error = std::collections::BTreeMap::new();
-    for k in 0..5 {
-        let e = (fitted[k] - true_[k]) / true_[k];
-        relative_error.insert(NAMES[k].to_string(), e.abs());
-        signed_error.insert(NAMES[k].to_string(), e);
+    if let Some(truth) = truth {
+        let (fitted, true_) = (gamma.to_array(), truth.to_array());
+        for k in 0..5 {
+            let e = (fitted[k] - true_[k]) / true_[k];
+            relative_error.insert(NAMES[k].to_string(), e.abs());
+            signed_error.insert(NAMES[k].to_string(), e);
+        }
     }
     relative_error.insert("iterations".into(), fit.iterations as f64);
     let cgs = gamma.to_cgs();
@@ -832,7 +1028,7 @@ mod tests {
                 density: 0.224,
                 gravity: [0.0; 3],
             },
-            truth: cotton,
+            truth: Some(cotton),
             initial: cotton,
             solve: Solve {
                 steps: 4000,
@@ -842,7 +1038,11 @@ mod tests {
                 noise: 0.0,
                 ..FitConfig::default()
             },
-            targets: TargetsConfig { refine, noise },
+            targets: TargetsConfig {
+                refine,
+                noise,
+                dir: None,
+            },
             scenarios: vec![Scenario::FrameShear { angle_deg: 10.0 }],
         }
     }

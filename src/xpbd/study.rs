@@ -20,7 +20,7 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
 use super::cloth::XpbdCloth;
@@ -325,6 +325,11 @@ pub fn invariance(
     if seeds < 2 {
         bail!("--seeds must be at least 2 for a spread, is {seeds}");
     }
+    let truth = cfg
+        .truth
+        .context("the invariance experiment generates its targets: it needs `[truth]`")?
+        .gamma()
+        .to_array();
     let mut fits = Vec::new();
     let mut summary = BTreeMap::new();
     for d in [Descriptor::Fft, Descriptor::Positions] {
@@ -336,6 +341,7 @@ pub fn invariance(
             c.fit.seed = seed;
             c.fit.noise = options.noise;
             c.fit.start = FitStart::Flat;
+            c.targets.dir = None;
             let r = estimate::estimate(
                 &c,
                 &EstimateOptions {
@@ -352,7 +358,6 @@ pub fn invariance(
                 relative_error: r.relative_error,
             });
         }
-        let truth = cfg.truth.gamma().to_array();
         let n = gammas.len() as f64;
         let (mut cv, mut mean_err) = (BTreeMap::new(), BTreeMap::new());
         for (k, name) in NAMES.iter().enumerate() {
