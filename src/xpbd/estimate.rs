@@ -203,7 +203,7 @@ pub struct TargetsConfig {
     /// registered scan's); seeded by `fit.seed`.
     pub noise: f64,
     /// Read the targets from this folder instead (`<scenario name>.npz` each, as `springtime
-    /// xpbd generate` writes them: `positions` [n², 3] on the template grid, `reactions` [G]):
+    /// xpbd generate` writes them: `positions` `[n², 3]` on the template grid, `reactions` `[G]`):
     /// a user's measured drapes.
     pub dir: Option<PathBuf>,
 }
@@ -687,9 +687,9 @@ fn load_targets(cfg: &XpbdConfig, cloth: &XpbdCloth, progress: &Progress) -> Res
     Ok(targets)
 }
 
-/// A static target file: `positions` [n², 3] (m, the template grid row-major, `u` along a
-/// row) and `reactions` [G] (N, the magnitudes of the scenario's measured clamp groups), with
-/// `grid` [2] and `size` (m) to check it against the swatch.
+/// A static target file: `positions` `[n², 3]` (m, the template grid row-major, `u` along a
+/// row) and `reactions` `[G]` (N, the magnitudes of the scenario's measured clamp groups), with
+/// `grid` `[2]` and `size` (m) to check it against the swatch.
 fn read_target(cfg: &XpbdConfig, cloth: &XpbdCloth, sc: &Scenario, path: &Path) -> Result<Target> {
     let sw = cfg.swatch;
     if !path.exists() {
