@@ -66,6 +66,7 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
         String::from_utf8_lossy(&out.stderr)
     );
     let json = estimate_json(&dir);
+    assert!(dir.join("est/error_map.png").exists());
     let rel = &json["relative_error"];
     for key in ["C00", "C11", "C01", "C22", "b"] {
         let e = rel[key]
@@ -336,6 +337,7 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
         "scenarios=[{kind=\"frame_shear\",angle_deg=25.0}]",
     ]);
     let rs = read("rs/resim.json");
+    assert!(dir.join("rs/error_map.png").exists());
     assert!(rs["max_vertex_error"].as_f64().unwrap() < 1e-6, "{rs}");
     // Bad files: each error names the file and the key or the scenario.
     let fails = |cfg: &str, want: &[&str]| {

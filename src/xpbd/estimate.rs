@@ -373,6 +373,9 @@ pub struct ScenarioFit {
     pub target_residual: f64,
     /// The target's reaction magnitude, N.
     pub target_reaction: f64,
+    /// Every vertex's distance to the target, m (drawn in `error_map.png`).
+    #[serde(skip)]
+    pub vertex_error: Vec<f64>,
 }
 
 /// A target: its scenario set up, the equilibrium with the true γ and what the fit compares.
@@ -553,21 +556,69 @@ impl Problem<'_> {
             .targets
             .iter()
             .zip(xs)
-            .map(|(t, x)| ScenarioFit {
-                name: t.name.clone(),
-                max_vertex_error: x
+            .map(|(t, x)| {
+                let vertex_error: Vec<f64> = x
                     .iter()
                     .zip(&t.x)
                     .map(|(a, b)| {
                         let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
                         dot(d, d).sqrt()
                     })
-                    .fold(0.0, f64::max),
-                target_residual: t.residual,
-                target_reaction: t.reactions.first().copied().unwrap_or(0.0),
+                    .collect();
+                ScenarioFit {
+                    name: t.name.clone(),
+                    max_vertex_error: vertex_error.iter().copied().fold(0.0, f64::max),
+                    target_residual: t.residual,
+                    target_reaction: t.reactions.first().copied().unwrap_or(0.0),
+                    vertex_error,
+                }
             })
             .collect())
     }
+}
+
+/// `error_map.png`: every scenario's vertex distances to its target on the rest swatch, one
+/// panel each on one colour scale (mm), as the paper's Figs. 5 and 8.
+pub fn error_map_png(path: &Path, cfg: &XpbdConfig, fits: &[ScenarioFit]) -> Result<()> {
+    use crate::cloth::{GridSpec, Topology};
+    use crate::report::plot;
+    let sw = cfg.swatch;
+    let topology = Topology::grid(
+        &GridSpec {
+            nx: sw.n,
+            ny: sw.n,
+            ..GridSpec::default()
+        },
+        sw.size,
+        sw.size,
+    );
+    let mm: Vec<Vec<f64>> = fits
+        .iter()
+        .map(|f| f.vertex_error.iter().map(|e| 1e3 * e).collect())
+        .collect();
+    let top = mm.iter().flatten().copied().fold(0.0, f64::max);
+    let range = (0.0, if top > 0.0 { top } else { 1.0 });
+    let panel = 260u32;
+    let (w, h) = (
+        panel * fits.len().max(1) as u32 + plot::COLORBAR_WIDTH,
+        plot::TITLE_HEIGHT + panel,
+    );
+    plot::png_figure(path, w, h, |root| {
+        let body = plot::title(
+            root,
+            &format!("Distance to the target per vertex (max {top:.3} mm)"),
+            16,
+        )?;
+        let (maps, bar) = body.split_horizontally(panel * fits.len().max(1) as u32);
+        for (area, (f, v)) in maps
+            .split_evenly((1, fits.len().max(1)))
+            .iter()
+            .zip(fits.iter().zip(&mm))
+        {
+            plot::draw_particle_map(area, &topology, v, &f.name, range)?;
+        }
+        plot::draw_colorbar(&bar, range, "mm")
+    })
 }
 
 impl LeastSquares for Problem<'_> {
@@ -836,6 +887,7 @@ pub fn resim(
         scenarios,
     };
     crate::io::write_json(&json, &report)?;
+    error_map_png(&out.join("error_map.png"), cfg, &report.scenarios)?;
     Ok(report)
 }
 
@@ -1011,6 +1063,7 @@ pub fn estimate(
         wall_seconds: start.elapsed().as_secs_f64(),
     };
     crate::io::write_json(&json, &report)?;
+    error_map_png(&options.out.join("error_map.png"), cfg, &report.scenarios)?;
     Ok(report)
 }
 
