@@ -359,6 +359,29 @@ pub enum DataCommand {
     },
 }
 
+/// What every `springtime xpbd` job takes: its config, where it writes, whether it may
+/// overwrite an earlier result there, and config overrides.
+#[derive(Debug, clap::Args)]
+pub struct XpbdJob {
+    /// The job's TOML (e.g. `configs/xpbd_cotton.toml`).
+    pub config: PathBuf,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Overwrite an earlier result in DIR.
+    #[arg(long)]
+    pub force: bool,
+    /// Override a config value: section.key=value (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+}
+
+impl XpbdJob {
+    fn load(&self) -> Result<crate::xpbd::estimate::XpbdConfig> {
+        crate::xpbd::estimate::XpbdConfig::load(&self.config, &self.set)
+    }
+}
+
 /// `springtime xpbd` subcommands.
 #[derive(Debug, Subcommand)]
 pub enum XpbdCommand {
@@ -370,17 +393,9 @@ pub enum XpbdCommand {
         after_help = "Example:\n  springtime xpbd estimate configs/xpbd_cotton.toml --out runs/xpbd_cotton"
     )]
     Estimate {
-        /// The job's TOML (`configs/xpbd_cotton.toml`).
-        config: PathBuf,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        /// Overwrite an earlier estimate in DIR.
-        #[arg(long)]
-        force: bool,
-        /// Override a config value: section.key=value (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
+        /// The config, the output directory, --force and --set.
+        #[command(flatten)]
+        job: XpbdJob,
     },
     /// The config's targets (its [truth] material in its scenarios, with [targets]' refine and
     /// noise) written as static-target files DIR/<scenario>.npz (`positions` [n², 3] on the
@@ -389,17 +404,9 @@ pub enum XpbdCommand {
         after_help = "Example:\n  springtime xpbd generate configs/xpbd_cotton.toml --out data/cotton_targets --set targets.refine=2"
     )]
     Generate {
-        /// The job's TOML.
-        config: PathBuf,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        /// Overwrite earlier target files in DIR.
-        #[arg(long)]
-        force: bool,
-        /// Override a config value: section.key=value (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
+        /// The config, the output directory, --force and --set.
+        #[command(flatten)]
+        job: XpbdJob,
     },
     /// Re-simulate the γ of an earlier estimate in the config's scenarios (e.g. ones the fit
     /// never saw), from each target's shape, against the targets. Writes DIR/resim.json (each
@@ -408,20 +415,12 @@ pub enum XpbdCommand {
         after_help = "Example:\n  springtime xpbd resim configs/xpbd_cotton.toml --estimate runs/xpbd_cotton/estimate.json --out runs/xpbd_resim --set 'scenarios=[{kind=\"diagonal_pull\",strain=0.03}]'"
     )]
     Resim {
-        /// The job's TOML (its scenarios and targets).
-        config: PathBuf,
+        /// The config, the output directory, --force and --set.
+        #[command(flatten)]
+        job: XpbdJob,
         /// The estimate.json whose `gamma` is re-simulated.
         #[arg(long)]
         estimate: PathBuf,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        /// Overwrite an earlier resim.json in DIR.
-        #[arg(long)]
-        force: bool,
-        /// Override a config value: section.key=value (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
     },
     /// The descriptor study of paper 001 §4.1: the config's estimate with each of the four
     /// descriptors of Eq. 9 (positions, energy, strain, FFT; Fig. 5) into DIR/<descriptor>/,
@@ -432,20 +431,12 @@ pub enum XpbdCommand {
         after_help = "Example:\n  springtime xpbd descriptors configs/xpbd_cotton.toml --out runs/xpbd_descriptors"
     )]
     Descriptors {
-        /// The job's TOML (`configs/xpbd_cotton.toml`).
-        config: PathBuf,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        /// Overwrite an earlier study in DIR.
-        #[arg(long)]
-        force: bool,
+        /// The config, the output directory, --force and --set.
+        #[command(flatten)]
+        job: XpbdJob,
         /// Out-of-plane amplitude of the perturbed start (the other start is flat), m.
         #[arg(long, default_value_t = 0.01)]
         noise: f64,
-        /// Override a config value: section.key=value (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
     },
     /// The wrinkle-seed invariance of paper 001: the config's estimate with targets from
     /// SEEDS differently perturbed starts (wrinkle branches) and the fit's equilibria on a
@@ -456,23 +447,15 @@ pub enum XpbdCommand {
         after_help = "Example:\n  springtime xpbd invariance configs/xpbd_cotton.toml --out runs/xpbd_invariance"
     )]
     Invariance {
-        /// The job's TOML (`configs/xpbd_cotton.toml`).
-        config: PathBuf,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
-        /// Overwrite an earlier experiment in DIR.
-        #[arg(long)]
-        force: bool,
+        /// The config, the output directory, --force and --set.
+        #[command(flatten)]
+        job: XpbdJob,
         /// Wrinkle seeds (targets).
         #[arg(long, default_value_t = 5)]
         seeds: u64,
         /// Out-of-plane amplitude of the targets' perturbed starts, m.
         #[arg(long, default_value_t = 0.01)]
         noise: f64,
-        /// Override a config value: section.key=value (repeatable).
-        #[arg(long = "set", value_name = "KEY=VALUE")]
-        set: Vec<String>,
     },
 }
 
@@ -677,61 +660,7 @@ pub fn run(cli: Cli) -> Result<()> {
             Ok(())
         }
         Command::Import { source } => import(&source),
-        Command::Xpbd {
-            command:
-                XpbdCommand::Estimate {
-                    config,
-                    out,
-                    force,
-                    set,
-                },
-        } => xpbd_estimate(&config, out, force, &set, &progress),
-        Command::Xpbd {
-            command:
-                XpbdCommand::Descriptors {
-                    config,
-                    out,
-                    force,
-                    noise,
-                    set,
-                },
-        } => xpbd_descriptors(&config, out, force, noise, &set, &progress),
-        Command::Xpbd {
-            command:
-                XpbdCommand::Generate {
-                    config,
-                    out,
-                    force,
-                    set,
-                },
-        } => {
-            let cfg = crate::xpbd::estimate::XpbdConfig::load(&config, &set)?;
-            for path in crate::xpbd::estimate::generate(&cfg, &out, force, &progress)? {
-                println!("target: {}", path.display());
-            }
-            Ok(())
-        }
-        Command::Xpbd {
-            command:
-                XpbdCommand::Resim {
-                    config,
-                    estimate,
-                    out,
-                    force,
-                    set,
-                },
-        } => xpbd_resim(&config, &estimate, out, force, &set, &progress),
-        Command::Xpbd {
-            command:
-                XpbdCommand::Invariance {
-                    config,
-                    out,
-                    force,
-                    seeds,
-                    noise,
-                    set,
-                },
-        } => xpbd_invariance(&config, out, force, seeds, noise, &set, &progress),
+        Command::Xpbd { command } => xpbd(command, &progress),
         Command::Latent { command } => latent(command, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
@@ -1007,21 +936,34 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
     Ok(())
 }
 
+/// `springtime xpbd`: each subcommand.
+fn xpbd(command: XpbdCommand, progress: &Progress) -> Result<()> {
+    match command {
+        XpbdCommand::Estimate { job } => xpbd_estimate(&job, progress),
+        XpbdCommand::Generate { job } => {
+            let cfg = job.load()?;
+            for path in crate::xpbd::estimate::generate(&cfg, &job.out, job.force, progress)? {
+                println!("target: {}", path.display());
+            }
+            Ok(())
+        }
+        XpbdCommand::Resim { job, estimate } => xpbd_resim(&job, &estimate, progress),
+        XpbdCommand::Descriptors { job, noise } => xpbd_descriptors(&job, noise, progress),
+        XpbdCommand::Invariance { job, seeds, noise } => {
+            xpbd_invariance(&job, seeds, noise, progress)
+        }
+    }
+}
+
 /// `springtime xpbd estimate`: the fit, then the fitted γ beside the truth.
-fn xpbd_estimate(
-    config: &Path,
-    out: PathBuf,
-    force: bool,
-    set: &[String],
-    progress: &Progress,
-) -> Result<()> {
+fn xpbd_estimate(job: &XpbdJob, progress: &Progress) -> Result<()> {
     use crate::xpbd::estimate;
-    let cfg = estimate::XpbdConfig::load(config, set)?;
+    let cfg = job.load()?;
     let r = estimate::estimate(
         &cfg,
         &estimate::EstimateOptions {
-            out: out.clone(),
-            force,
+            out: job.out.clone(),
+            force: job.force,
         },
         progress,
     )?;
@@ -1050,24 +992,17 @@ fn xpbd_estimate(
         r.objective.last().copied().unwrap_or(f64::NAN),
         r.wall_seconds
     );
-    println!("estimate: {}", out.join("estimate.json").display());
+    println!("estimate: {}", job.out.join("estimate.json").display());
     Ok(())
 }
 
 /// `springtime xpbd descriptors`: the study, then its two tables.
-fn xpbd_descriptors(
-    config: &Path,
-    out: PathBuf,
-    force: bool,
-    noise: f64,
-    set: &[String],
-    progress: &Progress,
-) -> Result<()> {
-    use crate::xpbd::{estimate::XpbdConfig, study};
-    let cfg = XpbdConfig::load(config, set)?;
+fn xpbd_descriptors(job: &XpbdJob, noise: f64, progress: &Progress) -> Result<()> {
+    use crate::xpbd::study;
+    let cfg = job.load()?;
     let options = study::StudyOptions {
-        out: out.clone(),
-        force,
+        out: job.out.clone(),
+        force: job.force,
         noise,
     };
     let r = study::study(&cfg, &options, progress)?;
@@ -1102,28 +1037,24 @@ fn xpbd_descriptors(
             branches.join(", ")
         );
     }
-    println!("descriptors: {}", out.join("descriptors.json").display());
+    println!(
+        "descriptors: {}",
+        job.out.join("descriptors.json").display()
+    );
     Ok(())
 }
 
 /// `springtime xpbd resim`: the re-simulation error per scenario.
-fn xpbd_resim(
-    config: &Path,
-    estimate: &Path,
-    out: PathBuf,
-    force: bool,
-    set: &[String],
-    progress: &Progress,
-) -> Result<()> {
-    use crate::xpbd::{estimate::XpbdConfig, material::Gamma};
-    let cfg = XpbdConfig::load(config, set)?;
+fn xpbd_resim(job: &XpbdJob, estimate: &Path, progress: &Progress) -> Result<()> {
+    use crate::xpbd::material::Gamma;
+    let cfg = job.load()?;
     let text = std::fs::read_to_string(estimate)
         .with_context(|| format!("cannot read {}", estimate.display()))?;
     let json: serde_json::Value = serde_json::from_str(&text)
         .with_context(|| format!("{} is not JSON", estimate.display()))?;
     let gamma: Gamma = serde_json::from_value(json["gamma"].clone())
         .with_context(|| format!("{}: key `gamma` is not a γ", estimate.display()))?;
-    let r = crate::xpbd::estimate::resim(&cfg, gamma, &out, force, progress)?;
+    let r = crate::xpbd::estimate::resim(&cfg, gamma, &job.out, job.force, progress)?;
     for s in &r.scenarios {
         println!(
             "{:<24} max vertex error {:.4} mm",
@@ -1131,25 +1062,17 @@ fn xpbd_resim(
             1e3 * s.max_vertex_error
         );
     }
-    println!("resim: {}", out.join("resim.json").display());
+    println!("resim: {}", job.out.join("resim.json").display());
     Ok(())
 }
 
 /// `springtime xpbd invariance`: the fits over the seeds, then each descriptor's spread.
-fn xpbd_invariance(
-    config: &Path,
-    out: PathBuf,
-    force: bool,
-    seeds: u64,
-    noise: f64,
-    set: &[String],
-    progress: &Progress,
-) -> Result<()> {
-    use crate::xpbd::{estimate::XpbdConfig, material::NAMES, study};
-    let cfg = XpbdConfig::load(config, set)?;
+fn xpbd_invariance(job: &XpbdJob, seeds: u64, noise: f64, progress: &Progress) -> Result<()> {
+    use crate::xpbd::{material::NAMES, study};
+    let cfg = job.load()?;
     let options = study::StudyOptions {
-        out: out.clone(),
-        force,
+        out: job.out.clone(),
+        force: job.force,
         noise,
     };
     let r = study::invariance(&cfg, &options, seeds, progress)?;
@@ -1171,7 +1094,7 @@ fn xpbd_invariance(
             row(&s.mean_relative_error)
         );
     }
-    println!("invariance: {}", out.join("invariance.json").display());
+    println!("invariance: {}", job.out.join("invariance.json").display());
     Ok(())
 }
 

@@ -392,6 +392,23 @@ struct Target {
     branch: Vec<V3>,
 }
 
+impl Target {
+    /// A target of scenario `sc` at `x` (the fit starts there and its residuals are unscaled
+    /// until `norm` is set).
+    fn new(sc: &Scenario, setup: Setup, x: Vec<V3>, residual: f64, reactions: Vec<f64>) -> Self {
+        Self {
+            name: sc.name(),
+            bending: sc.is_bending(),
+            norm: 1.0,
+            branch: x.clone(),
+            setup,
+            x,
+            residual,
+            reactions,
+        }
+    }
+}
+
 /// The fit as a least-squares problem over γ (SI, `[C00, C11, C01, C22, b]`).
 struct Problem<'a> {
     cloth: &'a XpbdCloth,
@@ -710,16 +727,7 @@ fn make_target(
             p
         })
         .collect();
-    Ok(Target {
-        name: sc.name(),
-        bending: sc.is_bending(),
-        norm: 1.0,
-        branch: x.clone(),
-        setup,
-        x,
-        residual,
-        reactions,
-    })
+    Ok(Target::new(sc, setup, x, residual, reactions))
 }
 
 /// The job's targets: read from `targets.dir`, or generated with the true material.
@@ -793,16 +801,7 @@ fn read_target(cfg: &XpbdConfig, cloth: &XpbdCloth, sc: &Scenario, path: &Path) 
             }
         }
     }
-    Ok(Target {
-        name: sc.name(),
-        bending: sc.is_bending(),
-        norm: 1.0,
-        branch: x.clone(),
-        setup,
-        x,
-        residual: f64::NAN,
-        reactions,
-    })
+    Ok(Target::new(sc, setup, x, f64::NAN, reactions))
 }
 
 /// `springtime xpbd generate <config> --out D`: the config's targets (with `[targets]`'s
