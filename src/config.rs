@@ -282,6 +282,13 @@ impl<'de, T: Deserialize<'de>> Deserialize<'de> for Auto<T> {
     }
 }
 
+/// Reads the TOML file `path` into `T` through [`parse_toml`]; errors name the file and the key.
+pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path, overrides: &[String]) -> Result<T> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read config {}", path.display()))?;
+    parse_toml(&text, overrides).with_context(|| format!("in config {}", path.display()))
+}
+
 /// Parses TOML text into `T` after applying `overrides` (`section.key=value`); errors name the
 /// key (`` `section.key`: … ``). Any config file of springtime is read this way.
 pub fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, overrides: &[String]) -> Result<T> {

@@ -70,10 +70,7 @@ fn default_name() -> String {
 impl LatentConfig {
     /// Reads a config with `key=value` overrides; errors name the file and the key.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        let cfg: Self = crate::config::parse_toml(&text, overrides)
-            .with_context(|| format!("in config {}", path.display()))?;
+        let cfg: Self = crate::config::read_toml(path, overrides)?;
         cfg.validate()
             .with_context(|| format!("{} is not a valid latent config", path.display()))?;
         Ok(cfg)

@@ -254,10 +254,7 @@ fn default_name() -> String {
 impl XpbdConfig {
     /// Reads a config with `key=value` overrides; errors name the file and the key.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read {}", path.display()))?;
-        let cfg: Self = crate::config::parse_toml(&text, overrides)
-            .with_context(|| format!("in config {}", path.display()))?;
+        let cfg: Self = crate::config::read_toml(path, overrides)?;
         cfg.validate()
             .with_context(|| format!("{} is not a valid xpbd config", path.display()))?;
         Ok(cfg)
@@ -388,6 +385,8 @@ struct Target {
     reactions: Vec<f64>,
     /// The norm of its descriptor at the initial γ: the scale of its residuals.
     norm: f64,
+    /// Its descriptor, when that does not depend on γ (computed once).
+    descriptor: Option<Vec<f64>>,
     /// Where the fit's equilibria start (`fit.start`).
     branch: Vec<V3>,
 }
@@ -400,6 +399,7 @@ impl Target {
             name: sc.name(),
             bending: sc.is_bending(),
             norm: 1.0,
+            descriptor: None,
             branch: x.clone(),
             setup,
             x,
@@ -470,9 +470,16 @@ impl Problem<'_> {
         let xs = self.equilibria(p)?;
         for (&t, x) in self.targets.iter().zip(xs) {
             let s = self.descriptor(&gamma, &x);
-            let target = self.descriptor(&gamma, &t.x);
+            let at_gamma;
+            let target = match &t.descriptor {
+                Some(d) => d,
+                None => {
+                    at_gamma = self.descriptor(&gamma, &t.x);
+                    &at_gamma
+                }
+            };
             let norm = t.norm;
-            r.extend(s.iter().zip(&target).map(|(a, b)| (a - b) / norm));
+            r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / norm));
             let sens = if with_jacobian {
                 Some(sensitivity(
                     self.cloth,
@@ -692,7 +699,7 @@ fn make_target(
         let s = sc.setup(&fine_cloth, nf, sw.size, sw.gravity, cfg.fit.noise, seed);
         (&fine_cloth, s)
     };
-    let solve = resolved_solve(cfg, fine, &[truth, cfg.initial.gamma()]);
+    let solve = resolved_solve(cfg, fine, &cfg.materials());
     let mut xf = fine
         .solve(&truth, &fine_setup.load, &fine_setup.start, &solve)?
         .x;
@@ -919,6 +926,7 @@ pub fn estimate(
     for (i, t) in targets.iter_mut().enumerate() {
         let d = cfg.fit.descriptor.of(&cloth, sw.n, sw.n, &initial, &t.x);
         t.norm = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
+        t.descriptor = (!cfg.fit.descriptor.depends_on_gamma()).then_some(d);
         if cfg.fit.start == FitStart::Flat {
             let seed = cfg.fit.seed + i as u64;
             let flat = cfg.scenarios[i].setup(&cloth, sw.n, sw.size, sw.gravity, 0.0, seed);

@@ -29,6 +29,7 @@ use super::equilibrium::polish;
 use super::estimate::{self, EstimateOptions, FitStart, ScenarioFit, TABLE_1, XpbdConfig};
 use super::material::Gamma;
 use super::material::NAMES;
+use super::scenario::Setup;
 use crate::cloth::triangles::V3;
 use crate::progress::Progress;
 
@@ -144,14 +145,13 @@ fn discriminate(
         // shapes[m][i]: material m from start i.
         let mut shapes: Vec<[Vec<V3>; 2]> = Vec::new();
         for g in &gammas {
-            let mut pair = Vec::new();
-            for setup in &starts {
+            let solve_from = |setup: &Setup| -> Result<Vec<V3>> {
                 let mut x = cloth.solve(g, &setup.load, &setup.start, &solve)?.x;
                 polish(cloth, g, &setup.load, &mut x, 50, 1e-11)?;
-                pair.push(x);
                 bar.inc(1);
-            }
-            shapes.push([pair.remove(0), pair.remove(0)]);
+                Ok(x)
+            };
+            shapes.push([solve_from(&starts[0])?, solve_from(&starts[1])?]);
         }
         let branch_distance = shapes
             .iter()
@@ -167,7 +167,7 @@ fn discriminate(
             let s: Vec<[Vec<f64>; 2]> = shapes
                 .iter()
                 .zip(&gammas)
-                .map(|(pair, g)| pair.clone().map(|x| d.of(cloth, sw.n, sw.n, g, &x)))
+                .map(|(pair, g)| pair.each_ref().map(|x| d.of(cloth, sw.n, sw.n, g, x)))
                 .collect();
             let within: Vec<f64> = s.iter().map(|[a, b]| distance(a, b)).collect();
             let mut relative = Vec::new();
