@@ -50,21 +50,31 @@ strain = 0.03
 axis = "v"
 "#;
 
+/// Runs `springtime args` in `dir` and requires success, showing its stderr otherwise.
+fn run_ok(dir: &std::path::Path, args: &[&str]) {
+    let out = springtime(args, dir);
+    assert!(
+        out.status.success(),
+        "{args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The JSON file `path` under `dir`.
+fn read_json(dir: &std::path::Path, path: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join(path)).unwrap()).unwrap()
+}
+
 /// `est/estimate.json` under `dir`.
 fn estimate_json(dir: &std::path::Path) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join("est/estimate.json")).unwrap()).unwrap()
+    read_json(dir, "est/estimate.json")
 }
 
 #[test]
 fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
     let dir = common::temp_dir("xpbd-estimate");
     std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    let out = springtime(&["xpbd", "estimate", "small.toml", "--out", "est"], &dir);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    run_ok(&dir, &["xpbd", "estimate", "small.toml", "--out", "est"]);
     let json = estimate_json(&dir);
     assert!(dir.join("est/error_map.png").exists());
     let rel = &json["relative_error"];
@@ -111,12 +121,7 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
         "max_iterations = 20\nschedule = \"bending_first\"\nrounds = 2\nstarts = 2",
     ) + "\n[[scenarios]]\nkind = \"cantilever\"\n";
     std::fs::write(dir.join("bf.toml"), cfg).unwrap();
-    let out = springtime(&["xpbd", "estimate", "bf.toml", "--out", "est"], &dir);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    run_ok(&dir, &["xpbd", "estimate", "bf.toml", "--out", "est"]);
     let json = estimate_json(&dir);
     assert_eq!(json["schedule"], "bending_first");
     let starts = json["starts"].as_array().unwrap();
@@ -138,7 +143,8 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
 fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination() {
     let dir = common::temp_dir("xpbd-descriptors");
     std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    let out = springtime(
+    run_ok(
+        &dir,
         &[
             "xpbd",
             "descriptors",
@@ -148,16 +154,8 @@ fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination(
             "--noise",
             "0.005",
         ],
-        &dir,
     );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("d/descriptors.json")).unwrap())
-            .unwrap();
+    let json = read_json(&dir, "d/descriptors.json");
     let fits = json["fits"].as_array().unwrap();
     let names: Vec<&str> = fits
         .iter()
@@ -211,7 +209,8 @@ fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination(
 fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the_spread() {
     let dir = common::temp_dir("xpbd-invariance");
     std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    let out = springtime(
+    run_ok(
+        &dir,
         &[
             "xpbd",
             "invariance",
@@ -223,16 +222,8 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
             "--noise",
             "0.002",
         ],
-        &dir,
     );
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("inv/invariance.json")).unwrap())
-            .unwrap();
+    let json = read_json(&dir, "inv/invariance.json");
     let fits = json["fits"].as_array().unwrap();
     assert_eq!(fits.len(), 4, "two descriptors × two seeds");
     for descriptor in ["fft", "positions"] {
@@ -244,13 +235,7 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
         // Each fit is a full estimate from the flat start's branch, in its own folder.
         for f in &mine {
             let seed = f["seed"].as_u64().unwrap();
-            let est: serde_json::Value = serde_json::from_str(
-                &std::fs::read_to_string(
-                    dir.join(format!("inv/{descriptor}_seed{seed}/estimate.json")),
-                )
-                .unwrap(),
-            )
-            .unwrap();
+            let est = read_json(&dir, &format!("inv/{descriptor}_seed{seed}/estimate.json"));
             assert_eq!(est["gamma"], f["gamma"]);
         }
         // The reported spread is that of the two fits.
@@ -296,26 +281,21 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
     use springtime::data::npz::{Array, Npz};
     let dir = common::temp_dir("xpbd-targets");
     std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    let ok = |args: &[&str]| {
-        let out = springtime(args, &dir);
-        assert!(
-            out.status.success(),
-            "{args:?}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    };
-    ok(&["xpbd", "generate", "small.toml", "--out", "tg"]);
-    ok(&["xpbd", "estimate", "small.toml", "--out", "synthetic"]);
+    run_ok(&dir, &["xpbd", "generate", "small.toml", "--out", "tg"]);
+    run_ok(
+        &dir,
+        &["xpbd", "estimate", "small.toml", "--out", "synthetic"],
+    );
     // The same job without its truth, reading the files: a user's measured drapes.
     let a = SMALL.find("[truth]").unwrap();
     let b = SMALL.find("[initial]").unwrap();
     let user = format!("{}{}\n[targets]\ndir = \"tg\"\n", &SMALL[..a], &SMALL[b..]);
     std::fs::write(dir.join("user.toml"), &user).unwrap();
-    ok(&["xpbd", "estimate", "user.toml", "--out", "user"]);
-    let read = |p: &str| -> serde_json::Value {
-        serde_json::from_str(&std::fs::read_to_string(dir.join(p)).unwrap()).unwrap()
-    };
-    let (s, u) = (read("synthetic/estimate.json"), read("user/estimate.json"));
+    run_ok(&dir, &["xpbd", "estimate", "user.toml", "--out", "user"]);
+    let (s, u) = (
+        read_json(&dir, "synthetic/estimate.json"),
+        read_json(&dir, "user/estimate.json"),
+    );
     assert!(u["truth"].is_null() && u["relative_error"]["C00"].is_null());
     for key in ["C00", "C11", "C01", "C22", "b"] {
         let (x, y) = (
@@ -325,18 +305,21 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
         assert!((x - y).abs() <= 1e-9 * x.abs(), "{key}: {x} vs {y}");
     }
     // The fitted γ re-simulated in a configuration the fit never saw.
-    ok(&[
-        "xpbd",
-        "resim",
-        "small.toml",
-        "--estimate",
-        "synthetic/estimate.json",
-        "--out",
-        "rs",
-        "--set",
-        "scenarios=[{kind=\"frame_shear\",angle_deg=25.0}]",
-    ]);
-    let rs = read("rs/resim.json");
+    run_ok(
+        &dir,
+        &[
+            "xpbd",
+            "resim",
+            "small.toml",
+            "--estimate",
+            "synthetic/estimate.json",
+            "--out",
+            "rs",
+            "--set",
+            "scenarios=[{kind=\"frame_shear\",angle_deg=25.0}]",
+        ],
+    );
+    let rs = read_json(&dir, "rs/resim.json");
     assert!(dir.join("rs/error_map.png").exists());
     assert!(rs["max_vertex_error"].as_f64().unwrap() < 1e-6, "{rs}");
     // Bad files: each error names the file and the key or the scenario.
