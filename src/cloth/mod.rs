@@ -1,8 +1,10 @@
 //! The cloth's rest geometry: the surrogate grid and its springs (paper §3.1), and the
-//! triangle-mesh maths the FEM source and the XPBD estimator share (`triangles`).
+//! triangle-mesh maths the FEM source and the XPBD estimator share (`triangles`, written over
+//! `lanes`' number types so that the FEM evaluates it eight elements at a time).
 
 mod topology;
 
+pub mod lanes;
 mod resample;
 pub mod triangles;
 

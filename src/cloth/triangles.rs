@@ -2,24 +2,26 @@
 //! frame, its deformation gradient and Green strain, the interior hinges of a mesh and their
 //! signed dihedral angle with its gradient.
 
+use super::lanes::{Real, each3};
+
 /// A point or vector in 3-D.
 pub type V3 = [f64; 3];
 
 /// `a − b`.
-#[inline]
-pub fn sub(a: V3, b: V3) -> V3 {
+#[inline(always)]
+pub fn sub<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
 /// `a · b`.
-#[inline]
-pub fn dot(a: V3, b: V3) -> f64 {
+#[inline(always)]
+pub fn dot<R: Real>(a: [R; 3], b: [R; 3]) -> R {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 /// `a × b`.
-#[inline]
-pub fn cross(a: V3, b: V3) -> V3 {
+#[inline(always)]
+pub fn cross<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
     [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -28,9 +30,15 @@ pub fn cross(a: V3, b: V3) -> V3 {
 }
 
 /// `s a`.
-#[inline]
-pub fn scale(a: V3, s: f64) -> V3 {
+#[inline(always)]
+pub fn scale<R: Real>(a: [R; 3], s: R) -> [R; 3] {
     [a[0] * s, a[1] * s, a[2] * s]
+}
+
+/// `a` where `mask` holds, else `b`, per coordinate.
+#[inline(always)]
+pub fn select3<R: Real>(mask: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
+    each3!(|c| R::select(mask, a[c], b[c]))
 }
 
 /// `acc += a`.
@@ -78,15 +86,7 @@ impl RestTriangle {
     /// `F = Ds Dm⁻¹` (3 × 2; columns `f_u`, `f_v`) at positions (or velocities) `x`.
     #[inline]
     pub fn deformation(&self, x: &[V3]) -> [[f64; 2]; 3] {
-        let (x0, x1, x2) = (x[self.v[0]], x[self.v[1]], x[self.v[2]]);
-        let (d1, d2) = (sub(x1, x0), sub(x2, x0));
-        let m = self.dm_inv;
-        std::array::from_fn(|r| {
-            [
-                d1[r] * m[0][0] + d2[r] * m[1][0],
-                d1[r] * m[0][1] + d2[r] * m[1][1],
-            ]
-        })
+        deformation([x[self.v[0]], x[self.v[1]], x[self.v[2]]], self.dm_inv)
     }
 
     /// The gradient of `Σ_rc P[r][c] F[r][c]` with respect to the three vertices: the force
@@ -104,13 +104,31 @@ impl RestTriangle {
     }
 }
 
+/// `F = Ds Dm⁻¹` (3 × 2) of a triangle with corners `x` (positions or velocities) and rest
+/// frame `Dm⁻¹`.
+#[inline(always)]
+pub fn deformation<R: Real>(x: [[R; 3]; 3], dm_inv: [[R; 2]; 2]) -> [[R; 2]; 3] {
+    let (d1, d2) = (sub(x[1], x[0]), sub(x[2], x[0]));
+    let m = dm_inv;
+    each3!(|r| {
+        [
+            d1[r] * m[0][0] + d2[r] * m[1][0],
+            d1[r] * m[0][1] + d2[r] * m[1][1],
+        ]
+    })
+}
+
 /// Green strain `½(FᵀF − I)` (2 × 2, symmetric).
-#[inline]
-pub fn green(f: [[f64; 2]; 3]) -> [[f64; 2]; 2] {
-    let c = |i: usize, j: usize| f[0][i] * f[0][j] + f[1][i] * f[1][j] + f[2][i] * f[2][j];
+#[inline(always)]
+pub fn green<R: Real>(f: [[R; 2]; 3]) -> [[R; 2]; 2] {
+    let (half, one) = (R::splat(0.5), R::splat(1.0));
+    let c01 = f[0][0] * f[0][1] + f[1][0] * f[1][1] + f[2][0] * f[2][1];
+    let c10 = f[0][1] * f[0][0] + f[1][1] * f[1][0] + f[2][1] * f[2][0];
+    let c00 = f[0][0] * f[0][0] + f[1][0] * f[1][0] + f[2][0] * f[2][0];
+    let c11 = f[0][1] * f[0][1] + f[1][1] * f[1][1] + f[2][1] * f[2][1];
     [
-        [0.5 * (c(0, 0) - 1.0), 0.5 * c(0, 1)],
-        [0.5 * c(1, 0), 0.5 * (c(1, 1) - 1.0)],
+        [half * (c00 - one), half * c01],
+        [half * c10, half * (c11 - one)],
     ]
 }
 
@@ -164,26 +182,43 @@ pub fn hinges(triangles: &[[usize; 3]]) -> Vec<Hinge> {
 /// `∇_b θ = −(x_c − x_a)·E/|E| N₁/|N₁|² − (x_d − x_a)·E/|E| N₂/|N₂|²`.
 #[inline]
 pub fn dihedral(h: &Hinge, x: &[V3]) -> (f64, [V3; 4]) {
-    let (xa, xb, xc, xd) = (x[h.a], x[h.b], x[h.c], x[h.d]);
+    dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]])
+}
+
+/// [`dihedral`] of the corners `[a, b, c, d]`; 0 with a zero gradient when the edge or a
+/// triangle is degenerate.
+#[inline(always)]
+pub fn dihedral_of<R: Real>([xa, xb, xc, xd]: [[R; 3]; 4]) -> (R, [[R; 3]; 4]) {
     let e = sub(xb, xa);
     let len = dot(e, e).sqrt();
     let n1 = cross(sub(xc, xa), sub(xc, xb));
     let n2 = cross(sub(xd, xb), sub(xd, xa));
     let (q1, q2) = (dot(n1, n1), dot(n2, n2));
-    if len == 0.0 || q1 == 0.0 || q2 == 0.0 {
-        return (0.0, [[0.0; 3]; 4]);
-    }
+    let zero = R::splat(0.0);
+    let degenerate = len.eq(zero) | q1.eq(zero) | q2.eq(zero);
     let theta = dot(cross(n2, n1), e).atan2(dot(n1, n2) * len);
-    let (u1, u2) = (scale(n1, 1.0 / q1), scale(n2, 1.0 / q2));
+    let one = R::splat(1.0);
+    let (u1, u2) = (scale(n1, one / q1), scale(n2, one / q2));
+    let inv_len = one / len;
     let ga = {
-        let s1 = dot(sub(xc, xb), e) / len;
-        let s2 = dot(sub(xd, xb), e) / len;
-        [0, 1, 2].map(|i| s1 * u1[i] + s2 * u2[i])
+        let s1 = dot(sub(xc, xb), e) * inv_len;
+        let s2 = dot(sub(xd, xb), e) * inv_len;
+        each3!(|i| s1 * u1[i] + s2 * u2[i])
     };
     let gb = {
-        let s1 = dot(sub(xc, xa), e) / len;
-        let s2 = dot(sub(xd, xa), e) / len;
-        [0, 1, 2].map(|i| -s1 * u1[i] - s2 * u2[i])
+        let s1 = dot(sub(xc, xa), e) * inv_len;
+        let s2 = dot(sub(xd, xa), e) * inv_len;
+        each3!(|i| -s1 * u1[i] - s2 * u2[i])
     };
-    (theta, [scale(u1, len), scale(u2, len), ga, gb])
+    let grads = [scale(u1, len), scale(u2, len), ga, gb];
+    let none = [zero; 3];
+    (
+        R::select(degenerate, zero, theta),
+        [
+            select3(degenerate, none, grads[0]),
+            select3(degenerate, none, grads[1]),
+            select3(degenerate, none, grads[2]),
+            select3(degenerate, none, grads[3]),
+        ],
+    )
 }

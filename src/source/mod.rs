@@ -3,6 +3,7 @@
 //! sheet under a random rotation (Fig. 6); the cloth falls under gravity and Rayleigh damping.
 
 pub mod fem;
+mod fem_forces;
 pub mod implicit;
 pub mod mass_spring;
 pub mod stiffness;
