@@ -112,13 +112,15 @@ impl Real for f64 {
     }
 }
 
-/// Eight `f64`s operated on together.
+/// Eight `f64`s operated on together (aligned to a cache line, as a 512-bit register).
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C, align(64))]
 pub struct Lanes(pub [f64; LANES]);
 
 /// A comparison's outcome per lane: all bits set where it holds (the form SIMD compares
 /// produce and blends consume).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(C, align(64))]
 pub struct Mask(pub [u64; LANES]);
 
 impl BitOr for Mask {
