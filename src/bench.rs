@@ -53,8 +53,11 @@ pub struct BenchReport {
     pub peak_rss_mib: f64,
     /// Backend.
     pub backend: String,
-    /// Kernel.
+    /// Kernel asked for.
     pub kernel: Kernel,
+    /// The spring-force path that ran: `"fused"` (the CPU kernels of `flex` and `ndarray`) or
+    /// `"tensor"` (the tensor-op reference: asked for, or the only path on `wgpu`).
+    pub kernel_used: &'static str,
     /// Clips per iteration.
     pub batch: usize,
     /// Steps per clip.
@@ -185,6 +188,13 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         peak_rss_mib: crate::train::run::peak_rss_mib(),
         backend: options.backend.to_string(),
         kernel: options.kernel,
+        kernel_used: if options.kernel == Kernel::Fused
+            && crate::model::springs::runs_host_kernels(&device)
+        {
+            "fused"
+        } else {
+            "tensor"
+        },
         batch: b,
         steps: t,
         springs: topo.num_springs(),

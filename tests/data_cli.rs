@@ -563,6 +563,37 @@ fn the_cli_explains_itself() {
         help.contains("fused") && help.contains("reference"),
         "{help}"
     );
+    // The bench says which spring-force path ran, not only which was asked for.
+    for (backend, kernel, used) in [
+        ("flex", "fused", "fused"),
+        ("flex", "reference", "tensor"),
+        ("wgpu", "fused", "tensor"),
+    ] {
+        let out = ok(&springtime(
+            &[
+                "bench",
+                "--batch",
+                "2",
+                "--steps",
+                "3",
+                "--iters",
+                "1",
+                "--n",
+                "5",
+                "--backend",
+                backend,
+                "--kernel",
+                kernel,
+            ],
+            &dir,
+        ));
+        let json = out
+            .lines()
+            .find(|l| l.starts_with('{'))
+            .expect("a JSON line");
+        let line: serde_json::Value = serde_json::from_str(json).unwrap();
+        assert_eq!(line["kernel_used"], used, "{backend} {kernel}: {out}");
+    }
     for sub in [
         &["train"][..],
         &["data", "check"],
