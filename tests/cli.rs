@@ -236,6 +236,13 @@ fn bad_configs_name_the_key() {
         &["train.damping.lr_decay"],
     );
     fails(
+        &springtime(
+            &["train", "tiny.toml", "--set", "train.stiffness.lr_b=0.1"],
+            &dir,
+        ),
+        &["train.stiffness.lr_b", "single pass"],
+    );
+    fails(
         &springtime(&["train", "missing.toml"], &dir),
         &["missing.toml"],
     );

@@ -282,5 +282,33 @@ fn ablation_configs_train_through_the_command_line() {
             assert_eq!(metrics.lines().count(), 1 + 4);
         }
     }
+    // `train.single.lr_b` steps b at a rate of its own: at 0, b stays at its initial 3 N·s/m
+    // while k learns.
+    let config = configs.join("ablation_single_pass.toml");
+    let mut args = vec![
+        "train".to_string(),
+        config.display().to_string(),
+        "--out".into(),
+        "runs/single_lr_b0".into(),
+        "--no-report".into(),
+        "--set".into(),
+        "train.single.lr_b=0.0".into(),
+    ];
+    for s in SHRINK {
+        args.push("--set".into());
+        args.push(s.to_string());
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    ok(&springtime(&args, &dir));
+    let springs =
+        springtime::data::npz::Npz::read(&dir.join("runs/single_lr_b0/springs.npz")).unwrap();
+    let (k, _) = springs.f64("k", &[None]).unwrap();
+    let (b, _) = springs.f64("b", &[None]).unwrap();
+    assert!(
+        b.iter().all(|&v| (v - 3.0).abs() < 1e-6),
+        "b moved: {:?}",
+        &b[..4]
+    );
+    assert!(k.iter().any(|&v| (v - 50.0).abs() > 1e-3), "k did not move");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -58,6 +58,10 @@ pub struct PassConfig {
     pub lr_decay: f64,
     /// The fraction of the pass's iterations at the constant `lr` before the decay starts.
     pub lr_hold: f64,
+    /// A learning rate of its own for the damping `b` of a spring surrogate in a pass that
+    /// trains `k` and `b` together (`single`; ours, App. C.2's single pass has one): `b` then
+    /// steps with `lr_b`, `k` with `lr`, under the same schedule. `None`: one rate for both.
+    pub lr_b: Option<f64>,
     /// Loss weights.
     pub weights: LossWeights,
     /// Where the clips come from.
@@ -72,6 +76,15 @@ impl PassConfig {
         let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
         self.lr * self.lr_decay.powf(decayed)
     }
+
+    /// The learning rate of `b` at iteration `i` ([`Self::lr_b`] under the same schedule).
+    pub fn lr_b_at(&self, i: usize) -> Option<f64> {
+        self.lr_b.map(|lr_b| {
+            let mut b = self.clone();
+            b.lr = lr_b;
+            b.lr_at(i)
+        })
+    }
 }
 
 impl Default for PassConfig {
@@ -82,6 +95,7 @@ impl Default for PassConfig {
             lr: 1.0,
             lr_decay: 1.0,
             lr_hold: 0.0,
+            lr_b: None,
             weights: LossWeights::default(),
             clips: ClipPool::Regular,
         }
@@ -194,6 +208,17 @@ impl TrainConfig {
             }
             if !(0.0..1.0).contains(&p.lr_hold) {
                 bail!("`train.{name}.lr_hold` must be in [0, 1), is {}", p.lr_hold);
+            }
+            if let Some(lr_b) = p.lr_b {
+                if !(lr_b >= 0.0 && lr_b.is_finite()) {
+                    bail!("`train.{name}.lr_b` must be a non-negative number, is {lr_b}");
+                }
+                if name != "single" {
+                    bail!(
+                        "`train.{name}.lr_b` is for the single pass, which trains k and b \
+                         together; the {name} pass trains one of them at `train.{name}.lr`"
+                    );
+                }
             }
             let w = &p.weights;
             for (key, v) in [
@@ -512,7 +537,7 @@ pub trait Trainable: Module + Sized {
     ) -> LossTerms;
 
     /// Readies the model for a pass that trains `k` and/or `b` (spring networks); returns the
-    /// parameters the optimizer updates (`None`: all of them).
+    /// parameters the optimizer updates, `k`'s before `b`'s (`None`: all of them).
     fn begin_pass(self, _train_k: bool, _train_b: bool) -> (Self, Option<Vec<ParamId>>) {
         (self, None)
     }
@@ -916,13 +941,31 @@ impl Fit<'_> {
                     bail!(message);
                 }
                 let mut grads = terms.total.backward();
-                let grads = match &trained {
-                    Some(ids) => GradientsParams::from_params(&mut grads, &model, ids),
-                    None => GradientsParams::from_grads(grads, &model),
-                };
+                let lr = pass.lr_at(it - pass_start);
+                // One Adam step per learning rate: with `lr_b`, k's and b's gradients step
+                // separately (Adam's moments are per parameter, so this is Adam with two rates).
+                let steps: Vec<(f64, GradientsParams)> =
+                    match (&trained, pass.lr_b_at(it - pass_start)) {
+                        (Some(ids), Some(lr_b)) if ids.len() == 2 => vec![
+                            (
+                                lr,
+                                GradientsParams::from_params(&mut grads, &model, &ids[..1]),
+                            ),
+                            (
+                                lr_b,
+                                GradientsParams::from_params(&mut grads, &model, &ids[1..]),
+                            ),
+                        ],
+                        (Some(ids), _) => {
+                            vec![(lr, GradientsParams::from_params(&mut grads, &model, ids))]
+                        }
+                        (None, _) => vec![(lr, GradientsParams::from_grads(grads, &model))],
+                    };
                 dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
-                if model.gradients_finite(&grads) {
-                    model = optim.step(pass.lr_at(it - pass_start), model, grads);
+                if steps.iter().all(|(_, g)| model.gradients_finite(g)) {
+                    for (lr, grads) in steps {
+                        model = optim.step(lr, model, grads);
+                    }
                 } else {
                     skipped += 1; // a finite loss with a non-finite gradient: no step
                 }
@@ -1131,6 +1174,16 @@ mod schedule_tests {
             ..pass
         };
         assert_eq!(held.lr_at(5), 2.0, "held for the first half");
+        assert_eq!(held.lr_b_at(5), None);
+        let two = PassConfig {
+            lr_b: Some(0.2),
+            ..held.clone()
+        };
+        assert_eq!(two.lr_b_at(5), Some(0.2));
+        assert!(
+            (two.lr_b_at(10).unwrap() - 0.002).abs() < 1e-12,
+            "b under the same schedule"
+        );
         assert!((held.lr_at(10) - 0.02).abs() < 1e-12);
         assert!(held.lr_at(8) < held.lr_at(7));
     }
