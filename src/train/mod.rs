@@ -111,6 +111,9 @@ pub enum Mode {
     Dual,
     /// `k` and `b` together (`train.single`).
     Single,
+    /// `k` and `b` together (`train.single`, best with its own `lr_b`), then the damping pass
+    /// (`train.damping`) for `b` alone (ours).
+    SingleThenDamping,
 }
 
 /// The `[train]` section.
@@ -259,6 +262,10 @@ impl TrainConfig {
             (ModelKind::Springs, Mode::Single) | (ModelKind::NeuralOde, _) => {
                 vec![pass("single", &self.single, true, true)]
             }
+            (ModelKind::Springs, Mode::SingleThenDamping) => vec![
+                pass("single", &self.single, true, true),
+                pass("damping", &self.damping, false, true),
+            ],
             (ModelKind::Gnn, _) => vec![pass("gnn", &self.gnn, true, true)],
         }
     }
@@ -1150,7 +1157,31 @@ impl ModelMeta {
 
 #[cfg(test)]
 mod schedule_tests {
-    use super::PassConfig;
+    use super::{Mode, PassConfig, TrainConfig};
+    use crate::model::ModelKind;
+
+    #[test]
+    fn each_mode_runs_its_passes_in_order() {
+        let names = |mode: Mode| -> Vec<(&str, bool, bool)> {
+            let c = TrainConfig {
+                mode,
+                ..TrainConfig::default()
+            };
+            c.passes(ModelKind::Springs)
+                .iter()
+                .map(|p| (p.name, p.train_k, p.train_b))
+                .collect()
+        };
+        assert_eq!(
+            names(Mode::Dual),
+            [("stiffness", true, false), ("damping", false, true)]
+        );
+        assert_eq!(names(Mode::Single), [("single", true, true)]);
+        assert_eq!(
+            names(Mode::SingleThenDamping),
+            [("single", true, true), ("damping", false, true)]
+        );
+    }
 
     #[test]
     fn the_learning_rate_decays_geometrically_from_lr_to_lr_times_decay() {
