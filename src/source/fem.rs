@@ -322,7 +322,7 @@ impl FemCloth {
     }
 
     /// Internal forces (membrane, strain-rate damping, bending) at `(x, v)`, added to `out`
-    /// (eight elements at a time: [`ElementLanes`]).
+    /// (eight elements at a time: see `source/fem_forces.rs`).
     pub fn internal_forces(&self, x: &[V3], v: &[V3], out: &mut [V3]) {
         self.lanes.add_forces(self.law(), x, v, out);
     }
