@@ -1326,9 +1326,7 @@ fn simulate(
     set: &[String],
     progress: &Progress,
 ) -> Result<()> {
-    if out.exists() && !force {
-        bail!("{} exists; pass --force to overwrite it", out.display());
-    }
+    crate::io::refuse_overwrite(out, force)?;
     if !(seconds > 0.0 && seconds.is_finite()) {
         bail!("--seconds must be positive, is {seconds}");
     }

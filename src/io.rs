@@ -6,6 +6,15 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 
+/// Refuses to overwrite an existing `path` unless `force`: the error names the file and
+/// `--force`.
+pub fn refuse_overwrite(path: &Path, force: bool) -> Result<()> {
+    if path.exists() && !force {
+        anyhow::bail!("{} exists; pass --force to overwrite it", path.display());
+    }
+    Ok(())
+}
+
 /// Writes `path` through `write`, atomically: into a uniquely named temporary file in the same
 /// directory, renamed over `path` only when `write` succeeded; on any failure (or a panic) the
 /// temporary file is removed and `path` is untouched.

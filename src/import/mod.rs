@@ -381,9 +381,7 @@ pub fn write_rollout(
         pinned[i] = true;
     }
     let path = options.out.join(format!("{}.npz", motion.name));
-    if path.exists() && !options.force {
-        bail!("{} exists; pass --force to overwrite it", path.display());
-    }
+    crate::io::refuse_overwrite(&path, options.force)?;
     let (rest, rest_from) = match join_set(&rest, &options.out, &path)? {
         Some((shared, file)) => (
             shared,

@@ -253,12 +253,7 @@ pub fn generate_reference(
     progress: &Progress,
 ) -> Result<(Rollout, GenerateStats)> {
     let run = LatentRun::new(out);
-    if run.rollout().exists() && !force {
-        bail!(
-            "{} exists; pass --force to overwrite it",
-            run.rollout().display()
-        );
-    }
+    crate::io::refuse_overwrite(&run.rollout(), force)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let scene = Scene::new(&config.cloth, &config.scenario);
     let (mut rollout, stats) = generate(&config.cloth, &scene, config.solver, progress)?;

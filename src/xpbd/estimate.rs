@@ -826,8 +826,8 @@ pub fn generate(
         .iter()
         .map(|sc| out.join(format!("{}.npz", sc.name())))
         .collect();
-    if !force && let Some(p) = paths.iter().find(|p| p.exists()) {
-        bail!("{} exists; pass --force to overwrite it", p.display());
+    for p in &paths {
+        crate::io::refuse_overwrite(p, force)?;
     }
     let mut synthetic = cfg.clone();
     synthetic.targets.dir = None;
@@ -867,9 +867,7 @@ pub fn resim(
     progress: &Progress,
 ) -> Result<ResimReport> {
     let json = out.join("resim.json");
-    if json.exists() && !force {
-        bail!("{} exists; pass --force to overwrite it", json.display());
-    }
+    crate::io::refuse_overwrite(&json, force)?;
     let sw = cfg.swatch;
     let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
     let mut materials = cfg.materials();
@@ -914,9 +912,7 @@ pub fn estimate(
 ) -> Result<EstimateReport> {
     let start = Instant::now();
     let json = options.out.join("estimate.json");
-    if json.exists() && !options.force {
-        bail!("{} exists; pass --force to overwrite it", json.display());
-    }
+    crate::io::refuse_overwrite(&json, options.force)?;
     let sw = cfg.swatch;
     let cloth = XpbdCloth::grid(sw.n, sw.n, sw.size, sw.size, sw.density)?;
     let solve = resolved_solve(cfg, &cloth, &cfg.materials());

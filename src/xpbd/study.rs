@@ -208,9 +208,7 @@ fn discriminate(
 pub fn study(cfg: &XpbdConfig, options: &StudyOptions, progress: &Progress) -> Result<StudyReport> {
     let start = Instant::now();
     let json = options.out.join("descriptors.json");
-    if json.exists() && !options.force {
-        bail!("{} exists; pass --force to overwrite it", json.display());
-    }
+    crate::io::refuse_overwrite(&json, options.force)?;
     if !(options.noise > 0.0 && options.noise.is_finite()) {
         bail!(
             "--noise must be a positive length in m, is {}",
@@ -319,9 +317,7 @@ pub fn invariance(
 ) -> Result<InvarianceReport> {
     let start = Instant::now();
     let json = options.out.join("invariance.json");
-    if json.exists() && !options.force {
-        bail!("{} exists; pass --force to overwrite it", json.display());
-    }
+    crate::io::refuse_overwrite(&json, options.force)?;
     if seeds < 2 {
         bail!("--seeds must be at least 2 for a spread, is {seeds}");
     }
