@@ -771,11 +771,11 @@ impl ClothSim for FemCloth {
                 out[i] = [0, 1, 2].map(|c| -(fp[i][c] - fm[i][c]) / (2.0 * eps));
             }
         });
-        // The damping operator: the part of the internal forces at the rest state that is
-        // linear in the velocity.
-        let mut elastic_at_rest = vec![[0.0; 3]; n];
-        self.internal_forces(&rest, &zero, &mut elastic_at_rest);
         let gamma_springs = if self.beta > 0.0 {
+            // The damping operator: the part of the internal forces at the rest state that is
+            // linear in the velocity.
+            let mut elastic_at_rest = vec![[0.0; 3]; n];
+            self.internal_forces(&rest, &zero, &mut elastic_at_rest);
             self.mass_weighted_max(|y, out| {
                 let mut f = vec![[0.0; 3]; n];
                 self.internal_forces(&rest, y, &mut f);

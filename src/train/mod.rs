@@ -72,18 +72,19 @@ impl PassConfig {
     /// The learning rate of the pass's `i`-th iteration (from 0): `lr` for the first
     /// `lr_hold` of the pass, then decayed geometrically to `lr · lr_decay` at the last one.
     pub fn lr_at(&self, i: usize) -> f64 {
-        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
-        let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
-        self.lr * self.lr_decay.powf(decayed)
+        self.lr * self.schedule(i)
     }
 
     /// The learning rate of `b` at iteration `i` ([`Self::lr_b`] under the same schedule).
     pub fn lr_b_at(&self, i: usize) -> Option<f64> {
-        self.lr_b.map(|lr_b| {
-            let mut b = self.clone();
-            b.lr = lr_b;
-            b.lr_at(i)
-        })
+        self.lr_b.map(|lr_b| lr_b * self.schedule(i))
+    }
+
+    /// The schedule's factor at iteration `i`: 1 while held, then down to `lr_decay`.
+    fn schedule(&self, i: usize) -> f64 {
+        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
+        let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
+        self.lr_decay.powf(decayed)
     }
 }
 
