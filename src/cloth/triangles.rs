@@ -199,15 +199,14 @@ pub fn dihedral_of<R: Real>([xa, xb, xc, xd]: [[R; 3]; 4]) -> (R, [[R; 3]; 4]) {
     let theta = dot(cross(n2, n1), e).atan2(dot(n1, n2) * len);
     let one = R::splat(1.0);
     let (u1, u2) = (scale(n1, one / q1), scale(n2, one / q2));
-    let inv_len = one / len;
     let ga = {
-        let s1 = dot(sub(xc, xb), e) * inv_len;
-        let s2 = dot(sub(xd, xb), e) * inv_len;
+        let s1 = dot(sub(xc, xb), e) / len;
+        let s2 = dot(sub(xd, xb), e) / len;
         each3!(|i| s1 * u1[i] + s2 * u2[i])
     };
     let gb = {
-        let s1 = dot(sub(xc, xa), e) * inv_len;
-        let s2 = dot(sub(xd, xa), e) * inv_len;
+        let s1 = dot(sub(xc, xa), e) / len;
+        let s2 = dot(sub(xd, xa), e) / len;
         each3!(|i| -s1 * u1[i] - s2 * u2[i])
     };
     let grads = [scale(u1, len), scale(u2, len), ga, gb];
