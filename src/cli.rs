@@ -510,6 +510,13 @@ pub enum LatentCommand {
     Eval {
         /// The run directory.
         run: PathBuf,
+        /// Also roll out the solved latent step (each step's latent minimises the potential
+        /// over the decoder's manifold): the ceiling of what the integrator can learn.
+        #[arg(long)]
+        subspace: bool,
+        /// Newton iterations per solved step at most (with --subspace).
+        #[arg(long, default_value_t = crate::latent::subspace::SolveConfig::default().iterations)]
+        solve_iterations: usize,
     },
     /// Time one latent frame (integrator + decoder, plain Rust and Burn) against the
     /// full-space Newton step; prints one JSON object as its last line, writes RUN/bench.json.
@@ -854,6 +861,7 @@ fn import(source: &ImportCommand) -> Result<()> {
 
 /// `springtime latent …`.
 fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
+    use crate::latent::subspace::SolveConfig;
     use crate::latent::{LatentConfig, eval, train};
     match command {
         LatentCommand::Generate {
@@ -902,8 +910,30 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             );
             println!("run: {}", out.display());
         }
-        LatentCommand::Eval { run } => {
-            let r = eval::evaluate(&run)?;
+        LatentCommand::Eval {
+            run,
+            subspace,
+            solve_iterations,
+        } => {
+            let solve = SolveConfig {
+                iterations: solve_iterations,
+                ..SolveConfig::default()
+            };
+            let r = eval::evaluate(&run, subspace.then_some(&solve))?;
+            if let Some(s) = &r.subspace {
+                println!(
+                    "solved latent steps: RMSE {:.2} mm, max error {:.2} mm, kinetic energy ratio {:.2}, {}, {:.0} s",
+                    s.rmse * 1e3,
+                    s.max_error * 1e3,
+                    s.kinetic_energy_ratio,
+                    if s.diverged {
+                        "DIVERGED"
+                    } else {
+                        "no divergence"
+                    },
+                    s.seconds
+                );
+            }
             println!(
                 "{} unseen frames from frame {}: RMSE {:.2} mm, max error {:.2} mm, pinned within {:.3} mm, {}",
                 r.frames,

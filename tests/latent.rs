@@ -10,6 +10,7 @@ use springtime::cloth::triangles::V3;
 use springtime::latent::energy::Potential;
 use springtime::latent::eval::{LatentModel, evaluate};
 use springtime::latent::scenario::{ClothConfig, ScenarioConfig, ScenarioKind, Scene, generate};
+use springtime::latent::subspace::SolveConfig;
 use springtime::latent::train::{TrainOptions, perturb, train};
 use springtime::latent::{LatentConfig, integrator::LossKind};
 use springtime::progress::Progress;
@@ -392,7 +393,7 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
             "decoder {a} vs {b}"
         );
     }
-    let report = evaluate(&dir).unwrap();
+    let report = evaluate(&dir, None).unwrap();
     assert_eq!(report.frames, 20);
     assert!(!report.diverged);
     assert!(report.pinned_max_error < 5e-3, "{report:?}");
@@ -433,6 +434,45 @@ fn the_supervised_integrator_overfits_a_short_sequence() {
 }
 
 #[test]
+fn solved_steps_minimise_the_potential_and_the_solved_integrator_learns_them() {
+    let dir = common::temp_dir("latent-solved");
+    let mut cfg = tiny_config(LossKind::Solved);
+    cfg.integrator.epochs = 800;
+    cfg.integrator.rounds = 2;
+    let meta = train_in(&dir, &cfg).unwrap();
+    assert_eq!(meta.integrator.epochs, 1600, "two rounds of 800 epochs");
+    let model = LatentModel::open(&dir).unwrap();
+    let solve = SolveConfig::default();
+    let l = cfg.autoencoder.latent;
+    let mut scratch = (Vec::new(), Vec::new());
+    let (mut err, mut spread) = (0.0f64, 0.0f64);
+    for t in [4, 13, 22, 31, 38] {
+        let step = model.solve_step(t, &solve).unwrap();
+        let tol = 1e-5 * step.potential.abs().max(1.0);
+        // The minimum over the decoder's manifold: no higher than where the search starts,
+        // nor than the encoded reference frame.
+        assert!(
+            step.potential <= step.potential_at_guess + tol
+                && step.potential <= step.potential_at_reference + tol,
+            "step {t}: {step:?}"
+        );
+        // The integrator trained on solved steps predicts the minimiser far better than the
+        // extrapolation the search starts from.
+        let input = model.teacher_input(t);
+        let z = model.plain.step(&input, l, &mut scratch);
+        for k in 0..l {
+            let guess = 2.0 * input[k] - input[l + k];
+            err += ((z[k] - step.latent[k]) as f64).powi(2);
+            spread += ((guess - step.latent[k]) as f64).powi(2);
+        }
+    }
+    assert!(
+        err < 0.25 * spread,
+        "integrator error {err} vs the extrapolation's {spread}"
+    );
+}
+
+#[test]
 fn the_latent_commands_train_evaluate_and_bench_from_a_config() {
     let dir = common::temp_dir("latent-cli");
     let config = dir.join("tiny.toml");
@@ -469,7 +509,17 @@ train_frames = 30
         &["latent", "train", cfg_s, "--out", run_s],
         &dir,
     ));
-    common::ok(&common::springtime(&["latent", "eval", run_s], &dir));
+    common::ok(&common::springtime(
+        &[
+            "latent",
+            "eval",
+            run_s,
+            "--subspace",
+            "--solve-iterations",
+            "5",
+        ],
+        &dir,
+    ));
     let eval: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("latent_eval.json")).unwrap())
             .unwrap();
@@ -477,6 +527,11 @@ train_frames = 30
     for key in ["diverged", "rmse", "max_error", "pinned_max_error"] {
         assert!(!eval[key].is_null(), "latent_eval.json lacks {key}");
     }
+    assert_eq!(eval["subspace"]["solve"]["iterations"], 5);
+    assert_eq!(
+        eval["subspace"]["rmse_per_frame"].as_array().unwrap().len(),
+        10
+    );
     let out = common::ok(&common::springtime(
         &["latent", "bench", run_s, "--full-frames", "3"],
         &dir,

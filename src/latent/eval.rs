@@ -17,8 +17,10 @@ use serde::{Deserialize, Serialize};
 
 use super::LatentConfig;
 use super::autoencoder::Autoencoder;
+use super::energy::Potential;
 use super::infer::PlainModel;
 use super::integrator::{Integrator, step_input};
+use super::subspace::{Sample, SolveConfig, Subspace};
 use super::train::{
     LatentMeta, LatentRun, Reference, Scales, encode_all, load_autoencoder, read_meta,
 };
@@ -119,6 +121,135 @@ impl LatentModel {
         out
     }
 
+    /// The solved rollout from the encoded frames `start − 2`, `start − 1`: each step's latent
+    /// minimises the potential of its decoded state, from `2z_{t−1} − z_{t−2}`; returns the
+    /// positions of frames `start ..`.
+    pub fn solved_rollout(&self, start: usize, solve: &SolveConfig) -> Result<Vec<Vec<V3>>> {
+        let r = &self.reference;
+        let owned = self.subspace()?;
+        let loss = owned.loss();
+        let mut scratch = (Vec::new(), Vec::new());
+        let mut absolute = |z: &[f32], t: usize| -> Vec<f32> {
+            let rel = self
+                .plain
+                .decoder
+                .apply(&self.scales.restore(z), &mut scratch);
+            let c = r.centre(t);
+            rel.iter()
+                .enumerate()
+                .map(|(i, v)| v + c[i % 3] as f32)
+                .collect()
+        };
+        let mut z2 = self.scales.standardise(&self.latents[start - 2]);
+        let mut z1 = self.scales.standardise(&self.latents[start - 1]);
+        let (mut x2, mut x1) = (absolute(&z2, start - 2), absolute(&z1, start - 1));
+        let mut out = Vec::with_capacity(r.frames.len() - start);
+        for t in start..r.frames.len() {
+            let sample = Sample {
+                input: Vec::new(),
+                x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
+                centre: r.centre(t).map(|v| v as f32),
+                targets: r
+                    .targets(t)
+                    .iter()
+                    .flat_map(|q| q.map(|v| v as f32))
+                    .collect(),
+                weight: 1.0,
+                truth: Vec::new(),
+                solved: Vec::new(),
+            };
+            let guess: Vec<f32> = z1.iter().zip(&z2).map(|(a, b)| 2.0 * a - b).collect();
+            let (mut solved, _) = loss.solve(&[&sample], &[guess], solve);
+            let z = solved.remove(0);
+            let x = absolute(&z, t);
+            out.push(
+                x.chunks(3)
+                    .map(|p| [0, 1, 2].map(|k| p[k] as f64))
+                    .collect(),
+            );
+            x2 = std::mem::replace(&mut x1, x);
+            z2 = std::mem::replace(&mut z1, z);
+        }
+        Ok(out)
+    }
+
+    /// The decoder and the potential on an autodiff device, for solved steps.
+    fn subspace(&self) -> Result<Subspace> {
+        let ad = self.device.clone().autodiff();
+        let decoder = load_autoencoder(&self.config, self.meta.dof, &self.run.autoencoder(), &ad)?
+            .decoder
+            .freeze();
+        let r = &self.reference;
+        let w_bc = self.config.integrator.w_bc;
+        let potential = Potential::new(&self.config.cloth.fem(), r.dt, &r.pinned, w_bc, &ad)?;
+        let row =
+            |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [1, v.len()]), &ad);
+        Ok(Subspace {
+            decoder,
+            potential,
+            z_mean: row(&self.scales.mean),
+            z_std: row(&self.scales.std),
+            vertices: r.frames[0].len(),
+            pinned: r.pinned.len(),
+        })
+    }
+
+    /// Step `t` solved from the encoded reference frames `t − 1`, `t − 2` (teacher forcing):
+    /// its latent minimiser and the potential there, at the search's start `2z_{t−1} − z_{t−2}`
+    /// and at the encoded frame `t`.
+    pub fn solve_step(&self, t: usize, solve: &SolveConfig) -> Result<SolvedStep> {
+        let r = &self.reference;
+        let owned = self.subspace()?;
+        let loss = owned.loss();
+        let decoded = super::train::decode(
+            &self.autoencoder.decoder,
+            &self.latents[t - 2..t],
+            &self.device,
+        );
+        let abs = |k: usize, f: usize| {
+            let c = r.centre(f);
+            decoded[k]
+                .iter()
+                .enumerate()
+                .map(move |(i, v)| v + c[i % 3] as f32)
+        };
+        let sample = Sample {
+            input: Vec::new(),
+            x_tilde: abs(1, t - 1)
+                .zip(abs(0, t - 2))
+                .map(|(a, b)| 2.0 * a - b)
+                .collect(),
+            centre: r.centre(t).map(|v| v as f32),
+            targets: r
+                .targets(t)
+                .iter()
+                .flat_map(|q| q.map(|v| v as f32))
+                .collect(),
+            weight: 1.0,
+            truth: Vec::new(),
+            solved: Vec::new(),
+        };
+        let (z1, z2) = (
+            self.scales.standardise(&self.latents[t - 1]),
+            self.scales.standardise(&self.latents[t - 2]),
+        );
+        let guess: Vec<f32> = z1.iter().zip(&z2).map(|(a, b)| 2.0 * a - b).collect();
+        let truth = self.scales.standardise(&self.latents[t]);
+        let at = |z: &[f32]| {
+            let device = loss.z_mean.device();
+            let row = Tensor::<2>::from_data(TensorData::new(z.to_vec(), [1, z.len()]), &device);
+            loss.potential(&[&sample], row).into_scalar::<f32>() as f64
+        };
+        let (potential_at_guess, potential_at_reference) = (at(&guess), at(&truth));
+        let (mut solved, potential) = loss.solve(&[&sample], &[guess], solve);
+        Ok(SolvedStep {
+            latent: solved.remove(0),
+            potential,
+            potential_at_guess,
+            potential_at_reference,
+        })
+    }
+
     /// The integrator's input of step `t` from the encoded reference frames `t − 1`, `t − 2`
     /// (teacher forcing: one step without accumulated error).
     pub fn teacher_input(&self, t: usize) -> Vec<f32> {
@@ -140,6 +271,19 @@ impl LatentModel {
             .try_into_vec_as::<f32>()
             .expect("float tensor")
     }
+}
+
+/// One step solved by [`LatentModel::solve_step`]; latents standardised.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolvedStep {
+    /// The latent minimiser.
+    pub latent: Vec<f32>,
+    /// The potential there.
+    pub potential: f64,
+    /// The potential at the search's start, `2z_{t−1} − z_{t−2}`.
+    pub potential_at_guess: f64,
+    /// The potential at the encoded reference frame.
+    pub potential_at_reference: f64,
 }
 
 /// `latent_eval.json`.
@@ -173,64 +317,139 @@ pub struct EvalReport {
     pub one_step_rmse: f64,
     /// Vertex RMSE of every rolled-out frame, m.
     pub rmse_per_frame: Vec<f64>,
+    /// The solved rollout (`--subspace`): every step the minimiser of the potential over the
+    /// decoder's manifold, the ceiling of what training the integrator can reach.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub subspace: Option<SubspaceReport>,
 }
 
-/// Evaluates a finished run and writes `R/latent_eval.json`.
-pub fn evaluate(dir: &Path) -> Result<EvalReport> {
+/// `latent_eval.json`'s `subspace`: the solved rollout's errors, m.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SubspaceReport {
+    /// The solver's settings.
+    pub solve: SolveConfig,
+    /// A frame's RMSE exceeded the sheet's size or a position was not finite.
+    pub diverged: bool,
+    /// Vertex RMSE over all rolled-out frames.
+    pub rmse: f64,
+    /// Largest vertex error.
+    pub max_error: f64,
+    /// RMSE 300 frames in.
+    pub rmse_at_300: Option<f64>,
+    /// Kinetic energy over the reference's.
+    pub kinetic_energy_ratio: f64,
+    /// Wall time of the solved rollout, s.
+    pub seconds: f64,
+    /// Vertex RMSE of every frame.
+    pub rmse_per_frame: Vec<f64>,
+}
+
+/// A rollout of frames `start ..` scored against the reference.
+struct Track {
+    diverged: bool,
+    rmse: f64,
+    max_error: f64,
+    pinned_max_error: f64,
+    rest_rmse_last_50: f64,
+    kinetic_energy_ratio: f64,
+    rmse_per_frame: Vec<f64>,
+}
+
+impl Track {
+    /// Scores `rolled`; a frame whose RMSE exceeds `size` (or is not finite) is a divergence.
+    fn of(rolled: &[Vec<V3>], r: &Reference, start: usize, size: f64) -> Self {
+        let n = r.frames[0].len();
+        let (mut se_all, mut max_error, mut pinned_max) = (0.0, 0.0f64, 0.0f64);
+        let mut diverged = false;
+        let mut per_frame = Vec::with_capacity(rolled.len());
+        let (mut ke_model, mut ke_ref) = (0.0, 0.0);
+        let last = r.frames.len() - 1;
+        let mut rest = Vec::new();
+        for (k, x) in rolled.iter().enumerate() {
+            let t = start + k;
+            let truth = &r.frames[t];
+            let mut se = 0.0;
+            for i in 0..n {
+                let d2: f64 = (0..3).map(|c| (x[i][c] - truth[i][c]).powi(2)).sum();
+                if !d2.is_finite() {
+                    diverged = true;
+                }
+                se += d2;
+                max_error = max_error.max(d2.sqrt());
+            }
+            for &i in &r.pinned {
+                let d2: f64 = (0..3).map(|c| (x[i][c] - truth[i][c]).powi(2)).sum();
+                pinned_max = pinned_max.max(d2.sqrt());
+            }
+            let rmse = (se / n as f64).sqrt();
+            if !(rmse <= size) {
+                diverged = true;
+            }
+            per_frame.push(rmse);
+            se_all += se;
+            if k > 0 {
+                let prev = &rolled[k - 1];
+                for i in 0..n {
+                    for c in 0..3 {
+                        ke_model += (x[i][c] - prev[i][c]).powi(2);
+                        ke_ref += (truth[i][c] - r.frames[t - 1][i][c]).powi(2);
+                    }
+                }
+            }
+            if k + 50 >= rolled.len() {
+                let d: f64 = (0..n)
+                    .map(|i| {
+                        (0..3)
+                            .map(|c| (x[i][c] - r.frames[last][i][c]).powi(2))
+                            .sum::<f64>()
+                    })
+                    .sum();
+                rest.push((d / n as f64).sqrt());
+            }
+        }
+        Self {
+            diverged,
+            rmse: (se_all / (rolled.len().max(1) * n) as f64).sqrt(),
+            max_error,
+            pinned_max_error: pinned_max,
+            rest_rmse_last_50: rest.iter().sum::<f64>() / rest.len().max(1) as f64,
+            kinetic_energy_ratio: if ke_ref > 0.0 {
+                ke_model / ke_ref
+            } else {
+                f64::NAN
+            },
+            rmse_per_frame: per_frame,
+        }
+    }
+}
+
+/// Evaluates a finished run and writes `R/latent_eval.json`; with `subspace`, the solved
+/// rollout too.
+pub fn evaluate(dir: &Path, subspace: Option<&SolveConfig>) -> Result<EvalReport> {
     let model = LatentModel::open(dir)?;
     let r = &model.reference;
     let start = model.meta.train_frames;
     let rolled = model.rollout(start);
-    let n = r.frames[0].len();
     let size = model.config.cloth.width.max(model.config.cloth.height);
-    let (mut se_all, mut max_error, mut pinned_max) = (0.0, 0.0f64, 0.0f64);
-    let mut diverged = false;
-    let mut per_frame = Vec::with_capacity(rolled.len());
-    let (mut ke_model, mut ke_ref) = (0.0, 0.0);
-    let last = r.frames.len() - 1;
-    let mut rest = Vec::new();
-    for (k, x) in rolled.iter().enumerate() {
-        let t = start + k;
-        let truth = &r.frames[t];
-        let mut se = 0.0;
-        for i in 0..n {
-            let d2: f64 = (0..3).map(|c| (x[i][c] - truth[i][c]).powi(2)).sum();
-            if !d2.is_finite() {
-                diverged = true;
-            }
-            se += d2;
-            max_error = max_error.max(d2.sqrt());
+    let track = Track::of(&rolled, r, start, size);
+    let subspace = match subspace {
+        Some(solve) => {
+            let clock = Instant::now();
+            let solved = Track::of(&model.solved_rollout(start, solve)?, r, start, size);
+            Some(SubspaceReport {
+                solve: *solve,
+                diverged: solved.diverged,
+                rmse: solved.rmse,
+                max_error: solved.max_error,
+                rmse_at_300: solved.rmse_per_frame.get(300).copied(),
+                kinetic_energy_ratio: solved.kinetic_energy_ratio,
+                seconds: clock.elapsed().as_secs_f64(),
+                rmse_per_frame: solved.rmse_per_frame,
+            })
         }
-        for &i in &r.pinned {
-            let d2: f64 = (0..3).map(|c| (x[i][c] - truth[i][c]).powi(2)).sum();
-            pinned_max = pinned_max.max(d2.sqrt());
-        }
-        let rmse = (se / n as f64).sqrt();
-        if !(rmse <= size) {
-            diverged = true;
-        }
-        per_frame.push(rmse);
-        se_all += se;
-        if k > 0 {
-            let prev = &rolled[k - 1];
-            for i in 0..n {
-                for c in 0..3 {
-                    ke_model += (x[i][c] - prev[i][c]).powi(2);
-                    ke_ref += (truth[i][c] - r.frames[t - 1][i][c]).powi(2);
-                }
-            }
-        }
-        if k + 50 >= rolled.len() {
-            let d: f64 = (0..n)
-                .map(|i| {
-                    (0..3)
-                        .map(|c| (x[i][c] - r.frames[last][i][c]).powi(2))
-                        .sum::<f64>()
-                })
-                .sum();
-            rest.push((d / n as f64).sqrt());
-        }
-    }
+        None => None,
+    };
+    let n = r.frames[0].len();
     let frames = rolled.len();
     let decoded = super::train::decode(
         &model.autoencoder.decoder,
@@ -267,23 +486,53 @@ pub fn evaluate(dir: &Path) -> Result<EvalReport> {
     let report = EvalReport {
         frames,
         first_frame: start,
-        diverged,
-        rmse: (se_all / (frames * n) as f64).sqrt(),
-        max_error,
-        pinned_max_error: pinned_max,
-        rmse_at_300: per_frame.get(300).copied(),
-        rest_rmse_last_50: rest.iter().sum::<f64>() / rest.len().max(1) as f64,
-        kinetic_energy_ratio: if ke_ref > 0.0 {
-            ke_model / ke_ref
-        } else {
-            f64::NAN
-        },
+        diverged: track.diverged,
+        rmse: track.rmse,
+        max_error: track.max_error,
+        pinned_max_error: track.pinned_max_error,
+        rmse_at_300: track.rmse_per_frame.get(300).copied(),
+        rest_rmse_last_50: track.rest_rmse_last_50,
+        kinetic_energy_ratio: track.kinetic_energy_ratio,
         reconstruction_rmse: (rec / (frames * n) as f64).sqrt(),
         one_step_rmse: (one_step / (frames * n) as f64).sqrt(),
-        rmse_per_frame: per_frame,
+        rmse_per_frame: track.rmse_per_frame,
+        subspace,
     };
     crate::io::write_json(&model.run.dir.join("latent_eval.json"), &report)?;
+    error_figure(
+        &model.run.dir.join("latent_eval.png"),
+        &report,
+        model.reference.dt,
+    )?;
     Ok(report)
+}
+
+/// `latent_eval.png`: the vertex RMSE of every rolled-out frame, the learned integrator's and
+/// (with `--subspace`) the solved steps', with the autoencoder's reconstruction floor.
+fn error_figure(path: &Path, report: &EvalReport, dt: f64) -> Result<()> {
+    use crate::report::plot::{Series, curves_png};
+    let curve = |label: &str, rmse: &[f64]| {
+        let points = rmse
+            .iter()
+            .enumerate()
+            .map(|(k, e)| ((report.first_frame + k) as f64 * dt, e * 1e3))
+            .collect();
+        Series::new(label, points)
+    };
+    let mut series = vec![curve("learned integrator", &report.rmse_per_frame)];
+    if let Some(s) = &report.subspace {
+        series.push(curve("solved latent steps (ceiling)", &s.rmse_per_frame));
+    }
+    let floor = vec![report.reconstruction_rmse; report.frames];
+    series.push(curve("autoencoder reconstruction (mean)", &floor));
+    curves_png(
+        path,
+        "latent rollout over the unseen frames: vertex RMSE",
+        "time (s)",
+        "RMSE (mm)",
+        &series,
+        true,
+    )
 }
 
 /// `bench.json`, and the last line `latent bench` prints.

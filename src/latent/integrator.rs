@@ -12,6 +12,7 @@ use burn::tensor::activation::silu;
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
+use super::subspace::SolveConfig;
 use crate::cloth::triangles::V3;
 
 /// What the integrator is trained to minimise.
@@ -25,6 +26,10 @@ pub enum LossKind {
     SelfSupervised,
     /// The baseline: `‖ẑ_t − ẑ_t^GT‖²` against the encoded reference (§4.5).
     Supervised,
+    /// Ours: Eq. 4 minimised in two stages — every training step's latent minimiser of the
+    /// potential solved first (and that of `noisy_copies` noisy copies of each, Eq. 5's
+    /// states), then `‖ẑ_t − argmin Φ‖²`. No ground truth is used either.
+    Solved,
 }
 
 /// The `[integrator]` section.
@@ -56,6 +61,13 @@ pub struct IntegratorConfig {
     pub train_frames: usize,
     /// Predict `2ẑ_{t−1} − ẑ_{t−2} + I(…)` instead of `I(…)` (gap G10; the paper: off).
     pub residual: bool,
+    /// With `loss = "solved"`: noisy copies of every training step, each solved once.
+    pub noisy_copies: usize,
+    /// With `loss = "solved"`: the latent minimiser's search.
+    pub solve: SolveConfig,
+    /// With `loss = "solved"`: rounds of `epochs` each; every round after the first adds the
+    /// steps the integrator visits rolling out over the training frames, solved (ours).
+    pub rounds: usize,
 }
 
 impl Default for IntegratorConfig {
@@ -75,6 +87,9 @@ impl Default for IntegratorConfig {
             w_bc: 1e5,
             train_frames: 750,
             residual: false,
+            noisy_copies: 4,
+            solve: SolveConfig::default(),
+            rounds: 1,
         }
     }
 }
@@ -103,6 +118,9 @@ impl IntegratorConfig {
         }
         if !(self.w_bc > 0.0) || !(self.velocity_floor > 0.0) {
             bail!("integrator.w_bc and integrator.velocity_floor must be positive");
+        }
+        if self.solve.iterations == 0 || !(self.solve.tolerance > 0.0 && self.solve.epsilon > 0.0) {
+            bail!("integrator.solve.iterations, .tolerance and .epsilon must be positive");
         }
         if self.train_frames < 3 {
             bail!("integrator.train_frames must be at least 3");

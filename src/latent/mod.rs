@@ -22,6 +22,7 @@ pub mod eval;
 pub mod infer;
 pub mod integrator;
 pub mod scenario;
+pub mod subspace;
 pub mod train;
 
 use std::path::Path;

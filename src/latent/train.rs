@@ -23,6 +23,7 @@ use super::autoencoder::{Autoencoder, Decoder, Pca};
 use super::energy::Potential;
 use super::integrator::{Integrator, LossKind, boundary_features, mean, step_input};
 use super::scenario::{GenerateStats, Scene, generate};
+use super::subspace::{Sample, SelfLoss, SolveConfig};
 use crate::cloth::triangles::V3;
 use crate::data::Rollout;
 use crate::progress::Progress;
@@ -601,17 +602,6 @@ fn train_autoencoder(
     ))
 }
 
-/// One training step's host data: the integrator's input, the potential's `x̃`, the step's
-/// centre and pinned targets, its balancing weight and the encoded reference latent.
-struct Sample {
-    input: Vec<f32>,
-    x_tilde: Vec<f32>,
-    centre: [f32; 3],
-    targets: Vec<f32>,
-    weight: f32,
-    truth: Vec<f32>,
-}
-
 /// The balancing weight `1 / max(|v̄|, floor)` of a step whose previous states are `x1`, `x2`
 /// (absolute, flattened).
 fn balance_weight(x1: &[f32], x2: &[f32], dt: f64, floor: f64) -> f32 {
@@ -658,7 +648,7 @@ fn train_integrator(
         .map(|(f, r)| absolute(r, reference.centre(f)))
         .collect();
     let std: Vec<Vec<f32>> = latents.iter().map(|z| scales.standardise(z)).collect();
-    let samples: Vec<Sample> = (2..t_end)
+    let mut samples: Vec<Sample> = (2..t_end)
         .map(|t| {
             let input = step_input(
                 &std[t - 1],
@@ -683,6 +673,7 @@ fn train_integrator(
                 targets,
                 weight: balance_weight(&abs[t - 1], &abs[t - 2], reference.dt, c.velocity_floor),
                 truth: std[t].clone(),
+                solved: Vec::new(),
             }
         })
         .collect();
@@ -693,14 +684,7 @@ fn train_integrator(
         c.w_bc,
         ad,
     )?;
-    let features = 9 * p;
-    let mut integrator = Integrator::new(c, l, features, ad);
-    let mut optim = AdamConfig::new().init();
-    let mut rng = StdRng::seed_from_u64(config.seed.wrapping_add(1));
-    let mut order: Vec<usize> = (0..samples.len()).collect();
-    let bar = progress.bar(c.epochs as u64, "integrator");
-    let clock = Instant::now();
-    let mut last = f64::NAN;
+    let clean_count = samples.len();
     let z_mean = Tensor::<2>::from_data(TensorData::new(scales.mean.clone(), [1, l]), ad);
     let z_std = Tensor::<2>::from_data(TensorData::new(scales.std.clone(), [1, l]), ad);
     let loss_of = SelfLoss {
@@ -712,7 +696,50 @@ fn train_integrator(
         vertices: n,
         pinned: p,
     };
-    for epoch in 0..c.epochs {
+    let mut rng = StdRng::seed_from_u64(config.seed.wrapping_add(1));
+    if c.loss == LossKind::Solved {
+        solve_targets(
+            config,
+            &mut samples,
+            &loss_of,
+            &plain.decoder,
+            scales,
+            reference,
+            &plain_device,
+            &mut rng,
+            progress,
+        );
+    }
+    let features = 9 * p;
+    let mut integrator = Integrator::new(c, l, features, ad);
+    let mut optim = AdamConfig::new().init();
+    let mut order: Vec<usize> = (0..samples.len()).collect();
+    let rounds = if c.loss == LossKind::Solved {
+        c.rounds.max(1)
+    } else {
+        1
+    };
+    let total = c.epochs * rounds;
+    let bar = progress.bar(total as u64, "integrator");
+    let clock = Instant::now();
+    let mut last = f64::NAN;
+    for epoch in 0..total {
+        if epoch > 0 && epoch % c.epochs == 0 {
+            // A new round: the steps the integrator itself visits on the training frames,
+            // solved, join the training set (the states its own errors lead it to).
+            let from = samples.len();
+            samples.extend(visited_steps(
+                &integrator.valid(),
+                &plain.decoder,
+                &std,
+                reference,
+                scales,
+                c,
+                &plain_device,
+            ));
+            solve_samples(&mut samples[from..], &loss_of, &c.solve, progress);
+            order = (0..samples.len()).collect();
+        }
         order.shuffle(&mut rng);
         let (mut sum, mut batches) = (0.0, 0);
         for chunk in order.chunks(c.batch) {
@@ -739,14 +766,12 @@ fn train_integrator(
                 ad,
             );
             let z_hat = integrator.forward(input);
+            let rows = |f: &dyn Fn(&Sample) -> &[f32]| {
+                rows_tensor(&batch.iter().map(|s| f(s)).collect::<Vec<_>>(), ad)
+            };
             let loss = match c.loss {
-                LossKind::Supervised => {
-                    let truth = rows_tensor(
-                        &batch.iter().map(|s| s.truth.as_slice()).collect::<Vec<_>>(),
-                        ad,
-                    );
-                    (z_hat - truth).powi_scalar(2).mean()
-                }
+                LossKind::Supervised => (z_hat - rows(&|s| &s.truth)).powi_scalar(2).mean(),
+                LossKind::Solved => (z_hat - rows(&|s| &s.solved)).powi_scalar(2).mean(),
                 LossKind::SelfSupervised => loss_of.potential(&batch, z_hat).mean(),
             };
             let value;
@@ -754,7 +779,7 @@ fn train_integrator(
                 &mut optim,
                 integrator,
                 loss,
-                c.rate(epoch, c.epochs),
+                c.rate(epoch, total),
                 "integrator",
                 epoch,
             )?;
@@ -771,7 +796,7 @@ fn train_integrator(
     // the encoded reference's: a fit below the reference means the loss's minimum over the
     // decoder's manifold lies away from the reference (an autoencoder not accurate enough).
     let (mut at_fit, mut at_truth) = (0.0, 0.0);
-    for chunk in samples.chunks(512) {
+    for chunk in samples[..clean_count].chunks(512) {
         let chunk: Vec<&Sample> = chunk.iter().collect();
         let input = rows_tensor(
             &chunk.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
@@ -785,11 +810,11 @@ fn train_integrator(
         at_fit += sum(loss_of.potential(&chunk, integrator.forward(input)));
         at_truth += sum(loss_of.potential(&chunk, truth));
     }
-    let count = samples.len().max(1) as f64;
+    let count = clean_count.max(1) as f64;
     Ok((
         integrator,
         Stage {
-            epochs: c.epochs,
+            epochs: total,
             final_loss: last,
             seconds: clock.elapsed().as_secs_f64(),
             potential_at_fit: Some(at_fit / count),
@@ -798,41 +823,136 @@ fn train_integrator(
     ))
 }
 
-/// The self-supervised loss (Eq. 4, balanced by Eq. 6 when asked) of a batch's standardised
-/// latents, through the frozen decoder.
-struct SelfLoss<'a> {
-    decoder: &'a Decoder,
-    potential: &'a Potential,
-    z_mean: Tensor<2>,
-    z_std: Tensor<2>,
-    balance: bool,
-    vertices: usize,
-    pinned: usize,
+/// `loss = "solved"`: adds `noisy_copies` noisy copies of every clean sample (Eq. 5) and sets
+/// every sample's `truth` to its step's latent minimiser of the potential, solved from
+/// `2ẑ_{t−1} − ẑ_{t−2}` of its own input.
+#[allow(clippy::too_many_arguments)]
+fn solve_targets(
+    config: &LatentConfig,
+    samples: &mut Vec<Sample>,
+    loss: &SelfLoss,
+    decoder: &Decoder,
+    scales: &Scales,
+    reference: &Reference,
+    device: &Device,
+    rng: &mut StdRng,
+    progress: &Progress,
+) {
+    let c = &config.integrator;
+    let l = scales.mean.len();
+    if c.noise > 0.0 {
+        let steps: Vec<usize> = (0..samples.len()).collect();
+        let mut noisy = Vec::new();
+        for _ in 0..c.noisy_copies {
+            for (chunk, idx) in samples.chunks(c.batch).zip(steps.chunks(c.batch)) {
+                let clean: Vec<&Sample> = chunk.iter().collect();
+                noisy.extend(noisy_copies(
+                    &clean,
+                    idx,
+                    c.noise,
+                    decoder,
+                    scales,
+                    reference,
+                    l,
+                    device,
+                    c.velocity_floor,
+                    rng,
+                ));
+            }
+        }
+        samples.extend(noisy);
+    }
+    solve_samples(samples, loss, &c.solve, progress);
 }
 
-impl SelfLoss<'_> {
-    /// Per step, `[B]`.
-    fn potential(&self, batch: &[&Sample], z_hat: Tensor<2>) -> Tensor<1> {
-        let device = z_hat.device();
-        let (b, n) = (batch.len(), self.vertices);
-        let z = z_hat * self.z_std.clone() + self.z_mean.clone();
-        let centre: Vec<f32> = batch.iter().flat_map(|s| s.centre).collect();
-        let centre = Tensor::<3>::from_data(TensorData::new(centre, [b, 1, 3]), &device);
-        let x = self.decoder.forward(z).reshape([b, n, 3]) + centre;
-        let cat = |f: &dyn Fn(&Sample) -> &[f32], k: usize| {
-            let v: Vec<f32> = batch.iter().flat_map(|s| f(s).iter().copied()).collect();
-            Tensor::<3>::from_data(TensorData::new(v, [b, k, 3]), &device)
-        };
-        let x_tilde = cat(&|s| &s.x_tilde, n);
-        let targets = cat(&|s| &s.targets, self.pinned);
-        let phi = self.potential.incremental(x, x_tilde, targets);
-        if self.balance {
-            let w: Vec<f32> = batch.iter().map(|s| s.weight).collect();
-            phi * Tensor::<1>::from_data(TensorData::new(w, [b]), &device)
+/// Sets every sample's `solved` to its step's latent minimiser, searched from
+/// `2ẑ_{t−1} − ẑ_{t−2}` of its own input.
+fn solve_samples(
+    samples: &mut [Sample],
+    loss: &SelfLoss,
+    solve: &SolveConfig,
+    progress: &Progress,
+) {
+    let l = loss.z_mean.dims()[1];
+    let bar = progress.bar(samples.len() as u64, "solving the steps' latents");
+    let (mut before, mut after) = (0.0, 0.0);
+    for chunk in samples.chunks_mut(512) {
+        let guess: Vec<Vec<f32>> = chunk
+            .iter()
+            .map(|s| (0..l).map(|k| 2.0 * s.input[k] - s.input[l + k]).collect())
+            .collect();
+        let refs: Vec<&Sample> = chunk.iter().collect();
+        let rows: Vec<&[f32]> = guess.iter().map(|g| g.as_slice()).collect();
+        let at_guess = loss.potential(&refs, rows_tensor(&rows, &loss.z_mean.device()));
+        before += at_guess.sum().into_scalar::<f32>() as f64;
+        let (solved, mean) = loss.solve(&refs, &guess, solve);
+        after += mean * chunk.len() as f64;
+        for (s, z) in chunk.iter_mut().zip(solved) {
+            s.solved = z;
+        }
+        bar.inc(chunk.len() as u64);
+    }
+    bar.finish();
+    let count = samples.len().max(1) as f64;
+    progress.note(&format!(
+        "solved {} steps' latents: mean potential {:.5e} at 2z₁ − z₂, {:.5e} at the minimisers",
+        samples.len(),
+        before / count,
+        after / count
+    ));
+}
+
+/// The steps the (plain) integrator visits when it rolls out over the training frames from
+/// the first two, restarted from the encoded reference wherever a decoded frame leaves the
+/// sheet's size from the reference; `solved` is left empty.
+fn visited_steps(
+    integrator: &Integrator,
+    decoder: &Decoder,
+    std: &[Vec<f32>],
+    reference: &Reference,
+    scales: &Scales,
+    c: &super::integrator::IntegratorConfig,
+    device: &Device,
+) -> Vec<Sample> {
+    let size = scales.length;
+    let state = |z: &[f32], f: usize| {
+        let rel = decode(decoder, &[scales.restore(z)], device).remove(0);
+        absolute(&rel, reference.centre(f))
+    };
+    let (mut z2, mut z1) = (std[0].clone(), std[1].clone());
+    let (mut x2, mut x1) = (state(&z2, 0), state(&z1, 1));
+    let mut out = Vec::with_capacity(c.train_frames);
+    for t in 2..c.train_frames {
+        let input = step_input(&z1, &z2, &reference.features(t, size));
+        let z = to_rows(integrator.forward(rows_tensor(&[input.as_slice()], device))).remove(0);
+        out.push(Sample {
+            x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
+            centre: reference.centre(t).map(|v| v as f32),
+            targets: reference
+                .targets(t)
+                .iter()
+                .flat_map(|q| q.map(|v| v as f32))
+                .collect(),
+            weight: balance_weight(&x1, &x2, reference.dt, c.velocity_floor),
+            truth: std[t].clone(),
+            solved: Vec::new(),
+            input,
+        });
+        let x = state(&z, t);
+        let n = x.len() / 3;
+        let se: f64 = x
+            .iter()
+            .zip(reference.frames[t].iter().flatten())
+            .map(|(a, b)| (*a as f64 - b).powi(2))
+            .sum();
+        if (se / n as f64).sqrt() <= size {
+            (z2, x2) = (std::mem::replace(&mut z1, z), std::mem::replace(&mut x1, x));
         } else {
-            phi
+            (z2, x2) = (std[t - 1].clone(), state(&std[t - 1], t - 1));
+            (z1, x1) = (std[t].clone(), state(&std[t], t));
         }
     }
+    out
 }
 
 /// Eq. 5's perturbation: uniform noise in `±noise · σ_k` on the first `dims` coordinates of
@@ -903,6 +1023,7 @@ fn noisy_copies(
                 targets: s.targets.clone(),
                 weight: balance_weight(&x1, &x2, reference.dt, floor),
                 truth: s.truth.clone(),
+                solved: Vec::new(),
             }
         })
         .collect()
