@@ -952,13 +952,14 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
         LatentCommand::Bench { run, full_frames } => {
             let r = eval::bench(&run, full_frames)?;
             println!(
-                "latent frame {:.1} µs (integrator {:.1} + decoder {:.1}; Burn {:.0} µs), full-space step {:.0} µs: {:.0}× faster",
+                "latent frame {:.1} µs (integrator {:.1} + decoder {:.1}; Burn {:.0} µs), full-space step {:.0} µs: {:.0}× faster; a solved latent step {:.0} µs",
                 r.latent_us_per_frame,
                 r.integrator_us,
                 r.decoder_us,
                 r.burn_us_per_frame,
                 r.full_us_per_frame,
-                r.speedup
+                r.speedup,
+                r.solved_us_per_frame
             );
             println!("{}", serde_json::to_string(&r)?);
         }

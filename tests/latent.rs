@@ -540,6 +540,7 @@ train_frames = 30
     let bench: serde_json::Value = serde_json::from_str(stdout).unwrap();
     assert!(bench["latent_us_per_frame"].as_f64().unwrap() > 0.0);
     assert!(bench["full_us_per_frame"].as_f64().unwrap() > 0.0);
+    assert!(bench["solved_us_per_frame"].as_f64().unwrap() > 0.0);
     // A finished run is refused without --force, and a typo names the key.
     let again = common::springtime(&["latent", "train", cfg_s, "--out", run_s], &dir);
     assert!(!again.status.success());

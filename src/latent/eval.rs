@@ -123,8 +123,13 @@ impl LatentModel {
 
     /// The solved rollout from the encoded frames `start − 2`, `start − 1`: each step's latent
     /// minimises the potential of its decoded state, from `2z_{t−1} − z_{t−2}`; returns the
-    /// positions of frames `start ..`.
-    pub fn solved_rollout(&self, start: usize, solve: &SolveConfig) -> Result<Vec<Vec<V3>>> {
+    /// positions of frames `start .. end`.
+    pub fn solved_rollout(
+        &self,
+        start: usize,
+        end: usize,
+        solve: &SolveConfig,
+    ) -> Result<Vec<Vec<V3>>> {
         let r = &self.reference;
         let owned = self.subspace()?;
         let loss = owned.loss();
@@ -144,7 +149,7 @@ impl LatentModel {
         let mut z1 = self.scales.standardise(&self.latents[start - 1]);
         let (mut x2, mut x1) = (absolute(&z2, start - 2), absolute(&z1, start - 1));
         let mut out = Vec::with_capacity(r.frames.len() - start);
-        for t in start..r.frames.len() {
+        for t in start..end.min(r.frames.len()) {
             let sample = Sample {
                 input: Vec::new(),
                 x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
@@ -435,7 +440,12 @@ pub fn evaluate(dir: &Path, subspace: Option<&SolveConfig>) -> Result<EvalReport
     let subspace = match subspace {
         Some(solve) => {
             let clock = Instant::now();
-            let solved = Track::of(&model.solved_rollout(start, solve)?, r, start, size);
+            let solved = Track::of(
+                &model.solved_rollout(start, r.frames.len(), solve)?,
+                r,
+                start,
+                size,
+            );
             Some(SubspaceReport {
                 solve: *solve,
                 diverged: solved.diverged,
@@ -556,6 +566,10 @@ pub struct BenchReport {
     pub latent_frames: usize,
     /// Steps timed for the full-space solver.
     pub full_frames: usize,
+    /// One solved latent step (the optimisation-based latent integrator: damped Newton through
+    /// the Burn decoder and potential, batch 1), µs, over `full_frames` frames.
+    #[serde(default)]
+    pub solved_us_per_frame: f64,
 }
 
 /// Times a finished run's latent frame and the full-space step; writes `R/bench.json`.
@@ -620,6 +634,9 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
         iterations += report.iterations;
     }
     let full_us = clock.elapsed().as_secs_f64() * 1e6 / full_frames as f64;
+    let clock = Instant::now();
+    model.solved_rollout(start, start + full_frames, &SolveConfig::default())?;
+    let solved_us = clock.elapsed().as_secs_f64() * 1e6 / full_frames as f64;
     let report = BenchReport {
         latent_us_per_frame: latent_us,
         integrator_us,
@@ -630,6 +647,7 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
         speedup: full_us / latent_us,
         latent_frames: inputs.len(),
         full_frames,
+        solved_us_per_frame: solved_us,
     };
     crate::io::write_json(&model.run.dir.join("bench.json"), &report)?;
     Ok(report)
