@@ -22,7 +22,7 @@ use super::infer::PlainModel;
 use super::integrator::{Integrator, step_input};
 use super::subspace::{Sample, SolveConfig, Subspace};
 use super::train::{
-    LatentMeta, LatentRun, Reference, Scales, encode_all, load_autoencoder, read_meta,
+    LatentMeta, LatentRun, Reference, Scales, absolute, encode_all, load_autoencoder, read_meta,
 };
 use crate::cloth::triangles::V3;
 use crate::data::Rollout;
@@ -134,39 +134,23 @@ impl LatentModel {
         let owned = self.subspace()?;
         let loss = owned.loss();
         let mut scratch = (Vec::new(), Vec::new());
-        let mut absolute = |z: &[f32], t: usize| -> Vec<f32> {
+        let mut state = |z: &[f32], t: usize| -> Vec<f32> {
             let rel = self
                 .plain
                 .decoder
                 .apply(&self.scales.restore(z), &mut scratch);
-            let c = r.centre(t);
-            rel.iter()
-                .enumerate()
-                .map(|(i, v)| v + c[i % 3] as f32)
-                .collect()
+            absolute(rel, r.centre(t))
         };
         let mut z2 = self.scales.standardise(&self.latents[start - 2]);
         let mut z1 = self.scales.standardise(&self.latents[start - 1]);
-        let (mut x2, mut x1) = (absolute(&z2, start - 2), absolute(&z1, start - 1));
+        let (mut x2, mut x1) = (state(&z2, start - 2), state(&z1, start - 1));
         let mut out = Vec::with_capacity(r.frames.len() - start);
         for t in start..end.min(r.frames.len()) {
-            let sample = Sample {
-                input: Vec::new(),
-                x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
-                centre: r.centre(t).map(|v| v as f32),
-                targets: r
-                    .targets(t)
-                    .iter()
-                    .flat_map(|q| q.map(|v| v as f32))
-                    .collect(),
-                weight: 1.0,
-                truth: Vec::new(),
-                solved: Vec::new(),
-            };
+            let sample = Sample::at(r, t, &x1, &x2, 1.0);
             let guess: Vec<f32> = z1.iter().zip(&z2).map(|(a, b)| 2.0 * a - b).collect();
             let (mut solved, _) = loss.solve(&[&sample], &[guess], solve);
             let z = solved.remove(0);
-            let x = absolute(&z, t);
+            let x = state(&z, t);
             out.push(
                 x.chunks(3)
                     .map(|p| [0, 1, 2].map(|k| p[k] as f64))
@@ -211,29 +195,11 @@ impl LatentModel {
             &self.latents[t - 2..t],
             &self.device,
         );
-        let abs = |k: usize, f: usize| {
-            let c = r.centre(f);
-            decoded[k]
-                .iter()
-                .enumerate()
-                .map(move |(i, v)| v + c[i % 3] as f32)
-        };
-        let sample = Sample {
-            input: Vec::new(),
-            x_tilde: abs(1, t - 1)
-                .zip(abs(0, t - 2))
-                .map(|(a, b)| 2.0 * a - b)
-                .collect(),
-            centre: r.centre(t).map(|v| v as f32),
-            targets: r
-                .targets(t)
-                .iter()
-                .flat_map(|q| q.map(|v| v as f32))
-                .collect(),
-            weight: 1.0,
-            truth: Vec::new(),
-            solved: Vec::new(),
-        };
+        let (x1, x2) = (
+            absolute(&decoded[1], r.centre(t - 1)),
+            absolute(&decoded[0], r.centre(t - 2)),
+        );
+        let sample = Sample::at(r, t, &x1, &x2, 1.0);
         let (z1, z2) = (
             self.scales.standardise(&self.latents[t - 1]),
             self.scales.standardise(&self.latents[t - 2]),

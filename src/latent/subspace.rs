@@ -14,6 +14,7 @@ use serde::{Deserialize, Serialize};
 
 use super::autoencoder::Decoder;
 use super::energy::Potential;
+use super::train::Reference;
 
 /// One step's host data: the integrator's input, the potential's `x̃`, the step's centre and
 /// pinned targets, its balancing weight, the encoded reference latent and (for
@@ -26,6 +27,33 @@ pub(crate) struct Sample {
     pub weight: f32,
     pub truth: Vec<f32>,
     pub solved: Vec<f32>,
+}
+
+impl Sample {
+    /// Step `t` of `reference` after the absolute states `x1`, `x2` (frames `t − 1`, `t − 2`,
+    /// flattened): `x̃ = 2x₁ − x₂` and the centre and pinned targets of frame `t`, with the
+    /// balancing weight `1 / max(|v̄|, floor)`; no input and no latents yet.
+    pub fn at(reference: &Reference, t: usize, x1: &[f32], x2: &[f32], floor: f64) -> Self {
+        let n = (x1.len() / 3) as f64;
+        let mut v = [0.0f64; 3];
+        for (i, (a, b)) in x1.iter().zip(x2).enumerate() {
+            v[i % 3] += (*a - *b) as f64 / reference.dt / n;
+        }
+        let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        Self {
+            input: Vec::new(),
+            x_tilde: x1.iter().zip(x2).map(|(a, b)| 2.0 * a - b).collect(),
+            centre: reference.centre(t).map(|v| v as f32),
+            targets: reference
+                .targets(t)
+                .iter()
+                .flat_map(|q| q.map(|v| v as f32))
+                .collect(),
+            weight: (1.0 / speed.max(floor)) as f32,
+            truth: Vec::new(),
+            solved: Vec::new(),
+        }
+    }
 }
 
 /// How the latent minimiser is searched: damped Newton on the standardised latent, the

@@ -602,19 +602,8 @@ fn train_autoencoder(
     ))
 }
 
-/// The balancing weight `1 / max(|v̄|, floor)` of a step whose previous states are `x1`, `x2`
-/// (absolute, flattened).
-fn balance_weight(x1: &[f32], x2: &[f32], dt: f64, floor: f64) -> f32 {
-    let n = (x1.len() / 3) as f64;
-    let mut v = [0.0f64; 3];
-    for (i, (a, b)) in x1.iter().zip(x2).enumerate() {
-        v[i % 3] += (*a - *b) as f64 / dt / n;
-    }
-    let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    (1.0 / speed.max(floor)) as f32
-}
-
-fn absolute(relative: &[f32], centre: V3) -> Vec<f32> {
+/// Relative positions (flattened) moved to `centre`.
+pub(crate) fn absolute(relative: &[f32], centre: V3) -> Vec<f32> {
     relative
         .iter()
         .enumerate()
@@ -649,32 +638,14 @@ fn train_integrator(
         .collect();
     let std: Vec<Vec<f32>> = latents.iter().map(|z| scales.standardise(z)).collect();
     let mut samples: Vec<Sample> = (2..t_end)
-        .map(|t| {
-            let input = step_input(
+        .map(|t| Sample {
+            input: step_input(
                 &std[t - 1],
                 &std[t - 2],
                 &reference.features(t, scales.length),
-            );
-            let x_tilde = abs[t - 1]
-                .iter()
-                .zip(&abs[t - 2])
-                .map(|(a, b)| 2.0 * a - b)
-                .collect();
-            let centre = reference.centre(t).map(|v| v as f32);
-            let targets = reference
-                .targets(t)
-                .iter()
-                .flat_map(|q| q.map(|v| v as f32))
-                .collect();
-            Sample {
-                input,
-                x_tilde,
-                centre,
-                targets,
-                weight: balance_weight(&abs[t - 1], &abs[t - 2], reference.dt, c.velocity_floor),
-                truth: std[t].clone(),
-                solved: Vec::new(),
-            }
+            ),
+            truth: std[t].clone(),
+            ..Sample::at(reference, t, &abs[t - 1], &abs[t - 2], c.velocity_floor)
         })
         .collect();
     let potential = Potential::new(
@@ -926,17 +897,9 @@ fn visited_steps(
         let input = step_input(&z1, &z2, &reference.features(t, size));
         let z = to_rows(integrator.forward(rows_tensor(&[input.as_slice()], device))).remove(0);
         out.push(Sample {
-            x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
-            centre: reference.centre(t).map(|v| v as f32),
-            targets: reference
-                .targets(t)
-                .iter()
-                .flat_map(|q| q.map(|v| v as f32))
-                .collect(),
-            weight: balance_weight(&x1, &x2, reference.dt, c.velocity_floor),
-            truth: std[t].clone(),
-            solved: Vec::new(),
             input,
+            truth: std[t].clone(),
+            ..Sample::at(reference, t, &x1, &x2, c.velocity_floor)
         });
         let x = state(&z, t);
         let n = x.len() / 3;
@@ -1018,12 +981,8 @@ fn noisy_copies(
             let x2 = absolute(&prev2[k], reference.centre(t - 2));
             Sample {
                 input: inputs[k].clone(),
-                x_tilde: x1.iter().zip(&x2).map(|(a, b)| 2.0 * a - b).collect(),
-                centre: s.centre,
-                targets: s.targets.clone(),
-                weight: balance_weight(&x1, &x2, reference.dt, floor),
                 truth: s.truth.clone(),
-                solved: Vec::new(),
+                ..Sample::at(reference, t, &x1, &x2, floor)
             }
         })
         .collect()
