@@ -514,9 +514,10 @@ pub enum LatentCommand {
         /// over the decoder's manifold): the ceiling of what the integrator can learn.
         #[arg(long)]
         subspace: bool,
-        /// Newton iterations per solved step at most (with --subspace).
-        #[arg(long, default_value_t = crate::latent::subspace::SolveConfig::default().iterations)]
-        solve_iterations: usize,
+        /// Newton iterations per solved step at most (with --subspace; default: the run's
+        /// `integrator.solve.iterations`).
+        #[arg(long)]
+        solve_iterations: Option<usize>,
     },
     /// Time one latent frame (integrator + decoder, plain Rust and Burn) against the
     /// full-space Newton step; prints one JSON object as its last line, writes RUN/bench.json.
@@ -861,7 +862,6 @@ fn import(source: &ImportCommand) -> Result<()> {
 
 /// `springtime latent …`.
 fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
-    use crate::latent::subspace::SolveConfig;
     use crate::latent::{LatentConfig, eval, train};
     match command {
         LatentCommand::Generate {
@@ -915,14 +915,13 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             subspace,
             solve_iterations,
         } => {
-            let solve = SolveConfig {
-                iterations: solve_iterations,
-                ..SolveConfig::default()
-            };
-            let r = eval::evaluate(&run, subspace.then_some(&solve))?;
+            if solve_iterations == Some(0) {
+                bail!("--solve-iterations must be at least 1");
+            }
+            let r = eval::evaluate(&run, subspace, solve_iterations)?;
             if let Some(s) = &r.subspace {
                 println!(
-                    "solved latent steps: RMSE {:.2} mm, max error {:.2} mm, kinetic energy ratio {:.2}, {}, {:.0} s",
+                    "solved latent steps: RMSE {:.2} mm, max error {:.2} mm, kinetic energy ratio {:.2}, {}, {:.0} s, {} of {} steps unconverged",
                     s.rmse * 1e3,
                     s.max_error * 1e3,
                     s.kinetic_energy_ratio,
@@ -931,7 +930,9 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
                     } else {
                         "no divergence"
                     },
-                    s.seconds
+                    s.seconds,
+                    s.unconverged_steps,
+                    r.frames
                 );
             }
             println!(

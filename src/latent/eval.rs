@@ -129,10 +129,20 @@ impl LatentModel {
         start: usize,
         end: usize,
         solve: &SolveConfig,
-    ) -> Result<Vec<Vec<V3>>> {
+    ) -> Result<SolvedRollout> {
+        Ok(self.roll_solved(&self.subspace()?, start, end, solve))
+    }
+
+    fn roll_solved(
+        &self,
+        owned: &Subspace,
+        start: usize,
+        end: usize,
+        solve: &SolveConfig,
+    ) -> SolvedRollout {
         let r = &self.reference;
-        let owned = self.subspace()?;
         let loss = owned.loss();
+        let mut unconverged = 0;
         let mut scratch = (Vec::new(), Vec::new());
         let mut state = |z: &[f32], t: usize| -> Vec<f32> {
             let rel = self
@@ -148,8 +158,9 @@ impl LatentModel {
         for t in start..end.min(r.frames.len()) {
             let sample = Sample::at(r, t, &x1, &x2, 1.0);
             let guess: Vec<f32> = z1.iter().zip(&z2).map(|(a, b)| 2.0 * a - b).collect();
-            let (mut solved, _) = loss.solve(&[&sample], &[guess], solve);
-            let z = solved.remove(0);
+            let mut solved = loss.solve(&[&sample], &[guess], solve);
+            unconverged += solved.unconverged;
+            let z = solved.latents.remove(0);
             let x = state(&z, t);
             out.push(
                 x.chunks(3)
@@ -159,7 +170,10 @@ impl LatentModel {
             x2 = std::mem::replace(&mut x1, x);
             z2 = std::mem::replace(&mut z1, z);
         }
-        Ok(out)
+        SolvedRollout {
+            positions: out,
+            unconverged,
+        }
     }
 
     /// The decoder and the potential on an autodiff device, for solved steps.
@@ -212,10 +226,10 @@ impl LatentModel {
             loss.potential(&[&sample], row).into_scalar::<f32>() as f64
         };
         let (potential_at_guess, potential_at_reference) = (at(&guess), at(&truth));
-        let (mut solved, potential) = loss.solve(&[&sample], &[guess], solve);
+        let mut solved = loss.solve(&[&sample], &[guess], solve);
         Ok(SolvedStep {
-            latent: solved.remove(0),
-            potential,
+            latent: solved.latents.remove(0),
+            potential: solved.mean_potential,
             potential_at_guess,
             potential_at_reference,
         })
@@ -242,6 +256,15 @@ impl LatentModel {
             .try_into_vec_as::<f32>()
             .expect("float tensor")
     }
+}
+
+/// A rollout of solved latent steps.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolvedRollout {
+    /// Positions of every rolled-out frame.
+    pub positions: Vec<Vec<V3>>,
+    /// Steps whose Newton solve did not converge.
+    pub unconverged: usize,
 }
 
 /// One step solved by [`LatentModel::solve_step`]; latents standardised.
@@ -297,8 +320,10 @@ pub struct EvalReport {
 /// `latent_eval.json`'s `subspace`: the solved rollout's errors, m.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SubspaceReport {
-    /// The solver's settings.
+    /// The solver's settings (the run's `integrator.solve`, `--solve-iterations` over it).
     pub solve: SolveConfig,
+    /// Steps whose Newton solve did not converge.
+    pub unconverged_steps: usize,
     /// A frame's RMSE exceeded the sheet's size or a position was not finite.
     pub diverged: bool,
     /// Vertex RMSE over all rolled-out frames.
@@ -395,9 +420,14 @@ impl Track {
 }
 
 /// Evaluates a finished run and writes `R/latent_eval.json`; with `subspace`, the solved
-/// rollout too.
-pub fn evaluate(dir: &Path, subspace: Option<&SolveConfig>) -> Result<EvalReport> {
+/// rollout too, by the run's `integrator.solve` with `iterations` over it when given.
+pub fn evaluate(dir: &Path, subspace: bool, iterations: Option<usize>) -> Result<EvalReport> {
     let model = LatentModel::open(dir)?;
+    let solve = SolveConfig {
+        iterations: iterations.unwrap_or(model.config.integrator.solve.iterations),
+        ..model.config.integrator.solve
+    };
+    let subspace = subspace.then_some(&solve);
     let r = &model.reference;
     let start = model.meta.train_frames;
     let rolled = model.rollout(start);
@@ -406,14 +436,11 @@ pub fn evaluate(dir: &Path, subspace: Option<&SolveConfig>) -> Result<EvalReport
     let subspace = match subspace {
         Some(solve) => {
             let clock = Instant::now();
-            let solved = Track::of(
-                &model.solved_rollout(start, r.frames.len(), solve)?,
-                r,
-                start,
-                size,
-            );
+            let rollout = model.solved_rollout(start, r.frames.len(), solve)?;
+            let solved = Track::of(&rollout.positions, r, start, size);
             Some(SubspaceReport {
                 solve: *solve,
+                unconverged_steps: rollout.unconverged,
                 diverged: solved.diverged,
                 rmse: solved.rmse,
                 max_error: solved.max_error,
@@ -600,8 +627,14 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
         iterations += report.iterations;
     }
     let full_us = clock.elapsed().as_secs_f64() * 1e6 / full_frames as f64;
+    let owned = model.subspace()?;
     let clock = Instant::now();
-    model.solved_rollout(start, start + full_frames, &SolveConfig::default())?;
+    model.roll_solved(
+        &owned,
+        start,
+        start + full_frames,
+        &model.config.integrator.solve,
+    );
     let solved_us = clock.elapsed().as_secs_f64() * 1e6 / full_frames as f64;
     let report = BenchReport {
         latent_us_per_frame: latent_us,

@@ -28,7 +28,9 @@ pub enum LossKind {
     Supervised,
     /// Ours: Eq. 4 minimised in two stages — every training step's latent minimiser of the
     /// potential solved first (and that of `noisy_copies` noisy copies of each, Eq. 5's
-    /// states), then `‖ẑ_t − argmin Φ‖²`. No ground truth is used either.
+    /// states), then `‖ẑ_t − argmin Φ‖²`. The loss uses no ground truth; with `rounds > 1`
+    /// the integrator's own rollouts restart from the encoded reference where they leave it
+    /// by more than the sheet's size.
     Solved,
 }
 
@@ -66,7 +68,8 @@ pub struct IntegratorConfig {
     /// With `loss = "solved"`: the latent minimiser's search.
     pub solve: SolveConfig,
     /// With `loss = "solved"`: rounds of `epochs` each; every round after the first adds the
-    /// steps the integrator visits rolling out over the training frames, solved (ours).
+    /// steps the integrator visits rolling out over the training frames, solved (ours). The
+    /// learning rate decays once over all rounds, and Adam's state carries over.
     pub rounds: usize,
 }
 
@@ -119,8 +122,21 @@ impl IntegratorConfig {
         if !(self.w_bc > 0.0) || !(self.velocity_floor > 0.0) {
             bail!("integrator.w_bc and integrator.velocity_floor must be positive");
         }
-        if self.solve.iterations == 0 || !(self.solve.tolerance > 0.0 && self.solve.epsilon > 0.0) {
-            bail!("integrator.solve.iterations, .tolerance and .epsilon must be positive");
+        let positive = |v: f64| v > 0.0 && v.is_finite();
+        if self.solve.iterations == 0
+            || !positive(self.solve.tolerance)
+            || !positive(self.solve.epsilon)
+        {
+            bail!(
+                "integrator.solve.iterations, .tolerance and .epsilon must be positive and \
+                 finite, are {}, {} and {}",
+                self.solve.iterations,
+                self.solve.tolerance,
+                self.solve.epsilon
+            );
+        }
+        if self.rounds == 0 {
+            bail!("integrator.rounds must be at least 1");
         }
         if self.train_frames < 3 {
             bail!("integrator.train_frames must be at least 3");

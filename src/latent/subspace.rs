@@ -1,12 +1,12 @@
 //! The latent step as an optimisation: the incremental potential (Eq. 4) of a decoded state,
 //! minimised over the decoder's manifold, `z_t = argmin_z Φ(D(z))`, one independent problem
-//! per step and a whole batch of them solved together by Adam on the latents.
+//! per step and a whole batch of them solved together by damped Newton on the latents.
 //!
 //! The learned integrator is trained to output exactly this minimiser, so the solved
 //! rollout (`latent eval R --subspace`) is the ceiling of what training the integrator can
 //! reach with this autoencoder and loss: what is left is the autoencoder's manifold and
 //! implicit Euler's own damping. The same solver gives the integrator solved targets
-//! (`integrator.targets = "solved"`, ours): the argmins of the training steps first, then a
+//! (`integrator.loss = "solved"`, ours): the argmins of the training steps first, then a
 //! regression onto them — the paper's loss, minimised in two stages.
 
 use burn::tensor::{Tensor, TensorData};
@@ -78,6 +78,18 @@ impl Default for SolveConfig {
             epsilon: 1e-3,
         }
     }
+}
+
+/// What [`SelfLoss::solve`] found.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Solved {
+    /// The minimisers, standardised, a row per step.
+    pub latents: Vec<Vec<f32>>,
+    /// The mean potential at them.
+    pub mean_potential: f64,
+    /// Steps whose Newton update did not fall below the tolerance within the iterations (or
+    /// whose gradient was not finite, or whose line search found no descent).
+    pub unconverged: usize,
 }
 
 /// The decoder (frozen) and the potential on an autodiff device, owned: what a
@@ -157,14 +169,11 @@ impl SelfLoss<'_> {
     }
 
     /// The minimisers of every step's potential, standardised, from the standardised `start`
-    /// (row per step); returns them and the mean potential at them. The problems are
-    /// independent, so one batch holds them all (and each one's `L` difference points).
-    pub fn solve(
-        &self,
-        batch: &[&Sample],
-        start: &[Vec<f32>],
-        config: &SolveConfig,
-    ) -> (Vec<Vec<f32>>, f64) {
+    /// (row per step). The problems are independent, so one batch holds them all (and each
+    /// one's `L` difference points). Eigenvalues of the Hessian enter by their magnitude
+    /// (floored at 1e-6 of the largest), so negative curvature is stepped away from, not
+    /// towards.
+    pub fn solve(&self, batch: &[&Sample], start: &[Vec<f32>], config: &SolveConfig) -> Solved {
         let device = self.z_mean.device();
         let (b, l) = (batch.len(), start.first().map_or(0, |z| z.len()));
         let mut z: Vec<Vec<f32>> = start.to_vec();
@@ -176,6 +185,7 @@ impl SelfLoss<'_> {
             .collect();
         let mut value = self.values(batch, &z);
         let mut active = vec![true; b];
+        let mut converged = vec![false; b];
         for _ in 0..config.iterations {
             if !active.iter().any(|&a| a) {
                 break;
@@ -214,9 +224,16 @@ impl SelfLoss<'_> {
                     (row(c + 1)[r] - g0[r]) / config.epsilon
                 });
                 h = (&h + h.transpose()) * 0.5;
-                let eig = nalgebra::SymmetricEigen::new(h);
+                let finite = g0.iter().chain(h.iter()).all(|v| v.is_finite());
+                let Some(eig) = finite
+                    .then(|| nalgebra::SymmetricEigen::try_new(h, 1e-12, 200))
+                    .flatten()
+                else {
+                    active[i] = false;
+                    continue;
+                };
                 let top = eig.eigenvalues.amax().max(1e-12);
-                let inv = eig.eigenvalues.map(|v| 1.0 / v.max(1e-6 * top));
+                let inv = eig.eigenvalues.map(|v| 1.0 / v.abs().max(1e-6 * top));
                 let d = -(&eig.eigenvectors
                     * nalgebra::DMatrix::from_diagonal(&inv)
                     * eig.eigenvectors.transpose()
@@ -225,6 +242,7 @@ impl SelfLoss<'_> {
                 step[i] = d.iter().map(|&v| v as f32).collect();
                 if d.amax() < config.tolerance {
                     active[i] = false;
+                    converged[i] = true;
                 }
             }
             // Backtracking per step: halve until the Armijo condition holds (or give up).
@@ -257,13 +275,18 @@ impl SelfLoss<'_> {
                 }
             }
             for i in 0..b {
-                // No descent found: the step is at its minimum to f32 precision.
+                // No descent along the Newton direction: converged when the decrease it
+                // predicts is below the potential's f32 resolution, stuck otherwise.
                 if pending[i] {
                     active[i] = false;
+                    converged[i] = -slope[i] <= 1e-6 * value[i].abs().max(1.0);
                 }
             }
         }
-        let mean = value.iter().sum::<f64>() / b.max(1) as f64;
-        (z, mean)
+        Solved {
+            mean_potential: value.iter().sum::<f64>() / b.max(1) as f64,
+            unconverged: converged.iter().filter(|&&c| !c).count(),
+            latents: z,
+        }
     }
 }

@@ -795,7 +795,7 @@ fn train_integrator(
 }
 
 /// `loss = "solved"`: adds `noisy_copies` noisy copies of every clean sample (Eq. 5) and sets
-/// every sample's `truth` to its step's latent minimiser of the potential, solved from
+/// every sample's `solved` to its step's latent minimiser of the potential, solved from
 /// `2ẑ_{t−1} − ẑ_{t−2}` of its own input.
 #[allow(clippy::too_many_arguments)]
 fn solve_targets(
@@ -812,11 +812,13 @@ fn solve_targets(
     let c = &config.integrator;
     let l = scales.mean.len();
     if c.noise > 0.0 {
-        let steps: Vec<usize> = (0..samples.len()).collect();
+        let mut steps: Vec<usize> = (0..samples.len()).collect();
         let mut noisy = Vec::new();
         for _ in 0..c.noisy_copies {
-            for (chunk, idx) in samples.chunks(c.batch).zip(steps.chunks(c.batch)) {
-                let clean: Vec<&Sample> = chunk.iter().collect();
+            // Random batches, as in training: the noise scale is each batch's deviation.
+            steps.shuffle(rng);
+            for idx in steps.chunks(c.batch) {
+                let clean: Vec<&Sample> = idx.iter().map(|&i| &samples[i]).collect();
                 noisy.extend(noisy_copies(
                     &clean,
                     idx,
@@ -846,7 +848,7 @@ fn solve_samples(
 ) {
     let l = loss.z_mean.dims()[1];
     let bar = progress.bar(samples.len() as u64, "solving the steps' latents");
-    let (mut before, mut after) = (0.0, 0.0);
+    let (mut before, mut after, mut unconverged) = (0.0, 0.0, 0);
     for chunk in samples.chunks_mut(512) {
         let guess: Vec<Vec<f32>> = chunk
             .iter()
@@ -856,9 +858,10 @@ fn solve_samples(
         let rows: Vec<&[f32]> = guess.iter().map(|g| g.as_slice()).collect();
         let at_guess = loss.potential(&refs, rows_tensor(&rows, &loss.z_mean.device()));
         before += at_guess.sum().into_scalar::<f32>() as f64;
-        let (solved, mean) = loss.solve(&refs, &guess, solve);
-        after += mean * chunk.len() as f64;
-        for (s, z) in chunk.iter_mut().zip(solved) {
+        let solved = loss.solve(&refs, &guess, solve);
+        after += solved.mean_potential * chunk.len() as f64;
+        unconverged += solved.unconverged;
+        for (s, z) in chunk.iter_mut().zip(solved.latents) {
             s.solved = z;
         }
         bar.inc(chunk.len() as u64);
@@ -866,10 +869,18 @@ fn solve_samples(
     bar.finish();
     let count = samples.len().max(1) as f64;
     progress.note(&format!(
-        "solved {} steps' latents: mean potential {:.5e} at 2z₁ − z₂, {:.5e} at the minimisers",
+        "solved {} steps' latents: mean potential {:.5e} at 2z₁ − z₂, {:.5e} at the minimisers{}",
         samples.len(),
         before / count,
-        after / count
+        after / count,
+        if unconverged > 0 {
+            format!(
+                "; {unconverged} did not converge within integrator.solve.iterations = {}",
+                solve.iterations
+            )
+        } else {
+            String::new()
+        }
     ));
 }
 
