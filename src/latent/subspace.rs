@@ -80,7 +80,7 @@ impl Default for SolveConfig {
     }
 }
 
-/// What [`SelfLoss::solve`] found.
+/// What a batch of latent solves found.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Solved {
     /// The minimisers, standardised, a row per step.
