@@ -225,12 +225,12 @@ impl LatentModel {
             let row = Tensor::<2>::from_data(TensorData::new(z.to_vec(), [1, z.len()]), &device);
             loss.potential(&[&sample], row).into_scalar::<f32>() as f64
         };
-        let (potential_at_guess, potential_at_reference) = (at(&guess), at(&truth));
+        let potential_at_reference = at(&truth);
         let mut solved = loss.solve(&[&sample], &[guess], solve);
         Ok(SolvedStep {
             latent: solved.latents.remove(0),
             potential: solved.mean_potential,
-            potential_at_guess,
+            potential_at_guess: solved.mean_potential_at_start,
             potential_at_reference,
         })
     }

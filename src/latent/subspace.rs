@@ -87,6 +87,8 @@ pub struct Solved {
     pub latents: Vec<Vec<f32>>,
     /// The mean potential at them.
     pub mean_potential: f64,
+    /// The mean potential where the search started.
+    pub mean_potential_at_start: f64,
     /// Steps whose Newton update did not fall below the tolerance within the iterations (or
     /// whose gradient was not finite, or whose line search found no descent).
     pub unconverged: usize,
@@ -178,21 +180,25 @@ impl SelfLoss<'_> {
         let (b, l) = (batch.len(), start.first().map_or(0, |z| z.len()));
         let mut z: Vec<Vec<f32>> = start.to_vec();
         let eps = config.epsilon as f32;
-        // Each step with its `L` forward-difference points.
-        let spread: Vec<&Sample> = batch
-            .iter()
-            .flat_map(|s| std::iter::repeat_n(*s, l + 1))
-            .collect();
         let mut value = self.values(batch, &z);
+        let at_start = value.iter().sum::<f64>() / b.max(1) as f64;
         let mut active = vec![true; b];
         let mut converged = vec![false; b];
         for _ in 0..config.iterations {
-            if !active.iter().any(|&a| a) {
+            // Only the steps still searching are evaluated.
+            let live: Vec<usize> = (0..b).filter(|&i| active[i]).collect();
+            if live.is_empty() {
                 break;
             }
-            let points: Vec<f32> = z
+            // Each step with its `L` forward-difference points.
+            let spread: Vec<&Sample> = live
                 .iter()
-                .flat_map(|zi| {
+                .flat_map(|&i| std::iter::repeat_n(batch[i], l + 1))
+                .collect();
+            let points: Vec<f32> = live
+                .iter()
+                .flat_map(|&i| {
+                    let zi = &z[i];
                     (0..=l).flat_map(move |k| {
                         zi.iter()
                             .enumerate()
@@ -200,8 +206,9 @@ impl SelfLoss<'_> {
                     })
                 })
                 .collect();
-            let zt = Tensor::<2>::from_data(TensorData::new(points, [b * (l + 1), l]), &device)
-                .require_grad();
+            let rows = live.len() * (l + 1);
+            let zt =
+                Tensor::<2>::from_data(TensorData::new(points, [rows, l]), &device).require_grad();
             let phi = self.potential(&spread, zt.clone()).sum();
             let g: Vec<f64> = zt
                 .grad(&phi.backward())
@@ -214,11 +221,8 @@ impl SelfLoss<'_> {
                 .collect();
             let mut step = vec![vec![0.0f32; l]; b];
             let mut slope = vec![0.0f64; b];
-            for i in 0..b {
-                if !active[i] {
-                    continue;
-                }
-                let row = |k: usize| &g[(i * (l + 1) + k) * l..(i * (l + 1) + k + 1) * l];
+            for (p, &i) in live.iter().enumerate() {
+                let row = |k: usize| &g[(p * (l + 1) + k) * l..(p * (l + 1) + k + 1) * l];
                 let g0 = nalgebra::DVector::from_row_slice(row(0));
                 let mut h = nalgebra::DMatrix::from_fn(l, l, |r, c| {
                     (row(c + 1)[r] - g0[r]) / config.epsilon
@@ -249,25 +253,25 @@ impl SelfLoss<'_> {
             let mut alpha = vec![1.0f32; b];
             let mut pending: Vec<bool> = (0..b).map(|i| slope[i] < 0.0).collect();
             for _ in 0..12 {
-                if !pending.iter().any(|&p| p) {
+                let trying: Vec<usize> = (0..b).filter(|&i| pending[i]).collect();
+                if trying.is_empty() {
                     break;
                 }
-                let trial: Vec<Vec<f32>> = (0..b)
-                    .map(|i| {
+                let trial: Vec<Vec<f32>> = trying
+                    .iter()
+                    .map(|&i| {
                         z[i].iter()
                             .zip(&step[i])
                             .map(|(a, d)| a + alpha[i] * d)
                             .collect()
                     })
                     .collect();
-                let at = self.values(batch, &trial);
-                for i in 0..b {
-                    if !pending[i] {
-                        continue;
-                    }
-                    if at[i] <= value[i] + 1e-4 * alpha[i] as f64 * slope[i] {
-                        z[i] = trial[i].clone();
-                        value[i] = at[i];
+                let steps: Vec<&Sample> = trying.iter().map(|&i| batch[i]).collect();
+                let at = self.values(&steps, &trial);
+                for ((&i, at), trial) in trying.iter().zip(at).zip(trial) {
+                    if at <= value[i] + 1e-4 * alpha[i] as f64 * slope[i] {
+                        z[i] = trial;
+                        value[i] = at;
                         pending[i] = false;
                     } else {
                         alpha[i] *= 0.5;
@@ -285,6 +289,7 @@ impl SelfLoss<'_> {
         }
         Solved {
             mean_potential: value.iter().sum::<f64>() / b.max(1) as f64,
+            mean_potential_at_start: at_start,
             unconverged: converged.iter().filter(|&&c| !c).count(),
             latents: z,
         }

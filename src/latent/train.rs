@@ -855,10 +855,8 @@ fn solve_samples(
             .map(|s| (0..l).map(|k| 2.0 * s.input[k] - s.input[l + k]).collect())
             .collect();
         let refs: Vec<&Sample> = chunk.iter().collect();
-        let rows: Vec<&[f32]> = guess.iter().map(|g| g.as_slice()).collect();
-        let at_guess = loss.potential(&refs, rows_tensor(&rows, &loss.z_mean.device()));
-        before += at_guess.sum().into_scalar::<f32>() as f64;
         let solved = loss.solve(&refs, &guess, solve);
+        before += solved.mean_potential_at_start * chunk.len() as f64;
         after += solved.mean_potential * chunk.len() as f64;
         unconverged += solved.unconverged;
         for (s, z) in chunk.iter_mut().zip(solved.latents) {
