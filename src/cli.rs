@@ -476,6 +476,10 @@ pub enum LatentCommand {
         /// Overwrite an earlier rollout in DIR.
         #[arg(long)]
         force: bool,
+        /// Simulate a trained spring surrogate (a run directory or an exported
+        /// surrogate.json) instead of the config's FEM cloth; its grid replaces `[cloth]`.
+        #[arg(long, value_name = "RUN")]
+        from: Option<PathBuf>,
         /// Override config values, `section.key=value` (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -484,7 +488,7 @@ pub enum LatentCommand {
     /// `--set integrator.loss=supervised` for the baseline). Simulates the reference first
     /// unless --data names one.
     #[command(
-        after_help = "Example:\n  springtime latent train configs/latent_cloth.toml --out runs/latent_cloth"
+        after_help = "Examples:\n  springtime latent train configs/latent_cloth.toml --out runs/latent_cloth\n  springtime latent train configs/latent_distill.toml --from runs/quickstart --out runs/latent_quickstart"
     )]
     Train {
         /// The job's TOML (`configs/latent_cloth.toml`).
@@ -498,6 +502,11 @@ pub enum LatentCommand {
         /// Reuse a finished run's reference and autoencoder; train only the integrator.
         #[arg(long, value_name = "RUN")]
         autoencoder_from: Option<PathBuf>,
+        /// Distill a trained spring surrogate (a run directory or an exported surrogate.json):
+        /// its own rollouts are the reference and its springs the potential; its grid replaces
+        /// `[cloth]`.
+        #[arg(long, value_name = "RUN")]
+        from: Option<PathBuf>,
         /// Overwrite a finished run in DIR.
         #[arg(long)]
         force: bool,
@@ -868,10 +877,12 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             config,
             out,
             force,
+            from,
             set,
         } => {
-            let cfg = LatentConfig::load(&config, &set)?;
-            let (_, stats) = train::generate_reference(&cfg, &out, force, progress)?;
+            let mut cfg = LatentConfig::load(&config, &set)?;
+            let full = crate::latent::full::FullSpace::new(&mut cfg, from.as_deref())?;
+            let (_, stats) = train::generate_reference(&cfg, &full, &out, force, progress)?;
             println!(
                 "{} frames, {:.2} Newton iterations per step (at most {}), {:.1} ms per step",
                 stats.frames,
@@ -886,6 +897,7 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             out,
             data,
             autoencoder_from,
+            from,
             force,
             set,
         } => {
@@ -895,6 +907,7 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
                 data,
                 force,
                 autoencoder_from,
+                from,
             };
             let meta = train::train(&cfg, &options, progress)?;
             println!(

@@ -7,12 +7,16 @@ mod common;
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::{SeedableRng, rngs::StdRng};
 use springtime::cloth::triangles::V3;
+use springtime::cloth::{GridSpec, Topology};
+use springtime::export::SurrogateJson;
 use springtime::latent::energy::Potential;
 use springtime::latent::eval::{LatentModel, evaluate};
 use springtime::latent::scenario::{ClothConfig, ScenarioConfig, ScenarioKind, Scene, generate};
 use springtime::latent::subspace::SolveConfig;
+use springtime::latent::surrogate::SpringSheet;
 use springtime::latent::train::{TrainOptions, perturb, train};
 use springtime::latent::{LatentConfig, integrator::LossKind};
+use springtime::model::springs::spring_forces_reference;
 use springtime::progress::Progress;
 use springtime::source::implicit::{ImplicitEuler, NewtonConfig};
 
@@ -102,7 +106,7 @@ fn burn_incremental_potential_equals_the_host_step_objective() {
     // Targets where the pinned vertices are: the soft boundary term is zero.
     let targets: Vec<V3> = pinned.iter().map(|&i| x[i]).collect();
     let burn = potential
-        .incremental(t(&x, n), t(&x_tilde, n), t(&targets, 2))
+        .incremental(t(&x, n), t(&x, n), t(&x_tilde, n), t(&targets, 2))
         .into_scalar::<f32>() as f64;
     let host = stepper.potential(&x, &x_tilde);
     assert!(
@@ -116,7 +120,7 @@ fn burn_incremental_potential_equals_the_host_step_objective() {
     };
     let p0 = Potential::new(&still.fem(), dt, &pinned, 1e5, &device).unwrap();
     let phi = p0
-        .incremental(t(&x, n), t(&x, n), t(&targets, 2))
+        .incremental(t(&x, n), t(&x, n), t(&x, n), t(&targets, 2))
         .into_scalar::<f32>() as f64;
     let e = still.fem().energy(&x);
     assert!((phi - e).abs() <= 1e-4 * e, "Φ(x̃) {phi} vs E {e}");
@@ -301,6 +305,7 @@ fn train_in(
             data: None,
             force: false,
             autoencoder_from: None,
+            from: None,
         },
         &Progress::quiet(),
     )
@@ -579,4 +584,239 @@ train_frames = 30
         !short.status.success() && err.contains("pca_modes") && err.contains("train_frames"),
         "{err}"
     );
+}
+
+/// A small spring surrogate (4 × 5 grid over 0.3 m × 0.4 m, springs of every family with
+/// varied `k` and `b`) as an exported `surrogate.json` would hold it.
+fn small_surrogate() -> SurrogateJson {
+    let topo = Topology::grid(
+        &GridSpec {
+            nx: 4,
+            ny: 5,
+            shear_main: true,
+            shear_anti: true,
+            bending_stride: 2,
+        },
+        0.3,
+        0.4,
+    );
+    let s = topo.num_springs();
+    SurrogateJson {
+        format: springtime::export::FORMAT.into(),
+        units: "SI".into(),
+        grid: [topo.nx, topo.ny],
+        width: topo.width,
+        height: topo.height,
+        masses: vec![0.01; topo.num_particles()],
+        rest_positions: topo.rest_positions(),
+        springs: topo.springs.clone(),
+        family: topo.family.clone(),
+        rest_length: topo.rest_length.clone(),
+        k: (0..s).map(|i| 15.0 + (i % 7) as f32 * 3.0).collect(),
+        b: (0..s).map(|i| 0.02 + (i % 5) as f32 * 0.01).collect(),
+        pinned: vec![],
+        rayleigh: 0.05,
+        gravity: [0.0, 0.0, -9.81],
+        dt: Some(1e-3),
+    }
+}
+
+#[test]
+fn the_spring_potential_differentiates_to_the_surrogates_forces() {
+    let sheet = SpringSheet {
+        surrogate: small_surrogate(),
+        source: "test".into(),
+    };
+    let topo = sheet.topology();
+    let device = Device::flex();
+    let ad = device.clone().autodiff();
+    let dt = 1.0 / 30.0;
+    let potential = Potential::springs(&sheet, dt, &[0, 3], 1e5, &ad);
+    let n = topo.num_particles();
+    let x: Vec<V3> = topo
+        .rest_positions()
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let s = (i as f64 * 0.9).sin();
+            [
+                1.05 * p[0] + 0.01 * s,
+                0.97 * p[1],
+                0.03 * s + 0.05 * p[0] * p[1],
+            ]
+        })
+        .collect();
+    let x_prev: Vec<V3> = x
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            [
+                p[0] - 0.004 * (i as f64).cos(),
+                p[1] + 0.003,
+                p[2] - 0.002 * (i % 3) as f64,
+            ]
+        })
+        .collect();
+    let t = |v: &[V3], dev: &Device| {
+        let flat: Vec<f32> = v.iter().flat_map(|p| p.map(|c| c as f32)).collect();
+        Tensor::<3>::from_data(TensorData::new(flat, [1, n, 3]), dev)
+    };
+    let grad_of = |which: &dyn Fn(Tensor<3>) -> Tensor<1>| -> Vec<f32> {
+        let xt = t(&x, &ad).require_grad();
+        let e = which(xt.clone()).sum();
+        xt.grad(&e.backward())
+            .unwrap()
+            .into_data()
+            .try_into_vec_as::<f32>()
+            .unwrap()
+    };
+    let net = sheet.net(&device);
+    let zeros = Tensor::<1>::zeros([topo.num_springs()], &device);
+    let host = |f: Tensor<3>| f.into_data().try_into_vec_as::<f32>().unwrap();
+    // −∂E/∂x is the springs' elastic force (Eq. 4 with b = 0) at x.
+    let elastic = grad_of(&|x| potential.elastic(x));
+    let f_elastic = host(spring_forces_reference(
+        &net.graph,
+        t(&x, &device),
+        t(&x, &device).zeros_like(),
+        net.k.val(),
+        zeros.clone(),
+    ));
+    // −∂D/∂x is the dashpots' force at x_prev with the step's velocity (x − x_prev)/h, plus
+    // Rayleigh's −c v.
+    let v: Vec<V3> = x
+        .iter()
+        .zip(&x_prev)
+        .map(|(a, b)| [0, 1, 2].map(|k| (a[k] - b[k]) / dt))
+        .collect();
+    let xp = t(&x_prev, &ad);
+    let damping = grad_of(&|x| potential.dissipation(x, xp.clone()));
+    let f_damping: Vec<f32> = host(spring_forces_reference(
+        &net.graph,
+        t(&x_prev, &device),
+        t(&v, &device),
+        zeros,
+        net.b.val(),
+    ))
+    .iter()
+    .zip(v.iter().flatten())
+    .map(|(f, v)| f - 0.05 * *v as f32)
+    .collect();
+    for (name, grad, force) in [
+        ("elastic", elastic, f_elastic),
+        ("damping", damping, f_damping),
+    ] {
+        let scale = force.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 1e-3, "{name}: the test state exerts no force");
+        for (i, (g, f)) in grad.iter().zip(&force).enumerate() {
+            assert!(
+                (g + f).abs() <= 1e-3 * scale,
+                "{name} ∂/∂x[{i}]: {g} vs −force {f} (scale {scale})"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_spring_surrogate_distils_into_a_latent_model_from_its_surrogate_json() {
+    let dir = common::temp_dir("latent-distill");
+    let json = dir.join("surrogate.json");
+    std::fs::write(&json, small_surrogate().to_text().unwrap()).unwrap();
+    let config = dir.join("distill.toml");
+    std::fs::write(
+        &config,
+        r#"
+name = "distill"
+[scenario]
+frames = 40
+amplitude = 0.05
+[autoencoder]
+latent = 2
+pca_modes = 6
+hidden = [16, 16]
+epochs = 50
+batch = 30
+[integrator]
+hidden = [16]
+epochs = 100
+batch = 28
+train_frames = 30
+rounds = 1
+noisy_copies = 1
+"#,
+    )
+    .unwrap();
+    let run = dir.join("run");
+    let (run_s, cfg_s, json_s) = (
+        run.to_str().unwrap(),
+        config.to_str().unwrap(),
+        json.to_str().unwrap(),
+    );
+    common::ok(&common::springtime(
+        &["latent", "train", cfg_s, "--from", json_s, "--out", run_s],
+        &dir,
+    ));
+    // The run keeps the surrogate and takes its grid for the sheet.
+    assert!(run.join("surrogate.json").exists());
+    let saved = LatentConfig::load(&run.join("config.toml"), &[]).unwrap();
+    assert_eq!((saved.cloth.nx, saved.cloth.ny), (4, 5));
+    assert_eq!((saved.cloth.width, saved.cloth.height), (0.3, 0.4));
+    // The reference is the surrogate's own motion: simulated again with its stepper from the
+    // same start, frame 12 is reproduced, and the pinned corners follow their path.
+    let model = LatentModel::open(&run).unwrap();
+    let r = &model.reference;
+    let sheet = SpringSheet::open(&run.join("surrogate.json")).unwrap();
+    let scene = Scene::new(&saved.cloth, &saved.scenario);
+    assert_eq!(r.pinned, scene.pinned);
+    let still = vec![[0.0; 3]; r.frames[0].len()];
+    let again = sheet
+        .stepper(r.dt)
+        .unwrap()
+        .roll(
+            (&r.frames[0], &still),
+            &r.pinned,
+            &|f| scene.targets(f),
+            12,
+            None,
+        )
+        .unwrap();
+    for (a, b) in again[11].iter().zip(&r.frames[12]) {
+        for k in 0..3 {
+            assert!((a[k] - b[k]).abs() < 1e-5, "{a:?} vs {b:?}");
+        }
+    }
+    let moved = (0..3)
+        .map(|k| (r.frames[12][5][k] - r.frames[0][5][k]).abs())
+        .sum::<f64>();
+    assert!(moved > 1e-3, "the free vertex 5 did not move: {moved}");
+    // The spring potential drives the solved steps: their minimum lies no higher than the
+    // encoded reference frame's.
+    let step = model.solve_step(33, &SolveConfig::default()).unwrap();
+    assert!(
+        step.potential <= step.potential_at_reference + 1e-5 * step.potential.abs().max(1.0),
+        "{step:?}"
+    );
+    common::ok(&common::springtime(&["latent", "eval", run_s], &dir));
+    let out = common::ok(&common::springtime(
+        &["latent", "bench", run_s, "--full-frames", "3"],
+        &dir,
+    ));
+    let stdout = out.lines().rev().find(|l| l.starts_with('{')).unwrap();
+    let bench: serde_json::Value = serde_json::from_str(stdout).unwrap();
+    assert!(bench["full_us_per_frame"].as_f64().unwrap() > 0.0);
+    assert_eq!(
+        bench["full_newton_iterations"], 0.0,
+        "the surrogate steps explicitly"
+    );
+    // A surrogate file whose arrays disagree is refused, naming the file and the key.
+    let mut bad = small_surrogate();
+    bad.k.pop();
+    std::fs::write(&json, bad.to_text().unwrap()).unwrap();
+    let refused = common::springtime(
+        &[
+            "latent", "train", cfg_s, "--from", json_s, "--out", run_s, "--force",
+        ],
+        &dir,
+    );
+    common::fails(&refused, &["surrogate.json", "`k`"]);
 }

@@ -23,10 +23,10 @@ use std::io::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
-use crate::cloth::Resampler;
+use crate::cloth::{Resampler, SpringFamily};
 use crate::data::npz::Array;
 use crate::data::{Rollout, Track};
 use crate::eval;
@@ -173,8 +173,13 @@ pub fn write_ply(
     })
 }
 
-/// `surrogate.json`: everything needed to simulate the learned cloth elsewhere.
-#[derive(Debug, Clone, Serialize)]
+/// The `format` tag of [`SurrogateJson`].
+pub const FORMAT: &str = "springtime-surrogate/1";
+
+/// `surrogate.json`: everything needed to simulate the learned cloth elsewhere (and what
+/// `springtime latent train --from` distills; [`SurrogateJson::read`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct SurrogateJson {
     /// Always `springtime-surrogate/1`.
     pub format: String,
@@ -193,7 +198,7 @@ pub struct SurrogateJson {
     /// Spring endpoints (particle indices).
     pub springs: Vec<[usize; 2]>,
     /// `structural`, `shear` or `bending` per spring.
-    pub family: Vec<String>,
+    pub family: Vec<SpringFamily>,
     /// Rest length per spring, m.
     pub rest_length: Vec<f64>,
     /// Stiffness per spring, N/m (the model's single precision).
@@ -211,6 +216,76 @@ pub struct SurrogateJson {
 }
 
 impl SurrogateJson {
+    /// The spring network `model` of `run`, with the particles `pinned` and integration step
+    /// `dt`.
+    pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], dt: Option<f64>) -> Self {
+        let (topo, config) = (&run.topology, &run.config);
+        Self {
+            format: FORMAT.into(),
+            units: "SI: m, kg, s, N/m, N·s/m".into(),
+            grid: [topo.nx, topo.ny],
+            width: topo.width,
+            height: topo.height,
+            masses: vec![run.particle_mass(); topo.num_particles()],
+            rest_positions: topo.rest_positions(),
+            springs: topo.springs.clone(),
+            family: topo.family.clone(),
+            rest_length: topo.rest_length.clone(),
+            k: model.k_values().iter().map(|&x| x as f32).collect(),
+            b: model.b_values().iter().map(|&x| x as f32).collect(),
+            pinned: pinned.to_vec(),
+            rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
+            gravity: config.sim.gravity.or(crate::sim::GRAVITY),
+            dt,
+        }
+    }
+
+    /// Reads and checks a `surrogate.json`; errors name the file and the key.
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let json: Self = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not a springtime surrogate.json", path.display()))?;
+        json.validate()
+            .with_context(|| format!("{} is not a valid surrogate", path.display()))?;
+        Ok(json)
+    }
+
+    /// Checks the format tag and that the per-particle and per-spring arrays agree.
+    pub fn validate(&self) -> Result<()> {
+        if self.format != FORMAT {
+            bail!("key `format` is {:?}, expected {FORMAT:?}", self.format);
+        }
+        let [nx, ny] = self.grid;
+        let p = nx * ny;
+        for (key, len) in [
+            ("masses", self.masses.len()),
+            ("rest_positions", self.rest_positions.len()),
+        ] {
+            if len != p {
+                bail!("key `{key}` has {len} entries, the grid {nx} × {ny} has {p} particles");
+            }
+        }
+        let s = self.springs.len();
+        for (key, len) in [
+            ("family", self.family.len()),
+            ("rest_length", self.rest_length.len()),
+            ("k", self.k.len()),
+            ("b", self.b.len()),
+        ] {
+            if len != s {
+                bail!("key `{key}` has {len} entries, key `springs` has {s}");
+            }
+        }
+        if let Some(&[a, b]) = self.springs.iter().find(|&&[a, b]| a >= p || b >= p) {
+            bail!("key `springs` has a spring ({a}, {b}) past the {p} particles");
+        }
+        if let Some(i) = self.pinned.iter().find(|&&i| i >= p) {
+            bail!("key `pinned` has particle {i}, past the {p} particles");
+        }
+        Ok(())
+    }
+
     /// JSON text with one key per line and each array on its line (readable and compact, where
     /// pretty printing would put every number on a line of its own).
     pub fn to_text(&self) -> Result<String> {
@@ -674,30 +749,11 @@ impl<'a> Export<'a> {
 
     /// `surrogate.json` and `surrogate.npz`: the springs, masses, rest state and constants.
     fn write_surrogate(&self, pinned: &[usize], dt: Option<f64>) -> Result<()> {
-        let (topo, config) = (&self.run.topology, &self.run.config);
-        let mass = self.run.particle_mass();
+        let topo = &self.run.topology;
+        let json = SurrogateJson::of(self.run, self.model, pinned, dt);
+        let (mass, rayleigh, gravity) = (json.masses[0], json.rayleigh, json.gravity);
         let (k, b) = (self.model.k_values(), self.model.b_values());
-        let rayleigh = config.sim.rayleigh.or(crate::sim::RAYLEIGH);
-        let gravity = config.sim.gravity.or(crate::sim::GRAVITY);
         let p = topo.num_particles();
-        let json = SurrogateJson {
-            format: "springtime-surrogate/1".into(),
-            units: "SI: m, kg, s, N/m, N·s/m".into(),
-            grid: [topo.nx, topo.ny],
-            width: topo.width,
-            height: topo.height,
-            masses: vec![mass; p],
-            rest_positions: topo.rest_positions(),
-            springs: topo.springs.clone(),
-            family: topo.family.iter().map(|f| f.name().to_string()).collect(),
-            rest_length: topo.rest_length.clone(),
-            k: k.iter().map(|&x| x as f32).collect(),
-            b: b.iter().map(|&x| x as f32).collect(),
-            pinned: pinned.to_vec(),
-            rayleigh,
-            gravity,
-            dt,
-        };
         crate::io::write_text(&self.paths.json, &json.to_text()?)?;
         let mut npz = crate::train::run::springs_npz(topo, &k, &b, mass);
         npz.insert("mass", Array::f64(&[p], &vec![mass; p]));
@@ -758,7 +814,7 @@ mod tests {
             masses: vec![0.1; 4],
             rest_positions: vec![[0.0, 0.0, 0.0]; 4],
             springs: vec![[0, 1], [2, 3]],
-            family: vec!["structural".into(); 2],
+            family: vec![SpringFamily::Structural; 2],
             rest_length: vec![1.0, 1.0],
             k: vec![10.0, 20.0],
             b: vec![1.0, 2.0],

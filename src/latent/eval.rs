@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use super::LatentConfig;
 use super::autoencoder::Autoencoder;
-use super::energy::Potential;
+use super::full::FullSpace;
 use super::infer::PlainModel;
 use super::integrator::{Integrator, step_input};
 use super::subspace::{Sample, SolveConfig, Subspace};
@@ -26,7 +26,6 @@ use super::train::{
 };
 use crate::cloth::triangles::V3;
 use crate::data::Rollout;
-use crate::source::implicit::ImplicitEuler;
 
 /// A finished latent run, loaded.
 pub struct LatentModel {
@@ -176,6 +175,11 @@ impl LatentModel {
         }
     }
 
+    /// The full-space cloth the run compresses (its FEM sheet or distilled surrogate).
+    pub fn full_space(&self) -> Result<FullSpace> {
+        FullSpace::of_run(&self.config, &self.run)
+    }
+
     /// The decoder and the potential on an autodiff device, for solved steps.
     fn subspace(&self) -> Result<Subspace> {
         let ad = self.device.clone().autodiff();
@@ -184,7 +188,7 @@ impl LatentModel {
             .freeze();
         let r = &self.reference;
         let w_bc = self.config.integrator.w_bc;
-        let potential = Potential::new(&self.config.cloth.fem(), r.dt, &r.pinned, w_bc, &ad)?;
+        let potential = self.full_space()?.potential(r.dt, &r.pinned, w_bc, &ad)?;
         let row =
             |v: &[f32]| Tensor::<2>::from_data(TensorData::new(v.to_vec(), [1, v.len()]), &ad);
         Ok(Subspace {
@@ -549,9 +553,10 @@ pub struct BenchReport {
     pub decoder_us: f64,
     /// The same frame through the Burn networks on the CPU (batch 1), µs.
     pub burn_us_per_frame: f64,
-    /// One full-space implicit-Euler Newton step of the reference simulator, µs.
+    /// One full-space frame of the reference simulator, µs: an implicit-Euler Newton step of
+    /// the FEM cloth, or the explicit substeps of one frame of a distilled surrogate.
     pub full_us_per_frame: f64,
-    /// Newton iterations per full-space step, mean.
+    /// Newton iterations per full-space step, mean (0 for a distilled surrogate).
     pub full_newton_iterations: f64,
     /// `full_us_per_frame / latent_us_per_frame`.
     pub speedup: f64,
@@ -617,16 +622,9 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
     let burn_us = clock.elapsed().as_secs_f64() * 1e6 / burn_frames as f64;
     std::hint::black_box(sink);
 
-    let stepper = ImplicitEuler::new(model.config.cloth.fem(), r.dt, model.config.solver)?;
     let full_frames = full_frames.min(r.frames.len() - start).max(1);
-    let mut iterations = 0;
-    let clock = Instant::now();
-    for t in start..start + full_frames {
-        let (_, report) =
-            stepper.step(&r.frames[t - 1], &r.frames[t - 2], &r.pinned, &r.targets(t))?;
-        iterations += report.iterations;
-    }
-    let full_us = clock.elapsed().as_secs_f64() * 1e6 / full_frames as f64;
+    let full = model.full_space()?.time(r, start, full_frames)?;
+    let full_us = full.us_per_frame;
     let owned = model.subspace()?;
     let clock = Instant::now();
     model.roll_solved(
@@ -642,7 +640,7 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
         decoder_us: latent_us - integrator_us,
         burn_us_per_frame: burn_us,
         full_us_per_frame: full_us,
-        full_newton_iterations: iterations as f64 / full_frames as f64,
+        full_newton_iterations: full.newton_iterations,
         speedup: full_us / latent_us,
         latent_frames: inputs.len(),
         full_frames,

@@ -11,6 +11,9 @@
 //! - [`integrator`]: the latent step `z_t = I(z_{t−1}, z_{t−2}, p_t, p_{t−1}, p_{t−2})` (Eq. 3);
 //! - [`energy`]: the incremental potential of the implicit step (Eq. 4) as Burn tensor ops,
 //!   the self-supervised loss through the frozen decoder;
+//! - [`surrogate`] (beyond the paper): a trained springtime spring surrogate as the full-space
+//!   cloth instead of the FEM sheet — distillation, `latent train --from runs/<name>`;
+//!   [`full`] is either of the two;
 //! - [`train`]: the two stages, with noise (Eq. 5), balancing (Eq. 6) and the supervised
 //!   latent-L2 baseline;
 //! - [`infer`]: the trained networks as plain Rust (BatchNorm folded), the real-time path;
@@ -19,10 +22,12 @@
 pub mod autoencoder;
 pub mod energy;
 pub mod eval;
+pub mod full;
 pub mod infer;
 pub mod integrator;
 pub mod scenario;
 pub mod subspace;
+pub mod surrogate;
 pub mod train;
 
 use std::path::Path;

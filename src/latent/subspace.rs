@@ -16,11 +16,13 @@ use super::autoencoder::Decoder;
 use super::energy::Potential;
 use super::train::Reference;
 
-/// One step's host data: the integrator's input, the potential's `x̃`, the step's centre and
+/// One step's host data: the integrator's input, the potential's `x̃` and previous state, the
+/// step's centre and
 /// pinned targets, its balancing weight, the encoded reference latent and (for
 /// `loss = "solved"`) the step's latent minimiser, both standardised.
 pub(crate) struct Sample {
     pub input: Vec<f32>,
+    pub x_prev: Vec<f32>,
     pub x_tilde: Vec<f32>,
     pub centre: [f32; 3],
     pub targets: Vec<f32>,
@@ -42,6 +44,7 @@ impl Sample {
         let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
         Self {
             input: Vec::new(),
+            x_prev: x1.to_vec(),
             x_tilde: x1.iter().zip(x2).map(|(a, b)| 2.0 * a - b).collect(),
             centre: reference.centre(t).map(|v| v as f32),
             targets: reference
@@ -145,9 +148,10 @@ impl SelfLoss<'_> {
             let v: Vec<f32> = batch.iter().flat_map(|s| f(s).iter().copied()).collect();
             Tensor::<3>::from_data(TensorData::new(v, [b, k, 3]), &device)
         };
+        let x_prev = cat(&|s| &s.x_prev, n);
         let x_tilde = cat(&|s| &s.x_tilde, n);
         let targets = cat(&|s| &s.targets, self.pinned);
-        let phi = self.potential.incremental(x, x_tilde, targets);
+        let phi = self.potential.incremental(x, x_prev, x_tilde, targets);
         if self.balance {
             let w: Vec<f32> = batch.iter().map(|s| s.weight).collect();
             phi * Tensor::<1>::from_data(TensorData::new(w, [b]), &device)

@@ -21,8 +21,9 @@ use serde::{Deserialize, Serialize};
 use super::LatentConfig;
 use super::autoencoder::{Autoencoder, Decoder, Pca};
 use super::energy::Potential;
+use super::full::FullSpace;
 use super::integrator::{Integrator, LossKind, boundary_features, mean, step_input};
-use super::scenario::{GenerateStats, Scene, generate};
+use super::scenario::{GenerateStats, Scene};
 use super::subspace::{Sample, SelfLoss, SolveConfig};
 use crate::cloth::triangles::V3;
 use crate::data::Rollout;
@@ -65,6 +66,10 @@ impl LatentRun {
     /// The loss per epoch.
     pub fn log(&self) -> PathBuf {
         self.dir.join("train_log.csv")
+    }
+    /// The distilled spring surrogate (runs trained with `--from` only).
+    pub fn surrogate(&self) -> PathBuf {
+        self.dir.join("surrogate.json")
     }
     /// What a finished run needs besides its weights; written last.
     pub fn meta(&self) -> PathBuf {
@@ -243,12 +248,16 @@ pub struct TrainOptions {
     /// A finished run whose reference and autoencoder to reuse (the integrator ablations
     /// share one autoencoder, as the paper's do); its config's cloth and autoencoder must match.
     pub autoencoder_from: Option<PathBuf>,
+    /// A trained spring surrogate to distill (a run directory or a `surrogate.json`) instead of
+    /// the config's FEM cloth.
+    pub from: Option<PathBuf>,
 }
 
-/// `latent generate`: simulates the config's scenario into `out/rollout.npz` and
+/// `latent generate`: simulates the config's scenario on `full` into `out/rollout.npz` and
 /// `out/generate.json`.
 pub fn generate_reference(
     config: &LatentConfig,
+    full: &FullSpace,
     out: &Path,
     force: bool,
     progress: &Progress,
@@ -257,7 +266,10 @@ pub fn generate_reference(
     crate::io::refuse_overwrite(&run.rollout(), force)?;
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let scene = Scene::new(&config.cloth, &config.scenario);
-    let (mut rollout, stats) = generate(&config.cloth, &scene, config.solver, progress)?;
+    let (mut rollout, stats) = full.generate(&scene, progress)?;
+    if let FullSpace::Springs(sheet) = full {
+        sheet.write(&run.surrogate())?;
+    }
     rollout.path = run.rollout();
     rollout.save(&run.rollout())?;
     crate::io::write_json(&run.generate(), &stats)?;
@@ -277,6 +289,17 @@ pub fn train(
             run.dir.display()
         );
     }
+    let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
+    // The surrogate to distill: `--from`'s, or the reused run's.
+    let from = match (&options.from, &reused) {
+        (Some(f), _) => Some(f.clone()),
+        (None, Some(r)) => Some(r.surrogate()).filter(|p| p.exists()),
+        (None, None) => None,
+    };
+    let mut config = config.clone();
+    let full = FullSpace::new(&mut config, from.as_deref())?;
+    let config = &config;
+    // The inputs are valid: only now is an earlier run in the directory replaced.
     std::fs::create_dir_all(&run.dir)
         .with_context(|| format!("cannot create {}", run.dir.display()))?;
     for stale in [run.meta(), run.log()] {
@@ -285,8 +308,16 @@ pub fn train(
                 .with_context(|| format!("cannot remove {}", stale.display()))?;
         }
     }
+    match &full {
+        FullSpace::Springs(sheet) => sheet.write(&run.surrogate())?,
+        FullSpace::Fem(_) => {
+            if run.surrogate().exists() {
+                std::fs::remove_file(run.surrogate())
+                    .with_context(|| format!("cannot remove {}", run.surrogate().display()))?;
+            }
+        }
+    }
     crate::io::write_text(&run.config(), &toml::to_string(config)?)?;
-    let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
     let data = match (&options.data, &reused) {
         (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
         (None, Some(r)) => Some(r.rollout()),
@@ -295,8 +326,11 @@ pub fn train(
     let (rollout, generated) = match &data {
         Some(path) => (Rollout::load(path)?, None),
         None => {
-            progress.note("simulating the full-space reference (implicit Euler, Newton)");
-            let (r, s) = generate_reference(config, &run.dir, true, progress)?;
+            progress.note(&format!(
+                "simulating the full-space reference: {}",
+                full.describe()
+            ));
+            let (r, s) = generate_reference(config, &full, &run.dir, true, progress)?;
             (r, Some(s))
         }
     };
@@ -367,8 +401,9 @@ pub fn train(
     ));
 
     let scales = Scales::new(&latents[..t], config.cloth.width.max(config.cloth.height));
+    let potential = full.potential(reference.dt, &reference.pinned, config.integrator.w_bc, &ad)?;
     let (integrator, int_stage) = train_integrator(
-        config, &reference, &ae, &latents, &scales, &ad, &mut log, progress,
+        config, &reference, &potential, &ae, &latents, &scales, &ad, &mut log, progress,
     )?;
     crate::train::run::RunDir::save_module(&integrator, &run.integrator())?;
     let meta = LatentMeta {
@@ -615,6 +650,7 @@ pub(crate) fn absolute(relative: &[f32], centre: V3) -> Vec<f32> {
 fn train_integrator(
     config: &LatentConfig,
     reference: &Reference,
+    potential: &Potential,
     ae: &Autoencoder,
     latents: &[Vec<f32>],
     scales: &Scales,
@@ -648,19 +684,12 @@ fn train_integrator(
             ..Sample::at(reference, t, &abs[t - 1], &abs[t - 2], c.velocity_floor)
         })
         .collect();
-    let potential = Potential::new(
-        &config.cloth.fem(),
-        reference.dt,
-        &reference.pinned,
-        c.w_bc,
-        ad,
-    )?;
     let clean_count = samples.len();
     let z_mean = Tensor::<2>::from_data(TensorData::new(scales.mean.clone(), [1, l]), ad);
     let z_std = Tensor::<2>::from_data(TensorData::new(scales.std.clone(), [1, l]), ad);
     let loss_of = SelfLoss {
         decoder: &frozen,
-        potential: &potential,
+        potential,
         z_mean: z_mean.clone(),
         z_std: z_std.clone(),
         balance: c.balance,
