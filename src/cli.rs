@@ -1031,8 +1031,9 @@ fn xpbd_estimate(job: &XpbdJob, progress: &Progress) -> Result<()> {
         }
     }
     println!(
-        "{} Levenberg–Marquardt steps, objective {:.3e} → {:.3e}, {:.1} s",
+        "{} {} steps, objective {:.3e} → {:.3e}, {:.1} s",
         r.iterations,
+        r.optimizer.describe(),
         r.objective.first().copied().unwrap_or(f64::NAN),
         r.objective.last().copied().unwrap_or(f64::NAN),
         r.wall_seconds

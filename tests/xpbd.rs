@@ -114,6 +114,62 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
 }
 
 #[test]
+fn the_adam_fit_through_the_burn_equilibrium_op_descends_and_bad_combinations_are_named() {
+    let dir = common::temp_dir("xpbd-adam");
+    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
+    run_ok(
+        &dir,
+        &[
+            "xpbd",
+            "estimate",
+            "small.toml",
+            "--out",
+            "est",
+            "--set",
+            "fit.optimizer=\"adam\"",
+            "--set",
+            "fit.adam_steps=30",
+            "--set",
+            "fit.adam_lr=0.05",
+        ],
+    );
+    let json = estimate_json(&dir);
+    assert_eq!(json["optimizer"], "adam");
+    assert_eq!(json["iterations"], 30);
+    // The objective after every step, and the final one: Adam descends through the op's
+    // adjoint gradients.
+    let objective: Vec<f64> = json["objective"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(objective.len(), 31);
+    assert!(
+        objective[30] < 0.2 * objective[0],
+        "objective {} → {}",
+        objective[0],
+        objective[30]
+    );
+    // Adam needs the FFT descriptor (its Burn form) and the joint schedule.
+    let bad = springtime(
+        &[
+            "xpbd",
+            "estimate",
+            "small.toml",
+            "--out",
+            "b",
+            "--set",
+            "fit.optimizer=\"adam\"",
+            "--set",
+            "fit.descriptor=\"positions\"",
+        ],
+        &dir,
+    );
+    common::fails(&bad, &["fit.optimizer", "fit.descriptor"]);
+}
+
+#[test]
 fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
     let dir = common::temp_dir("xpbd-bending-first");
     let cfg = SMALL.replace(

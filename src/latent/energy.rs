@@ -43,8 +43,8 @@ pub struct Potential {
 /// The elastic (and damping) terms of the full-space cloth.
 #[derive(Debug, Clone)]
 enum Elastic {
-    Fem(FemTerms),
-    Springs(SpringTerms),
+    Fem(Box<FemTerms>),
+    Springs(Box<SpringTerms>),
 }
 
 /// StVK triangles and hinges.
@@ -129,7 +129,7 @@ impl Potential {
             hinge_weight: row(hinges.iter().map(|(_, w)| *w as f32).collect(), device),
         };
         Ok(Self::with(
-            Elastic::Fem(terms),
+            Elastic::Fem(Box::new(terms)),
             cloth.masses(),
             cloth.gravity(),
             0.0,
@@ -159,7 +159,7 @@ impl Potential {
             b: row(s.b.clone(), device),
         };
         Self::with(
-            Elastic::Springs(terms),
+            Elastic::Springs(Box::new(terms)),
             &s.masses,
             s.gravity,
             s.rayleigh,

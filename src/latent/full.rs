@@ -25,7 +25,7 @@ pub enum FullSpace {
     /// The config's FEM sheet and Newton solver (the paper).
     Fem(Box<LatentConfig>),
     /// A spring surrogate (distillation).
-    Springs(SpringSheet),
+    Springs(Box<SpringSheet>),
 }
 
 /// The measured cost of full-space frames.
@@ -49,7 +49,7 @@ impl FullSpace {
                 config.validate().with_context(|| {
                     format!("the config does not fit the grid of {}", path.display())
                 })?;
-                Self::Springs(sheet)
+                Self::Springs(Box::new(sheet))
             }
             None => Self::Fem(Box::new(config.clone())),
         })
@@ -60,7 +60,7 @@ impl FullSpace {
     pub fn of_run(config: &LatentConfig, run: &LatentRun) -> Result<Self> {
         let path = run.surrogate();
         Ok(if path.exists() {
-            Self::Springs(SpringSheet::open(&path)?)
+            Self::Springs(Box::new(SpringSheet::open(&path)?))
         } else {
             Self::Fem(Box::new(config.clone()))
         })
@@ -102,8 +102,7 @@ impl FullSpace {
         let r = reference;
         let frames = frames.min(r.frames.len() - start).max(1);
         let mut iterations = 0;
-        let elapsed;
-        match self {
+        let elapsed = match self {
             Self::Fem(c) => {
                 let stepper = ImplicitEuler::new(c.cloth.fem(), r.dt, c.solver)?;
                 let clock = Instant::now();
@@ -116,7 +115,7 @@ impl FullSpace {
                     )?;
                     iterations += report.iterations;
                 }
-                elapsed = clock.elapsed();
+                clock.elapsed()
             }
             Self::Springs(s) => {
                 let stepper = s.stepper(r.dt)?;
@@ -131,9 +130,9 @@ impl FullSpace {
                     let targets = |f: usize| r.targets(t - 1 + f);
                     stepper.roll((x1, &v), &r.pinned, &targets, 1, None)?;
                 }
-                elapsed = clock.elapsed();
+                clock.elapsed()
             }
-        }
+        };
         Ok(FullTiming {
             us_per_frame: elapsed.as_secs_f64() * 1e6 / frames as f64,
             newton_iterations: iterations as f64 / frames as f64,

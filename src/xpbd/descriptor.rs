@@ -6,6 +6,7 @@
 //! Beside it, the paper's other three descriptors: the positions, the per-element energies and
 //! the per-element strains.
 
+use burn::tensor::{Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::cloth::XpbdCloth;
@@ -110,6 +111,45 @@ pub fn fft_descriptor(x: &[V3], nx: usize, ny: usize) -> Vec<f64> {
         }
     }
     out
+}
+
+/// [`fft_descriptor`] as Burn tensor ops (differentiable): positions `[nx·ny, 3]` → `[3(nx·ny − 1)]`,
+/// the DFT along rows and then columns as products with cosine and sine matrices (any grid size;
+/// a `√(· + 1e-24)` keeps the magnitude's gradient finite at an empty bin).
+pub fn fft_descriptor_tensor(x: Tensor<2>, nx: usize, ny: usize) -> Tensor<1> {
+    let device = x.device();
+    let [rows, _] = x.dims();
+    assert_eq!(rows, nx * ny, "positions must fill the {nx} × {ny} grid");
+    let twiddles = |n: usize, f: fn(f64) -> f64| {
+        let v: Vec<f32> = (0..n * n)
+            .map(|i| {
+                f(-2.0 * std::f64::consts::PI * ((i / n) * (i % n) % n) as f64 / n as f64) as f32
+            })
+            .collect();
+        Tensor::<2>::from_data(TensorData::new(v, [n, n]), &device)
+    };
+    // Symmetric: W[a][b] depends on a·b only.
+    let (cx, sx, cy, sy) = (
+        twiddles(nx, f64::cos),
+        twiddles(nx, f64::sin),
+        twiddles(ny, f64::cos),
+        twiddles(ny, f64::sin),
+    );
+    let norm = 1.0 / ((nx * ny) as f64).sqrt();
+    let parts: Vec<Tensor<1>> = (0..3)
+        .map(|c| {
+            let xc = x.clone().slice([0..rows, c..c + 1]).reshape([ny, nx]);
+            let (re, im) = (xc.clone().matmul(cx.clone()), xc.matmul(sx.clone()));
+            let f_re = cy.clone().matmul(re.clone()) - sy.clone().matmul(im.clone());
+            let f_im = sy.clone().matmul(re) + cy.clone().matmul(im);
+            let mag = (f_re.powi_scalar(2) + f_im.powi_scalar(2))
+                .add_scalar(1e-24)
+                .sqrt()
+                * norm;
+            mag.reshape([nx * ny]).narrow(0, 1, nx * ny - 1)
+        })
+        .collect();
+    Tensor::cat(parts, 0)
 }
 
 #[cfg(test)]

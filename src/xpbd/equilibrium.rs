@@ -190,6 +190,53 @@ pub fn sensitivity(
     Ok(Sensitivity { dx, reactions })
 }
 
+/// The gradient with respect to γ of a scalar `L(x, R)` of the equilibrium `x` of `load` and
+/// the reaction vectors `R_G` of the clamp `groups`, given `∂L/∂x` (`grad_x`, per vertex; its
+/// clamped rows are ignored) and `∂L/∂R_G` (`grad_r`, per group): the adjoint of the
+/// implicit-function theorem, one linear solve whatever the number of parameters.
+///
+/// With `w_f = ∂L/∂x_f + Σ_G Σ_{i∈G} H_{i f}ᵀ ∂L/∂R_G` and `λ = H_ff⁻¹ w_f` (`H` symmetric),
+/// `dL/dγ_k = −λᵀ ∇_f U_k + Σ_G Σ_{i∈G} ∂L/∂R_G · ∇_i U_k`.
+pub fn adjoint(
+    cloth: &XpbdCloth,
+    gamma: &Gamma,
+    load: &Load,
+    x: &[V3],
+    groups: &[Vec<usize>],
+    grad_x: &[V3],
+    grad_r: &[V3],
+) -> Result<[f64; 5]> {
+    let free = free_vertices(load);
+    let h = hessian_columns(cloth, gamma, x, &free);
+    let mut w = DVector::from_fn(3 * free.len(), |j, _| grad_x[free[j / 3]][j % 3]);
+    for (group, gr) in groups.iter().zip(grad_r) {
+        for &i in group {
+            for c in 0..3 {
+                w += h.row(3 * i + c).transpose() * gr[c];
+            }
+        }
+    }
+    let Some(lambda) = free_block(&h, &free).lu().solve(&w) else {
+        bail!("the equilibrium's Hessian is singular: its derivatives are undefined here");
+    };
+    let mut out = [0.0; 5];
+    let mut gk = vec![[0.0; 3]; x.len()];
+    for (k, o) in out.iter_mut().enumerate() {
+        let mut unit = [0.0; 5];
+        unit[k] = 1.0;
+        cloth.gradient(&Gamma::from_array(unit), x, &mut gk);
+        *o = -free
+            .iter()
+            .enumerate()
+            .map(|(j, &v)| (0..3).map(|c| lambda[3 * j + c] * gk[v][c]).sum::<f64>())
+            .sum::<f64>();
+        for (group, gr) in groups.iter().zip(grad_r) {
+            *o += group.iter().map(|&i| dot(*gr, gk[i])).sum::<f64>();
+        }
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -14,11 +14,15 @@ use anyhow::{Context, Result, bail};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
+use std::sync::Arc;
+
+use super::adam::{self, AdamSettings, AdamTarget};
 use super::cloth::{Solve, XpbdCloth};
 use super::descriptor::Descriptor;
 use super::equilibrium::{polish, sensitivity};
 use super::lm::{self, LeastSquares, Lm};
 use super::material::{Gamma, NAMES};
+use super::op::StaticProblem;
 use super::scenario::{Scenario, Setup};
 use crate::cloth::triangles::{V3, dot};
 use crate::data::npz::{Array, Npz};
@@ -120,6 +124,18 @@ pub enum Schedule {
     BendingFirst,
 }
 
+/// What minimises the objective.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Optimizer {
+    /// Levenberg–Marquardt with implicit-function Jacobians (the paper).
+    #[default]
+    Lm,
+    /// Adam on `ln γ` through Burn's autodiff and the equilibrium op's adjoint (ours; the FFT
+    /// descriptor and the joint schedule only).
+    Adam,
+}
+
 /// Where each of the fit's equilibria starts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -139,6 +155,12 @@ pub enum FitStart {
 pub struct FitConfig {
     /// Shape descriptor.
     pub descriptor: Descriptor,
+    /// Levenberg–Marquardt (`"lm"`, the paper) or Adam through Burn's autodiff (`"adam"`).
+    pub optimizer: Optimizer,
+    /// Adam's steps (`optimizer = "adam"`).
+    pub adam_steps: usize,
+    /// Adam's learning rate on `ln γ` (`optimizer = "adam"`).
+    pub adam_lr: f64,
     /// Levenberg–Marquardt's accepted steps at most (per pass).
     pub max_iterations: usize,
     /// Joint or bending-first.
@@ -170,10 +192,23 @@ pub struct FitConfig {
     pub seed: u64,
 }
 
+impl Optimizer {
+    /// Its name in messages.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Optimizer::Lm => "Levenberg–Marquardt",
+            Optimizer::Adam => "Adam",
+        }
+    }
+}
+
 impl Default for FitConfig {
     fn default() -> Self {
         Self {
             descriptor: Descriptor::Fft,
+            optimizer: Optimizer::Lm,
+            adam_steps: 300,
+            adam_lr: 0.02,
             max_iterations: 20,
             schedule: Schedule::Joint,
             rounds: 3,
@@ -297,6 +332,17 @@ impl XpbdConfig {
                 t.noise
             );
         }
+        if self.fit.optimizer == Optimizer::Adam {
+            if self.fit.descriptor != Descriptor::Fft || self.fit.schedule != Schedule::Joint {
+                bail!(
+                    "`fit.optimizer = \"adam\"` needs `fit.descriptor = \"fft\"` and \
+                     `fit.schedule = \"joint\"`"
+                );
+            }
+            if self.fit.adam_steps == 0 || !(self.fit.adam_lr > 0.0) {
+                bail!("`fit.adam_steps` and `fit.adam_lr` must be positive");
+            }
+        }
         if self.truth.is_none() && self.targets.dir.is_none() {
             bail!("give the targets' material `[truth]` or a folder of targets `targets.dir`");
         }
@@ -334,6 +380,8 @@ pub struct EstimateReport {
     pub final_objective: f64,
     /// The schedule.
     pub schedule: Schedule,
+    /// Levenberg–Marquardt or Adam.
+    pub optimizer: Optimizer,
     /// Every start's guess, fit and objective over every target.
     pub starts: Vec<StartFit>,
     /// The descriptor.
@@ -392,6 +440,29 @@ struct Target {
 }
 
 impl Target {
+    /// The target as the Adam fit reads it (the FFT descriptor, computed once).
+    fn adam(&self, cloth: &XpbdCloth, fit: &FitConfig, solve: Solve) -> AdamTarget {
+        AdamTarget {
+            problem: Arc::new(StaticProblem {
+                cloth: cloth.clone(),
+                load: self.setup.load.clone(),
+                groups: self.setup.groups.clone(),
+                start: self.branch.clone(),
+                solve: Solve {
+                    steps: fit.xpbd_steps,
+                    ..solve
+                },
+                polish_iterations: fit.polish_iterations,
+            }),
+            descriptor: self
+                .descriptor
+                .clone()
+                .expect("the FFT descriptor does not depend on γ"),
+            norm: self.norm,
+            reactions: self.reactions.clone(),
+        }
+    }
+
     /// A target of scenario `sc` at `x` (the fit starts there and its residuals are unscaled
     /// until `norm` is set).
     fn new(sc: &Scenario, setup: Setup, x: Vec<V3>, residual: f64, reactions: Vec<f64>) -> Self {
@@ -976,6 +1047,20 @@ pub fn estimate(
             })
             .collect();
         let fit = match cfg.fit.schedule {
+            Schedule::Joint if cfg.fit.optimizer == Optimizer::Adam => {
+                let adam_targets: Vec<AdamTarget> = targets
+                    .iter()
+                    .map(|t| t.adam(&cloth, &cfg.fit, solve))
+                    .collect();
+                let settings = AdamSettings {
+                    n: sw.n,
+                    force_weight: cfg.fit.force_weight,
+                    poisson_penalty: cfg.fit.poisson_penalty,
+                    steps: cfg.fit.adam_steps,
+                    lr: cfg.fit.adam_lr,
+                };
+                adam::fit(&adam_targets, &settings, &s0, &lower, &upper, progress)?
+            }
             Schedule::Joint => lm::minimize(&mut all, &s0, &lower, &upper, &lm)?,
             Schedule::BendingFirst => {
                 let (mut p, mut history, mut iterations) = (s0.clone(), Vec::new(), 0);
@@ -1059,6 +1144,7 @@ pub fn estimate(
         objective: fit.history,
         final_objective: chosen.objective,
         schedule: cfg.fit.schedule,
+        optimizer: cfg.fit.optimizer,
         starts: start_fits,
         descriptor: cfg.fit.descriptor,
         scenarios,

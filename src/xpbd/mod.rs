@@ -3,16 +3,19 @@
 //! (`cloth`), its parameters γ = (C00, C11, C01, C22, b) in SI and the paper's CGS units
 //! (`material`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
 //! box-constrained Levenberg–Marquardt solver (`lm`), the equilibrium's Newton polish and
-//! implicit-function derivatives (`equilibrium`), the loading scenarios (`scenario`) and the
+//! implicit-function derivatives (`equilibrium`), the equilibrium as a differentiable Burn op
+//! (`op`) and the Adam fit through it (`adam`), the loading scenarios (`scenario`) and the
 //! sim-to-sim estimation of `springtime xpbd estimate` (`estimate`) and the descriptor study of
 //! `springtime xpbd descriptors` (`study`).
 
+pub mod adam;
 pub mod cloth;
 pub mod descriptor;
 pub mod equilibrium;
 pub mod estimate;
 pub mod lm;
 pub mod material;
+pub mod op;
 pub mod scenario;
 pub mod study;
 
