@@ -1,6 +1,7 @@
 //! The loading scenarios of paper 001 on a square swatch: the picture frame sheared at its
 //! hinges (§4, Figs. 6, 8), a stretch between two clamped edges and a pull between two
-//! opposite corners, each under gravity. A scenario gives the clamps, the loads, the clamp
+//! opposite corners, a cantilever, and the swatch hanging from one edge with a weight on the
+//! other, each under gravity. A scenario gives the clamps, the loads, the clamp
 //! group whose reaction is measured, and a start (the clamps' shape with a small seeded
 //! out-of-plane perturbation, which picks a wrinkle branch).
 
@@ -38,6 +39,14 @@ pub enum Scenario {
     DiagonalPull {
         /// Engineering strain along the diagonal.
         strain: f64,
+    },
+    /// The swatch hanging in the `x–z` plane from its edge `v = L` (held at `z = 0`), a bar of
+    /// `mass` kg hung along its free bottom edge and shared by its vertices, as the paper's
+    /// captured swatches are stretched by weights (gravity along `−z`). Reaction: the held
+    /// edge, which carries the cloth and the bar.
+    HangingWeight {
+        /// The bar's mass, kg.
+        mass: f64,
     },
 }
 
@@ -82,6 +91,7 @@ impl Scenario {
                 }
             ),
             Scenario::DiagonalPull { strain } => format!("diagonal_pull_{strain}"),
+            Scenario::HangingWeight { mass } => format!("hanging_weight_{mass}kg"),
             Scenario::Cantilever => "cantilever".into(),
         }
     }
@@ -101,6 +111,8 @@ impl Scenario {
         let rest = cloth.rest();
         let id = |r: usize, c: usize| r * n + c;
         let mut groups = Vec::new();
+        // The start's out-of-plane coordinate.
+        let mut normal = 2;
         // Every vertex first follows the clamps' map; then the clamps are set.
         let map: Box<dyn Fn(V3) -> V3> = match *self {
             Scenario::FrameShear { angle_deg } => {
@@ -159,6 +171,19 @@ impl Scenario {
                 groups.push(vec![far]);
                 Box::new(move |p: V3| [p[0] * (1.0 + strain), p[1] * (1.0 + strain), 0.0])
             }
+            Scenario::HangingWeight { mass } => {
+                let hang = move |p: V3| [p[0], 0.0, p[1] - size];
+                let held: Vec<usize> = (0..n).map(|q| id(n - 1, q)).collect();
+                for &i in &held {
+                    load.clamped[i] = Some(hang(rest[i]));
+                }
+                for q in 0..n {
+                    load.hang(id(0, q), mass / n as f64, g);
+                }
+                groups.push(held);
+                normal = 1;
+                Box::new(hang)
+            }
         };
         let mut rng = StdRng::seed_from_u64(seed);
         let start = rest
@@ -168,7 +193,7 @@ impl Scenario {
                 Some(c) => c,
                 None => {
                     let mut q = map(p);
-                    q[2] += noise * rng.random_range(-1.0..1.0);
+                    q[normal] += noise * rng.random_range(-1.0..1.0);
                     q
                 }
             })
@@ -178,5 +203,49 @@ impl Scenario {
             groups,
             start,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::xpbd::cloth::Solve;
+    use crate::xpbd::equilibrium::polish;
+    use crate::xpbd::material::Gamma;
+
+    #[test]
+    fn a_hanging_weight_is_carried_by_the_held_edge() {
+        let (n, size) = (5, 0.1);
+        let cloth = XpbdCloth::grid(n, n, size, size, 0.2).unwrap();
+        let g = [0.0, 0.0, -9.81];
+        let setup = Scenario::HangingWeight { mass: 0.05 }.setup(&cloth, n, size, g, 1e-4, 3);
+        // The held edge is the top row at z = 0; the start hangs below it.
+        for q in 0..n {
+            let p = setup.load.clamped[(n - 1) * n + q].unwrap();
+            assert_eq!((p[1], p[2]), (0.0, 0.0));
+        }
+        assert!((setup.start[0][2] + size).abs() < 1e-12);
+        let gamma = Gamma::from_engineering(180.0, 500.0, 40.0, 0.3, 5e-6);
+        let solve = Solve {
+            dt: 2e-4,
+            steps: 5000,
+            tolerance: 1e-9,
+            ..Solve::default()
+        };
+        let mut x = cloth.solve(&gamma, &setup.load, &setup.start, &solve).unwrap().x;
+        let residual = polish(&cloth, &gamma, &setup.load, &mut x, 30, 1e-12).unwrap();
+        assert!(residual < 1e-8, "residual {residual}");
+        // Vertical balance: the held edge carries the cloth's weight and the bar's.
+        let total = cloth.mass.iter().sum::<f64>() + 0.05;
+        let r = cloth.reaction(&gamma, &setup.load, &x, &setup.groups[0]);
+        assert!(
+            (r[2].abs() - total * 9.81).abs() < 1e-6 * total * 9.81,
+            "reaction {r:?} vs weight {}",
+            total * 9.81
+        );
+        assert!(r[0].abs() < 1e-6 && r[1].abs() < 1e-6, "sideways {r:?}");
+        // The weight stretches the swatch below its rest length.
+        let drop = -x[0][2];
+        assert!(drop > size, "the bottom edge hangs {drop} m below the held one");
     }
 }
