@@ -232,7 +232,10 @@ mod tests {
             tolerance: 1e-9,
             ..Solve::default()
         };
-        let mut x = cloth.solve(&gamma, &setup.load, &setup.start, &solve).unwrap().x;
+        let mut x = cloth
+            .solve(&gamma, &setup.load, &setup.start, &solve)
+            .unwrap()
+            .x;
         let residual = polish(&cloth, &gamma, &setup.load, &mut x, 30, 1e-12).unwrap();
         assert!(residual < 1e-8, "residual {residual}");
         // Vertical balance: the held edge carries the cloth's weight and the bar's.
@@ -246,6 +249,9 @@ mod tests {
         assert!(r[0].abs() < 1e-6 && r[1].abs() < 1e-6, "sideways {r:?}");
         // The weight stretches the swatch below its rest length.
         let drop = -x[0][2];
-        assert!(drop > size, "the bottom edge hangs {drop} m below the held one");
+        assert!(
+            drop > size,
+            "the bottom edge hangs {drop} m below the held one"
+        );
     }
 }
