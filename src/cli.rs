@@ -462,8 +462,8 @@ pub enum XpbdCommand {
 /// `springtime latent` subcommands.
 #[derive(Debug, Subcommand)]
 pub enum LatentCommand {
-    /// Simulate the config's full-space reference (implicit Euler, Newton) into
-    /// DIR/rollout.npz and DIR/generate.json.
+    /// Simulate the config's full-space reference (the FEM cloth by implicit Euler and Newton,
+    /// or with --from a trained spring surrogate) into DIR/rollout.npz and DIR/generate.json.
     #[command(
         after_help = "Example:\n  springtime latent generate configs/latent_cloth.toml --out runs/latent_ref"
     )]

@@ -808,15 +808,55 @@ noisy_copies = 1
         bench["full_newton_iterations"], 0.0,
         "the surrogate steps explicitly"
     );
-    // A surrogate file whose arrays disagree is refused, naming the file and the key.
-    let mut bad = small_surrogate();
-    bad.k.pop();
-    std::fs::write(&json, bad.to_text().unwrap()).unwrap();
-    let refused = common::springtime(
+    // A reference the surrogate did not make (the FEM cloth's, on the same grid) is refused,
+    // and the finished run is left as it was.
+    let fem = dir.join("fem");
+    common::ok(&common::springtime(
         &[
-            "latent", "train", cfg_s, "--from", json_s, "--out", run_s, "--force",
+            "latent",
+            "generate",
+            cfg_s,
+            "--out",
+            fem.to_str().unwrap(),
+            "--set",
+            "cloth.nx=4",
+            "--set",
+            "cloth.ny=5",
+        ],
+        &dir,
+    ));
+    let fem_rollout = fem.join("rollout.npz");
+    let mixed = common::springtime(
+        &[
+            "latent",
+            "train",
+            cfg_s,
+            "--from",
+            json_s,
+            "--data",
+            fem_rollout.to_str().unwrap(),
+            "--out",
+            run_s,
+            "--force",
         ],
         &dir,
     );
-    common::fails(&refused, &["surrogate.json", "`k`"]);
+    common::fails(&mixed, &["was not simulated by the surrogate"]);
+    assert!(run.join("latent.json").exists());
+    // Surrogate files whose arrays disagree, or whose rest lengths are not the grid's, are
+    // refused, naming the file and the key.
+    let mut short = small_surrogate();
+    short.k.pop();
+    let mut stretched = small_surrogate();
+    stretched.rest_length[3] *= 1.1;
+    for (bad, key) in [(short, "`k`"), (stretched, "`rest_length`")] {
+        std::fs::write(&json, bad.to_text().unwrap()).unwrap();
+        let refused = common::springtime(
+            &[
+                "latent", "train", cfg_s, "--from", json_s, "--out", run_s, "--force",
+            ],
+            &dir,
+        );
+        common::fails(&refused, &["surrogate.json", key]);
+    }
 }

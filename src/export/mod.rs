@@ -257,6 +257,12 @@ impl SurrogateJson {
             bail!("key `format` is {:?}, expected {FORMAT:?}", self.format);
         }
         let [nx, ny] = self.grid;
+        if nx < 2 || ny < 2 {
+            bail!("key `grid` is [{nx}, {ny}]: at least 2 particles along each side");
+        }
+        if !(self.width > 0.0 && self.height > 0.0) {
+            bail!("keys `width` and `height` must be positive");
+        }
         let p = nx * ny;
         for (key, len) in [
             ("masses", self.masses.len()),
@@ -282,6 +288,51 @@ impl SurrogateJson {
         }
         if let Some(i) = self.pinned.iter().find(|&&i| i >= p) {
             bail!("key `pinned` has particle {i}, past the {p} particles");
+        }
+        if let Some(m) = self.masses.iter().find(|m| !(m.is_finite() && **m > 0.0)) {
+            bail!("key `masses` holds {m}: every mass must be finite and positive");
+        }
+        for (key, values) in [("k", &self.k), ("b", &self.b)] {
+            if let Some(v) = values.iter().find(|v| !(v.is_finite() && **v >= 0.0)) {
+                bail!("key `{key}` holds {v}: every value must be finite and non-negative");
+            }
+        }
+        if !(self.rayleigh.is_finite() && self.rayleigh >= 0.0) {
+            bail!(
+                "key `rayleigh` is {}: finite and non-negative",
+                self.rayleigh
+            );
+        }
+        // The rest state is the grid (a run's rest rectangle), and every rest length the
+        // distance between its ends there.
+        let tol = 1e-5 * self.width.max(self.height);
+        for (i, q) in self.rest_positions.iter().enumerate() {
+            let (r, c) = (i / nx, i % nx);
+            let grid = [
+                self.width * c as f64 / (nx - 1) as f64,
+                self.height * r as f64 / (ny - 1) as f64,
+            ];
+            if (q[0] - grid[0]).abs() > tol || (q[1] - grid[1]).abs() > tol || q[2].abs() > tol {
+                bail!(
+                    "key `rest_positions`: particle {i} is at {q:?}, not at its grid point \
+                     ({}, {}, 0) of the {nx} × {ny} grid over {} × {} m",
+                    grid[0],
+                    grid[1],
+                    self.width,
+                    self.height
+                );
+            }
+        }
+        for (s, (&[a, b], &l)) in self.springs.iter().zip(&self.rest_length).enumerate() {
+            let (pa, pb) = (self.rest_positions[a], self.rest_positions[b]);
+            let d = ((pa[0] - pb[0]).powi(2) + (pa[1] - pb[1]).powi(2) + (pa[2] - pb[2]).powi(2))
+                .sqrt();
+            if a == b || !(l > 0.0) || (l - d).abs() > tol {
+                bail!(
+                    "key `rest_length`: spring {s} ({a}, {b}) has rest length {l}, its ends are \
+                     {d} m apart at rest"
+                );
+            }
         }
         Ok(())
     }

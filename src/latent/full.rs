@@ -66,6 +66,17 @@ impl FullSpace {
         })
     }
 
+    /// Writes the surrogate to `path` (a run's `surrogate.json`), or removes a stale one there
+    /// for the FEM cloth.
+    pub fn record(&self, path: &Path) -> Result<()> {
+        match self {
+            Self::Springs(sheet) => sheet.write(path),
+            Self::Fem(_) if path.exists() => std::fs::remove_file(path)
+                .with_context(|| format!("cannot remove {}", path.display())),
+            Self::Fem(_) => Ok(()),
+        }
+    }
+
     /// What steps the reference, for messages.
     pub fn describe(&self) -> String {
         match self {
@@ -96,8 +107,9 @@ impl FullSpace {
         }
     }
 
-    /// Times `frames` full-space frames of `reference` from frame `start`, each from the
-    /// reference's two previous frames (the latent model's inputs).
+    /// Times `frames` full-space frames of `reference` from frame `start`: FEM steps each from
+    /// the reference's two previous frames (the latent model's inputs), or one surrogate
+    /// rollout from the reference at `start − 1`.
     pub fn time(&self, reference: &Reference, start: usize, frames: usize) -> Result<FullTiming> {
         let r = reference;
         let frames = frames.min(r.frames.len() - start).max(1);
@@ -118,18 +130,18 @@ impl FullSpace {
                 clock.elapsed()
             }
             Self::Springs(s) => {
+                // One rollout of the frames from the reference at `start − 1` (a frame of the
+                // surrogate is its explicit substeps; no per-frame setup is timed).
                 let stepper = s.stepper(r.dt)?;
+                let (x1, x2) = (&r.frames[start - 1], &r.frames[start - 2]);
+                let v: Vec<_> = x1
+                    .iter()
+                    .zip(x2)
+                    .map(|(a, b)| [0, 1, 2].map(|k| (a[k] - b[k]) / r.dt))
+                    .collect();
+                let targets = |f: usize| r.targets(start - 1 + f);
                 let clock = Instant::now();
-                for t in start..start + frames {
-                    let (x1, x2) = (&r.frames[t - 1], &r.frames[t - 2]);
-                    let v: Vec<_> = x1
-                        .iter()
-                        .zip(x2)
-                        .map(|(a, b)| [0, 1, 2].map(|k| (a[k] - b[k]) / r.dt))
-                        .collect();
-                    let targets = |f: usize| r.targets(t - 1 + f);
-                    stepper.roll((x1, &v), &r.pinned, &targets, 1, None)?;
-                }
+                stepper.roll((x1, &v), &r.pinned, &targets, frames, None)?;
                 clock.elapsed()
             }
         };

@@ -58,9 +58,10 @@ impl SpringSheet {
     /// What the latent pipeline needs beyond a valid file: one particle mass and a step.
     fn check(&self) -> Result<()> {
         let s = &self.surrogate;
+        s.validate()?;
         let m = s.masses[0];
-        if !(m > 0.0) || s.masses.iter().any(|&v| v != m) {
-            bail!("key `masses` must hold one positive mass for every particle");
+        if s.masses.iter().any(|&v| v != m) {
+            bail!("key `masses` must hold one mass for every particle (a uniform sheet)");
         }
         match s.dt {
             Some(dt) if dt > 0.0 && dt.is_finite() => Ok(()),
@@ -69,6 +70,28 @@ impl SpringSheet {
                  the surrogate from its run, or distill the run directory itself"
             ),
         }
+    }
+
+    /// Refuses a reference rollout that this surrogate did not make (its springs or stiffness
+    /// differ, or it has none): the latent loss would fit one cloth's motion with another's
+    /// potential.
+    pub fn check_reference(&self, rollout: &Rollout) -> Result<()> {
+        let s = &self.surrogate;
+        let same = rollout.springs.as_ref().is_some_and(|t| {
+            t.springs == s.springs
+                && t.k.len() == s.k.len()
+                && t.k.iter().zip(&s.k).all(|(a, b)| (*a as f32) == *b)
+        });
+        if !same {
+            bail!(
+                "{} was not simulated by the surrogate of {} (its springs or stiffness differ, or \
+                 it has none): distill from the surrogate's own reference (`springtime latent \
+                 generate CONFIG --from RUN`)",
+                rollout.path.display(),
+                self.source.display()
+            );
+        }
+        Ok(())
     }
 
     /// Writes `surrogate.json` (atomically).

@@ -267,9 +267,7 @@ pub fn generate_reference(
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let scene = Scene::new(&config.cloth, &config.scenario);
     let (mut rollout, stats) = full.generate(&scene, progress)?;
-    if let FullSpace::Springs(sheet) = full {
-        sheet.write(&run.surrogate())?;
-    }
+    full.record(&run.surrogate())?;
     rollout.path = run.rollout();
     rollout.save(&run.rollout())?;
     crate::io::write_json(&run.generate(), &stats)?;
@@ -290,6 +288,11 @@ pub fn train(
         );
     }
     let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
+    let data = match (&options.data, &reused) {
+        (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
+        (None, Some(r)) => Some(r.rollout()),
+        (d, None) => d.clone(),
+    };
     // The surrogate to distill: `--from`'s, or the reused run's.
     let from = match (&options.from, &reused) {
         (Some(f), _) => Some(f.clone()),
@@ -299,6 +302,11 @@ pub fn train(
     let mut config = config.clone();
     let full = FullSpace::new(&mut config, from.as_deref())?;
     let config = &config;
+    let given = data.as_deref().map(Rollout::load).transpose()?;
+    if let (FullSpace::Springs(sheet), Some(rollout)) = (&full, &given) {
+        // A distilled surrogate's reference must be its own motion.
+        sheet.check_reference(rollout)?;
+    }
     // The inputs are valid: only now is an earlier run in the directory replaced.
     std::fs::create_dir_all(&run.dir)
         .with_context(|| format!("cannot create {}", run.dir.display()))?;
@@ -308,23 +316,13 @@ pub fn train(
                 .with_context(|| format!("cannot remove {}", stale.display()))?;
         }
     }
-    match &full {
-        FullSpace::Springs(sheet) => sheet.write(&run.surrogate())?,
-        FullSpace::Fem(_) => {
-            if run.surrogate().exists() {
-                std::fs::remove_file(run.surrogate())
-                    .with_context(|| format!("cannot remove {}", run.surrogate().display()))?;
-            }
-        }
-    }
+    full.record(&run.surrogate())?;
     crate::io::write_text(&run.config(), &toml::to_string(config)?)?;
-    let data = match (&options.data, &reused) {
-        (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
-        (None, Some(r)) => Some(r.rollout()),
-        (d, None) => d.clone(),
-    };
-    let (rollout, generated) = match &data {
-        Some(path) => (Rollout::load(path)?, None),
+    let (rollout, generated) = match given {
+        Some(rollout) => {
+            rollout.save(&run.rollout())?;
+            (rollout, None)
+        }
         None => {
             progress.note(&format!(
                 "simulating the full-space reference: {}",
@@ -334,9 +332,6 @@ pub fn train(
             (r, Some(s))
         }
     };
-    if data.is_some() {
-        rollout.save(&run.rollout())?;
-    }
     let reference = Reference::from_rollout(&rollout, config)?;
     if reference.frames.len() < config.integrator.train_frames + 2 {
         bail!(

@@ -343,6 +343,13 @@ impl XpbdConfig {
                 bail!("`fit.adam_steps` and `fit.adam_lr` must be positive");
             }
         }
+        for sc in &self.scenarios {
+            if let Scenario::HangingWeight { mass } = sc
+                && !(mass.is_finite() && *mass >= 0.0)
+            {
+                bail!("`scenarios.mass` of a hanging_weight must be a mass ≥ 0 (kg), is {mass}");
+            }
+        }
         if self.truth.is_none() && self.targets.dir.is_none() {
             bail!("give the targets' material `[truth]` or a folder of targets `targets.dir`");
         }
@@ -1030,6 +1037,13 @@ pub fn estimate(
         ..Lm::default()
     };
     let mut all = problem(&|_| true);
+    let adam_targets: Vec<AdamTarget> = match cfg.fit.optimizer {
+        Optimizer::Adam => targets
+            .iter()
+            .map(|t| t.adam(&cloth, &cfg.fit, solve))
+            .collect(),
+        Optimizer::Lm => Vec::new(),
+    };
     let mut rng = StdRng::seed_from_u64(cfg.fit.seed);
     let mut best: Option<(lm::Fit, StartFit)> = None;
     let mut start_fits = Vec::new();
@@ -1048,10 +1062,6 @@ pub fn estimate(
             .collect();
         let fit = match cfg.fit.schedule {
             Schedule::Joint if cfg.fit.optimizer == Optimizer::Adam => {
-                let adam_targets: Vec<AdamTarget> = targets
-                    .iter()
-                    .map(|t| t.adam(&cloth, &cfg.fit, solve))
-                    .collect();
                 let settings = AdamSettings {
                     n: sw.n,
                     force_weight: cfg.fit.force_weight,
