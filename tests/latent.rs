@@ -106,7 +106,7 @@ fn burn_incremental_potential_equals_the_host_step_objective() {
     // Targets where the pinned vertices are: the soft boundary term is zero.
     let targets: Vec<V3> = pinned.iter().map(|&i| x[i]).collect();
     let burn = potential
-        .incremental(t(&x, n), t(&x, n), t(&x_tilde, n), t(&targets, 2))
+        .incremental(t(&x, n), None, t(&x_tilde, n), t(&targets, 2))
         .into_scalar::<f32>() as f64;
     let host = stepper.potential(&x, &x_tilde);
     assert!(
@@ -120,7 +120,7 @@ fn burn_incremental_potential_equals_the_host_step_objective() {
     };
     let p0 = Potential::new(&still.fem(), dt, &pinned, 1e5, &device).unwrap();
     let phi = p0
-        .incremental(t(&x, n), t(&x, n), t(&x, n), t(&targets, 2))
+        .incremental(t(&x, n), None, t(&x, n), t(&targets, 2))
         .into_scalar::<f32>() as f64;
     let e = still.fem().energy(&x);
     assert!((phi - e).abs() <= 1e-4 * e, "Φ(x̃) {phi} vs E {e}");

@@ -221,13 +221,19 @@ impl Potential {
         d
     }
 
-    /// The incremental potential of every state of the batch: `x` at `t`, `x_prev` at `t − 1`,
-    /// `x_tilde = 2x_{t−1} − x_{t−2}`, `targets` `[B, P, 3]` the pinned vertices' prescribed
-    /// positions, J, `[B]`.
+    /// Whether the potential has a dissipation term (a surrogate's damping), i.e. whether
+    /// [`Self::incremental`] needs the previous state.
+    pub fn is_damped(&self) -> bool {
+        self.rayleigh != 0.0 || matches!(self.elastic, Elastic::Springs(_))
+    }
+
+    /// The incremental potential of every state of the batch: `x` at `t`, `x_prev` at `t − 1`
+    /// (needed only when [`Self::is_damped`]), `x_tilde = 2x_{t−1} − x_{t−2}`, `targets`
+    /// `[B, P, 3]` the pinned vertices' prescribed positions, J, `[B]`.
     pub fn incremental(
         &self,
         x: Tensor<3>,
-        x_prev: Tensor<3>,
+        x_prev: Option<Tensor<3>>,
         x_tilde: Tensor<3>,
         targets: Tensor<3>,
     ) -> Tensor<1> {
@@ -251,7 +257,15 @@ impl Potential {
             .sum_dim(1)
             .reshape([-1])
             * self.w_bc;
-        inertia + external + bc + self.dissipation(x.clone(), x_prev) + self.elastic(x)
+        let phi = inertia + external + bc;
+        let phi = match self.is_damped() {
+            true => {
+                let x_prev = x_prev.expect("a damped potential needs the previous state");
+                phi + self.dissipation(x.clone(), x_prev)
+            }
+            false => phi,
+        };
+        phi + self.elastic(x)
     }
 }
 

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::autoencoder::Decoder;
 use super::energy::Potential;
 use super::train::Reference;
+use crate::model::springs::to_f64;
 
 /// One step's host data: the integrator's input, the potential's `x̃` and previous state, the
 /// step's centre and
@@ -148,7 +149,7 @@ impl SelfLoss<'_> {
             let v: Vec<f32> = batch.iter().flat_map(|s| f(s).iter().copied()).collect();
             Tensor::<3>::from_data(TensorData::new(v, [b, k, 3]), &device)
         };
-        let x_prev = cat(&|s| &s.x_prev, n);
+        let x_prev = self.potential.is_damped().then(|| cat(&|s| &s.x_prev, n));
         let x_tilde = cat(&|s| &s.x_tilde, n);
         let targets = cat(&|s| &s.targets, self.pinned);
         let phi = self.potential.incremental(x, x_prev, x_tilde, targets);
@@ -165,13 +166,7 @@ impl SelfLoss<'_> {
         let device = self.z_mean.device().inner();
         let t = Tensor::<2>::from_data(TensorData::new(z.concat(), [z.len(), z[0].len()]), &device);
         let phi = self.potential(batch, Tensor::from_inner(t));
-        phi.inner()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .expect("float tensor")
-            .iter()
-            .map(|&v| v as f64)
-            .collect()
+        to_f64(phi.inner())
     }
 
     /// The minimisers of every step's potential, standardised, from the standardised `start`
@@ -214,15 +209,10 @@ impl SelfLoss<'_> {
             let zt =
                 Tensor::<2>::from_data(TensorData::new(points, [rows, l]), &device).require_grad();
             let phi = self.potential(&spread, zt.clone()).sum();
-            let g: Vec<f64> = zt
-                .grad(&phi.backward())
-                .expect("the latents require a gradient")
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("float tensor")
-                .iter()
-                .map(|&v| v as f64)
-                .collect();
+            let g = to_f64(
+                zt.grad(&phi.backward())
+                    .expect("the latents require a gradient"),
+            );
             let mut step = vec![vec![0.0f32; l]; b];
             let mut slope = vec![0.0f64; b];
             for (p, &i) in live.iter().enumerate() {

@@ -15,6 +15,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use super::descriptor::fft_descriptor_tensor;
 use super::lm::Fit;
 use super::op::{StaticProblem, static_equilibrium};
+use crate::model::springs::to_f64;
 use crate::progress::Progress;
 
 /// One target of the Adam fit.
@@ -152,13 +153,7 @@ pub fn fit(
     let gamma = gamma_of(&module).inner();
     let cost = objective(gamma.clone(), targets, settings)?.into_scalar::<f32>() as f64;
     history.push(cost);
-    let p: Vec<f64> = gamma
-        .into_data()
-        .try_into_vec_as::<f32>()
-        .expect("float tensor")
-        .iter()
-        .map(|&v| v as f64)
-        .collect();
+    let p = to_f64(gamma);
     Ok(Fit {
         p,
         cost,

@@ -237,6 +237,20 @@ pub fn adjoint(
     Ok(out)
 }
 
+/// The tests' sheet: 5 × 5 vertices over 10 cm, clamped along one edge and pulled sideways at
+/// the other, under gravity; the pulled edge is the clamp group measured.
+#[cfg(test)]
+pub(crate) fn pulled_sheet() -> (XpbdCloth, Load, Vec<usize>) {
+    let cloth = XpbdCloth::grid(5, 5, 0.1, 0.1, 0.2).unwrap();
+    let rest = cloth.rest();
+    let mut load = Load::gravity(&cloth, [0.0, 0.0, -9.81]);
+    for c in 0..5 {
+        load.clamped[c] = Some(rest[c]);
+        load.clamped[20 + c] = Some([rest[20 + c][0] + 0.01, rest[20 + c][1] + 0.006, 0.0]);
+    }
+    (cloth, load, (20..25).collect())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -244,15 +258,8 @@ mod tests {
 
     #[test]
     fn implicit_derivatives_of_the_equilibrium_equal_finite_differences() {
-        // A 5 × 5 sheet clamped along one edge, pulled sideways at the other, under gravity.
-        let cloth = XpbdCloth::grid(5, 5, 0.1, 0.1, 0.2).unwrap();
+        let (cloth, load, group) = pulled_sheet();
         let rest = cloth.rest();
-        let mut load = Load::gravity(&cloth, [0.0, 0.0, -9.81]);
-        for c in 0..5 {
-            load.clamped[c] = Some(rest[c]);
-            load.clamped[20 + c] = Some([rest[20 + c][0] + 0.01, rest[20 + c][1] + 0.006, 0.0]);
-        }
-        let group: Vec<usize> = (20..25).collect();
         let gamma = Gamma::from_engineering(180.0, 500.0, 40.0, 0.3, 5e-5);
         let solve = Solve {
             steps: 3000,

@@ -261,23 +261,18 @@ mod tests {
     use super::*;
     use crate::xpbd::cloth::Sweep;
     use crate::xpbd::descriptor::{fft_descriptor, fft_descriptor_tensor};
-    use crate::xpbd::equilibrium::sensitivity;
+    use crate::xpbd::equilibrium::{pulled_sheet, sensitivity};
 
     /// A 5 × 5 sheet clamped along one edge and pulled sideways at the other, under gravity,
     /// the pulled edge's reaction measured.
     fn problem() -> StaticProblem {
-        let cloth = XpbdCloth::grid(5, 5, 0.1, 0.1, 0.2).unwrap();
-        let rest = cloth.rest();
-        let mut load = Load::gravity(&cloth, [0.0, 0.0, -9.81]);
-        for c in 0..5 {
-            load.clamped[c] = Some(rest[c]);
-            load.clamped[20 + c] = Some([rest[20 + c][0] + 0.01, rest[20 + c][1] + 0.006, 0.0]);
-        }
+        let (cloth, load, group) = pulled_sheet();
+        let start = cloth.rest();
         StaticProblem {
             cloth,
             load,
-            groups: vec![(20..25).collect()],
-            start: rest,
+            groups: vec![group],
+            start,
             solve: Solve {
                 steps: 3000,
                 sweep: Sweep::GaussSeidel,
