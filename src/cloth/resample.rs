@@ -1,10 +1,15 @@
 //! Landmarks to particles (paper §3.1, Eq. 3): each surrogate particle takes the barycentric
-//! combination of its three nearest landmarks in the rest rectangle.
+//! combination of three landmarks around it in the rest rectangle.
 //!
-//! Works for any landmark set (no mesh needed). A particle that coincides with a landmark copies
-//! it; a nearest triple that is (nearly) collinear is replaced by the nearest non-collinear
-//! triple among the closest candidates; if every candidate is collinear, the particle is
-//! interpolated along the line through its two nearest landmarks.
+//! Works for any landmark set (no mesh needed): the landmarks' rest positions are triangulated
+//! (Delaunay, by the `delaunator` crate) and a particle takes the weights of the triangle that
+//! holds it, so the resampled positions are one continuous piecewise-linear field. (The paper's
+//! three *nearest* landmarks make a field that jumps between neighbouring particles and, on an
+//! irregular mesh, sliver triples whose weights reach ±40: a folded sheet then gains strains of
+//! 100 % that are not in the data, and the target forces follow them.) A particle that coincides
+//! with a landmark copies it; one outside the landmarks' hull takes the nearest triangle's
+//! weights (a short extrapolation); if the landmarks are collinear, a particle is interpolated
+//! along the line through its two nearest landmarks.
 
 /// Per-particle landmark indices and weights (rows sum to 1).
 #[derive(Debug, Clone, PartialEq)]
@@ -17,8 +22,8 @@ pub struct Resampler {
     pub nearest_particle: Vec<usize>,
 }
 
-/// How many nearest landmarks are searched for a non-degenerate triangle.
-const CANDIDATES: usize = 12;
+/// Triangles of area below this fraction of the bounding box's squared diagonal are dropped.
+const SLIVER: f64 = 1e-9;
 
 impl Resampler {
     /// Weights mapping `landmarks` (rest positions) to `particles` (rest positions).
@@ -30,11 +35,18 @@ impl Resampler {
             "resampling needs at least 3 landmarks"
         );
         let scale = bbox_diagonal(landmarks).max(f64::MIN_POSITIVE);
+        let mesh = Locator::new(landmarks, scale);
         let mut index = Vec::with_capacity(particles.len());
         let mut weight = Vec::with_capacity(particles.len());
         for &p in particles {
-            let near = nearest(landmarks, p, CANDIDATES.min(landmarks.len()));
-            let (i, w) = weights_for(landmarks, p, &near, scale);
+            let near = nearest(landmarks, p, 3);
+            let (i, w) = if dist2(landmarks[near[0]], p) <= (1e-9 * scale).powi(2) {
+                ([near[0], near[1], near[2]], [1.0, 0.0, 0.0])
+            } else if let Some(found) = mesh.locate(p) {
+                found
+            } else {
+                along_line(landmarks, p, &near)
+            };
             index.push(i);
             weight.push(w);
         }
@@ -133,29 +145,112 @@ fn nearest(landmarks: &[[f64; 2]], p: [f64; 2], k: usize) -> Vec<usize> {
     best.into_iter().map(|(_, i)| i).collect()
 }
 
-fn weights_for(
-    landmarks: &[[f64; 2]],
-    p: [f64; 2],
-    near: &[usize],
-    scale: f64,
-) -> ([usize; 3], [f64; 3]) {
-    let a = near[0];
-    if dist2(landmarks[a], p) <= (1e-9 * scale).powi(2) {
-        return ([a, near[1], near[2]], [1.0, 0.0, 0.0]);
-    }
-    let b = near[1];
-    // The nearest third landmark that makes a triangle of non-negligible area with a and b.
-    let area_tol = 1e-6 * scale * scale;
-    for &c in &near[2..] {
-        let (pa, pb, pc) = (landmarks[a], landmarks[b], landmarks[c]);
-        let det = (pb[0] - pa[0]) * (pc[1] - pa[1]) - (pc[0] - pa[0]) * (pb[1] - pa[1]);
-        if det.abs() > area_tol {
-            let wb = ((p[0] - pa[0]) * (pc[1] - pa[1]) - (pc[0] - pa[0]) * (p[1] - pa[1])) / det;
-            let wc = ((pb[0] - pa[0]) * (p[1] - pa[1]) - (p[0] - pa[0]) * (pb[1] - pa[1])) / det;
-            return ([a, b, c], [1.0 - wb - wc, wb, wc]);
+/// The landmarks' triangulation, bucketed on a uniform grid for point location.
+struct Locator<'a> {
+    points: &'a [[f64; 2]],
+    triangles: Vec<[usize; 3]>,
+    lo: [f64; 2],
+    cell: f64,
+    cells: [usize; 2],
+    buckets: Vec<Vec<u32>>,
+}
+
+impl<'a> Locator<'a> {
+    /// Delaunay triangles of `points` without slivers, each listed in every grid cell its
+    /// bounding box touches.
+    fn new(points: &'a [[f64; 2]], scale: f64) -> Self {
+        let pts: Vec<delaunator::Point> = points
+            .iter()
+            .map(|p| delaunator::Point { x: p[0], y: p[1] })
+            .collect();
+        let tri = delaunator::triangulate(&pts);
+        let triangles: Vec<[usize; 3]> = tri
+            .triangles
+            .chunks_exact(3)
+            .map(|t| [t[0], t[1], t[2]])
+            .filter(|t| twice_area(points, *t).abs() > SLIVER * scale * scale)
+            .collect();
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in points {
+            for c in 0..2 {
+                lo[c] = lo[c].min(p[c]);
+                hi[c] = hi[c].max(p[c]);
+            }
+        }
+        let side = (triangles.len().max(1) as f64).sqrt().ceil() as usize;
+        let cell = ((hi[0] - lo[0]).max(hi[1] - lo[1]) / side as f64).max(scale * 1e-12);
+        let cells = [
+            ((hi[0] - lo[0]) / cell).floor() as usize + 1,
+            ((hi[1] - lo[1]) / cell).floor() as usize + 1,
+        ];
+        let mut buckets = vec![Vec::new(); cells[0] * cells[1]];
+        for (n, t) in triangles.iter().enumerate() {
+            let (mut a, mut b) = ([usize::MAX; 2], [0usize; 2]);
+            for &v in t {
+                for c in 0..2 {
+                    let i = ((points[v][c] - lo[c]) / cell).floor() as usize;
+                    a[c] = a[c].min(i.min(cells[c] - 1));
+                    b[c] = b[c].max(i.min(cells[c] - 1));
+                }
+            }
+            for y in a[1]..=b[1] {
+                for x in a[0]..=b[0] {
+                    buckets[y * cells[0] + x].push(n as u32);
+                }
+            }
+        }
+        Self {
+            points,
+            triangles,
+            lo,
+            cell,
+            cells,
+            buckets,
         }
     }
-    // Every candidate is collinear with a and b: interpolate along the line a–b.
+
+    /// The triangle holding `p` and its barycentric weights: among the candidates, the one whose
+    /// smallest weight is largest (non-negative inside the hull; outside it, the nearest
+    /// triangle, extrapolated). `None` when the landmarks are collinear.
+    fn locate(&self, p: [f64; 2]) -> Option<([usize; 3], [f64; 3])> {
+        let cell = |c: usize| {
+            (((p[c] - self.lo[c]) / self.cell).floor().max(0.0) as usize).min(self.cells[c] - 1)
+        };
+        let best = |candidates: &mut dyn Iterator<Item = usize>| {
+            candidates
+                .map(|n| {
+                    let t = self.triangles[n];
+                    let w = barycentric(self.points, t, p);
+                    (w[0].min(w[1]).min(w[2]), t, w)
+                })
+                .max_by(|a, b| a.0.total_cmp(&b.0))
+        };
+        let bucket = &self.buckets[cell(1) * self.cells[0] + cell(0)];
+        match best(&mut bucket.iter().map(|&n| n as usize)) {
+            Some((min, t, w)) if min >= -1e-12 => Some((t, w)),
+            _ => best(&mut (0..self.triangles.len())).map(|(_, t, w)| (t, w)),
+        }
+    }
+}
+
+/// Twice the signed area of triangle `t`.
+fn twice_area(points: &[[f64; 2]], t: [usize; 3]) -> f64 {
+    let (a, b, c) = (points[t[0]], points[t[1]], points[t[2]]);
+    (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
+}
+
+/// Barycentric weights of `p` in triangle `t` (they sum to 1; all non-negative inside).
+fn barycentric(points: &[[f64; 2]], t: [usize; 3], p: [f64; 2]) -> [f64; 3] {
+    let (a, b, c) = (points[t[0]], points[t[1]], points[t[2]]);
+    let det = twice_area(points, t);
+    let wb = ((p[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (p[1] - a[1])) / det;
+    let wc = ((b[0] - a[0]) * (p[1] - a[1]) - (p[0] - a[0]) * (b[1] - a[1])) / det;
+    [1.0 - wb - wc, wb, wc]
+}
+
+/// Collinear landmarks: interpolation along the line through the two nearest, `near[0..2]`.
+fn along_line(landmarks: &[[f64; 2]], p: [f64; 2], near: &[usize]) -> ([usize; 3], [f64; 3]) {
+    let (a, b) = (near[0], near[1]);
     let (pa, pb) = (landmarks[a], landmarks[b]);
     let len2 = dist2(pa, pb).max(f64::MIN_POSITIVE);
     let t = ((p[0] - pa[0]) * (pb[0] - pa[0]) + (p[1] - pa[1]) * (pb[1] - pa[1])) / len2;
@@ -231,6 +326,68 @@ mod tests {
         for (p, v) in dst.iter().zip(out) {
             assert!((f(*p) - v).abs() < 1e-9, "{p:?}");
         }
+    }
+
+    #[test]
+    fn irregular_landmarks_give_a_continuous_field_without_extrapolation() {
+        // A jittered 13 × 13 mesh resampled to 16 × 16 particles: every particle lies in a
+        // triangle of the landmarks, so its weights are in [0, 1] (the three nearest landmarks
+        // made sliver triples with weights beyond ±10 here), and a smooth fold of the sheet
+        // (no stretch along x) gives the particles' springs along x no spurious strain beyond
+        // the interpolation error of a curved surface.
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut jitter = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            (rng >> 11) as f64 / (1u64 << 53) as f64 - 0.5
+        };
+        let h = 4.0 / 12.0;
+        let landmarks: Vec<[f64; 2]> = grid(13, 13, 4.0, 4.0)
+            .into_iter()
+            .map(|p| {
+                let inner = |v: f64| v > 1e-9 && v < 4.0 - 1e-9;
+                if inner(p[0]) && inner(p[1]) {
+                    [p[0] + 0.5 * h * jitter(), p[1] + 0.5 * h * jitter()]
+                } else {
+                    p
+                }
+            })
+            .collect();
+        let particles = grid(16, 16, 4.0, 4.0);
+        let r = Resampler::new(&landmarks, &particles);
+        for w in &r.weight {
+            assert!(
+                w.iter().all(|&x| (-1e-9..=1.0 + 1e-9).contains(&x)),
+                "{w:?}"
+            );
+            assert!((w.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        }
+        // The sheet rolled around the y axis into a cylinder of radius 1 m: lengths along x
+        // are arc lengths, so a spring along x of the particles spans a chord of its rest length.
+        let fold = |p: [f64; 2]| [p[0].sin(), p[1], 1.0 - p[0].cos()];
+        let src: Vec<f32> = landmarks
+            .iter()
+            .flat_map(|&p| fold(p))
+            .map(|v| v as f32)
+            .collect();
+        let mut out = vec![0.0; particles.len() * 3];
+        r.apply3(&src, &mut out);
+        let spacing: f64 = 4.0 / 15.0;
+        let mut worst: f64 = 0.0;
+        for j in 0..16 {
+            for i in 0..15 {
+                let (a, b) = (j * 16 + i, j * 16 + i + 1);
+                let d: f64 = (0..3)
+                    .map(|c| (out[a * 3 + c] - out[b * 3 + c]).powi(2))
+                    .sum();
+                let chord = 2.0 * (spacing / 2.0).sin();
+                worst = worst.max((d.sqrt() / chord - 1.0).abs());
+            }
+        }
+        // Linear interpolation of a unit-radius arc over landmark spacing ≤ 1.5 h moves points
+        // inwards by at most (1.5 h)² / 8 ≈ 0.03 m.
+        assert!(worst < 0.15, "spurious strain {worst}");
     }
 
     #[test]

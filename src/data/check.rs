@@ -10,6 +10,7 @@ use anyhow::{Result, bail};
 use super::clips::{ClipSet, SetInfo, check_same, check_same_landmarks};
 use super::npz::Npz;
 use super::rollout::{KEYS, Rollout};
+use super::strain::{StrainStats, StrainSummary};
 use super::{DataConfig, Index, IndexFile};
 use crate::cloth::Topology;
 use crate::config::Config;
@@ -93,6 +94,8 @@ pub struct DatasetReport {
     pub with_mesh: usize,
     /// Keys springtime ignores: key → dtype, over every file.
     pub ignored_keys: BTreeMap<String, String>,
+    /// How far the cloth stretches over the files' frames (`None` without measurable edges).
+    pub strain: Option<StrainSummary>,
     /// The configured surrogate's stability on this data.
     pub surrogate: SurrogateStability,
 }
@@ -127,6 +130,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     let (mut frames, mut pinned) = (None, None);
     let (mut total_frames, mut with_velocities, mut with_springs, mut with_mesh) = (0, 0, 0, 0);
     let mut ignored_keys = BTreeMap::new();
+    let mut strain = StrainStats::default();
     for path in &paths {
         let npz = Npz::read(path)?;
         for (key, a) in &npz.arrays {
@@ -166,6 +170,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         with_velocities += usize::from(r.velocities.is_some());
         with_springs += usize::from(r.springs.is_some());
         with_mesh += usize::from(r.mesh.is_some());
+        strain.add(&r);
     }
     let (info, rest_uv) = first.expect("at least one file");
     // The surrogate training would start from: the config's values, its "auto"s resolved from
@@ -217,6 +222,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         with_springs,
         with_mesh,
         ignored_keys,
+        strain: strain.summary(),
         surrogate: SurrogateStability {
             grid: [topo.nx, topo.ny],
             k,
@@ -304,6 +310,12 @@ impl DatasetReport {
                 .join(", ")
         };
         let _ = writeln!(s, "  extra keys       ignored: {ignored}");
+        if let Some(strain) = &self.strain {
+            let _ = writeln!(s, "  strain           {}", strain.line());
+            for w in strain.warnings() {
+                let _ = writeln!(s, "  WARNING          {w}");
+            }
+        }
         let g = &self.surrogate;
         match &g.defaults {
             Ok(lines) => {

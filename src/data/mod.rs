@@ -4,6 +4,7 @@ pub mod check;
 pub mod clips;
 pub mod npz;
 pub mod rollout;
+pub mod strain;
 
 pub use check::{DatasetReport, check_dir};
 pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, Track};

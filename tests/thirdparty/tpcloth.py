@@ -15,8 +15,9 @@ data it did not generate itself. What differs from springtime's own sources:
 - masses: one third of each adjacent triangle's area (boundary vertices are lighter);
 - time stepping: classical RK4 at a step derived from the stiffest element, not semi-implicit
   Euler; frames stored at camera rate (30 fps by default) with no velocities;
-- pins and excitation: two boundary vertices, chosen at random per rollout, shaken along
-  smooth random paths for part of the rollout and then held;
+- pins and excitation: two boundary vertices (or, with --pin-radius, the vertices within that
+  radius of each: a clamp), chosen at random per rollout, shaken along smooth random paths for
+  part of the rollout and then held;
 - files: `np.savez_compressed`, float64 positions, extra metadata keys of every kind (strings,
   a pickled dict, float16 and int8 arrays), the gravity vector and drag stored with their own
   names.
@@ -169,14 +170,13 @@ class Cloth:
         return 2.0 / np.sqrt(omega2)
 
 
-def pin_paths(rng, x_rest3, pins, t, shake_seconds):
-    """Positions of the pinned vertices at times `t`, [len(t), 2, 3]: smooth random shaking
-    that starts and ends at rest (a sum of sines under a sin(pi t / T) envelope)."""
-    base = x_rest3[pins]  # [2, 3]
-    out = np.repeat(base[None], len(t), axis=0)
+def pin_paths(rng, t, shake_seconds):
+    """Offsets of the two anchors from their rest positions at times `t`, [len(t), 2, 3]: smooth
+    random shaking that starts and ends at rest (a sum of sines under a sin(pi t / T) envelope)."""
+    out = np.zeros((len(t), 2, 3))
     ramp = np.clip(t / shake_seconds, 0, 1)
     envelope = np.sin(np.pi * ramp) * (t <= shake_seconds)
-    for p in range(len(pins)):
+    for p in range(2):
         for axis in range(3):
             for _ in range(3):
                 amp = rng.uniform(0.0, 0.15) * (1.5 if axis == 2 else 1.0)
@@ -197,8 +197,12 @@ def rotation(rng):
     ])
 
 
-def simulate(cloth, rng, n, seconds, fps, substeps, gravity, shake_seconds):
-    """n rollouts at once; returns positions [n, F, V, 3] and the pinned vertex pairs."""
+def simulate(cloth, rng, n, seconds, fps, substeps, gravity, shake_seconds, pin_radius):
+    """n rollouts at once; returns positions [n, F, V, 3] and the pinned masks [n, V].
+
+    Each rollout holds the sheet by two anchors: boundary vertices chosen at random (at least
+    0.4 of the sheet apart), each with every vertex within `pin_radius` of it in the rest sheet
+    (0: the single vertex), moved rigidly along its anchor's path."""
     res_v = len(cloth.rest)
     frames = int(round(seconds * fps)) + 1
     boundary = np.where(
@@ -207,28 +211,33 @@ def simulate(cloth, rng, n, seconds, fps, substeps, gravity, shake_seconds):
         | (cloth.rest[:, 1] >= cloth.rest[:, 1].max() - 1e-9)
     )[0]
     x = np.zeros((n, res_v, 3))
-    pins, paths = [], []
+    anchor = np.full((n, res_v), -1)  # which anchor holds each vertex (-1: free)
+    offsets = []
+    # sampled at every substep (and half substep, for RK4's midpoints): smooth driving
+    fine = np.arange(0, (frames - 1) * substeps * 2 + 1) / (fps * substeps * 2)
     for r in range(n):
         pair = rng.choice(boundary, size=2, replace=False)
         while np.linalg.norm(cloth.rest[pair[0]] - cloth.rest[pair[1]]) < 0.4 * cloth.rest.max():
             pair = rng.choice(boundary, size=2, replace=False)
+        for a, v in enumerate(pair):
+            near = np.linalg.norm(cloth.rest - cloth.rest[v], axis=1) <= pin_radius
+            near[v] = True
+            anchor[r, near] = a
         rest3 = np.concatenate([cloth.rest, np.zeros((res_v, 1))], axis=1)
         rest3 = rest3 - rest3[pair].mean(axis=0)
         rest3 = rest3 @ rotation(rng).T
         x[r] = rest3
-        pins.append(pair)
-        # sampled at every substep (and half substep, for RK4's midpoints): smooth driving
-        fine = np.arange(0, (frames - 1) * substeps * 2 + 1) / (fps * substeps * 2)
-        paths.append(pin_paths(rng, rest3, pair, fine, shake_seconds))
-    pins = np.array(pins)
-    paths = np.array(paths)  # [n, 2 * substeps * (F - 1) + 1, 2, 3], half-substep samples
+        offsets.append(pin_paths(rng, fine, shake_seconds))
+    offsets = np.array(offsets)  # [n, 2 * substeps * (F - 1) + 1, 2, 3], half-substep samples
+    pinned = anchor >= 0
+    held = np.where(pinned)  # (rollout, vertex) pairs
+    which = anchor[held]
+    base = x[held]  # rest positions of the held vertices
     v = np.zeros_like(x)
     out = np.zeros((n, frames, res_v, 3))
     out[:, 0] = x
     dt = 1.0 / (fps * substeps)
-    rows = np.arange(n)[:, None]
-    free = np.ones((n, res_v, 1))
-    free[rows, pins] = 0.0
+    free = (~pinned)[..., None].astype(float)
     inv_m = 1.0 / cloth.mass[None, :, None]
 
     def accel(x, v):
@@ -237,15 +246,17 @@ def simulate(cloth, rng, n, seconds, fps, substeps, gravity, shake_seconds):
     h = 0.5 * dt
 
     def pin_state(k):
-        """Pinned positions and velocities at half-substep sample k."""
-        k0, k1 = max(k - 1, 0), min(k + 1, paths.shape[1] - 1)
-        return paths[:, k], (paths[:, k1] - paths[:, k0]) / ((k1 - k0) * h)
+        """Held positions and velocities at half-substep sample k."""
+        k0, k1 = max(k - 1, 0), min(k + 1, offsets.shape[1] - 1)
+        px = base + offsets[held[0], k, which]
+        pv = (offsets[held[0], k1, which] - offsets[held[0], k0, which]) / ((k1 - k0) * h)
+        return px, pv
 
     def accel_at(x, v, k):
         px, pv = pin_state(k)
         x = x.copy(); v = v.copy()
-        x[rows, pins] = px
-        v[rows, pins] = pv
+        x[held] = px
+        v[held] = pv
         return accel(x, v), v
 
     for f in range(1, frames):
@@ -258,12 +269,12 @@ def simulate(cloth, rng, n, seconds, fps, substeps, gravity, shake_seconds):
             x = x + dt / 6.0 * (k1x + 2 * k2x + 2 * k3x + k4x)
             v = v + dt / 6.0 * (k1v + 2 * k2v + 2 * k3v + k4v)
             px, pv = pin_state(k + 2)
-            x[rows, pins] = px
-            v[rows, pins] = pv
+            x[held] = px
+            v[held] = pv
         if not np.all(np.isfinite(x)):
             sys.exit(f"tpcloth: the simulation diverged at frame {f}; lower --young or raise --substeps")
         out[:, f] = x
-    return out, pins
+    return out, pinned
 
 
 def main():
@@ -284,15 +295,22 @@ def main():
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--substeps", type=int, default=0, help="RK4 steps per frame (0: from the stiffest element)")
     ap.add_argument("--shake", type=float, default=2.5, help="seconds of pin shaking")
+    ap.add_argument("--pin-radius", type=float, default=0.0,
+                    help="anchor radius in the rest sheet, m (0: two single vertices)")
     ap.add_argument("--jitter", type=float, default=0.25, help="interior vertex jitter, fraction of spacing")
     ap.add_argument("--velocities", action="store_true", help="also store velocities (central differences)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--rollout-seed", type=int, default=None,
+                    help="seed of the rollouts alone (default: --seed); the mesh and map keep --seed, so "
+                    "a second process can write more rollouts of the same cloth, e.g. the test split")
     a = ap.parse_args()
 
     rng = np.random.default_rng(a.seed)
     rest, tris = make_mesh(a.res, a.size, a.jitter, rng)
     centres = rest[tris].mean(axis=1)
     young = stiffness_map(centres, a.size, a.young, a.layout)
+    if a.rollout_seed is not None:
+        rng = np.random.default_rng(a.rollout_seed)
     gravity = np.array([0.0, 0.0, -9.81])
     cloth = Cloth(rest, tris, young, a.poisson, a.density, a.bend, a.edge_damping, a.drag)
     substeps = a.substeps or int(np.ceil(1.0 / (a.fps * cloth.stable_dt())))
@@ -302,11 +320,11 @@ def main():
     for split, count in (("train", a.rollouts), ("test", a.test)):
         if count == 0:
             continue
-        pos, pins = simulate(cloth, rng, count, a.seconds, a.fps, substeps, gravity, a.shake)
+        pos, pinned_all = simulate(cloth, rng, count, a.seconds, a.fps, substeps, gravity, a.shake,
+                                   a.pin_radius)
         print(f"tpcloth: simulated {count} {split} rollouts ({time.time() - t0:.1f} s)", flush=True)
         for r in range(count):
-            pinned = np.zeros(len(rest), bool)
-            pinned[pins[r]] = True
+            pinned = pinned_all[r]
             data = dict(
                 positions=pos[r],  # float64 on purpose
                 rest_uv=rest,
