@@ -182,3 +182,49 @@ fn the_uniform_baseline_finds_the_stiffness_and_damping_of_a_uniform_source() {
     assert!(u["b_search"].as_array().unwrap().len() > 1, "{u}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `train.scale_search`: from a uniform network 4× too soft (and untrained), the search over one
+/// factor for every `k` and one for every `b` finds the source's size (k = 40 N/m), keeps the
+/// network's shape (every spring scaled by the same factor), lowers the training rollouts' error
+/// and writes the substeps the scaled network needs into the run's config.
+#[test]
+fn the_scale_search_finds_the_size_and_keeps_the_shape() {
+    let dir = common::temp_dir("defaults_scale");
+    let data = dir.join("data");
+    write_uniform_source(&data, true, [0.0, 0.0, -9.81]);
+    let mut cfg = config(&data);
+    cfg.runs_dir = dir.join("runs");
+    cfg.name = "scale".into();
+    cfg.model.k_init = Auto::Value(10.0);
+    cfg.model.b_init = Auto::Value(1.0);
+    cfg.train.stiffness.iterations = 0;
+    cfg.train.damping.iterations = 0;
+    cfg.train.scale_search = true;
+    let summary = train(&cfg, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let record: springtime::train::scale::ScaleSearch =
+        serde_json::from_slice(&std::fs::read(summary.run_dir.join("scale.json")).unwrap())
+            .unwrap();
+    eprintln!("{record:?}");
+    assert!(
+        (2.8..=5.7).contains(&record.k_factor),
+        "k factor {} (expected about 4)",
+        record.k_factor
+    );
+    assert!(record.after <= record.before.unwrap(), "{record:?}");
+    let springs = springtime::data::npz::Npz::read(&summary.run_dir.join("springs.npz")).unwrap();
+    let k = springs.f32("k", &[None]).unwrap().0;
+    let b = springs.f32("b", &[None]).unwrap().0;
+    for (&k, &b) in k.iter().zip(&b) {
+        assert!(
+            (k as f64 - 10.0 * record.k_factor).abs() < 1e-4 * k as f64,
+            "k = {k}"
+        );
+        assert!(
+            (b as f64 - record.b_factor).abs() < 1e-4 * b as f64,
+            "b = {b}"
+        );
+    }
+    let resolved = Config::load(&summary.run_dir.join("config.toml"), &[]).unwrap();
+    assert_eq!(resolved.sim.substeps, Auto::Value(record.substeps));
+    std::fs::remove_dir_all(&dir).ok();
+}

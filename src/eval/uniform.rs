@@ -37,11 +37,24 @@ pub fn rollout_rmse(
     device: &Device,
 ) -> Option<f64> {
     let model = SpringNet::uniform(topology, k, b, device);
-    if !physics.stability_of(topology, &model).is_stable() {
+    network_rollout_rmse(&model, topology, physics, files, batch, device)
+}
+
+/// Mean motion RMSE of free rollouts of the spring network `model` on `files` (`None` when it is
+/// unstable at `physics`' step or a rollout diverges).
+pub fn network_rollout_rmse(
+    model: &SpringNet,
+    topology: &Topology,
+    physics: &Physics,
+    files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+) -> Option<f64> {
+    if !physics.stability_of(topology, model).is_stable() {
         return None;
     }
     let curves = eval::motion_curves(
-        &model,
+        model,
         physics,
         topology,
         files,

@@ -6,6 +6,7 @@
 pub mod init;
 pub mod losses;
 pub mod run;
+pub mod scale;
 
 pub use losses::{
     ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget, motion_loss,
@@ -140,6 +141,11 @@ pub struct TrainConfig {
     /// values) after every Adam step (springs); off: the paper's unconstrained steps, which may
     /// diverge.
     pub project_stable: bool,
+    /// After training a spring network, search one factor for every `k` and one for every `b`
+    /// over free rollouts of training data, keeping the network's shape (ours; off: the
+    /// paper). For a force-level fit (`force_on = "target"`), whose values least squares
+    /// shrinks; the substeps are raised as the scaled network needs.
+    pub scale_search: bool,
     /// The stiffness pass.
     pub stiffness: PassConfig,
     /// The damping pass.
@@ -161,6 +167,7 @@ impl Default for TrainConfig {
             gradient_checkpointing: false,
             state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
             project_stable: true,
+            scale_search: false,
             stiffness: PassConfig {
                 lr: 2.0,
                 clips: ClipPool::LowVelocity,
@@ -486,7 +493,38 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         ModelKind::Springs => {
             let model = SpringNet::uniform(&topo, resolution.k_init, resolution.b_init, &device)
                 .with_kernel(config.model.kernel);
-            let (summary, model) = fit.run(model)?;
+            let (summary, mut model) = fit.run(model)?;
+            if config.train.scale_search {
+                let (scaled, scaled_physics, record) = scale::search(
+                    &model,
+                    &topo,
+                    &physics,
+                    &train_files,
+                    config.eval.batch,
+                    &search_device,
+                    progress,
+                )?;
+                progress.note(&format!(
+                    "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion \
+                     RMSE on {} training rollouts {} -> {:.4e} m",
+                    record.k_factor,
+                    record.b_factor,
+                    record.substeps,
+                    record.rollouts,
+                    record
+                        .before
+                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
+                    record.after
+                ));
+                if scaled_physics.substeps != physics.substeps {
+                    let mut updated = config.clone();
+                    updated.sim.substeps = crate::config::Auto::Value(scaled_physics.substeps);
+                    crate::io::write_text(&run.config(), &updated.to_toml())?;
+                }
+                crate::io::write_json(&run.dir.join("scale.json"), &record)?;
+                RunDir::save_module(&scaled, &run.model())?;
+                model = scaled;
+            }
             run::write_springs(
                 &run.springs(),
                 &topo,

@@ -1,0 +1,143 @@
+//! The learned network's overall scale, searched over free rollouts (ours; `train.scale_search`).
+//!
+//! A fit of the forces on the data's own states (`train.force_on = "target"`, teacher forcing) ranks
+//! the springs by stiffness where a rollout loss cannot (third-party data: see README "Data from
+//! another simulator"), but its values are attenuated: the regressors — spring strains measured
+//! from positions that no spring network explains exactly — are noisy, and least squares shrinks
+//! their coefficients towards zero. A network with the right shape and too small a size then
+//! simulates worse than a uniform one. The search keeps the shape and finds the size: every `k`
+//! is multiplied by one factor and every `b` by another, each candidate rolled out freely on
+//! training rollouts (at the fewest substeps that keep it stable), and the pair with the lowest
+//! mean motion RMSE is kept. Ranks — and so the stiffness map's Spearman correlation — do not
+//! change.
+
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::cloth::Topology;
+use crate::eval::uniform::network_rollout_rmse;
+use crate::model::SpringNet;
+use crate::progress::Progress;
+use crate::sim::Physics;
+use crate::train::init::AUTO_SUBSTEPS_TARGET;
+
+/// Training rollouts every candidate is simulated on (the first ones of the split).
+const SEARCH_ROLLOUTS: usize = 8;
+/// Stiffness factors `2^(i/2)`, `i` in this range; then `2^(±1/4)` around the best.
+const K_STEPS: std::ops::RangeInclusive<i32> = -2..=8;
+/// Damping factors `2^i`, `i` in this range.
+const B_STEPS: std::ops::RangeInclusive<i32> = -4..=4;
+/// The search raises the substeps at most this many times over the run's.
+const MAX_SUBSTEP_FACTOR: usize = 8;
+
+/// `scale.json`: what the search tried and kept.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ScaleSearch {
+    /// The factor every `k` was multiplied by.
+    pub k_factor: f64,
+    /// The factor every `b` was multiplied by.
+    pub b_factor: f64,
+    /// Substeps per frame of the kept network (the run's config is updated to them).
+    pub substeps: usize,
+    /// Mean motion RMSE on the search's training rollouts before the search (factors 1, 1), m;
+    /// `None` when the trained network diverged there.
+    pub before: Option<f64>,
+    /// The same for the kept factors, m.
+    pub after: f64,
+    /// `(k factor, b factor, substeps, mean motion RMSE)` of every stable candidate.
+    pub candidates: Vec<(f64, f64, usize, f64)>,
+    /// Training rollouts simulated per candidate.
+    pub rollouts: usize,
+}
+
+/// The fewest substeps from `physics.substeps` up that start `model` at
+/// `dt²ω² + 2·dt·γ ≤ 1`, or `None` beyond [`MAX_SUBSTEP_FACTOR`] times the run's.
+fn stable_substeps(topology: &Topology, physics: &Physics, model: &SpringNet) -> Option<usize> {
+    let mut p = physics.clone();
+    (physics.substeps..=physics.substeps * MAX_SUBSTEP_FACTOR).find(|&n| {
+        p.substeps = n;
+        p.stability_of(topology, model).number() <= AUTO_SUBSTEPS_TARGET
+    })
+}
+
+/// Searches the factors of `model`'s `k` and `b` on `train_files`; returns the scaled network,
+/// the physics it runs at (substeps possibly raised) and the record.
+pub fn search(
+    model: &SpringNet,
+    topology: &Topology,
+    physics: &Physics,
+    train_files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+    progress: &Progress,
+) -> Result<(SpringNet, Physics, ScaleSearch)> {
+    let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
+    let (k, b) = (model.k_values(), model.b_values());
+    let scaled = |fk: f64, fb: f64| {
+        let k: Vec<f64> = k.iter().map(|v| v * fk).collect();
+        let b: Vec<f64> = b.iter().map(|v| v * fb).collect();
+        SpringNet::new(topology, &k, &b, device).with_kernel(model.graph.kernel)
+    };
+    let mut candidates: Vec<(f64, f64, usize, f64)> = Vec::new();
+    let mut score = |fk: f64, fb: f64| -> Option<f64> {
+        let net = scaled(fk, fb);
+        let n = stable_substeps(topology, physics, &net)?;
+        let p = Physics {
+            substeps: n,
+            ..physics.clone()
+        };
+        let r = network_rollout_rmse(&net, topology, &p, &files, batch, device)?;
+        candidates.push((fk, fb, n, r));
+        Some(r)
+    };
+    let bar = progress.bar(
+        (K_STEPS.count() + B_STEPS.count() + 2) as u64,
+        "scale search",
+    );
+    let before = score(1.0, 1.0);
+    let mut best = (1.0, 1.0, before.unwrap_or(f64::INFINITY));
+    let mut consider = |fk: f64, fb: f64, best: &mut (f64, f64, f64)| {
+        if let Some(r) = score(fk, fb)
+            && r < best.2
+        {
+            *best = (fk, fb, r);
+        }
+        bar.inc(1);
+    };
+    for i in K_STEPS {
+        consider(2f64.powf(i as f64 / 2.0), 1.0, &mut best);
+    }
+    let fk = best.0;
+    for i in B_STEPS {
+        consider(fk, 2f64.powi(i), &mut best);
+    }
+    let (fk, fb) = (best.0, best.1);
+    for f in [-0.25, 0.25] {
+        consider(fk * 2f64.powf(f), fb, &mut best);
+    }
+    bar.finish();
+    let (fk, fb, after) = best;
+    if !after.is_finite() {
+        bail!("the scale search found no stable scaling of the trained network");
+    }
+    let net = scaled(fk, fb);
+    let substeps = stable_substeps(topology, physics, &net).expect("scored as stable");
+    let physics = Physics {
+        substeps,
+        ..physics.clone()
+    };
+    candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+    let record = ScaleSearch {
+        k_factor: fk,
+        b_factor: fb,
+        substeps,
+        before,
+        after,
+        candidates,
+        rollouts: files.len(),
+    };
+    Ok((net, physics, record))
+}
