@@ -56,7 +56,7 @@ pub struct ScaleSearch {
 /// The fewest substeps from `physics.substeps` up that start `model` at
 /// `dt²ω² + 2·dt·γ ≤ 1`, or `None` beyond [`MAX_SUBSTEP_FACTOR`] times the run's.
 fn stable_substeps(topology: &Topology, physics: &Physics, model: &SpringNet) -> Option<usize> {
-    let mut p = physics.clone();
+    let mut p = *physics;
     (physics.substeps..=physics.substeps * MAX_SUBSTEP_FACTOR).find(|&n| {
         p.substeps = n;
         p.stability_of(topology, model).number() <= AUTO_SUBSTEPS_TARGET
@@ -87,7 +87,7 @@ pub fn search(
         let n = stable_substeps(topology, physics, &net)?;
         let p = Physics {
             substeps: n,
-            ..physics.clone()
+            ..*physics
         };
         let r = network_rollout_rmse(&net, topology, &p, &files, batch, device)?;
         candidates.push((fk, fb, n, r));
@@ -127,7 +127,7 @@ pub fn search(
     let substeps = stable_substeps(topology, physics, &net).expect("scored as stable");
     let physics = Physics {
         substeps,
-        ..physics.clone()
+        ..*physics
     };
     candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let record = ScaleSearch {
