@@ -23,7 +23,7 @@ pub struct Edges {
 
 impl Edges {
     /// The edges of the rollout's triangle mesh when it has one, else each landmark's
-    /// [`NEIGHBOURS`] nearest landmarks in the rest rectangle; pairs of coinciding rest
+    /// four nearest landmarks in the rest rectangle; pairs of coinciding rest
     /// positions are left out.
     pub fn of(r: &Rollout) -> Edges {
         let uv = &r.rest_uv;
@@ -66,7 +66,7 @@ impl Edges {
     }
 
     /// Strains `|x_a − x_b| / l₀ − 1` of every edge in frames `0, s, 2s, …` of `r` (with `s`
-    /// chosen to keep at most [`SAMPLES_PER_FILE`]), with the largest one and where it is.
+    /// chosen to keep at most 200,000 strains), with the largest one and where it is.
     pub fn strains(&self, r: &Rollout, out: &mut Vec<f32>) -> Option<Peak> {
         if self.is_empty() {
             return None;
