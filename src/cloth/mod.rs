@@ -5,7 +5,7 @@
 mod topology;
 
 pub mod lanes;
-mod resample;
+pub(crate) mod resample;
 pub mod triangles;
 
 pub use resample::Resampler;

@@ -116,7 +116,8 @@ impl Resampler {
     }
 }
 
-fn bbox_diagonal(points: &[[f64; 2]]) -> f64 {
+/// Smallest and largest coordinates of `points`.
+fn bbox(points: &[[f64; 2]]) -> ([f64; 2], [f64; 2]) {
     let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
     for p in points {
         for c in 0..2 {
@@ -124,6 +125,11 @@ fn bbox_diagonal(points: &[[f64; 2]]) -> f64 {
             hi[c] = hi[c].max(p[c]);
         }
     }
+    (lo, hi)
+}
+
+fn bbox_diagonal(points: &[[f64; 2]]) -> f64 {
+    let (lo, hi) = bbox(points);
     ((hi[0] - lo[0]).powi(2) + (hi[1] - lo[1]).powi(2)).sqrt()
 }
 
@@ -132,7 +138,7 @@ fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
 }
 
 /// Indices of the `k` landmarks nearest to `p`, nearest first (ties by index).
-fn nearest(landmarks: &[[f64; 2]], p: [f64; 2], k: usize) -> Vec<usize> {
+pub(crate) fn nearest(landmarks: &[[f64; 2]], p: [f64; 2], k: usize) -> Vec<usize> {
     let mut best: Vec<(f64, usize)> = Vec::with_capacity(k + 1);
     for (i, &l) in landmarks.iter().enumerate() {
         let d = dist2(l, p);
@@ -170,13 +176,7 @@ impl<'a> Locator<'a> {
             .map(|t| [t[0], t[1], t[2]])
             .filter(|t| twice_area(points, *t).abs() > SLIVER * scale * scale)
             .collect();
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for p in points {
-            for c in 0..2 {
-                lo[c] = lo[c].min(p[c]);
-                hi[c] = hi[c].max(p[c]);
-            }
-        }
+        let (lo, hi) = bbox(points);
         let side = (triangles.len().max(1) as f64).sqrt().ceil() as usize;
         let cell = ((hi[0] - lo[0]).max(hi[1] - lo[1]) / side as f64).max(scale * 1e-12);
         let cells = [

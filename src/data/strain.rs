@@ -188,11 +188,8 @@ impl StrainStats {
             p50,
             p95,
             abs_p95: at(&abs, 0.95),
-            overstretched: self
-                .samples
-                .iter()
-                .filter(|&&s| s as f64 > OVERSTRETCHED)
-                .count() as f64
+            overstretched: (n - self.samples.partition_point(|&s| s as f64 <= OVERSTRETCHED))
+                as f64
                 / n as f64,
             max: self.max,
         })
@@ -258,21 +255,14 @@ impl StrainSummary {
     }
 }
 
-/// The [`NEIGHBOURS`] landmarks nearest to landmark `i` in the rest rectangle (brute force:
-/// landmark sets are thousands, and this runs once per dataset).
+/// The [`NEIGHBOURS`] landmarks nearest to landmark `i` in the rest rectangle (the resampler's
+/// search, which counts `i` itself).
 fn nearest(uv: &[[f64; 2]], i: usize) -> Vec<usize> {
-    let mut d: Vec<(f64, usize)> = uv
-        .iter()
-        .enumerate()
-        .filter(|&(j, _)| j != i)
-        .map(|(j, p)| ((p[0] - uv[i][0]).powi(2) + (p[1] - uv[i][1]).powi(2), j))
-        .collect();
-    let k = NEIGHBOURS.min(d.len());
-    if k == 0 {
-        return Vec::new();
-    }
-    d.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0));
-    d[..k].iter().map(|&(_, j)| j).collect()
+    crate::cloth::resample::nearest(uv, uv[i], (NEIGHBOURS + 1).min(uv.len()))
+        .into_iter()
+        .filter(|&j| j != i)
+        .take(NEIGHBOURS)
+        .collect()
 }
 
 #[cfg(test)]

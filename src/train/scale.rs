@@ -81,29 +81,35 @@ pub fn search(
         let b: Vec<f64> = b.iter().map(|v| v * fb).collect();
         SpringNet::new(topology, &k, &b, device).with_kernel(model.graph.kernel)
     };
-    let mut candidates: Vec<(f64, f64, usize, f64)> = Vec::new();
-    let mut score = |fk: f64, fb: f64| -> Option<f64> {
+    // Every pair is simulated once: the coarse k row meets the b row at its best k, and the
+    // start (1, 1) lies on the k row.
+    let mut tried: Vec<(f64, f64, Option<(usize, f64)>)> = Vec::new();
+    let mut score = |fk: f64, fb: f64| -> Option<(usize, f64)> {
+        if let Some(&(_, _, known)) = tried.iter().find(|t| t.0 == fk && t.1 == fb) {
+            return known;
+        }
         let net = scaled(fk, fb);
-        let n = stable_substeps(topology, physics, &net)?;
-        let p = Physics {
-            substeps: n,
-            ..*physics
-        };
-        let r = network_rollout_rmse(&net, topology, &p, &files, batch, device)?;
-        candidates.push((fk, fb, n, r));
-        Some(r)
+        let found = stable_substeps(topology, physics, &net).and_then(|n| {
+            let p = Physics {
+                substeps: n,
+                ..*physics
+            };
+            network_rollout_rmse(&net, topology, &p, &files, batch, device).map(|r| (n, r))
+        });
+        tried.push((fk, fb, found));
+        found
     };
     let bar = progress.bar(
         (K_STEPS.count() + B_STEPS.count() + 2) as u64,
         "scale search",
     );
-    let before = score(1.0, 1.0);
-    let mut best = (1.0, 1.0, before.unwrap_or(f64::INFINITY));
-    let mut consider = |fk: f64, fb: f64, best: &mut (f64, f64, f64)| {
-        if let Some(r) = score(fk, fb)
-            && r < best.2
+    let before = score(1.0, 1.0).map(|(_, r)| r);
+    let mut best = (1.0, 1.0, physics.substeps, before.unwrap_or(f64::INFINITY));
+    let mut consider = |fk: f64, fb: f64, best: &mut (f64, f64, usize, f64)| {
+        if let Some((n, r)) = score(fk, fb)
+            && r < best.3
         {
-            *best = (fk, fb, r);
+            *best = (fk, fb, n, r);
         }
         bar.inc(1);
     };
@@ -119,16 +125,19 @@ pub fn search(
         consider(fk * 2f64.powf(f), fb, &mut best);
     }
     bar.finish();
-    let (fk, fb, after) = best;
+    let (fk, fb, substeps, after) = best;
     if !after.is_finite() {
         bail!("the scale search found no stable scaling of the trained network");
     }
     let net = scaled(fk, fb);
-    let substeps = stable_substeps(topology, physics, &net).expect("scored as stable");
     let physics = Physics {
         substeps,
         ..*physics
     };
+    let mut candidates: Vec<(f64, f64, usize, f64)> = tried
+        .into_iter()
+        .filter_map(|(fk, fb, found)| found.map(|(n, r)| (fk, fb, n, r)))
+        .collect();
     candidates.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
     let record = ScaleSearch {
         k_factor: fk,
