@@ -33,6 +33,9 @@ const B_STEPS: std::ops::RangeInclusive<i32> = -4..=4;
 /// The search raises the substeps at most this many times over the run's.
 const MAX_SUBSTEP_FACTOR: usize = 8;
 
+/// A candidate's substeps and mean motion RMSE; `None` when it is unstable or diverged.
+type Scored = Option<(usize, f64)>;
+
 /// `scale.json`: what the search tried and kept.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ScaleSearch {
@@ -83,8 +86,8 @@ pub fn search(
     };
     // Every pair is simulated once: the coarse k row meets the b row at its best k, and the
     // start (1, 1) lies on the k row.
-    let mut tried: Vec<(f64, f64, Option<(usize, f64)>)> = Vec::new();
-    let mut score = |fk: f64, fb: f64| -> Option<(usize, f64)> {
+    let mut tried: Vec<(f64, f64, Scored)> = Vec::new();
+    let mut score = |fk: f64, fb: f64| -> Scored {
         if let Some(&(_, _, known)) = tried.iter().find(|t| t.0 == fk && t.1 == fb) {
             return known;
         }
