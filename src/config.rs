@@ -7,10 +7,10 @@ use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
-use crate::cloth::GridSpec;
+use crate::cloth::{GridSpec, SpringLayout};
 use crate::data::DataConfig;
 use crate::eval::EvalConfig;
-use crate::model::ModelConfig;
+use crate::model::{ModelConfig, ModelKind};
 use crate::sim::SimConfig;
 use crate::source::SourceConfig;
 use crate::train::TrainConfig;
@@ -81,6 +81,12 @@ impl Config {
         }
         if self.cloth.nx < 2 || self.cloth.ny < 2 {
             bail!("`cloth.nx` and `cloth.ny` must be at least 2");
+        }
+        if self.cloth.layout == SpringLayout::Data && self.model.kind != ModelKind::Springs {
+            bail!(
+                "`cloth.layout = \"data\"` is for the spring surrogate; `model.kind` is {:?}",
+                self.model.kind.name()
+            );
         }
         if self.sim.substeps == Auto::Value(0) {
             bail!("`sim.substeps` must be at least 1");
@@ -175,9 +181,12 @@ fn key_help(key: &str) -> Option<&'static str> {
         ("name", _) => "run name: runs/<name>",
         ("backend", _) => "compute backend: flex, ndarray or wgpu",
         ("runs_dir", _) => "where runs go",
-        ("cloth", _) => "the surrogate's particle grid",
-        ("cloth.nx" | "cloth.ny", _) => "particles along width / height",
-        ("cloth.bending_stride", _) => "stride of the bending springs (0 = none)",
+        ("cloth", _) => "the surrogate's particles and springs",
+        ("cloth.layout", _) => "grid (the paper's) or data (the data's landmarks and mesh edges)",
+        ("cloth.nx" | "cloth.ny", _) => "particles along width / height (layout = grid)",
+        ("cloth.bending_stride", _) => {
+            "stride of the bending springs (0 = none; layout = data: > 0 adds the hinge springs)"
+        }
         ("model", _) => "the model family and its initial parameters",
         ("model.kind", _) => "springs, neural_ode or gnn",
         ("model.k_init", _) => "uniform initial stiffness, N/m",

@@ -203,6 +203,11 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
     assert!(out.contains("13 frames of 20 points"), "{out}");
     let r = Rollout::load(&dir.join("data/swing.npz")).unwrap();
     assert_eq!((r.frames, r.landmarks), (13, 20));
+    // The faces come along as the key `triangles` (0-based), without a stiffness map.
+    let mesh = r.mesh.as_ref().expect("the OBJ's faces are stored");
+    assert_eq!(mesh.triangles.len(), 24);
+    assert_eq!(mesh.triangles[0], [0, 1, 6]);
+    assert_eq!(mesh.stiffness, None);
     // Texture coordinates on the unit square, scaled per axis to the 0.8 m × 0.6 m sheet.
     assert!(
         close(r.width, 0.8) && close(r.height, 0.6),
@@ -279,6 +284,7 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
     let p = Rollout::load(&dir.join("data/swing_cache.npz")).unwrap();
     assert_eq!(p.positions, r.positions);
     assert_eq!(p.rest_uv, r.rest_uv);
+    assert_eq!(p.mesh, r.mesh);
 
     // And as tracked points with rest coordinates, rows shuffled.
     let mut csv = String::from("point,frame,x,y,z,u,v,confidence\n");
@@ -306,6 +312,7 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
     ));
     let c = Rollout::load(&dir.join("data/markers.npz")).unwrap();
     assert_eq!(c.positions, r.positions);
+    assert!(c.mesh.is_none(), "tracked points have no mesh");
     assert!(close(c.width, 0.8) && close(c.height, 0.6));
     for (a, b) in c.rest_uv.iter().zip(&r.rest_uv) {
         assert!(close(a[0], b[0]) && close(a[1], b[1]), "{a:?} vs {b:?}");

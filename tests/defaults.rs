@@ -31,7 +31,7 @@ fn open(dir: &std::path::Path, config: &Config) -> ClipSet {
     ClipSet::open(
         &files,
         &config.data.clips,
-        |w, h| springtime::train::topology(config, w, h),
+        |r| springtime::train::topology(config, r),
         256,
         |_| {},
     )

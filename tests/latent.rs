@@ -596,6 +596,7 @@ fn small_surrogate() -> SurrogateJson {
             shear_main: true,
             shear_anti: true,
             bending_stride: 2,
+            ..GridSpec::default()
         },
         0.3,
         0.4,
@@ -604,7 +605,8 @@ fn small_surrogate() -> SurrogateJson {
     SurrogateJson {
         format: springtime::export::FORMAT.into(),
         units: "SI".into(),
-        grid: [topo.nx, topo.ny],
+        grid: topo.grid,
+        triangles: topo.triangles.clone(),
         width: topo.width,
         height: topo.height,
         masses: vec![0.01; topo.num_particles()],

@@ -157,3 +157,34 @@ fn an_index_json_of_another_tool_is_ignored() {
     assert!(err.contains("springtime-rollouts/9"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_mesh_without_a_stiffness_map_loads_and_a_map_without_a_mesh_is_refused() {
+    use springtime::data::npz::Array;
+    let dir = common::temp_dir("npz_mesh_keys");
+    let mut npz = Npz::read(&fixture("npz_savez.npz")).unwrap();
+    // The 3 × 3 landmarks' cells cut along their main diagonals.
+    let tris: Vec<i32> = [
+        0, 1, 4, 0, 4, 3, 1, 2, 5, 1, 5, 4, 3, 4, 7, 3, 7, 6, 4, 5, 8, 4, 8, 7,
+    ]
+    .to_vec();
+    npz.insert("triangles", Array::i32(&[8, 3], &tris));
+    let with_mesh = dir.join("mesh.npz");
+    npz.write(&with_mesh).unwrap();
+    let r = Rollout::load(&with_mesh).unwrap();
+    let mesh = r.mesh.expect("the mesh is read");
+    assert_eq!((mesh.triangles.len(), mesh.triangles[1]), (8, [0, 4, 3]));
+    assert_eq!(mesh.stiffness, None);
+
+    let mut npz = Npz::read(&fixture("npz_savez.npz")).unwrap();
+    npz.insert("tri_stiffness", Array::f32(&[8], &[1.0; 8]));
+    let map_only = dir.join("map_only.npz");
+    npz.write(&map_only).unwrap();
+    let err = format!("{:#}", Rollout::load(&map_only).unwrap_err());
+    assert!(
+        err.contains("map_only.npz")
+            && err.contains("`tri_stiffness`")
+            && err.contains("`triangles`"),
+        "{err}"
+    );
+}

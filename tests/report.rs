@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 
 use springtime::cloth::{GridSpec, Topology};
 use springtime::data::{MeshTruth, Rollout};
-use springtime::source::{Diagonal, fem::grid_triangles};
 
 const TINY: &str = r#"
 name = "tiny"
@@ -142,13 +141,13 @@ fn train_writes_a_report_with_every_figure_embedded() {
             r.width,
             r.height,
         );
-        let triangles = grid_triangles(topo.nx, topo.ny, Diagonal::Main);
+        let triangles = topo.triangles.clone();
         let stiffness = (0..triangles.len())
             .map(|t| if (t / 2) % 5 < 2 { 1e4 } else { 1e3 })
             .collect();
         r.mesh = Some(MeshTruth {
             triangles,
-            stiffness,
+            stiffness: Some(stiffness),
         });
         r.save(&test_dir.join(f)).unwrap();
     }
@@ -537,7 +536,7 @@ fn plotting_primitives_write_pngs_of_their_size() {
         png_size(&map),
         (plot::MAP_PANEL.0 + plot::COLORBAR_WIDTH, plot::MAP_PANEL.1)
     );
-    let tris = grid_triangles(topo.nx, topo.ny, Diagonal::Main);
+    let tris = topo.triangles.clone();
     let tv: Vec<f64> = (0..tris.len()).map(|t| (t % 3) as f64).collect();
     let tmap = dir.join("tri.png");
     plot::triangle_map_png(&tmap, &topo.rest_uv, &tris, &tv, "FEM", (0.0, 2.0), "E").unwrap();

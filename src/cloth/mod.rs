@@ -9,4 +9,4 @@ pub(crate) mod resample;
 pub mod triangles;
 
 pub use resample::Resampler;
-pub use topology::{GridSpec, SpringFamily, Topology};
+pub use topology::{Diagonal, GridSpec, SpringFamily, SpringLayout, Topology, grid_triangles};

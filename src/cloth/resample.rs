@@ -165,17 +165,7 @@ impl<'a> Locator<'a> {
     /// Delaunay triangles of `points` without slivers, each listed in every grid cell its
     /// bounding box touches.
     fn new(points: &'a [[f64; 2]], scale: f64) -> Self {
-        let pts: Vec<delaunator::Point> = points
-            .iter()
-            .map(|p| delaunator::Point { x: p[0], y: p[1] })
-            .collect();
-        let tri = delaunator::triangulate(&pts);
-        let triangles: Vec<[usize; 3]> = tri
-            .triangles
-            .chunks_exact(3)
-            .map(|t| [t[0], t[1], t[2]])
-            .filter(|t| twice_area(points, *t).abs() > SLIVER * scale * scale)
-            .collect();
+        let triangles = delaunay(points);
         let (lo, hi) = bbox(points);
         let side = (triangles.len().max(1) as f64).sqrt().ceil() as usize;
         let cell = ((hi[0] - lo[0]).max(hi[1] - lo[1]) / side as f64).max(scale * 1e-12);
@@ -234,6 +224,29 @@ impl<'a> Locator<'a> {
 }
 
 /// Twice the signed area of triangle `t`.
+/// The Delaunay triangles of `points` (by `delaunator`), counter-clockwise, without slivers
+/// (twice the area below `SLIVER` times the bounding box's squared diagonal).
+pub(crate) fn delaunay(points: &[[f64; 2]]) -> Vec<[usize; 3]> {
+    let scale = bbox_diagonal(points).max(f64::MIN_POSITIVE);
+    let pts: Vec<delaunator::Point> = points
+        .iter()
+        .map(|p| delaunator::Point { x: p[0], y: p[1] })
+        .collect();
+    delaunator::triangulate(&pts)
+        .triangles
+        .chunks_exact(3)
+        .map(|t| {
+            let t = [t[0], t[1], t[2]];
+            if twice_area(points, t) < 0.0 {
+                [t[0], t[2], t[1]]
+            } else {
+                t
+            }
+        })
+        .filter(|t| twice_area(points, *t).abs() > SLIVER * scale * scale)
+        .collect()
+}
+
 fn twice_area(points: &[[f64; 2]], t: [usize; 3]) -> f64 {
     let (a, b, c) = (points[t[0]], points[t[1]], points[t[2]]);
     (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])

@@ -1,9 +1,19 @@
-//! The surrogate's spring network on a regular grid (paper §3.1, Fig. 5).
+//! The surrogate's spring network: on a regular grid (paper §3.1, Fig. 5), or on the data's own
+//! triangle mesh (ours).
 //!
-//! Particle `p = row * nx + col` sits at rest at `(col * hx, row * hy)` in the unrolled
-//! `width × height` rectangle, `hx = width / (nx - 1)`, `hy = height / (ny - 1)`. Springs join
-//! grid neighbours: structural (horizontal, vertical), shear (the two diagonals, each
-//! switchable) and bending (stride `bending_stride` horizontally and vertically, 0 = none).
+//! **Grid** (`cloth.layout = "grid"`): particle `p = row * nx + col` sits at rest at
+//! `(col * hx, row * hy)` in the unrolled `width × height` rectangle, `hx = width / (nx - 1)`,
+//! `hy = height / (ny - 1)`. Springs join grid neighbours: structural (horizontal, vertical),
+//! shear (the two diagonals, each switchable) and bending (stride `bending_stride` horizontally
+//! and vertically, 0 = none).
+//!
+//! **Data mesh** (`cloth.layout = "data"`): the particles are the data's landmarks, at their
+//! `rest_uv`; structural springs are the edges of the data's triangles (key `triangles`, or the
+//! Delaunay triangulation of `rest_uv` when the files have none), and bending springs join the
+//! two vertices opposite each interior edge (the "hinge" pair; when `bending_stride > 0`). No
+//! landmark is interpolated, so a per-spring stiffness sits where the data's forces act: on
+//! an irregular mesh a grid's particles are averages of several vertices, whose accelerations
+//! no spring attached to the particle produces (README "Data from another simulator").
 
 use serde::{Deserialize, Serialize};
 
@@ -19,8 +29,22 @@ pub struct GridSpec {
     pub shear_main: bool,
     /// Shear springs along the anti-diagonal, `(r, c+1) – (r+1, c)`.
     pub shear_anti: bool,
-    /// Stride of the bending springs in grid steps (the paper uses 2); 0 disables them.
+    /// Stride of the bending springs in grid steps (the paper uses 2); 0 disables them. With
+    /// `layout = "data"`, any positive value adds the hinge springs.
     pub bending_stride: usize,
+    /// Where the particles and springs come from: the paper's grid, or the data's mesh.
+    pub layout: SpringLayout,
+}
+
+/// The surrogate's particles and springs: `cloth.layout`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SpringLayout {
+    /// An `nx × ny` grid over the rest rectangle (paper §3.1); landmarks are resampled onto it.
+    #[default]
+    Grid,
+    /// The data's landmarks and triangle edges, plus hinge springs (ours).
+    Data,
 }
 
 impl Default for GridSpec {
@@ -32,8 +56,48 @@ impl Default for GridSpec {
             shear_main: true,
             shear_anti: true,
             bending_stride: 2,
+            layout: SpringLayout::Grid,
         }
     }
+}
+
+/// How each grid cell is cut into two triangles.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Diagonal {
+    /// Along `(r, c)–(r+1, c+1)` in every cell: a fold along the sheet's main diagonal follows
+    /// mesh edges ("aligned").
+    #[default]
+    Main,
+    /// Along `(r, c+1)–(r+1, c)` in every cell: a fold along the main diagonal cuts across the
+    /// mesh edges ("misaligned").
+    Anti,
+    /// Main and anti diagonals in a checkerboard.
+    Alternating,
+}
+
+/// The triangles of an `nx × ny` grid (counter-clockwise in the rest rectangle).
+pub fn grid_triangles(nx: usize, ny: usize, diagonal: Diagonal) -> Vec<[usize; 3]> {
+    let id = |r: usize, c: usize| r * nx + c;
+    let mut tris = Vec::with_capacity(2 * (nx - 1) * (ny - 1));
+    for r in 0..ny - 1 {
+        for c in 0..nx - 1 {
+            let main = match diagonal {
+                Diagonal::Main => true,
+                Diagonal::Anti => false,
+                Diagonal::Alternating => (r + c) % 2 == 0,
+            };
+            let (p00, p01, p10, p11) = (id(r, c), id(r, c + 1), id(r + 1, c), id(r + 1, c + 1));
+            if main {
+                tris.push([p00, p01, p11]);
+                tris.push([p00, p11, p10]);
+            } else {
+                tris.push([p00, p01, p10]);
+                tris.push([p01, p11, p10]);
+            }
+        }
+    }
+    tris
 }
 
 /// The kind of a spring, for reports and per-family metrics.
@@ -71,10 +135,11 @@ impl SpringFamily {
 /// A mass-spring network over a rectangle: particles at rest, springs, rest lengths.
 #[derive(Debug, Clone)]
 pub struct Topology {
-    /// Particles along x.
-    pub nx: usize,
-    /// Particles along y.
-    pub ny: usize,
+    /// Particles along x and y of a grid network; `None` on a data mesh.
+    pub grid: Option<[usize; 2]>,
+    /// The rest sheet's triangles (a grid's cells cut along their main diagonal, or the data's
+    /// mesh), counter-clockwise: for drawing and exporting the cloth.
+    pub triangles: Vec<[usize; 3]>,
     /// Rectangle width in metres.
     pub width: f64,
     /// Rectangle height in metres.
@@ -132,8 +197,8 @@ impl Topology {
             add(SpringFamily::Bending, s, 0, 0);
         }
         let mut topo = Self {
-            nx,
-            ny,
+            grid: Some([nx, ny]),
+            triangles: grid_triangles(nx, ny, Diagonal::Main),
             width,
             height,
             rest_uv,
@@ -147,6 +212,129 @@ impl Topology {
             .map(|&[a, b]| distance(topo.rest_uv[a], topo.rest_uv[b]))
             .collect();
         topo
+    }
+
+    /// The network on a triangle mesh over a `width × height` rest rectangle (`layout =
+    /// "data"`): particles at `rest_uv`, structural springs on the triangles' edges and, with
+    /// `hinges`, a bending spring between the two vertices opposite each interior edge.
+    ///
+    /// Errors (the caller names the file) on an index out of range, a degenerate triangle, or
+    /// a vertex in no triangle (it would fall freely).
+    pub fn mesh(
+        rest_uv: &[[f64; 2]],
+        triangles: &[[usize; 3]],
+        width: f64,
+        height: f64,
+        hinges: bool,
+    ) -> Result<Self, String> {
+        let n = rest_uv.len();
+        let mut used = vec![false; n];
+        let mut ccw = Vec::with_capacity(triangles.len());
+        for (i, &t) in triangles.iter().enumerate() {
+            if t.iter().any(|&v| v >= n) {
+                return Err(format!(
+                    "triangle {i} {t:?} names a vertex beyond the {n} landmarks"
+                ));
+            }
+            let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
+            let area2 = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]);
+            if area2.abs() <= 1e-12 * width * height {
+                return Err(format!("triangle {i} {t:?} is degenerate (zero rest area)"));
+            }
+            t.iter().for_each(|&v| used[v] = true);
+            ccw.push(if area2 > 0.0 { t } else { [t[0], t[2], t[1]] });
+        }
+        if let Some(v) = used.iter().position(|u| !u) {
+            return Err(format!(
+                "landmark {v} is in no triangle: the data mesh would leave it without springs"
+            ));
+        }
+        // Each undirected edge with the vertices opposite it (one on the border, two inside).
+        let mut opposite: std::collections::BTreeMap<[usize; 2], Vec<usize>> = Default::default();
+        for t in &ccw {
+            for j in 0..3 {
+                let (a, b) = (t[j], t[(j + 1) % 3]);
+                opposite
+                    .entry([a.min(b), a.max(b)])
+                    .or_default()
+                    .push(t[(j + 2) % 3]);
+            }
+        }
+        let mut springs: Vec<[usize; 2]> = opposite.keys().copied().collect();
+        let mut family = vec![SpringFamily::Structural; springs.len()];
+        if hinges {
+            let mut seen: std::collections::BTreeSet<[usize; 2]> =
+                opposite.keys().copied().collect();
+            for far in opposite.values().filter(|o| o.len() == 2) {
+                let pair = [far[0].min(far[1]), far[0].max(far[1])];
+                if seen.insert(pair) {
+                    springs.push(pair);
+                    family.push(SpringFamily::Bending);
+                }
+            }
+        }
+        let rest_length = springs
+            .iter()
+            .map(|&[a, b]| distance(rest_uv[a], rest_uv[b]))
+            .collect();
+        Ok(Self {
+            grid: None,
+            triangles: ccw,
+            width,
+            height,
+            rest_uv: rest_uv.to_vec(),
+            springs,
+            rest_length,
+            family,
+        })
+    }
+
+    /// The network on the Delaunay triangulation of `rest_uv` (slivers dropped), for data that
+    /// brings points without a mesh; otherwise as [`Topology::mesh`].
+    pub fn of_points(
+        rest_uv: &[[f64; 2]],
+        width: f64,
+        height: f64,
+        hinges: bool,
+    ) -> Result<Self, String> {
+        let triangles = super::resample::delaunay(rest_uv);
+        Self::mesh(rest_uv, &triangles, width, height, hinges)
+    }
+
+    /// A typical distance between neighbouring particles, m: the grid step (the smaller of
+    /// the two), or the median structural rest length of a mesh.
+    pub fn spacing(&self) -> f64 {
+        if let Some([nx, ny]) = self.grid {
+            return (self.width / (nx - 1).max(1) as f64).min(self.height / (ny - 1).max(1) as f64);
+        }
+        let mut l: Vec<f64> = (0..self.num_springs())
+            .filter(|&s| self.family[s] == SpringFamily::Structural)
+            .map(|s| self.rest_length[s])
+            .collect();
+        l.sort_by(f64::total_cmp);
+        l.get(l.len() / 2)
+            .copied()
+            .unwrap_or(self.width.min(self.height))
+    }
+
+    /// The rest sheet's edges, each once: what a wireframe draws.
+    pub fn edges(&self) -> Vec<[usize; 2]> {
+        let mut e: Vec<[usize; 2]> = self
+            .triangles
+            .iter()
+            .flat_map(|t| (0..3).map(move |j| [t[j].min(t[(j + 1) % 3]), t[j].max(t[(j + 1) % 3])]))
+            .collect();
+        e.sort_unstable();
+        e.dedup();
+        e
+    }
+
+    /// "32 × 32 particles" or "625 particles on the data's mesh", for reports.
+    pub fn describe(&self) -> String {
+        match self.grid {
+            Some([nx, ny]) => format!("{nx} × {ny} particles"),
+            None => format!("{} particles on the data's mesh", self.num_particles()),
+        }
     }
 
     /// Number of particles `P`.
@@ -285,6 +473,73 @@ mod tests {
             Topology::grid(&no_shear, 2.0, 6.0).num_springs(),
             2 * 4 + 3 * 3
         );
+    }
+
+    #[test]
+    fn a_data_mesh_has_its_edges_and_one_hinge_per_interior_edge() {
+        // Two triangles sharing the diagonal 0–2 of a unit square (one listed clockwise), and a
+        // third on edge 1–2 with apex 4.
+        let uv = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [2.0, 0.5]];
+        let tris = [[0, 1, 2], [0, 3, 2], [1, 4, 2]];
+        let topo = Topology::mesh(&uv, &tris, 2.0, 1.0, true).unwrap();
+        assert_eq!(topo.grid, None);
+        let structural: Vec<[usize; 2]> = (0..topo.num_springs())
+            .filter(|&s| topo.family[s] == SpringFamily::Structural)
+            .map(|s| topo.springs[s])
+            .collect();
+        assert_eq!(
+            structural,
+            vec![[0, 1], [0, 2], [0, 3], [1, 2], [1, 4], [2, 3], [2, 4]]
+        );
+        let bending: Vec<[usize; 2]> = (0..topo.num_springs())
+            .filter(|&s| topo.family[s] == SpringFamily::Bending)
+            .map(|s| topo.springs[s])
+            .collect();
+        // Across 0–2: vertices 1 and 3; across 1–2: vertices 0 and 4.
+        assert_eq!(bending, vec![[1, 3], [0, 4]]);
+        assert!((topo.rest_length[topo.num_springs() - 1] - 2.0615528128088303).abs() < 1e-12);
+        // Every triangle counter-clockwise.
+        for t in &topo.triangles {
+            let (a, b, c) = (uv[t[0]], uv[t[1]], uv[t[2]]);
+            assert!((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]) > 0.0);
+        }
+        assert_eq!(topo.edges().len(), 7);
+        assert_eq!(
+            Topology::mesh(&uv, &tris, 2.0, 1.0, false)
+                .unwrap()
+                .num_springs(),
+            7
+        );
+        let lonely = Topology::mesh(&uv, &tris[..2], 2.0, 1.0, true).unwrap_err();
+        assert!(lonely.contains("landmark 4 is in no triangle"), "{lonely}");
+        let flat = Topology::mesh(&uv, &[[0, 1, 4], [0, 2, 3]], 2.0, 1.0, true);
+        assert!(flat.is_ok());
+        let degenerate = [[0, 1, 1], [0, 2, 3], [1, 4, 2]];
+        let err = Topology::mesh(&uv, &degenerate, 2.0, 1.0, true).unwrap_err();
+        assert!(err.contains("triangle 0"), "{err}");
+    }
+
+    #[test]
+    fn a_grid_laid_out_as_a_data_mesh_has_the_grid_s_structural_and_shear_springs() {
+        // The grid's own triangles as a "data mesh": edges = structural + main-diagonal shear.
+        let spec = GridSpec {
+            nx: 4,
+            ny: 3,
+            ..GridSpec::default()
+        };
+        let grid = Topology::grid(&spec, 3.0, 2.0);
+        let mesh = Topology::mesh(&grid.rest_uv, &grid.triangles, 3.0, 2.0, false).unwrap();
+        let mut expect: Vec<[usize; 2]> = (0..grid.num_springs())
+            .filter(|&s| match grid.family[s] {
+                SpringFamily::Structural => true,
+                SpringFamily::Shear => grid.springs[s][1] == grid.springs[s][0] + 5,
+                SpringFamily::Bending => false,
+            })
+            .map(|s| grid.springs[s])
+            .collect();
+        expect.sort_unstable();
+        assert_eq!(mesh.springs, expect);
+        assert!((mesh.spacing() - grid.spacing()).abs() < 1e-12);
     }
 
     #[test]

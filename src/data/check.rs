@@ -12,7 +12,6 @@ use super::npz::Npz;
 use super::rollout::{KEYS, Rollout};
 use super::strain::{StrainStats, StrainSummary};
 use super::{DataConfig, Index, IndexFile};
-use crate::cloth::Topology;
 use crate::config::Config;
 use crate::sim::Stability;
 
@@ -48,8 +47,10 @@ impl Range {
 /// The stability of the configured surrogate on the data (uniform `k_init`, `b_init`).
 #[derive(Debug, Clone)]
 pub struct SurrogateStability {
-    /// Particles along width and height.
-    pub grid: [usize; 2],
+    /// Particles along width and height of a grid surrogate (`None` on the data's mesh).
+    pub grid: Option<[usize; 2]>,
+    /// The surrogate's layout in words ([`crate::cloth::Topology::describe`]).
+    pub layout: String,
     /// Uniform stiffness, N/m.
     pub k: f64,
     /// Uniform damping, N·s/m.
@@ -126,7 +127,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     if paths.is_empty() {
         bail!("{} lists no rollout files", Index::path(dir).display());
     }
-    let mut first: Option<(SetInfo, Vec<[f64; 2]>)> = None;
+    let mut first: Option<(SetInfo, Rollout)> = None;
     let (mut frames, mut pinned) = (None, None);
     let (mut total_frames, mut with_velocities, mut with_springs, mut with_mesh) = (0, 0, 0, 0);
     let mut ignored_keys = BTreeMap::new();
@@ -157,12 +158,9 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
             gravity: r.gravity,
             rayleigh: r.rayleigh,
         };
-        match &first {
-            None => first = Some((info, r.rest_uv.clone())),
-            Some((info0, uv0)) => {
-                check_same(info0, &info, path, paths[0])?;
-                check_same_landmarks(uv0, &r.rest_uv, path, paths[0])?;
-            }
+        if let Some((info0, r0)) = &first {
+            check_same(info0, &info, path, paths[0])?;
+            check_same_landmarks(&r0.rest_uv, &r.rest_uv, path, paths[0])?;
         }
         Range::add(&mut frames, r.frames);
         Range::add(&mut pinned, r.pinned.iter().filter(|&&p| p).count());
@@ -171,8 +169,11 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         with_springs += usize::from(r.springs.is_some());
         with_mesh += usize::from(r.mesh.is_some());
         strain.add(&r);
+        if first.is_none() {
+            first = Some((info, r));
+        }
     }
-    let (info, rest_uv) = first.expect("at least one file");
+    let (info, first) = first.expect("at least one file");
     // The surrogate training would start from: the config's values, its "auto"s resolved from
     // the training files exactly as `train` resolves them.
     let train_files = if split.train.is_empty() {
@@ -180,12 +181,12 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     } else {
         &split.train
     };
-    let topo = Topology::grid(&config.cloth, info.width, info.height);
+    let topo = crate::train::topology(config, &first)?;
     let mass = info.total_mass / topo.num_particles() as f64;
     let opened = ClipSet::open(
         train_files,
         &config.data.clips,
-        |w, h| Topology::grid(&config.cloth, w, h),
+        |r| crate::train::topology(config, r),
         config.data.cache_mib.min(1024),
         |_| {},
     );
@@ -216,7 +217,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         frames: frames.expect("at least one file"),
         total_frames,
         info,
-        landmarks: rest_uv.len(),
+        landmarks: first.rest_uv.len(),
         pinned: pinned.expect("at least one file"),
         with_velocities,
         with_springs,
@@ -224,7 +225,8 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         ignored_keys,
         strain: strain.summary(),
         surrogate: SurrogateStability {
-            grid: [topo.nx, topo.ny],
+            grid: topo.grid,
+            layout: topo.describe(),
             k,
             b,
             substeps,
@@ -276,8 +278,9 @@ impl DatasetReport {
         let _ = writeln!(s, "  total mass       {} kg", i.total_mass);
         let _ = writeln!(s, "  rest rectangle   {} m × {} m", i.width, i.height);
         let _ = writeln!(s, "  landmarks        {}", self.landmarks);
-        let [gx, gy] = self.surrogate.grid;
-        if gx * gy > 2 * self.landmarks {
+        if let Some([gx, gy]) = self.surrogate.grid
+            && gx * gy > 2 * self.landmarks
+        {
             // A grid of about as many particles as landmarks, with the rectangle's aspect.
             let aspect = i.width / i.height;
             let nx = ((self.landmarks as f64 * aspect).sqrt().round() as usize).max(2);
@@ -285,8 +288,9 @@ impl DatasetReport {
             let _ = writeln!(
                 s,
                 "  surrogate grid   {gx} × {gy} particles for {} landmarks: most particles are \
-                 interpolated between landmarks (a grid of about as many particles as \
-                 landmarks: --set cloth.nx={nx} --set cloth.ny={ny})",
+                 interpolated between landmarks (the landmarks themselves: --set \
+                 cloth.layout=data; a grid of about as many particles: --set cloth.nx={nx} \
+                 --set cloth.ny={ny})",
                 self.landmarks
             );
         }
@@ -339,10 +343,9 @@ impl DatasetReport {
         let st = &g.stability;
         let _ = writeln!(
             s,
-            "  stability        dt²ω² + 2dtγ = {:.4} for the surrogate ({} × {} particles, k = {} N/m, b = {} N·s/m, {} substep{} per frame, dt = {:.3e} s): {}",
+            "  stability        dt²ω² + 2dtγ = {:.4} for the surrogate ({}, k = {} N/m, b = {} N·s/m, {} substep{} per frame, dt = {:.3e} s): {}",
             st.number(),
-            g.grid[0],
-            g.grid[1],
+            g.layout,
             g.k,
             g.b,
             g.substeps,

@@ -338,11 +338,12 @@ impl Cache {
 impl ClipSet {
     /// Indexes `paths`: reads every file once to validate it and plan its clips.
     ///
-    /// `grid` makes the surrogate topology from the rollouts' rest rectangle.
+    /// `topology` makes the surrogate topology from the first rollout (its rest rectangle, or
+    /// its mesh).
     pub fn open(
         paths: &[PathBuf],
         clips: &ClipConfig,
-        grid: impl Fn(f64, f64) -> Topology,
+        topology_of: impl Fn(&Rollout) -> Result<Topology>,
         cache_mib: usize,
         mut progress: impl FnMut(usize),
     ) -> Result<Self> {
@@ -374,7 +375,7 @@ impl ClipSet {
             };
             match info {
                 None => {
-                    let topo = grid(this.width, this.height);
+                    let topo = topology_of(&rollout)?;
                     resampler = Some(Resampler::new(&rollout.rest_uv, &topo.rest_uv));
                     topology = Some(topo);
                     info = Some(this);

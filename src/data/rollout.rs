@@ -11,7 +11,8 @@
 //! | `velocities` | f32 | `[F, N, 3]` | optional; landmark velocities per frame, m/s |
 //! | `segments` | i64 | `[K, 2]` | optional; `(first frame, frame count)` of each stored window of a longer rollout, in order (default: one window from frame 0) |
 //! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
-//! | `triangles`, `tri_stiffness` | i32, f32 | `[M, 3]`, `[M]` | optional mesh and stiffness map of an FEM source |
+//! | `triangles` | i32 | `[M, 3]` | optional; the landmarks' triangle mesh (the surrogate's springs with `cloth.layout = "data"`) |
+//! | `tri_stiffness` | f32 | `[M]` | optional, with `triangles`; the stiffness map of an FEM source (ground truth) |
 //!
 //! Unknown keys are ignored, whatever their dtype ([`KEYS`] are the known ones). Loading validates shapes, dtypes, ranges and finiteness; every
 //! error names the file and the key.
@@ -44,13 +45,13 @@ pub struct SpringTruth {
     pub b: Vec<f64>,
 }
 
-/// Mesh and per-triangle stiffness of an FEM source.
+/// The landmarks' triangle mesh, with an FEM source's per-triangle stiffness.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MeshTruth {
     /// Triangles, indices into the landmarks.
     pub triangles: Vec<[usize; 3]>,
     /// Stiffness map value of every triangle.
-    pub stiffness: Vec<f64>,
+    pub stiffness: Option<Vec<f64>>,
 }
 
 /// One rollout as stored on disk.
@@ -216,6 +217,9 @@ impl Rollout {
         } else {
             None
         };
+        if npz.has("tri_stiffness") && !npz.has("triangles") {
+            bail!("{shown}: key `tri_stiffness` needs the key `triangles` it maps");
+        }
         let mesh = if npz.has("triangles") {
             let (tri, _) = npz.int("triangles", &[None, Some(3)])?;
             let m = tri.len() / 3;
@@ -233,10 +237,15 @@ impl Rollout {
                     );
                 }
             }
-            let stiffness = npz.f32("tri_stiffness", &[Some(m)])?.0;
+            let stiffness = if npz.has("tri_stiffness") {
+                let st = npz.f32("tri_stiffness", &[Some(m)])?.0;
+                Some(st.into_iter().map(f64::from).collect())
+            } else {
+                None
+            };
             Some(MeshTruth {
                 triangles,
-                stiffness: stiffness.into_iter().map(f64::from).collect(),
+                stiffness,
             })
         } else {
             None
@@ -329,8 +338,10 @@ impl Rollout {
                 .flat_map(|t| t.map(|i| i as i32))
                 .collect();
             npz.insert("triangles", Array::i32(&[m.triangles.len(), 3], &tri));
-            let st: Vec<f32> = m.stiffness.iter().map(|&x| x as f32).collect();
-            npz.insert("tri_stiffness", Array::f32(&[m.triangles.len()], &st));
+            if let Some(st) = &m.stiffness {
+                let st: Vec<f32> = st.iter().map(|&x| x as f32).collect();
+                npz.insert("tri_stiffness", Array::f32(&[m.triangles.len()], &st));
+            }
         }
         npz.write(path)
     }

@@ -309,7 +309,7 @@ mod tests {
             }],
             springs: None,
             mesh: mesh.then(|| MeshTruth {
-                stiffness: vec![1.0; triangles.len()],
+                stiffness: Some(vec![1.0; triangles.len()]),
                 triangles,
             }),
             gravity: None,

@@ -144,8 +144,8 @@ pub struct Recording {
     pub label: String,
     /// Rest positions of its vertices or particles.
     pub rest_uv: Vec<[f64; 2]>,
-    /// Grid size `(nx, ny)` (row-major vertices), for drawing.
-    pub grid: (usize, usize),
+    /// The sheet's edges, for drawing.
+    pub edges: Vec<[usize; 2]>,
     /// Recorded positions, `[P, 3]` per record.
     pub frames: Vec<Vec<f32>>,
     /// Kinetic energy at the end, J (None when diverged).
@@ -166,7 +166,7 @@ pub struct Recording {
 pub fn simulate_host(
     label: &str,
     sim: &dyn ClothSim,
-    grid: (usize, usize),
+    edges: Vec<[usize; 2]>,
     x0: Vec<V3>,
     contact: &Contact,
     dt: f64,
@@ -184,7 +184,7 @@ pub fn simulate_host(
     let mut rec = Recording {
         label: label.into(),
         rest_uv: sim.rest_uv().to_vec(),
-        grid,
+        edges,
         frames: Vec::new(),
         kinetic_energy_end: None,
         deepest: 0.0,
@@ -270,7 +270,10 @@ pub fn simulate_model(
     let mut rec = Recording {
         label: label.into(),
         rest_uv: topology.rest_uv.clone(),
-        grid: (topology.nx, topology.ny),
+        edges: match topology.grid {
+            Some([nx, ny]) => grid_edges(nx, ny),
+            None => topology.edges(),
+        },
         frames: Vec::new(),
         kinetic_energy_end: None,
         deepest: contact.deepest(),
@@ -588,7 +591,7 @@ impl<'a> Job<'a> {
             Ok(simulate_host(
                 &label_of(src),
                 sim.as_ref(),
-                (src.nx, src.ny),
+                grid_edges(src.nx, src.ny),
                 x0,
                 &contact,
                 dt,
@@ -900,7 +903,7 @@ fn figure(
         let (top, bottom) = root.split_vertically(400);
         let cells = top.split_evenly((1, panels));
         for (area, rec) in cells.iter().zip(recs) {
-            let edges = grid_edges(rec.grid.0, rec.grid.1);
+            let edges = &rec.edges;
             let (caption, pos) = match (&rec.diverged, rec.frames.last()) {
                 (None, Some(f)) => (
                     format!("{}: t = {:.1} s", rec.label, scene.config.seconds),
@@ -921,7 +924,7 @@ fn figure(
                 },
                 Layer {
                     positions: pos,
-                    edges: &edges,
+                    edges,
                     pinned: &[],
                     color: plotters::style::RGBColor(31, 119, 180),
                     radius: 0,

@@ -525,12 +525,14 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
 
 /// The source's stiffness map at every structural spring's rest midpoint, with the spring's
 /// index: the value of the mesh triangle that contains the midpoint (the nearest triangle
-/// centroid when none does, e.g. on the boundary in floating point).
+/// centroid when none does, e.g. on the boundary in floating point). `None` when the mesh
+/// carries no stiffness map.
 pub fn map_at_structural_springs(
     topology: &Topology,
     rest_uv: &[[f64; 2]],
     mesh: &MeshTruth,
-) -> Vec<(usize, f64)> {
+) -> Option<Vec<(usize, f64)>> {
+    let stiffness = mesh.stiffness.as_ref()?;
     let corners = |t: &[usize; 3]| t.map(|i| rest_uv[i]);
     let contains = |t: &[usize; 3], p: [f64; 2]| {
         let [a, b, c] = corners(t);
@@ -561,9 +563,10 @@ pub fn map_at_structural_springs(
                         .min_by(|&i, &j| d(&mesh.triangles[i]).total_cmp(&d(&mesh.triangles[j])))
                         .expect("a mesh has triangles")
                 });
-            (s, mesh.stiffness[tri])
+            (s, stiffness[tri])
         })
-        .collect()
+        .collect::<Vec<_>>()
+        .into()
 }
 
 /// Spearman's rank correlation of `a` and `b` (ties get their average rank); `None` when
@@ -601,14 +604,15 @@ pub fn spearman(a: &[f64], b: &[f64]) -> Option<f64> {
 }
 
 /// Spearman correlation between the learned stiffness `k` of the structural springs and the
-/// FEM source's stiffness map at their rest midpoints (Table 2's `stiffness_map_corr`).
+/// FEM source's stiffness map at their rest midpoints (Table 2's `stiffness_map_corr`); `None`
+/// when the mesh carries no map.
 pub fn stiffness_map_corr(
     topology: &Topology,
     k: &[f64],
     rest_uv: &[[f64; 2]],
     mesh: &MeshTruth,
 ) -> Option<f64> {
-    let pairs = map_at_structural_springs(topology, rest_uv, mesh);
+    let pairs = map_at_structural_springs(topology, rest_uv, mesh)?;
     let learned: Vec<f64> = pairs.iter().map(|&(s, _)| k[s]).collect();
     let truth: Vec<f64> = pairs.iter().map(|&(_, v)| v).collect();
     spearman(&learned, &truth)
@@ -868,7 +872,7 @@ mod tests {
             .collect();
         let mesh = MeshTruth {
             triangles,
-            stiffness,
+            stiffness: Some(stiffness),
         };
         let topo = Topology::grid(
             &GridSpec {
@@ -879,7 +883,7 @@ mod tests {
             w,
             h,
         );
-        let pairs = map_at_structural_springs(&topo, &uv, &mesh);
+        let pairs = map_at_structural_springs(&topo, &uv, &mesh).unwrap();
         assert_eq!(pairs.len(), 2 * 5 * 4);
         for &(s, v) in &pairs {
             let m = topo.midpoint(s);

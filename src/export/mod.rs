@@ -34,7 +34,6 @@ use crate::import::pc2::PointCache;
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::Physics;
-use crate::source::{Diagonal, fem::grid_triangles};
 use crate::train::Run;
 
 /// Export file format.
@@ -185,8 +184,12 @@ pub struct SurrogateJson {
     pub format: String,
     /// Units of the values.
     pub units: String,
-    /// Particles along width and height: particle `row * nx + col`.
-    pub grid: [usize; 2],
+    /// Particles along width and height of a grid surrogate, particle `row * nx + col`; `null`
+    /// for a surrogate on the data's mesh (`cloth.layout = "data"`).
+    pub grid: Option<[usize; 2]>,
+    /// The rest sheet's triangles (particle indices, counter-clockwise in the rest rectangle).
+    #[serde(default)]
+    pub triangles: Vec<[usize; 3]>,
     /// Rest rectangle width, m.
     pub width: f64,
     /// Rest rectangle height, m.
@@ -223,7 +226,8 @@ impl SurrogateJson {
         Self {
             format: FORMAT.into(),
             units: "SI: m, kg, s, N/m, N·s/m".into(),
-            grid: [topo.nx, topo.ny],
+            grid: topo.grid,
+            triangles: topo.triangles.clone(),
             width: topo.width,
             height: topo.height,
             masses: vec![run.particle_mass(); topo.num_particles()],
@@ -256,21 +260,31 @@ impl SurrogateJson {
         if self.format != FORMAT {
             bail!("key `format` is {:?}, expected {FORMAT:?}", self.format);
         }
-        let [nx, ny] = self.grid;
-        if nx < 2 || ny < 2 {
+        if let Some([nx, ny]) = self.grid
+            && (nx < 2 || ny < 2)
+        {
             bail!("key `grid` is [{nx}, {ny}]: at least 2 particles along each side");
         }
         if !(self.width > 0.0 && self.height > 0.0) {
             bail!("keys `width` and `height` must be positive");
         }
-        let p = nx * ny;
+        let p = match self.grid {
+            Some([nx, ny]) => nx * ny,
+            None => self.rest_positions.len(),
+        };
         for (key, len) in [
             ("masses", self.masses.len()),
             ("rest_positions", self.rest_positions.len()),
         ] {
             if len != p {
-                bail!("key `{key}` has {len} entries, the grid {nx} × {ny} has {p} particles");
+                bail!("key `{key}` has {len} entries, the sheet has {p} particles");
             }
+        }
+        if self.grid.is_none() && self.triangles.is_empty() {
+            bail!("key `triangles` is empty: a surrogate without a `grid` needs its mesh");
+        }
+        if let Some(t) = self.triangles.iter().find(|t| t.iter().any(|&v| v >= p)) {
+            bail!("key `triangles` has a triangle {t:?} past the {p} particles");
         }
         let s = self.springs.len();
         for (key, len) in [
@@ -307,6 +321,7 @@ impl SurrogateJson {
         // distance between its ends there.
         let tol = 1e-5 * self.width.max(self.height);
         for (i, q) in self.rest_positions.iter().enumerate() {
+            let Some([nx, ny]) = self.grid else { break };
             let (r, c) = (i / nx, i % nx);
             let grid = [
                 self.width * c as f64 / (nx - 1) as f64,
@@ -345,6 +360,7 @@ impl SurrogateJson {
             format,
             units,
             grid,
+            triangles,
             width,
             height,
             masses,
@@ -362,10 +378,11 @@ impl SurrogateJson {
         fn j<T: Serialize>(v: &T) -> Result<String> {
             Ok(serde_json::to_string(v)?)
         }
-        let fields: [(&str, String); 16] = [
+        let fields: [(&str, String); 17] = [
             ("format", j(format)?),
             ("units", j(units)?),
             ("grid", j(grid)?),
+            ("triangles", j(triangles)?),
             ("width", j(width)?),
             ("height", j(height)?),
             ("masses", j(masses)?),
@@ -512,10 +529,9 @@ pub fn export_run(
         ex.write_mesh(
             &ex.paths.mesh,
             &format!(
-                "springtime surrogate of {}: rest sheet, {} x {} particles, metres",
+                "springtime surrogate of {}: rest sheet, {}, metres",
                 run_dir.display(),
-                topo.nx,
-                topo.ny
+                topo.describe()
             ),
             &ex.rest,
         )?;
@@ -572,7 +588,7 @@ impl<'a> Export<'a> {
                 pc2: out.join("rollout.pc2"),
                 frames: out.join("rollout"),
             },
-            triangles: grid_triangles(topo.nx, topo.ny, Diagonal::Main),
+            triangles: topo.triangles.clone(),
             uv: topo
                 .rest_uv
                 .iter()
@@ -859,7 +875,8 @@ mod tests {
         let j = SurrogateJson {
             format: "springtime-surrogate/1".into(),
             units: "SI".into(),
-            grid: [2, 2],
+            grid: Some([2, 2]),
+            triangles: vec![[0, 1, 3], [0, 3, 2]],
             width: 1.0,
             height: 1.0,
             masses: vec![0.1; 4],
@@ -877,6 +894,6 @@ mod tests {
         let text = j.to_text().unwrap();
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();
         assert_eq!(back, serde_json::to_value(&j).unwrap());
-        assert_eq!(text.lines().count(), 18);
+        assert_eq!(text.lines().count(), 19);
     }
 }

@@ -335,7 +335,12 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
     let run = crate::train::Run::open(run_dir, &[], Some(crate::backend::Backend::Flex))?;
     let model = run.springs()?;
     let mass = run.particle_mass();
-    let n = run.topology.nx;
+    let Some([n, _]) = run.topology.grid else {
+        bail!(
+            "{}: the fold test needs a grid surrogate (this one lives on its data's mesh)",
+            run_dir.display()
+        );
+    };
     let cloth = SpringCloth {
         k: model.k_values(),
         b: model.b_values(),

@@ -150,6 +150,7 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
         frames: frames.len(),
         points: ids.len(),
         positions,
+        triangles: None,
     };
     write_rollout(&motion, rect, &rest_from, options)
 }

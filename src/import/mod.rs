@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 
-use crate::data::{Rollout, Segment};
+use crate::data::{MeshTruth, Rollout, Segment};
 
 /// The choices every importer shares.
 #[derive(Debug, Clone)]
@@ -54,6 +54,9 @@ pub struct Motion {
     pub points: usize,
     /// Positions `[F, N, 3]`, row-major, finite.
     pub positions: Vec<f32>,
+    /// The mesh's faces cut into triangles (point indices), when the points come with a mesh;
+    /// stored as the key `triangles` when none is degenerate in the rest rectangle.
+    pub triangles: Option<Vec<[usize; 3]>>,
 }
 
 /// How to find the rest positions of the points.
@@ -114,6 +117,13 @@ pub struct ImportSummary {
     pub height: f64,
     /// How the rest rectangle was found.
     pub rest_from: String,
+}
+
+/// Whether triangle `t` has no area in the rest rectangle (of area `area`): such a mesh is not
+/// stored (rollout loading refuses it), the points alone are.
+fn degenerate(rest_uv: &[[f64; 2]], t: &[usize; 3], area: f64) -> bool {
+    let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
+    (0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]))).abs() <= 1e-12 * area
 }
 
 /// Derives the rest rectangle (see [`RestShape`]); `size` overrides the scale per axis.
@@ -392,6 +402,15 @@ pub fn write_rollout(
         ),
         None => (rest, rest_from.to_string()),
     };
+    let area = rest.width * rest.height;
+    let mesh = motion
+        .triangles
+        .as_ref()
+        .filter(|t| !t.is_empty() && !t.iter().any(|t| degenerate(&rest.rest_uv, t, area)))
+        .map(|t| MeshTruth {
+            triangles: t.clone(),
+            stiffness: None,
+        });
     let rollout = Rollout {
         path: path.clone(),
         frames: motion.frames,
@@ -410,7 +429,7 @@ pub fn write_rollout(
             len: motion.frames,
         }],
         springs: None,
-        mesh: None,
+        mesh,
         gravity: options.gravity,
         rayleigh: options.rayleigh,
     };

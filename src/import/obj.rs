@@ -156,6 +156,18 @@ impl ObjMesh {
         edges
     }
 
+    /// The faces cut into triangles (fans from each face's first corner), vertex indices.
+    pub fn triangles(&self) -> Vec<[usize; 3]> {
+        self.faces
+            .iter()
+            .flat_map(|f| {
+                let c = &f.corners;
+                (1..c.len().saturating_sub(1))
+                    .map(move |i| [c[0].vertex, c[i].vertex, c[i + 1].vertex])
+            })
+            .collect()
+    }
+
     /// The texture coordinate of every vertex, through the faces. Errors name the file and the
     /// line: a vertex no face gives a texture coordinate, or one with two different ones (a UV
     /// seam: springtime needs one rest position per point).
@@ -303,6 +315,7 @@ pub fn import_sequence(dir: &Path, options: &ImportOptions) -> Result<ImportSumm
         frames: files.len(),
         points: n,
         positions,
+        triangles: Some(first.triangles()),
     };
     write_rollout(&motion, rest, &rest_from, options)
 }

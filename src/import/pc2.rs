@@ -129,6 +129,7 @@ pub fn import_cache(cache: &Path, rest: &Path, options: &ImportOptions) -> Resul
         frames: pc.samples,
         points: pc.points,
         positions: pc.positions,
+        triangles: Some(mesh.triangles()),
     };
     write_rollout(&motion, rect, &rest_from, options)
 }

@@ -45,7 +45,7 @@ impl FullSpace {
         Ok(match from {
             Some(path) => {
                 let sheet = SpringSheet::open(path)?;
-                config.cloth = sheet.cloth(&config.cloth);
+                config.cloth = sheet.cloth(&config.cloth)?;
                 config.validate().with_context(|| {
                     format!("the config does not fit the grid of {}", path.display())
                 })?;

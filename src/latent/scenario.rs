@@ -342,7 +342,7 @@ pub fn generate(
         }],
         springs: None,
         mesh: Some(MeshTruth {
-            stiffness: vec![cloth.surface_modulus(); triangles.len()],
+            stiffness: Some(vec![cloth.surface_modulus(); triangles.len()]),
             triangles,
         }),
         gravity: Some(cloth.gravity),

@@ -16,8 +16,8 @@ use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::scenario::{ClothConfig, GenerateStats, Scene};
-use crate::cloth::Topology;
 use crate::cloth::triangles::V3;
+use crate::cloth::{Diagonal, Topology, grid_triangles};
 use crate::data::{Rollout, Segment, SpringTruth};
 use crate::export::SurrogateJson;
 use crate::model::SpringNet;
@@ -101,24 +101,34 @@ impl SpringSheet {
 
     /// The latent `[cloth]` of the surrogate's grid: its `nx`, `ny`, `width`, `height` replace
     /// `base`'s (the material keys are the FEM's and are not used).
-    pub fn cloth(&self, base: &ClothConfig) -> ClothConfig {
+    pub fn cloth(&self, base: &ClothConfig) -> Result<ClothConfig> {
         let s = &self.surrogate;
-        ClothConfig {
-            nx: s.grid[0],
-            ny: s.grid[1],
+        let Some([nx, ny]) = s.grid else {
+            bail!(
+                "the surrogate lives on its data's mesh (cloth.layout = \"data\"): latent \
+                 distillation needs a grid surrogate"
+            );
+        };
+        Ok(ClothConfig {
+            nx,
+            ny,
             width: s.width,
             height: s.height,
             gravity: s.gravity,
             ..base.clone()
-        }
+        })
     }
 
     /// The surrogate's grid and springs.
     pub fn topology(&self) -> Topology {
         let s = &self.surrogate;
         Topology {
-            nx: s.grid[0],
-            ny: s.grid[1],
+            grid: s.grid,
+            // Files written before the key existed hold a grid without it.
+            triangles: match s.grid {
+                Some([nx, ny]) if s.triangles.is_empty() => grid_triangles(nx, ny, Diagonal::Main),
+                _ => s.triangles.clone(),
+            },
             width: s.width,
             height: s.height,
             rest_uv: s.rest_positions.iter().map(|p| [p[0], p[1]]).collect(),

@@ -164,7 +164,11 @@ pub fn build(
                     .into(),
             );
         }
-        mesh = r.mesh.clone().map(|m| (r.rest_uv.clone(), m));
+        mesh = r
+            .mesh
+            .clone()
+            .filter(|m| m.stiffness.is_some())
+            .map(|m| (r.rest_uv.clone(), m));
     }
     let (k, b) = (model.k_values(), model.b_values());
     let mut inputs = Inputs {
@@ -486,7 +490,10 @@ fn fem_figure(dir: &Path, inputs: &Inputs) -> Result<Option<Figure>> {
     let Some((uv, mesh)) = &inputs.mesh else {
         return Ok(None);
     };
-    let src_range = plot::value_range(&[&mesh.stiffness]);
+    let Some(src_stiffness) = &mesh.stiffness else {
+        return Ok(None);
+    };
+    let src_range = plot::value_range(&[src_stiffness]);
     let structural: Vec<f64> = inputs
         .k
         .iter()
@@ -510,7 +517,7 @@ fn fem_figure(dir: &Path, inputs: &Inputs) -> Result<Option<Figure>> {
             &a,
             uv,
             &mesh.triangles,
-            &mesh.stiffness,
+            src_stiffness,
             "source: triangles",
             src_range,
         )?;
@@ -1128,9 +1135,8 @@ fn html_page(inputs: &Inputs, figures: &[Figure], notes: &[String]) -> Result<St
         (
             "surrogate".into(),
             format!(
-                "{} × {} particles of {:.4} kg on a {} × {} m sheet; {} springs ({} structural, {} shear, {} bending)",
-                topo.nx,
-                topo.ny,
+                "{} of {:.4} kg on a {} × {} m sheet; {} springs ({} structural, {} shear, {} bending)",
+                topo.describe(),
                 inputs.mass,
                 plot::tick(topo.width),
                 plot::tick(topo.height),

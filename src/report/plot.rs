@@ -276,11 +276,6 @@ fn sheet_chart<'a, 'b>(
     Ok(chart)
 }
 
-/// Grid row and column of particle `p` of a grid topology.
-fn cell(topology: &Topology, p: usize) -> (usize, usize) {
-    (p / topology.nx, p % topology.nx)
-}
-
 /// Rest endpoints of spring `s` as drawn on a map: shortened a little so that springs meeting
 /// at a particle stay distinct, and bending springs (which overlap their neighbours along a
 /// line) offset sideways by their phase along the line, so that every spring is visible.
@@ -289,14 +284,13 @@ fn drawn_segment(topology: &Topology, s: usize) -> [(f64, f64); 2] {
     let (pa, pb) = (topology.rest_uv[a], topology.rest_uv[b]);
     let (dx, dy) = (pb[0] - pa[0], pb[1] - pa[1]);
     let len = (dx * dx + dy * dy).sqrt().max(1e-12);
-    let hx = topology.width / (topology.nx - 1).max(1) as f64;
-    let hy = topology.height / (topology.ny - 1).max(1) as f64;
-    let h = hx.min(hy);
+    let h = topology.spacing();
     let shrink = (0.12 * h).min(0.2 * len);
     let (ux, uy) = (dx / len, dy / len);
     let mut off = (0.0, 0.0);
-    if topology.family[s] == SpringFamily::Bending {
-        let ((ra, ca), (rb, cb)) = (cell(topology, a), cell(topology, b));
+    if let (SpringFamily::Bending, Some([nx, _])) = (topology.family[s], topology.grid) {
+        // Grid row and column of each end.
+        let ((ra, ca), (rb, cb)) = ((a / nx, a % nx), (b / nx, b % nx));
         let (phase, stride) = if ra == rb {
             (ca.min(cb), ca.abs_diff(cb))
         } else {
@@ -337,8 +331,7 @@ pub fn draw_spring_map(
     let (x_px, _) = chart.plotting_area().dim_in_pixel();
     let xr = chart.x_range();
     let px_per_m = x_px as f64 / (xr.end - xr.start);
-    let h = (topology.width / (topology.nx - 1).max(1) as f64)
-        .min(topology.height / (topology.ny - 1).max(1) as f64);
+    let h = topology.spacing();
     // Structural springs alone do not overlap: they can be drawn wide enough to read on fine
     // grids; with the diagonals in the same panel, thinner.
     let width = match family {
@@ -595,8 +588,13 @@ pub fn draw_particle_map(
         );
     }
     let mut chart = sheet_chart(area, topology.width, topology.height, caption)?;
-    let hx = topology.width / (topology.nx - 1).max(1) as f64 / 2.0;
-    let hy = topology.height / (topology.ny - 1).max(1) as f64 / 2.0;
+    let (hx, hy) = match topology.grid {
+        Some([nx, ny]) => (
+            topology.width / (nx - 1).max(1) as f64 / 2.0,
+            topology.height / (ny - 1).max(1) as f64 / 2.0,
+        ),
+        None => (topology.spacing() / 2.0, topology.spacing() / 2.0),
+    };
     let (lo, hi) = widen(range);
     chart
         .draw_series(topology.rest_uv.iter().zip(values).map(|(p, &v)| {

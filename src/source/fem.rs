@@ -31,20 +31,7 @@ use crate::cloth::triangles::{self, Hinge, RestTriangle, V3, cross, dot, scale, 
 use crate::data::MeshTruth;
 use crate::sim::Stability;
 
-/// How each grid cell is cut into two triangles.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Diagonal {
-    /// Along `(r, c)–(r+1, c+1)` in every cell: a fold along the sheet's main diagonal follows
-    /// mesh edges ("aligned").
-    #[default]
-    Main,
-    /// Along `(r, c+1)–(r+1, c)` in every cell: a fold along the main diagonal cuts across the
-    /// mesh edges ("misaligned").
-    Anti,
-    /// Main and anti diagonals in a checkerboard.
-    Alternating,
-}
+pub use crate::cloth::{Diagonal, grid_triangles};
 
 /// The membrane's constitutive law.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -153,30 +140,6 @@ pub struct FemCloth {
     material: String,
     /// The elements laid out for the force loop.
     lanes: ElementLanes,
-}
-
-/// The triangles of an `nx × ny` grid (counter-clockwise in the rest rectangle).
-pub fn grid_triangles(nx: usize, ny: usize, diagonal: Diagonal) -> Vec<[usize; 3]> {
-    let id = |r: usize, c: usize| r * nx + c;
-    let mut tris = Vec::with_capacity(2 * (nx - 1) * (ny - 1));
-    for r in 0..ny - 1 {
-        for c in 0..nx - 1 {
-            let main = match diagonal {
-                Diagonal::Main => true,
-                Diagonal::Anti => false,
-                Diagonal::Alternating => (r + c) % 2 == 0,
-            };
-            let (p00, p01, p10, p11) = (id(r, c), id(r, c + 1), id(r + 1, c), id(r + 1, c + 1));
-            if main {
-                tris.push([p00, p01, p11]);
-                tris.push([p00, p11, p10]);
-            } else {
-                tris.push([p00, p01, p10]);
-                tris.push([p01, p11, p10]);
-            }
-        }
-    }
-    tris
 }
 
 impl FemCloth {
@@ -799,7 +762,7 @@ impl ClothSim for FemCloth {
     fn mesh_truth(&self) -> Option<MeshTruth> {
         Some(MeshTruth {
             triangles: self.triangles(),
-            stiffness: self.youngs.clone(),
+            stiffness: Some(self.youngs.clone()),
         })
     }
 }

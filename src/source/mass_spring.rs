@@ -2,7 +2,7 @@
 //! varying stiffness and uniform damping, stepped in f64 with the same semi-implicit Euler as
 //! the surrogate, so that a surrogate with the true `k`, `b` reproduces it exactly.
 
-use crate::cloth::{GridSpec, Topology};
+use crate::cloth::{GridSpec, SpringLayout, Topology};
 use crate::data::SpringTruth;
 use crate::sim::Stability;
 
@@ -35,6 +35,7 @@ impl SpringCloth {
             shear_main: true,
             shear_anti: true,
             bending_stride: 2,
+            layout: SpringLayout::Grid,
         };
         let topology = Topology::grid(&spec, cfg.width, cfg.height);
         let map = StiffnessMap {

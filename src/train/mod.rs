@@ -17,14 +17,14 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use burn::module::{Module, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::{Resampler, Topology};
+use crate::cloth::{Resampler, SpringLayout, Topology};
 use crate::config::Config;
 use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, SpringTruth};
 use crate::model::neural_ode::OdeScales;
@@ -362,9 +362,27 @@ pub fn rmse(a: &[f64], b: &[f64]) -> f64 {
     (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64).sqrt()
 }
 
-/// The surrogate topology of a config over a `width × height` rectangle.
-pub fn topology(config: &Config, width: f64, height: f64) -> Topology {
-    Topology::grid(&config.cloth, width, height)
+/// The surrogate topology of a config for the data that `first` (a rollout of the set)
+/// belongs to: the config's grid over its rest rectangle, or its own mesh (`cloth.layout =
+/// "data"`: the file's `triangles`, else the Delaunay triangulation of its `rest_uv`).
+pub fn topology(config: &Config, first: &Rollout) -> Result<Topology> {
+    let cloth = &config.cloth;
+    match cloth.layout {
+        SpringLayout::Grid => Ok(Topology::grid(cloth, first.width, first.height)),
+        SpringLayout::Data => {
+            let (uv, w, h, hinges) = (
+                &first.rest_uv,
+                first.width,
+                first.height,
+                cloth.bending_stride > 0,
+            );
+            match &first.mesh {
+                Some(m) => Topology::mesh(uv, &m.triangles, w, h, hinges),
+                None => Topology::of_points(uv, w, h, hinges),
+            }
+            .map_err(|e| anyhow!("{}: cloth.layout = \"data\": {e}", first.path.display()))
+        }
+    }
 }
 
 /// The training device of a config.
@@ -391,7 +409,7 @@ pub fn open_training_clips(
     let set = ClipSet::open(
         &split.train,
         &config.data.clips,
-        |w, h| topology(config, w, h),
+        |first| topology(config, first),
         config.data.cache_mib,
         |n| bar.set_position(n as u64),
     )?;
@@ -1167,8 +1185,7 @@ impl ModelMeta {
                 let mut rng = StdRng::seed_from_u64(config.train.seed);
                 let host = gnn_windows(&batch, cfg, &mut rng);
                 let windows: Vec<gnn::Window> = host.iter().map(|w| w.view()).collect();
-                let spacing = (width / (topo.nx - 1) as f64).min(height / (topo.ny - 1) as f64);
-                meta.gnn_stats = Some(gnn::statistics(&windows, cfg, spacing));
+                meta.gnn_stats = Some(gnn::statistics(&windows, cfg, topo.spacing()));
                 meta.parameters = cfg.parameter_count();
             }
         }

@@ -4,7 +4,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use burn::module::Module;
 use serde::{Deserialize, Serialize};
 
@@ -12,7 +12,7 @@ use burn::tensor::Device;
 
 use super::Trained;
 use crate::backend::Backend;
-use crate::cloth::Topology;
+use crate::cloth::{SpringFamily, SpringLayout, Topology};
 use crate::config::Config;
 use crate::data::npz::{Array, Npz};
 use crate::model::gnn::GnnStats;
@@ -466,9 +466,18 @@ pub fn springs_npz(topology: &Topology, k: &[f64], b: &[f64], particle_mass: f64
         .flat_map(|p| [p[0] as f32, p[1] as f32])
         .collect();
     npz.insert("rest_uv", Array::f32(&[topology.num_particles(), 2], &uv));
+    if let Some([nx, ny]) = topology.grid {
+        npz.insert("grid", Array::i32(&[2], &[nx as i32, ny as i32]));
+    }
+    let tris: Vec<i32> = topology
+        .triangles
+        .iter()
+        .flatten()
+        .map(|&v| v as i32)
+        .collect();
     npz.insert(
-        "grid",
-        Array::i32(&[2], &[topology.nx as i32, topology.ny as i32]),
+        "triangles",
+        Array::i32(&[topology.triangles.len(), 3], &tris),
     );
     npz.insert("width", Array::scalar(topology.width));
     npz.insert("height", Array::scalar(topology.height));
@@ -536,7 +545,19 @@ impl Run {
         };
         incomplete(dir.meta())?;
         let meta = ModelMeta::read(&dir.meta())?;
-        let topology = super::topology(&config, meta.width, meta.height);
+        let topology = match (config.cloth.layout, meta.kind) {
+            (SpringLayout::Grid, _) => Topology::grid(&config.cloth, meta.width, meta.height),
+            (SpringLayout::Data, ModelKind::Springs) => {
+                incomplete(dir.springs())?;
+                read_mesh_topology(&dir.springs())?
+            }
+            (SpringLayout::Data, kind) => bail!(
+                "{}: a {} run with cloth.layout = \"data\" (only the spring surrogate takes the \
+                 data's mesh)",
+                run_dir.display(),
+                kind.name()
+            ),
+        };
         incomplete(match meta.kind {
             ModelKind::Springs => dir.springs(),
             _ => dir.model(),
@@ -602,6 +623,46 @@ impl Run {
 }
 
 /// The trained spring network of a run from its `springs.npz`.
+/// The data-mesh topology stored in a surrogate's `springs.npz` (`cloth.layout = "data"`).
+fn read_mesh_topology(path: &Path) -> Result<Topology> {
+    let npz = Npz::read(path)?;
+    let at = |e: anyhow::Error| e.context(format!("{}", path.display()));
+    let (uv, _) = npz.f32("rest_uv", &[None, Some(2)]).map_err(at)?;
+    let rest_uv: Vec<[f64; 2]> = uv
+        .chunks_exact(2)
+        .map(|c| [c[0] as f64, c[1] as f64])
+        .collect();
+    let (tri, _) = npz.int("triangles", &[None, Some(3)]).map_err(at)?;
+    let triangles: Vec<[usize; 3]> = tri
+        .chunks_exact(3)
+        .map(|c| [c[0] as usize, c[1] as usize, c[2] as usize])
+        .collect();
+    let (width, height) = (
+        npz.scalar("width").map_err(at)?,
+        npz.scalar("height").map_err(at)?,
+    );
+    let hinges = npz
+        .int("family", &[None])
+        .map_err(at)?
+        .0
+        .contains(&SpringFamily::Bending.code().into());
+    let topo = Topology::mesh(&rest_uv, &triangles, width, height, hinges)
+        .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let (ends, _) = npz.int("springs", &[None, Some(2)]).map_err(at)?;
+    let same = ends.len() == 2 * topo.num_springs()
+        && ends
+            .chunks_exact(2)
+            .zip(&topo.springs)
+            .all(|(e, s)| e[0] as usize == s[0] && e[1] as usize == s[1]);
+    if !same {
+        bail!(
+            "{}: key `springs` does not match the springs of its `triangles`",
+            path.display()
+        );
+    }
+    Ok(topo)
+}
+
 fn read_springs(
     dir: &RunDir,
     config: &Config,
