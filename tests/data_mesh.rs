@@ -123,3 +123,95 @@ fn a_data_mesh_surrogate_recovers_the_stiffness_of_an_irregular_spring_cloth() {
     assert_eq!(opened.topology.num_springs(), truth.topology.num_springs());
     assert_eq!(opened.topology.springs, truth.topology.springs);
 }
+
+/// The surrogate on a data mesh with the true `k`, `b` (tensor ops and the fused kernel, f32)
+/// follows the host spring cloth whose particles carry the mesh's lumped masses (f64): the
+/// spring forces divided by the relative masses are that cloth's dynamics. With equal masses
+/// instead, the same network drifts away.
+#[test]
+fn a_data_mesh_surrogate_with_the_true_springs_follows_its_lumped_mass_source() {
+    use springtime::cloth::Resampler;
+    use springtime::data::Track;
+    use springtime::model::{Kernel, SpringNet};
+    use springtime::sim::Physics;
+    let n = 7;
+    let cfg = common::source(n, &[20.0, 80.0], 0.5);
+    let size = 0.5 * (n - 1) as f64;
+    let topology = Topology::of_points(&jittered_points(n, 3), size, size, true).unwrap();
+    let w = topology.mass_weight.clone().unwrap();
+    let spread = w.iter().fold(0.0f64, |m, w| m.max((w - 1.0).abs()));
+    assert!(spread > 0.3, "lumped masses should differ: {spread}");
+    let base = SpringCloth::from_config(&cfg);
+    let s = topology.num_springs();
+    let truth = SpringCloth {
+        k: (0..s)
+            .map(|i| 30.0 + 20.0 * (i as f64 * 0.7).sin())
+            .collect(),
+        b: vec![4.0; s],
+        mass: base.mass,
+        topology,
+        ..base
+    };
+    let scenario = Scenario::random(
+        &truth.topology.rest_uv,
+        cfg.anchor_radius,
+        &mut StdRng::seed_from_u64(5),
+    );
+    let r = simulate_rollout(&truth, &cfg, &scenario, None, "parity").unwrap();
+    let track = Track::new(&r, &Resampler::new(&r.rest_uv, &truth.topology.rest_uv));
+    let frames = r.frames - 1;
+    let physics = Physics {
+        frame_dt: r.frame_dt,
+        substeps: (r.frame_dt / cfg.dt).round() as usize,
+        mass: truth.mass,
+        rayleigh: truth.rayleigh,
+        gravity: truth.gravity,
+    };
+    let device = burn::tensor::Device::flex();
+    let gap = |topology: &Topology, kernel: Kernel| {
+        let model = SpringNet::new(topology, &truth.k, &truth.b, &device).with_kernel(kernel);
+        let sim = springtime::eval::simulate_track(
+            &model,
+            &physics,
+            None,
+            &track,
+            0,
+            frames,
+            &[frames],
+            &device,
+            |_| {},
+        )
+        .unwrap();
+        sim.positions
+            .iter()
+            .zip(r.positions[frames * r.landmarks * 3..].iter())
+            .map(|(a, b)| (a - b).abs() as f64)
+            .fold(0.0, f64::max)
+    };
+    let moved = r.positions[frames * r.landmarks * 3..]
+        .iter()
+        .zip(&r.positions[..r.landmarks * 3])
+        .map(|(a, b)| (a - b).abs() as f64)
+        .fold(0.0, f64::max);
+    let equal_masses = Topology {
+        mass_weight: None,
+        ..truth.topology.clone()
+    };
+    let (fused, reference, unweighted) = (
+        gap(&truth.topology, Kernel::Fused),
+        gap(&truth.topology, Kernel::Reference),
+        gap(&equal_masses, Kernel::Fused),
+    );
+    eprintln!(
+        "moved {moved:.3} m; gap fused {fused:.2e}, reference {reference:.2e}, equal masses {unweighted:.2e} m"
+    );
+    assert!(moved > 0.1, "the cloth barely moved: {moved} m");
+    assert!(
+        fused < 1e-4 && reference < 1e-4,
+        "fused {fused} m, reference {reference} m"
+    );
+    assert!(
+        unweighted > 10.0 * fused.max(1e-4),
+        "equal masses: {unweighted} m"
+    );
+}

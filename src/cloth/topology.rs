@@ -152,6 +152,12 @@ pub struct Topology {
     pub rest_length: Vec<f64>,
     /// Family of every spring.
     pub family: Vec<SpringFamily>,
+    /// Each particle's mass relative to the mean (mean 1): `None` for equal masses (a grid);
+    /// on a data mesh, the lumped rest area (a third of each adjacent triangle's). The mean
+    /// mass stays `total_mass / P` everywhere: a particle of relative mass `w` feels its spring
+    /// forces divided by `w` ([`Topology::force_scale`]), which with gravity and Rayleigh
+    /// damping per unit mass is exactly the network with masses `w · m̄`.
+    pub mass_weight: Option<Vec<f64>>,
 }
 
 impl Topology {
@@ -205,6 +211,7 @@ impl Topology {
             springs,
             rest_length: Vec::new(),
             family,
+            mass_weight: None,
         };
         topo.rest_length = topo
             .springs
@@ -277,6 +284,15 @@ impl Topology {
             .iter()
             .map(|&[a, b]| distance(rest_uv[a], rest_uv[b]))
             .collect();
+        // Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
+        let mut area = vec![0.0; n];
+        for t in &ccw {
+            let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
+            let third = ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])) / 6.0;
+            t.iter().for_each(|&v| area[v] += third);
+        }
+        let mean = area.iter().sum::<f64>() / n as f64;
+        let mass_weight = Some(area.iter().map(|a| a / mean).collect());
         Ok(Self {
             grid: None,
             triangles: ccw,
@@ -286,6 +302,7 @@ impl Topology {
             springs,
             rest_length,
             family,
+            mass_weight,
         })
     }
 
@@ -337,6 +354,14 @@ impl Topology {
         }
     }
 
+    /// The factor `1 / w` on each particle's spring forces ([`Topology::mass_weight`]);
+    /// `None` for equal masses.
+    pub fn force_scale(&self) -> Option<Vec<f64>> {
+        self.mass_weight
+            .as_ref()
+            .map(|w| w.iter().map(|w| 1.0 / w).collect())
+    }
+
     /// Number of particles `P`.
     pub fn num_particles(&self) -> usize {
         self.rest_uv.len()
@@ -361,18 +386,24 @@ impl Topology {
 
     /// An upper bound of the largest eigenvalue of `Σ_s w_s u_s u_sᵀ` for any spring directions
     /// `u_s` (block Gershgorin): `max_i 2 Σ_{s∋i} max(w_s, 0)`.
+    /// With [`Topology::mass_weight`] `W`, the bound for `W^{-1/2} (Σ_s w_s u_s u_sᵀ) W^{-1/2}`:
+    /// each spring's weight divided by its lighter end's `W`.
     pub fn max_eigenvalue_bound(&self, weights: &[f64]) -> f64 {
         assert_eq!(weights.len(), self.num_springs());
         let mut sum = vec![0f64; self.num_particles()];
+        let mw = |i: usize| self.mass_weight.as_ref().map_or(1.0, |m| m[i]);
         for (&[a, b], &w) in self.springs.iter().zip(weights) {
-            sum[a] += w.max(0.0);
-            sum[b] += w.max(0.0);
+            let lightest = mw(a).min(mw(b));
+            sum[a] += w.max(0.0) / lightest;
+            sum[b] += w.max(0.0) / lightest;
         }
         2.0 * sum.into_iter().fold(0.0, f64::max)
     }
 
     /// Largest eigenvalue of `Σ_s w_s u_s u_sᵀ` (3P × 3P, `u_s` the unit rest direction of
-    /// spring `s`, assembled through the signed incidence matrix) by power iteration.
+    /// spring `s`, assembled through the signed incidence matrix) by power iteration; with
+    /// [`Topology::mass_weight`] `W`, of `W^{-1/2} (Σ_s w_s u_s u_sᵀ) W^{-1/2}` (the stiffness
+    /// per unit of the mean mass).
     ///
     /// With `w = k` this is the largest `ω²·m` of the rest-state stiffness matrix; with `w = b`
     /// the largest damping rate times `m` (see [`crate::sim::Stability`]).
@@ -399,18 +430,21 @@ impl Topology {
                 ]
             })
             .collect();
+        let scale: Vec<f64> = match &self.mass_weight {
+            Some(w) => w.iter().map(|w| 1.0 / w.sqrt()).collect(),
+            None => vec![1.0; p],
+        };
         let mut lambda = 0.0;
         for _ in 0..300 {
             let mut z = vec![[0.0f64; 3]; p];
             for (s, &[a, b]) in self.springs.iter().enumerate() {
                 let u = dirs[s];
+                let (ya, yb) = (y[a].map(|c| c * scale[a]), y[b].map(|c| c * scale[b]));
                 let proj = weights[s]
-                    * (u[0] * (y[b][0] - y[a][0])
-                        + u[1] * (y[b][1] - y[a][1])
-                        + u[2] * (y[b][2] - y[a][2]));
+                    * (u[0] * (yb[0] - ya[0]) + u[1] * (yb[1] - ya[1]) + u[2] * (yb[2] - ya[2]));
                 for i in 0..3 {
-                    z[b][i] += proj * u[i];
-                    z[a][i] -= proj * u[i];
+                    z[b][i] += proj * u[i] * scale[b];
+                    z[a][i] -= proj * u[i] * scale[a];
                 }
             }
             let norm_z = z.iter().flatten().map(|v| v * v).sum::<f64>().sqrt();

@@ -51,6 +51,8 @@ pub struct SurrogateStability {
     pub grid: Option<[usize; 2]>,
     /// The surrogate's layout in words ([`crate::cloth::Topology::describe`]).
     pub layout: String,
+    /// Whether some particles are interpolated between landmarks (not on one).
+    pub interpolated: bool,
     /// Uniform stiffness, N/m.
     pub k: f64,
     /// Uniform damping, N·s/m.
@@ -227,6 +229,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         surrogate: SurrogateStability {
             grid: topo.grid,
             layout: topo.describe(),
+            interpolated: !crate::cloth::Resampler::new(&first.rest_uv, &topo.rest_uv).is_exact(),
             k,
             b,
             substeps,
@@ -278,6 +281,17 @@ impl DatasetReport {
         let _ = writeln!(s, "  total mass       {} kg", i.total_mass);
         let _ = writeln!(s, "  rest rectangle   {} m × {} m", i.width, i.height);
         let _ = writeln!(s, "  landmarks        {}", self.landmarks);
+        if let Some([gx, gy]) = self.surrogate.grid
+            && gx * gy <= 2 * self.landmarks
+            && self.surrogate.interpolated
+        {
+            let _ = writeln!(
+                s,
+                "  surrogate grid   {gx} × {gy} particles, not on the landmarks: they are \
+                 interpolated between them, whose accelerations no spring produces (the \
+                 landmarks themselves: --set cloth.layout=data)"
+            );
+        }
         if let Some([gx, gy]) = self.surrogate.grid
             && gx * gy > 2 * self.landmarks
         {

@@ -210,7 +210,8 @@ pub struct SurrogateJson {
     pub b: Vec<f32>,
     /// Particles pinned in the exported rollout (its anchors), empty without one.
     pub pinned: Vec<usize>,
-    /// Rayleigh damping `c` of the force `−c ẋ` on every particle, N·s/m.
+    /// Rayleigh damping `c` of the force `−c ẋ` on a particle of the mean mass, N·s/m (on a
+    /// particle of mass `m_i`, `c · m_i / mean(m)`: damping per unit mass).
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
@@ -230,7 +231,10 @@ impl SurrogateJson {
             triangles: topo.triangles.clone(),
             width: topo.width,
             height: topo.height,
-            masses: vec![run.particle_mass(); topo.num_particles()],
+            masses: match &topo.mass_weight {
+                Some(w) => w.iter().map(|w| w * run.particle_mass()).collect(),
+                None => vec![run.particle_mass(); topo.num_particles()],
+            },
             rest_positions: topo.rest_positions(),
             springs: topo.springs.clone(),
             family: topo.family.clone(),

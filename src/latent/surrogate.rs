@@ -135,6 +135,11 @@ impl SpringSheet {
             springs: s.springs.clone(),
             rest_length: s.rest_length.clone(),
             family: s.family.clone(),
+            mass_weight: {
+                let mean = s.masses.iter().sum::<f64>() / s.masses.len().max(1) as f64;
+                let equal = s.masses.iter().all(|&m| (m - mean).abs() <= 1e-12 * mean);
+                (!equal).then(|| s.masses.iter().map(|m| m / mean).collect())
+            },
         }
     }
 

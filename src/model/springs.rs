@@ -36,6 +36,9 @@ pub struct SpringGraph {
     pub num_particles: usize,
     /// Number of springs `S`.
     pub num_springs: usize,
+    /// `1 / w` per particle, `[1, P, 1]`, for relative masses `w`
+    /// ([`Topology::mass_weight`]); `None`: equal masses.
+    pub force_scale: Option<Tensor<3>>,
     /// The same springs on the host, for the fused kernels.
     #[module(skip)]
     pub host: Arc<HostGraph>,
@@ -65,11 +68,18 @@ impl SpringGraph {
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
             num_particles: topology.num_particles(),
             num_springs: s,
-            host: Arc::new(HostGraph::new(
-                &topology.springs,
-                &topology.rest_length,
-                topology.num_particles(),
-            )),
+            force_scale: topology.force_scale().map(|f| {
+                let p = f.len();
+                Tensor::<1>::from_data(TensorData::new(f, [p]), device).reshape([1, p, 1])
+            }),
+            host: Arc::new(
+                HostGraph::new(
+                    &topology.springs,
+                    &topology.rest_length,
+                    topology.num_particles(),
+                )
+                .with_force_scale(topology.force_scale()),
+            ),
             kernel: Kernel::Fused,
             on_host: runs_host_kernels(device),
         }
@@ -103,7 +113,9 @@ impl SpringGraph {
 /// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
 /// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
 /// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
-/// to zero by construction (Newton's third law).
+/// to zero by construction (Newton's third law). On a graph with particle masses
+/// ([`SpringGraph::force_scale`]) each particle's force is then divided by its relative mass
+/// (the mass-weighted sum, the momentum change, stays zero).
 ///
 /// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
 /// reference when `graph.kernel` says so (or the device has no fused kernel).
@@ -141,12 +153,16 @@ pub fn spring_forces_reference(
     let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
     let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
     let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
-    Tensor::zeros([batch, p, 3], &both.device()).select_assign(
+    let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
         1,
         graph.ends.clone(),
         both,
         burn::tensor::IndexingUpdateOp::Add,
-    )
+    );
+    match &graph.force_scale {
+        Some(scale) => f * scale.clone(),
+        None => f,
+    }
 }
 
 /// The learnable surrogate: one stiffness and one damping per spring.

@@ -17,9 +17,11 @@ pub struct SpringCloth {
     pub k: Vec<f64>,
     /// Damping per spring, N·s/m.
     pub b: Vec<f64>,
-    /// Particle mass, kg.
+    /// Mean particle mass, kg (particle `i` weighs `mass · w_i` with the topology's
+    /// [`Topology::mass_weight`] `w`, else `mass`).
     pub mass: f64,
-    /// Rayleigh damping constant, N·s/m.
+    /// Rayleigh damping constant of a particle of the mean mass, N·s/m (`rayleigh · w_i` on
+    /// particle `i`: damping per unit mass, as the surrogate's).
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
@@ -62,10 +64,10 @@ impl SpringCloth {
 
     /// Net force on every particle at `(x, v)` (Eq. 4, Eq. 2, gravity, Rayleigh damping).
     pub fn forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]) {
-        let g = self.gravity.map(|c| c * self.mass);
-        for (o, vi) in out.iter_mut().zip(v) {
+        for (i, (o, vi)) in out.iter_mut().zip(v).enumerate() {
+            let w = self.weight(i);
             for c in 0..3 {
-                o[c] = g[c] - self.rayleigh * vi[c];
+                o[c] = w * (self.gravity[c] * self.mass - self.rayleigh * vi[c]);
             }
         }
         for (s, &[a, b]) in self.topology.springs.iter().enumerate() {
@@ -83,6 +85,13 @@ impl SpringCloth {
     }
 }
 
+impl SpringCloth {
+    /// Particle `i`'s mass relative to the mean.
+    fn weight(&self, i: usize) -> f64 {
+        self.topology.mass_weight.as_ref().map_or(1.0, |w| w[i])
+    }
+}
+
 impl ClothSim for SpringCloth {
     fn rest_uv(&self) -> &[[f64; 2]] {
         &self.topology.rest_uv
@@ -92,8 +101,8 @@ impl ClothSim for SpringCloth {
         self.mass
     }
 
-    fn mass_of(&self, _i: usize) -> f64 {
-        self.mass
+    fn mass_of(&self, i: usize) -> f64 {
+        self.mass * self.weight(i)
     }
 
     fn net_forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]) {

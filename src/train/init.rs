@@ -320,7 +320,8 @@ impl Normal {
     }
 }
 
-/// Per particle, the force of unit uniform stiffness and of unit uniform damping (Eq. 4).
+/// Per particle, the force of unit uniform stiffness and of unit uniform damping (Eq. 4), per
+/// unit of the mean mass (divided by the particle's relative mass, as the surrogate's).
 fn unit_columns(topo: &Topology, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[[f64; 3]; 2]]) {
     out.iter_mut().for_each(|c| *c = [[0.0; 3]; 2]);
     for (&[a, b], &l0) in topo.springs.iter().zip(&topo.rest_length) {
@@ -336,6 +337,11 @@ fn unit_columns(topo: &Topology, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[[f6
             out[b][0][c] -= fk;
             out[a][1][c] += fb;
             out[b][1][c] -= fb;
+        }
+    }
+    if let Some(w) = &topo.mass_weight {
+        for (o, w) in out.iter_mut().zip(w) {
+            o.iter_mut().flatten().for_each(|f| *f /= w);
         }
     }
 }

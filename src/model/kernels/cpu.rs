@@ -42,6 +42,8 @@ pub struct StepParams {
 pub(super) struct Springs<'a, T> {
     ends: &'a [(u32, u32)],
     l0: Vec<T>,
+    /// Per-particle factor on the spring forces ([`HostGraph::with_force_scale`]).
+    scale: Option<Vec<T>>,
 }
 
 impl<'a, T: Float> Springs<'a, T> {
@@ -53,6 +55,10 @@ impl<'a, T: Float> Springs<'a, T> {
                 .iter()
                 .map(|&l| T::from(l).expect("float"))
                 .collect(),
+            scale: g
+                .force_scale
+                .as_ref()
+                .map(|s| s.iter().map(|&v| T::from(v).expect("float")).collect()),
         }
     }
 }
@@ -321,6 +327,12 @@ pub(super) unsafe fn run_forces<T: Float, const L: usize>(
             chunk_forces(sp, x, v, k, b, out)
         }
     }
+    if let Some(scale) = &sp.scale {
+        for (i, f) in out.iter_mut().enumerate() {
+            let s = scale[i / 3];
+            f.iter_mut().for_each(|f| *f = *f * s);
+        }
+    }
 }
 
 /// Spring backward of one chunk, with the AVX2 build of the loop for 8 lanes.
@@ -340,6 +352,19 @@ pub(super) unsafe fn run_backward<T: Float, const L: usize>(
     gk: &mut [T],
     gb: &mut [T],
 ) {
+    // The scale multiplies the forces, so it multiplies their upstream gradient.
+    let scaled: Vec<Lane<T, L>>;
+    let gf = match &sp.scale {
+        Some(scale) => {
+            scaled = gf
+                .iter()
+                .enumerate()
+                .map(|(i, g)| g.map(|g| g * scale[i / 3]))
+                .collect();
+            &scaled[..]
+        }
+        None => gf,
+    };
     // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
     unsafe {
         if L == 8 {

@@ -37,6 +37,8 @@ pub struct HostGraph {
     ends: Vec<(u32, u32)>,
     rest_length: Vec<f64>,
     particles: usize,
+    /// `1 / w` on each particle's spring forces (relative masses `w`); `None`: equal masses.
+    force_scale: Option<Vec<f64>>,
 }
 
 impl HostGraph {
@@ -60,7 +62,23 @@ impl HostGraph {
             ends,
             rest_length: rest_length.to_vec(),
             particles,
+            force_scale: None,
         }
+    }
+
+    /// The same graph with every particle's spring forces multiplied by `scale` (one factor
+    /// per particle: `1 / w` for relative masses `w`, see [`crate::cloth::Topology::mass_weight`]).
+    ///
+    /// Panics if `scale` does not hold one finite positive value per particle.
+    pub fn with_force_scale(mut self, scale: Option<Vec<f64>>) -> Self {
+        if let Some(s) = &scale {
+            assert!(
+                s.len() == self.particles && s.iter().all(|&v| v.is_finite() && v > 0.0),
+                "one finite positive force scale per particle"
+            );
+        }
+        self.force_scale = scale;
+        self
     }
 
     /// Number of springs.
