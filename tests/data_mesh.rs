@@ -215,3 +215,41 @@ fn a_data_mesh_surrogate_with_the_true_springs_follows_its_lumped_mass_source() 
         "equal masses: {unweighted} m"
     );
 }
+
+/// Bad meshes for `layout = "data"`: a landmark in no triangle is refused naming the file and
+/// the landmark, before any training.
+#[test]
+fn a_landmark_outside_the_mesh_is_refused_naming_the_file() {
+    use springtime::data::MeshTruth;
+    let dir = common::temp_dir("data_mesh_bad");
+    let cfg = common::source(4, &[20.0], 0.1);
+    let (_, mut r) = common::rollout(&cfg, 0);
+    let grid = common::grid_of(&cfg);
+    // Every cell but the last: landmark 15 (the far corner) is in no triangle.
+    let mut triangles = grid.triangles.clone();
+    triangles.retain(|t| !t.contains(&15));
+    r.mesh = Some(MeshTruth {
+        triangles,
+        stiffness: None,
+    });
+    std::fs::create_dir_all(dir.join("data")).unwrap();
+    r.save(&dir.join("data/holey.npz")).unwrap();
+    let mut config = Config::parse("name = \"bad\"\n[cloth]\nlayout = \"data\"\n", &[]).unwrap();
+    config.data.dir = dir.join("data");
+    config.runs_dir = dir.join("runs");
+    let err = format!(
+        "{:#}",
+        train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap_err()
+    );
+    assert!(
+        err.contains("holey.npz") && err.contains("landmark 15 is in no triangle"),
+        "{err}"
+    );
+    // And a baseline cannot take the data's mesh.
+    let err = Config::parse(
+        "[cloth]\nlayout = \"data\"\n[model]\nkind = \"neural_ode\"\n",
+        &[],
+    )
+    .unwrap_err();
+    assert!(format!("{err:#}").contains("cloth.layout"), "{err:#}");
+}
