@@ -16,11 +16,10 @@ struct Outcome {
     gb: Vec<f64>,
 }
 
-/// The paper's grid of a 7 × 7 source, and the same particles as a data mesh: its cells' two
+/// The paper's grid of a source, and the same particles as a data mesh: its cells' two
 /// triangles, hinge springs and lumped (unequal) masses.
-fn topologies() -> [Topology; 2] {
-    let cfg = common::source(7, &[10.0, 50.0, 100.0], 1.0);
-    let grid = common::grid_of(&cfg);
+fn topologies(cfg: &springtime::source::SourceConfig) -> [Topology; 2] {
+    let grid = common::grid_of(cfg);
     let mesh = Topology::mesh(
         &grid.rest_uv,
         &grid.triangles,
@@ -89,7 +88,9 @@ fn assert_close(name: &str, a: &[f64], b: &[f64]) {
 fn fused_kernel_matches_tensor_ops() {
     for (device, topo) in [Device::flex(), Device::ndarray()]
         .into_iter()
-        .flat_map(|d| topologies().map(|t| (d.clone(), t)))
+        .flat_map(|d| {
+            topologies(&common::source(7, &[10.0, 50.0, 100.0], 1.0)).map(|t| (d.clone(), t))
+        })
     {
         for seed in 0..3 {
             let reference = run(&device, Kernel::Reference, seed, &topo);
@@ -110,17 +111,7 @@ fn fused_rollout_loss_matches_tensor_ops() {
     use springtime::sim::Physics;
     use springtime::train::{ForceOn, LossWeights, loss_with_budget};
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
-    let grid = common::grid_of(&cfg);
-    // The grid, and its particles as a data mesh with lumped masses.
-    let mesh = Topology::mesh(
-        &grid.rest_uv,
-        &grid.triangles,
-        grid.width,
-        grid.height,
-        true,
-    )
-    .unwrap();
-    for topo in [grid, mesh] {
+    for topo in topologies(&cfg) {
         let s = topo.num_springs();
         let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
         let k: Vec<f64> = (0..s)
