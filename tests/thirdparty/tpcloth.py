@@ -303,6 +303,11 @@ def main():
     ap.add_argument("--rollout-seed", type=int, default=None,
                     help="seed of the rollouts alone (default: --seed); the mesh and map keep --seed, so "
                     "a second process can write more rollouts of the same cloth, e.g. the test split")
+    ap.add_argument("--perturb", type=float, default=0.0,
+                    help="the chaos floor: multiply each triangle's Young's modulus by 1 + this x N(0, 1) "
+                    "(seeded by --perturb-seed; the substeps and the rollouts' seeds stay those of the "
+                    "unperturbed cloth, so the rollouts differ only by the perturbation)")
+    ap.add_argument("--perturb-seed", type=int, default=1)
     a = ap.parse_args()
 
     rng = np.random.default_rng(a.seed)
@@ -314,6 +319,10 @@ def main():
     gravity = np.array([0.0, 0.0, -9.81])
     cloth = Cloth(rest, tris, young, a.poisson, a.density, a.bend, a.edge_damping, a.drag)
     substeps = a.substeps or int(np.ceil(1.0 / (a.fps * cloth.stable_dt())))
+    if a.perturb:
+        factor = 1.0 + a.perturb * np.random.default_rng(a.perturb_seed).normal(size=len(young))
+        young = young * factor
+        cloth = Cloth(rest, tris, young, a.poisson, a.density, a.bend, a.edge_damping, a.drag)
     os.makedirs(a.out, exist_ok=True)
     total = 0
     t0 = time.time()
