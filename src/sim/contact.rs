@@ -25,7 +25,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Tensor, TensorData};
+use parry3d_f64::bounding_volume::Aabb;
 use parry3d_f64::math::{Pose, Rot3, Vector};
+use parry3d_f64::query::PointQuery;
 use parry3d_f64::shape::{SharedShape, TriMesh, TriMeshFlags};
 use serde::{Deserialize, Serialize};
 
@@ -186,6 +188,9 @@ pub struct Collider {
     /// `colliders[i] (kind)` or the mesh file, for messages.
     pub name: String,
     shape: SharedShape,
+    /// The shape's bounding box in its own frame (infinite for a plane): a point farther from
+    /// it than the reach is skipped without projecting onto the shape.
+    local_aabb: Aabb,
     translation: V3,
     rotation: Rot3,
     friction: f64,
@@ -339,6 +344,7 @@ impl ColliderConfig {
             Rot3::from_rotation_z(rz) * Rot3::from_rotation_y(ry) * Rot3::from_rotation_x(rx);
         Ok(Collider {
             name,
+            local_aabb: shape.compute_local_aabb(),
             shape,
             translation: self.translation,
             rotation,
@@ -483,6 +489,16 @@ impl Collider {
     /// of the surface or inside the collider.
     fn hit(&self, pose: &Pose, velocity: V3, x: V3, reach: f64) -> Option<Hit> {
         let q = Vector::new(x[0], x[1], x[2]);
+        // The shape is no nearer than its box: far points need no projection (on a mesh, a
+        // BVH descent per particle and step).
+        if reach.is_finite()
+            && self
+                .local_aabb
+                .distance_to_local_point(pose.inverse_transform_point(q), true)
+                >= reach
+        {
+            return None;
+        }
         let proj = self.shape.project_point(pose, q, false);
         let delta = q - proj.point;
         let len = delta.length();
