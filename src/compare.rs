@@ -12,6 +12,7 @@ use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
+use crate::cloth::SpringLayout;
 use crate::config::Config;
 use crate::eval::{self, EvalReport};
 use crate::model::ModelKind;
@@ -68,6 +69,12 @@ pub fn compare(
     options: &CompareOptions,
     progress: &Progress,
 ) -> Result<Comparison> {
+    if config.cloth.layout == SpringLayout::Data {
+        bail!(
+            "compare: `cloth.layout = \"data\"` is for the spring surrogate alone (the Neural ODE \
+             and the GNN take the grid); train it with `springtime train`"
+        );
+    }
     let dir = config.run_dir(options.out.as_deref());
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
     let mut rows = Vec::new();
@@ -230,7 +237,7 @@ fn markdown(config: &Config, rows: &[Row]) -> String {
         let m = &r.eval.motion_rmse;
         let _ = writeln!(
             s,
-            "Data `{}`: {} test rollouts; cloth model {} × {} particles; backend {}.\n",
+            "Data `{}`: {} test rollouts; cloth model {} × {} particles (grid); backend {}.\n",
             config.data.dir.display(),
             m.rollouts,
             config.cloth.nx,

@@ -245,6 +245,25 @@ fn a_landmark_outside_the_mesh_is_refused_naming_the_file() {
         err.contains("holey.npz") && err.contains("landmark 15 is in no triangle"),
         "{err}"
     );
+    // Files of one set must share their mesh.
+    let (_, mut other) = common::rollout(&cfg, 1);
+    other.mesh = Some(MeshTruth {
+        triangles: grid.triangles.clone(),
+        stiffness: None,
+    });
+    std::fs::create_dir_all(dir.join("mixed")).unwrap();
+    r.save(&dir.join("mixed/a.npz")).unwrap();
+    other.save(&dir.join("mixed/b.npz")).unwrap();
+    config.data.dir = dir.join("mixed");
+    config.cloth.layout = springtime::cloth::SpringLayout::Grid;
+    let err = format!(
+        "{:#}",
+        train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap_err()
+    );
+    assert!(
+        err.contains("b.npz") && err.contains("`triangles` differs"),
+        "{err}"
+    );
     // And a baseline cannot take the data's mesh.
     let err = Config::parse(
         "[cloth]\nlayout = \"data\"\n[model]\nkind = \"neural_ode\"\n",

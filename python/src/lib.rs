@@ -133,16 +133,27 @@ impl Run {
         self.loaded.meta.kind.name()
     }
 
-    /// Particles of the surrogate grid.
+    /// Particles of the surrogate (grid or data mesh).
     #[getter]
     fn particles(&self) -> usize {
         self.loaded.topology.num_particles()
     }
 
-    /// Mass of every particle, kg.
+    /// Mean mass of a particle, kg (every particle's on a grid surrogate).
     #[getter]
     fn particle_mass(&self) -> f64 {
         self.loaded.meta.particle_mass
+    }
+
+    /// Mass of each particle, kg, `[P]`: equal on a grid surrogate, the lumped rest areas' share
+    /// of the total on a data mesh (`cloth.layout = "data"`).
+    #[getter]
+    fn masses(&self) -> Vec<f64> {
+        let (topo, m) = (&self.loaded.topology, self.loaded.meta.particle_mass);
+        match &topo.mass_weight {
+            Some(w) => w.iter().map(|w| w * m).collect(),
+            None => vec![m; topo.num_particles()],
+        }
     }
 
     /// Time between the training data's frames, s (the default step of `simulate`).
@@ -152,8 +163,9 @@ impl Run {
     }
 
     /// The constants `simulate` steps with, as a dict: `frame_dt` (s), `substeps` per frame,
-    /// `dt` (s per step), `mass` (kg per particle), `rayleigh` (N·s/m per particle, the force
-    /// `−rayleigh·v`) and `gravity` (m/s², 3 components).
+    /// `dt` (s per step), `mass` (kg, the mean particle's; see `masses`), `rayleigh` (N·s/m on
+    /// a particle of the mean mass, the force `−rayleigh·v`; per unit mass the same on every
+    /// particle) and `gravity` (m/s², 3 components).
     #[getter(physics)]
     fn physics_constants<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
         let p = Physics::new(

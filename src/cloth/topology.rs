@@ -225,8 +225,9 @@ impl Topology {
     /// "data"`): particles at `rest_uv`, structural springs on the triangles' edges and, with
     /// `hinges`, a bending spring between the two vertices opposite each interior edge.
     ///
-    /// Errors (the caller names the file) on an index out of range, a degenerate triangle, or
-    /// a vertex in no triangle (it would fall freely).
+    /// A triangle listed twice (e.g. both sides of a double-sided mesh) counts once. Errors (the
+    /// caller names the file) on an index out of range, a degenerate triangle, a vertex in no
+    /// triangle (it would fall freely), or two landmarks at the same rest position.
     pub fn mesh(
         rest_uv: &[[f64; 2]],
         triangles: &[[usize; 3]],
@@ -237,6 +238,7 @@ impl Topology {
         let n = rest_uv.len();
         let mut used = vec![false; n];
         let mut ccw = Vec::with_capacity(triangles.len());
+        let mut seen = std::collections::BTreeSet::new();
         for (i, &t) in triangles.iter().enumerate() {
             if t.iter().any(|&v| v >= n) {
                 return Err(format!(
@@ -249,7 +251,11 @@ impl Topology {
                 return Err(format!("triangle {i} {t:?} is degenerate (zero rest area)"));
             }
             t.iter().for_each(|&v| used[v] = true);
-            ccw.push(if area2 > 0.0 { t } else { [t[0], t[2], t[1]] });
+            let mut key = t;
+            key.sort_unstable();
+            if seen.insert(key) {
+                ccw.push(if area2 > 0.0 { t } else { [t[0], t[2], t[1]] });
+            }
         }
         if let Some(v) = used.iter().position(|u| !u) {
             return Err(format!(
@@ -272,7 +278,7 @@ impl Topology {
         if hinges {
             let mut seen: std::collections::BTreeSet<[usize; 2]> =
                 opposite.keys().copied().collect();
-            for far in opposite.values().filter(|o| o.len() == 2) {
+            for far in opposite.values().filter(|o| o.len() == 2 && o[0] != o[1]) {
                 let pair = [far[0].min(far[1]), far[0].max(far[1])];
                 if seen.insert(pair) {
                     springs.push(pair);
@@ -280,10 +286,16 @@ impl Topology {
                 }
             }
         }
-        let rest_length = springs
+        let rest_length: Vec<f64> = springs
             .iter()
             .map(|&[a, b]| distance(rest_uv[a], rest_uv[b]))
             .collect();
+        if let Some(s) = rest_length.iter().position(|&l| !(l > 0.0)) {
+            let [a, b] = springs[s];
+            return Err(format!(
+                "landmarks {a} and {b} share a rest position: a spring between them has no length"
+            ));
+        }
         // Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
         let mut area = vec![0.0; n];
         for t in &ccw {
@@ -315,7 +327,13 @@ impl Topology {
         hinges: bool,
     ) -> Result<Self, String> {
         let triangles = super::resample::delaunay(rest_uv);
-        Self::mesh(rest_uv, &triangles, width, height, hinges)
+        Self::mesh(rest_uv, &triangles, width, height, hinges).map_err(|e| {
+            format!(
+                "{e} (the files have no `triangles`, so these are the Delaunay triangles of \
+                 `rest_uv` without slivers: a landmark at the place of another, or on a straight \
+                 line between its neighbours, can fall out)"
+            )
+        })
     }
 
     /// A typical distance between neighbouring particles, m: the grid step (the smaller of
@@ -546,8 +564,10 @@ mod tests {
         );
         let lonely = Topology::mesh(&uv, &tris[..2], 2.0, 1.0, true).unwrap_err();
         assert!(lonely.contains("landmark 4 is in no triangle"), "{lonely}");
-        let flat = Topology::mesh(&uv, &[[0, 1, 4], [0, 2, 3]], 2.0, 1.0, true);
-        assert!(flat.is_ok());
+        // Both sides of a double-sided mesh count once: no zero-length hinge.
+        let twice = [[0, 1, 2], [0, 2, 1], [0, 3, 2], [1, 4, 2]];
+        let once = Topology::mesh(&uv, &twice, 2.0, 1.0, true).unwrap();
+        assert_eq!(once.springs, topo.springs);
         let degenerate = [[0, 1, 1], [0, 2, 3], [1, 4, 2]];
         let err = Topology::mesh(&uv, &degenerate, 2.0, 1.0, true).unwrap_err();
         assert!(err.contains("triangle 0"), "{err}");

@@ -355,7 +355,7 @@ impl ClipSet {
         let mut info: Option<SetInfo> = None;
         let mut topology = None;
         let mut resampler: Option<Resampler> = None;
-        let mut rest_uv: Option<Vec<[f64; 2]>> = None;
+        let mut shape: Option<SetShape> = None;
         let mut cache = Cache {
             tracks: HashMap::new(),
             order: VecDeque::new(),
@@ -405,10 +405,22 @@ impl ClipSet {
                 }
             }
             let resampler_ref = resampler.as_ref().expect("set on the first file");
-            if let Some(uv) = &rest_uv {
-                check_same_landmarks(uv, &rollout.rest_uv, path, &paths[0])?;
+            if let Some(set) = &shape {
+                check_same_landmarks(&set.rest_uv, &rollout.rest_uv, path, &paths[0])?;
+                let triangles = rollout.mesh.as_ref().map(|m| &m.triangles);
+                if triangles != set.triangles.as_ref() {
+                    bail!(
+                        "{}: key `triangles` differs from {}: all rollouts of a set must share \
+                         their mesh (or all have none)",
+                        path.display(),
+                        paths[0].display()
+                    );
+                }
             }
-            rest_uv.get_or_insert_with(|| rollout.rest_uv.clone());
+            shape.get_or_insert_with(|| SetShape {
+                rest_uv: rollout.rest_uv.clone(),
+                triangles: rollout.mesh.as_ref().map(|m| m.triangles.clone()),
+            });
             if cache.bytes < cache.limit {
                 cache.insert(i, &Arc::new(Track::from_rollout(rollout, resampler_ref)));
             }
@@ -622,6 +634,12 @@ fn stored_offset(rollout: &Rollout, start: usize, steps: usize, first: usize) ->
         let usable = s.start + first;
         (start >= usable && start + steps < s.start + s.len).then(|| s.offset + start - s.start)
     })
+}
+
+/// What every rollout of a set shares with the first: landmarks and mesh.
+struct SetShape {
+    rest_uv: Vec<[f64; 2]>,
+    triangles: Option<Vec<[usize; 3]>>,
 }
 
 /// Errors unless `b` (of `path`) has the landmarks `a` of the set's first file `first`.

@@ -822,12 +822,12 @@ impl<'a> Export<'a> {
     fn write_surrogate(&self, pinned: &[usize], dt: Option<f64>) -> Result<()> {
         let topo = &self.run.topology;
         let json = SurrogateJson::of(self.run, self.model, pinned, dt);
-        let (mass, rayleigh, gravity) = (json.masses[0], json.rayleigh, json.gravity);
+        let (rayleigh, gravity) = (json.rayleigh, json.gravity);
         let (k, b) = (self.model.k_values(), self.model.b_values());
         let p = topo.num_particles();
         crate::io::write_text(&self.paths.json, &json.to_text()?)?;
-        let mut npz = crate::train::run::springs_npz(topo, &k, &b, mass);
-        npz.insert("mass", Array::f64(&[p], &vec![mass; p]));
+        let mut npz = crate::train::run::springs_npz(topo, &k, &b, self.run.particle_mass());
+        npz.insert("mass", Array::f64(&[p], &json.masses));
         npz.insert("rest_positions", Array::f32(&[p, 3], &self.rest));
         let mut pin_mask = vec![false; p];
         for &i in pinned {

@@ -403,14 +403,25 @@ pub fn write_rollout(
         None => (rest, rest_from.to_string()),
     };
     let area = rest.width * rest.height;
+    let flat_face = motion
+        .triangles
+        .as_ref()
+        .and_then(|t| t.iter().position(|t| degenerate(&rest.rest_uv, t, area)));
     let mesh = motion
         .triangles
         .as_ref()
-        .filter(|t| !t.is_empty() && !t.iter().any(|t| degenerate(&rest.rest_uv, t, area)))
+        .filter(|t| !t.is_empty() && flat_face.is_none())
         .map(|t| MeshTruth {
             triangles: t.clone(),
             stiffness: None,
         });
+    let rest_from = match flat_face {
+        Some(i) => format!(
+            "{rest_from}; the faces are not stored (`triangles`): triangle {i} of the faces has \
+             no area in the rest rectangle"
+        ),
+        None => rest_from,
+    };
     let rollout = Rollout {
         path: path.clone(),
         frames: motion.frames,

@@ -430,7 +430,8 @@ impl ModelMeta {
 }
 
 /// Writes the exportable surrogate: `springs` `[S, 2]`, `rest_length`, `k`, `b` `[S]`, and the
-/// grid (`rest_uv` `[P, 2]`, `grid` = `[nx, ny]`, `width`, `height`, `particle_mass`, `family`).
+/// sheet (`rest_uv` `[P, 2]`, `grid` = `[nx, ny]` on a grid, `triangles` `[M, 3]`, `width`,
+/// `height`, `particle_mass` (the mean), `family`).
 pub fn write_springs(
     path: &Path,
     topology: &Topology,
@@ -622,7 +623,6 @@ impl Run {
     }
 }
 
-/// The trained spring network of a run from its `springs.npz`.
 /// The data-mesh topology stored in a surrogate's `springs.npz` (`cloth.layout = "data"`).
 fn read_mesh_topology(path: &Path) -> Result<Topology> {
     let npz = Npz::read(path)?;
@@ -663,6 +663,7 @@ fn read_mesh_topology(path: &Path) -> Result<Topology> {
     Ok(topo)
 }
 
+/// The trained spring network of a run from its `springs.npz`.
 fn read_springs(
     dir: &RunDir,
     config: &Config,

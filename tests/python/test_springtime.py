@@ -60,6 +60,10 @@ def test_load_run_reads_the_trained_springs(trained):
     np.testing.assert_allclose(again.b, stored["b"], rtol=1e-6)
     assert again.rest.shape == (100, 3) and again.rest.dtype == np.float32
     np.testing.assert_allclose(again.rest[:, 2], 0.0)
+    # A grid surrogate's particles weigh the same: the mean.
+    assert len(again.masses) == 100
+    np.testing.assert_allclose(again.masses, again.particle_mass)
+    np.testing.assert_allclose(float(stored["particle_mass"]), again.particle_mass)
 
 
 def test_a_free_sheet_falls_as_its_centre_of_mass_must(trained):
