@@ -264,6 +264,15 @@ fn a_landmark_outside_the_mesh_is_refused_naming_the_file() {
         err.contains("b.npz") && err.contains("`triangles` differs"),
         "{err}"
     );
+    // `data check` refuses such a set too.
+    let err = format!(
+        "{:#}",
+        springtime::data::check_dir(&dir.join("mixed"), &config).unwrap_err()
+    );
+    assert!(
+        err.contains("b.npz") && err.contains("`triangles` differs"),
+        "{err}"
+    );
     // And a baseline cannot take the data's mesh.
     let err = Config::parse(
         "[cloth]\nlayout = \"data\"\n[model]\nkind = \"neural_ode\"\n",

@@ -149,11 +149,7 @@ impl Run {
     /// of the total on a data mesh (`cloth.layout = "data"`).
     #[getter]
     fn masses(&self) -> Vec<f64> {
-        let (topo, m) = (&self.loaded.topology, self.loaded.meta.particle_mass);
-        match &topo.mass_weight {
-            Some(w) => w.iter().map(|w| w * m).collect(),
-            None => vec![m; topo.num_particles()],
-        }
+        self.loaded.topology.masses(self.loaded.meta.particle_mass)
     }
 
     /// Time between the training data's frames, s (the default step of `simulate`).

@@ -223,7 +223,6 @@ impl<'a> Locator<'a> {
     }
 }
 
-/// Twice the signed area of triangle `t`.
 /// The Delaunay triangles of `points` (by `delaunator`), counter-clockwise, without slivers
 /// (twice the area below `SLIVER` times the bounding box's squared diagonal).
 pub(crate) fn delaunay(points: &[[f64; 2]]) -> Vec<[usize; 3]> {
@@ -247,7 +246,8 @@ pub(crate) fn delaunay(points: &[[f64; 2]]) -> Vec<[usize; 3]> {
         .collect()
 }
 
-fn twice_area(points: &[[f64; 2]], t: [usize; 3]) -> f64 {
+/// Twice the signed area of triangle `t` (positive when counter-clockwise).
+pub(crate) fn twice_area(points: &[[f64; 2]], t: [usize; 3]) -> f64 {
     let (a, b, c) = (points[t[0]], points[t[1]], points[t[2]]);
     (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])
 }

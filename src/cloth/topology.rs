@@ -17,6 +17,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::resample::twice_area;
+
 /// How a grid of springs is laid out: the `[cloth]` section of a config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -245,8 +247,7 @@ impl Topology {
                     "triangle {i} {t:?} names a vertex beyond the {n} landmarks"
                 ));
             }
-            let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
-            let area2 = (b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]);
+            let area2 = twice_area(rest_uv, t);
             if area2.abs() <= 1e-12 * width * height {
                 return Err(format!("triangle {i} {t:?} is degenerate (zero rest area)"));
             }
@@ -298,9 +299,8 @@ impl Topology {
         }
         // Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
         let mut area = vec![0.0; n];
-        for t in &ccw {
-            let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
-            let third = ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1])) / 6.0;
+        for &t in &ccw {
+            let third = twice_area(rest_uv, t) / 6.0;
             t.iter().for_each(|&v| area[v] += third);
         }
         let mean = area.iter().sum::<f64>() / n as f64;
@@ -370,6 +370,18 @@ impl Topology {
             Some([nx, ny]) => format!("{nx} × {ny} particles"),
             None => format!("{} particles on the data's mesh", self.num_particles()),
         }
+    }
+
+    /// Particle `i`'s mass relative to the mean ([`Topology::mass_weight`]; 1 on a grid).
+    pub fn relative_mass(&self, i: usize) -> f64 {
+        self.mass_weight.as_ref().map_or(1.0, |w| w[i])
+    }
+
+    /// Every particle's mass, kg, for particles of `mean` mass on average.
+    pub fn masses(&self, mean: f64) -> Vec<f64> {
+        (0..self.num_particles())
+            .map(|i| mean * self.relative_mass(i))
+            .collect()
     }
 
     /// The factor `1 / w` on each particle's spring forces ([`Topology::mass_weight`]);

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Result, bail};
 
-use super::clips::{ClipSet, SetInfo, check_same, check_same_landmarks};
+use super::clips::{ClipSet, SetInfo, check_same, check_same_landmarks, check_same_mesh};
 use super::npz::Npz;
 use super::rollout::{KEYS, Rollout};
 use super::strain::{StrainStats, StrainSummary};
@@ -163,6 +163,8 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         if let Some((info0, r0)) = &first {
             check_same(info0, &info, path, paths[0])?;
             check_same_landmarks(&r0.rest_uv, &r.rest_uv, path, paths[0])?;
+            let first_mesh = r0.mesh.as_ref().map(|m| &m.triangles);
+            check_same_mesh(first_mesh, r.mesh.as_ref(), path, paths[0])?;
         }
         Range::add(&mut frames, r.frames);
         Range::add(&mut pinned, r.pinned.iter().filter(|&&p| p).count());

@@ -12,7 +12,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
-use super::rollout::Rollout;
+use super::rollout::{MeshTruth, Rollout};
 use crate::cloth::{Resampler, Topology};
 use crate::config::Auto;
 
@@ -407,15 +407,12 @@ impl ClipSet {
             let resampler_ref = resampler.as_ref().expect("set on the first file");
             if let Some(set) = &shape {
                 check_same_landmarks(&set.rest_uv, &rollout.rest_uv, path, &paths[0])?;
-                let triangles = rollout.mesh.as_ref().map(|m| &m.triangles);
-                if triangles != set.triangles.as_ref() {
-                    bail!(
-                        "{}: key `triangles` differs from {}: all rollouts of a set must share \
-                         their mesh (or all have none)",
-                        path.display(),
-                        paths[0].display()
-                    );
-                }
+                check_same_mesh(
+                    set.triangles.as_ref(),
+                    rollout.mesh.as_ref(),
+                    path,
+                    &paths[0],
+                )?;
             }
             shape.get_or_insert_with(|| SetShape {
                 rest_uv: rollout.rest_uv.clone(),
@@ -652,6 +649,25 @@ pub(crate) fn check_same_landmarks(
     if a.len() != b.len() || a.iter().zip(b).any(|(x, y)| x != y) {
         bail!(
             "{}: key `rest_uv` differs from {}: all rollouts of a set must share their landmarks",
+            path.display(),
+            first.display()
+        );
+    }
+    Ok(())
+}
+
+/// Errors unless `b` (of `path`) has the `triangles` `a` of the set's first file `first`, or
+/// both have none.
+pub(crate) fn check_same_mesh(
+    a: Option<&Vec<[usize; 3]>>,
+    b: Option<&MeshTruth>,
+    path: &Path,
+    first: &Path,
+) -> Result<()> {
+    if b.map(|m| &m.triangles) != a {
+        bail!(
+            "{}: key `triangles` differs from {}: all rollouts of a set must share their mesh \
+             (or all have none)",
             path.display(),
             first.display()
         );

@@ -286,16 +286,12 @@ pub fn simulate_model(
             rec.frames = s.positions.chunks(p * 3).map(<[f32]>::to_vec).collect();
             let n = s.frames.len();
             let v_end = &s.velocities[(n - 1) * p * 3..];
-            let weight = |i: usize| topology.mass_weight.as_ref().map_or(1.0, |w| w[i]);
             rec.kinetic_energy_end = Some(
-                0.5 * physics.mass
-                    * v_end
-                        .chunks_exact(3)
-                        .enumerate()
-                        .map(|(i, c)| {
-                            weight(i) * c.iter().map(|c| (*c as f64).powi(2)).sum::<f64>()
-                        })
-                        .sum::<f64>(),
+                v_end
+                    .chunks_exact(3)
+                    .zip(topology.masses(physics.mass))
+                    .map(|(c, m)| 0.5 * m * c.iter().map(|c| (*c as f64).powi(2)).sum::<f64>())
+                    .sum::<f64>(),
             );
             let size = x0.iter().flatten().fold(1.0f64, |m, c| m.max(c.abs()));
             if rec

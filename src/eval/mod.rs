@@ -546,27 +546,30 @@ pub fn map_at_structural_springs(
         let [a, b, c] = corners(t);
         [(a[0] + b[0] + c[0]) / 3.0, (a[1] + b[1] + c[1]) / 3.0]
     };
-    (0..topology.num_springs())
-        .filter(|&s| topology.family[s] == SpringFamily::Structural)
-        .map(|s| {
-            let m = topology.midpoint(s);
-            let tri = mesh
-                .triangles
-                .iter()
-                .position(|t| contains(t, m))
-                .unwrap_or_else(|| {
-                    let d = |t: &[usize; 3]| {
-                        let c = centroid(t);
-                        (c[0] - m[0]).powi(2) + (c[1] - m[1]).powi(2)
-                    };
-                    (0..mesh.triangles.len())
-                        .min_by(|&i, &j| d(&mesh.triangles[i]).total_cmp(&d(&mesh.triangles[j])))
-                        .expect("a mesh has triangles")
-                });
-            (s, stiffness[tri])
-        })
-        .collect::<Vec<_>>()
-        .into()
+    Some(
+        (0..topology.num_springs())
+            .filter(|&s| topology.family[s] == SpringFamily::Structural)
+            .map(|s| {
+                let m = topology.midpoint(s);
+                let tri = mesh
+                    .triangles
+                    .iter()
+                    .position(|t| contains(t, m))
+                    .unwrap_or_else(|| {
+                        let d = |t: &[usize; 3]| {
+                            let c = centroid(t);
+                            (c[0] - m[0]).powi(2) + (c[1] - m[1]).powi(2)
+                        };
+                        (0..mesh.triangles.len())
+                            .min_by(|&i, &j| {
+                                d(&mesh.triangles[i]).total_cmp(&d(&mesh.triangles[j]))
+                            })
+                            .expect("a mesh has triangles")
+                    });
+                (s, stiffness[tri])
+            })
+            .collect(),
+    )
 }
 
 /// Spearman's rank correlation of `a` and `b` (ties get their average rank); `None` when

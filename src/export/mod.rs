@@ -231,10 +231,7 @@ impl SurrogateJson {
             triangles: topo.triangles.clone(),
             width: topo.width,
             height: topo.height,
-            masses: match &topo.mass_weight {
-                Some(w) => w.iter().map(|w| w * run.particle_mass()).collect(),
-                None => vec![run.particle_mass(); topo.num_particles()],
-            },
+            masses: topo.masses(run.particle_mass()),
             rest_positions: topo.rest_positions(),
             springs: topo.springs.clone(),
             family: topo.family.clone(),

@@ -122,8 +122,7 @@ pub struct ImportSummary {
 /// Whether triangle `t` has no area in the rest rectangle (of area `area`): such a mesh is not
 /// stored (rollout loading refuses it), the points alone are.
 fn degenerate(rest_uv: &[[f64; 2]], t: &[usize; 3], area: f64) -> bool {
-    let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
-    (0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]))).abs() <= 1e-12 * area
+    (0.5 * crate::cloth::resample::twice_area(rest_uv, *t)).abs() <= 1e-12 * area
 }
 
 /// Derives the rest rectangle (see [`RestShape`]); `size` overrides the scale per axis.

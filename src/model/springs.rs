@@ -58,6 +58,7 @@ impl SpringGraph {
         let ib: Vec<i64> = topology.springs.iter().map(|e| e[1] as i64).collect();
         let ends: Vec<i64> = ia.iter().chain(&ib).copied().collect();
         let l0 = topology.rest_length.clone();
+        let scale = topology.force_scale();
         let int = |v: Vec<i64>| {
             Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device)
         };
@@ -68,7 +69,7 @@ impl SpringGraph {
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
             num_particles: topology.num_particles(),
             num_springs: s,
-            force_scale: topology.force_scale().map(|f| {
+            force_scale: scale.clone().map(|f| {
                 let p = f.len();
                 Tensor::<1>::from_data(TensorData::new(f, [p]), device).reshape([1, p, 1])
             }),
@@ -78,7 +79,7 @@ impl SpringGraph {
                     &topology.rest_length,
                     topology.num_particles(),
                 )
-                .with_force_scale(topology.force_scale()),
+                .with_force_scale(scale),
             ),
             kernel: Kernel::Fused,
             on_host: runs_host_kernels(device),

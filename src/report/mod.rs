@@ -164,11 +164,7 @@ pub fn build(
                     .into(),
             );
         }
-        mesh = r
-            .mesh
-            .clone()
-            .filter(|m| m.stiffness.is_some())
-            .map(|m| (r.rest_uv.clone(), m));
+        mesh = r.mesh.clone().map(|m| (r.rest_uv.clone(), m));
     }
     let (k, b) = (model.k_values(), model.b_values());
     let mut inputs = Inputs {

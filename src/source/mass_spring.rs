@@ -88,7 +88,7 @@ impl SpringCloth {
 impl SpringCloth {
     /// Particle `i`'s mass relative to the mean.
     fn weight(&self, i: usize) -> f64 {
-        self.topology.mass_weight.as_ref().map_or(1.0, |w| w[i])
+        self.topology.relative_mass(i)
     }
 }
 

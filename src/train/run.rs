@@ -546,12 +546,13 @@ impl Run {
         };
         incomplete(dir.meta())?;
         let meta = ModelMeta::read(&dir.meta())?;
+        incomplete(match meta.kind {
+            ModelKind::Springs => dir.springs(),
+            _ => dir.model(),
+        })?;
         let topology = match (config.cloth.layout, meta.kind) {
             (SpringLayout::Grid, _) => Topology::grid(&config.cloth, meta.width, meta.height),
-            (SpringLayout::Data, ModelKind::Springs) => {
-                incomplete(dir.springs())?;
-                read_mesh_topology(&dir.springs())?
-            }
+            (SpringLayout::Data, ModelKind::Springs) => read_mesh_topology(&dir.springs())?,
             (SpringLayout::Data, kind) => bail!(
                 "{}: a {} run with cloth.layout = \"data\" (only the spring surrogate takes the \
                  data's mesh)",
@@ -559,10 +560,6 @@ impl Run {
                 kind.name()
             ),
         };
-        incomplete(match meta.kind {
-            ModelKind::Springs => dir.springs(),
-            _ => dir.model(),
-        })?;
         let model = match meta.kind {
             ModelKind::Springs => {
                 Trained::Springs(read_springs(&dir, &config, &topology, &device)?)
