@@ -50,6 +50,27 @@ impl Backend {
     }
 }
 
+/// What `device` is, for reports: `cpu (flex)`, `cpu (ndarray)`, or for a CubeCL device the
+/// runtime and the adapter's own name (e.g. `cubecl wgpu: NVIDIA H100 80GB HBM3`).
+pub fn describe(device: &Device) -> String {
+    use burn::backend::DispatchDevice;
+    match device.clone().inner().as_dispatch() {
+        DispatchDevice::Flex(_) => "cpu (flex)".to_string(),
+        DispatchDevice::NdArray(_) => "cpu (ndarray)".to_string(),
+        #[cfg(feature = "wgpu")]
+        DispatchDevice::Cube(d) => {
+            let client = d.client();
+            format!(
+                "cubecl {}: {}",
+                client.name(),
+                client.properties().identity.name
+            )
+        }
+        #[allow(unreachable_patterns)]
+        other => format!("{other:?}"),
+    }
+}
+
 impl fmt::Display for Backend {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())

@@ -55,9 +55,12 @@ pub struct BenchReport {
     pub backend: String,
     /// Kernel asked for.
     pub kernel: Kernel,
-    /// The spring-force path that ran: `"fused"` (the CPU kernels of `flex` and `ndarray`) or
-    /// `"tensor"` (the tensor-op reference: asked for, or the only path on `wgpu`).
+    /// The spring-force path that ran: `"fused"` (the CPU kernels of `flex` and `ndarray`, the
+    /// CubeCL kernels on `wgpu`) or `"tensor"` (the tensor-op reference, when asked for).
     pub kernel_used: &'static str,
+    /// The device: Burn's backend name with the adapter (e.g. `cubecl<wgpu<vulkan>>` and the
+    /// GPU's name) or the CPU backend.
+    pub device: String,
     /// Clips per iteration.
     pub batch: usize,
     /// Steps per clip.
@@ -121,6 +124,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         gravity: cfg.gravity,
     };
     let mut model = SpringNet::uniform(&topo, 50.0, 0.01, &device).with_kernel(options.kernel);
+    let fused = model.graph.fused_forces();
     let mut optim = AdamConfig::new().with_epsilon(1e-8).init();
     let weights = LossWeights::default();
     let ids = [model.k.id, model.b.id];
@@ -188,13 +192,8 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         peak_rss_mib: crate::train::run::peak_rss_mib(),
         backend: options.backend.to_string(),
         kernel: options.kernel,
-        kernel_used: if options.kernel == Kernel::Fused
-            && crate::model::springs::runs_host_kernels(&device)
-        {
-            "fused"
-        } else {
-            "tensor"
-        },
+        kernel_used: if fused { "fused" } else { "tensor" },
+        device: crate::backend::describe(&plain),
         batch: b,
         steps: t,
         springs: topo.num_springs(),

@@ -574,7 +574,8 @@ fn the_cli_explains_itself() {
     for (backend, kernel, used) in [
         ("flex", "fused", "fused"),
         ("flex", "reference", "tensor"),
-        ("wgpu", "fused", "tensor"),
+        ("wgpu", "fused", "fused"),
+        ("wgpu", "reference", "tensor"),
     ] {
         let out = ok(&springtime(
             &[

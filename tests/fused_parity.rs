@@ -1,5 +1,6 @@
-//! The fused spring-force kernel against the tensor-op reference: values and gradients with
-//! respect to positions, velocities, k and b, on every CPU backend.
+//! The fused spring-force kernels against the tensor-op reference: values and gradients with
+//! respect to positions, velocities, k and b, on every CPU backend and on wgpu (the CubeCL
+//! kernels; CI runs them on Mesa's software Vulkan).
 
 mod common;
 
@@ -88,6 +89,7 @@ fn assert_close(name: &str, a: &[f64], b: &[f64]) {
 fn fused_kernel_matches_tensor_ops() {
     for (device, topo) in [Device::flex(), Device::ndarray()]
         .into_iter()
+        .chain(common::wgpu())
         .flat_map(|d| {
             topologies(&common::source(7, &[10.0, 50.0, 100.0], 1.0)).map(|t| (d.clone(), t))
         })
@@ -108,6 +110,21 @@ fn fused_kernel_matches_tensor_ops() {
 /// gradients with respect to k and b, with and without substeps and checkpointing.
 #[test]
 fn fused_rollout_loss_matches_tensor_ops() {
+    compare_losses(&Device::flex(), &[(1, 1024), (1, 0), (3, 1024), (3, 0)]);
+}
+
+/// On wgpu the fused path is a rollout of fused steps (CubeCL kernels, each with its
+/// hand-written backward) inside the tensor-op losses.
+#[test]
+fn fused_steps_on_wgpu_match_tensor_ops() {
+    if let Some(device) = common::wgpu() {
+        compare_losses(&device, &[(1, 1024), (3, 1024)]);
+    }
+}
+
+/// Loss terms and their `k`, `b` gradients, fused against tensor ops on `device`, for each
+/// `(substeps, state budget in MiB)`.
+fn compare_losses(device: &Device, cases: &[(usize, usize)]) {
     use springtime::sim::Physics;
     use springtime::train::{ForceOn, LossWeights, loss_with_budget};
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
@@ -125,8 +142,8 @@ fn fused_rollout_loss_matches_tensor_ops() {
             k_neg: 1.0,
             b_neg: 1.0,
         };
-        let device = Device::flex().autodiff();
-        for (substeps, budget) in [(1, 1024), (1, 0), (3, 1024), (3, 0)] {
+        let device = device.clone().autodiff();
+        for &(substeps, budget) in cases {
             let batch = common::batch(&cfg, &rollouts, 150, 90, &device);
             let physics = Physics {
                 frame_dt: rollouts[0].frame_dt,

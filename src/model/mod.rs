@@ -127,7 +127,7 @@ impl ForceModel for SpringNet {
         pin_v: Tensor<3>,
         params: StepParams,
     ) -> Option<(Tensor<3>, Tensor<3>, Tensor<3>)> {
-        self.graph.fused_rollout().then(|| {
+        self.graph.fused_forces().then(|| {
             kernels::cloth_step(
                 x,
                 v,

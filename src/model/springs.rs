@@ -45,9 +45,34 @@ pub struct SpringGraph {
     /// Which implementation [`spring_forces`] uses.
     #[module(skip)]
     pub kernel: Kernel,
-    /// Whether the device runs the host (CPU) kernels: the fused step and rollout exist there.
+    /// Where the fused kernels run on this graph's device.
     #[module(skip)]
-    pub on_host: bool,
+    pub fused_on: FusedOn,
+}
+
+/// Which fused kernels a device has.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FusedOn {
+    /// The CPU backends (`flex`, `ndarray`): forces, step and the whole-rollout op.
+    Host,
+    /// A CubeCL device (`wgpu`): forces and step.
+    Cube,
+    /// None: tensor ops only.
+    Nowhere,
+}
+
+impl FusedOn {
+    /// The fused kernels of `device` (with or without autodiff).
+    pub fn of(device: &Device) -> Self {
+        use burn::backend::DispatchDevice;
+        match device.clone().inner().as_dispatch() {
+            DispatchDevice::Flex(_) | DispatchDevice::NdArray(_) => Self::Host,
+            #[cfg(feature = "wgpu")]
+            DispatchDevice::Cube(_) => Self::Cube,
+            #[allow(unreachable_patterns)]
+            _ => Self::Nowhere,
+        }
+    }
 }
 
 impl SpringGraph {
@@ -82,29 +107,25 @@ impl SpringGraph {
                 .with_force_scale(scale),
             ),
             kernel: Kernel::Fused,
-            on_host: runs_host_kernels(device),
+            fused_on: FusedOn::of(device),
         }
     }
 }
 
 /// Whether `device` (with or without autodiff) is a CPU backend with the host kernels.
 pub fn runs_host_kernels(device: &Device) -> bool {
-    use burn::backend::DispatchDevice;
-    matches!(
-        device.clone().inner().as_dispatch(),
-        DispatchDevice::Flex(_) | DispatchDevice::NdArray(_)
-    )
+    FusedOn::of(device) == FusedOn::Host
 }
 
 impl SpringGraph {
-    /// Whether the fused spring-force op runs here.
+    /// Whether the fused spring-force and step ops run here.
     pub fn fused_forces(&self) -> bool {
-        self.kernel == Kernel::Fused && self.on_host
+        self.kernel == Kernel::Fused && self.fused_on != FusedOn::Nowhere
     }
 
-    /// Whether the fused step and rollout ops run here.
+    /// Whether the fused whole-rollout op ([`kernels::rollout_loss`]) runs here.
     pub fn fused_rollout(&self) -> bool {
-        self.kernel == Kernel::Fused && self.on_host
+        self.kernel == Kernel::Fused && self.fused_on == FusedOn::Host
     }
 }
 

@@ -123,3 +123,27 @@ pub fn fails(out: &std::process::Output, needles: &[&str]) {
         assert!(stderr.contains(n), "error does not mention {n:?}: {stderr}");
     }
 }
+
+/// The wgpu device when this build has it and the machine has an adapter (CI: Mesa's software
+/// Vulkan); `None` otherwise, unless `SPRINGTIME_REQUIRE_WGPU` is set, which makes a missing
+/// adapter a failure.
+pub fn wgpu() -> Option<Device> {
+    #[cfg(feature = "wgpu")]
+    {
+        let device = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+        let usable = std::panic::catch_unwind(|| {
+            burn::tensor::Tensor::<1>::from_floats([1.0, 2.0], &device)
+                .sum()
+                .into_scalar::<f32>()
+        });
+        if usable.is_ok() {
+            return Some(device);
+        }
+    }
+    assert!(
+        std::env::var_os("SPRINGTIME_REQUIRE_WGPU").is_none(),
+        "no wgpu adapter, and SPRINGTIME_REQUIRE_WGPU is set"
+    );
+    eprintln!("skipping wgpu: no adapter on this machine (or a build without `wgpu`)");
+    None
+}

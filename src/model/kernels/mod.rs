@@ -7,7 +7,8 @@
 //! and scored by Eqs. 7–10, with the adjoint of the integrator as its backward).
 //!
 //! Backends: `Flex` and `NdArray` run the CPU kernels of [`cpu`] and [`rollout`] (SIMD across
-//! clips, chunks of clips in parallel; `host.rs`); `Autodiff<B>` records one node per op whose
+//! clips, chunks of clips in parallel; `host.rs`); `Cube` (wgpu) runs the CubeCL kernels of
+//! `cube.rs` for the forces and the step (the whole-rollout op is CPU-only); `Autodiff<B>` records one node per op whose
 //! backward is the matching hand-written kernel of `B` (`autodiff.rs`). The tensor-op versions
 //! ([`super::springs::spring_forces_reference`], [`crate::sim::rollout`] with
 //! [`super::Kernel::Reference`]) are the references the tests compare against.
@@ -16,6 +17,8 @@
 
 mod autodiff;
 pub mod cpu;
+#[cfg(feature = "wgpu")]
+mod cube;
 mod host;
 pub mod rollout;
 
@@ -39,6 +42,9 @@ pub struct HostGraph {
     particles: usize,
     /// `1 / w` on each particle's spring forces (relative masses `w`); `None`: equal masses.
     force_scale: Option<Vec<f64>>,
+    /// The graph's buffers on the CubeCL devices it ran on.
+    #[cfg(feature = "wgpu")]
+    cube: cube::CubeCache,
 }
 
 impl HostGraph {
@@ -63,6 +69,8 @@ impl HostGraph {
             rest_length: rest_length.to_vec(),
             particles,
             force_scale: None,
+            #[cfg(feature = "wgpu")]
+            cube: Default::default(),
         }
     }
 
@@ -78,6 +86,10 @@ impl HostGraph {
             );
         }
         self.force_scale = scale;
+        #[cfg(feature = "wgpu")]
+        {
+            self.cube = Default::default();
+        }
         self
     }
 
@@ -93,7 +105,7 @@ impl HostGraph {
 }
 
 /// Backends that run the fused spring-force op.
-#[backend_extension(Autodiff, Flex, NdArray)]
+#[backend_extension(Autodiff, Cube: cfg(feature = "wgpu"), Flex, NdArray)]
 pub trait SpringBackend: Backend {
     /// Spring forces `[B, P, 3]` at positions `x` and velocities `v` `[B, P, 3]` with
     /// per-spring `k`, `b` `[S]`.
