@@ -13,6 +13,7 @@ use anyhow::Result;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
 use rand::{SeedableRng, rngs::StdRng};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::backend::Backend;
@@ -104,11 +105,18 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let p = topo.num_particles();
     let mut rng = StdRng::seed_from_u64(0);
     let identity = Resampler::new(&topo.rest_uv, &topo.rest_uv);
-    let tracks: Vec<Track> = (0..b)
+    // Scenarios drawn in order (one seed, any thread count), simulated in parallel.
+    let scenarios: Vec<Scenario> = (0..b)
         .map(|_| {
             let mut scenario = Scenario::random(&topo.rest_uv, 0.0, &mut rng);
             scenario.pinned = (0..p).map(|i| i == (n - 1) * n || i == n * n - 1).collect();
-            let r = simulate_rollout(&cloth, &cfg, &scenario, None, "bench")?;
+            scenario
+        })
+        .collect();
+    let tracks: Vec<Track> = scenarios
+        .par_iter()
+        .map(|scenario| {
+            let r = simulate_rollout(&cloth, &cfg, scenario, None, "bench")?;
             Ok(Track::new(&r, &identity))
         })
         .collect::<Result<_>>()?;

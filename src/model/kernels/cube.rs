@@ -192,8 +192,19 @@ fn gather_forces<F: Float>(
     (f0 * sc, f1 * sc, f2 * sc)
 }
 
-/// Semi-implicit Euler (Eq. 5) of one component `i` with spring force `s`; pinned particles
-/// take their prescribed state. Writes `x'`, `v'`, `f` at `i`, `n + i`, `2n + i`.
+/// The constants of a step: `h`, `h/m`, the Rayleigh `c` and the weight `m g`.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+pub struct StepConsts {
+    h: f32,
+    hm: f32,
+    c: f32,
+    mg0: f32,
+    mg1: f32,
+    mg2: f32,
+}
+
+/// Semi-implicit Euler (Eq. 5) of one component `i` with spring force and weight `s`; pinned
+/// particles take their prescribed state. Writes `x'`, `v'`, `f` at `i`, `n + i`, `2n + i`.
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn integrate<F: Float>(
@@ -205,13 +216,14 @@ fn integrate<F: Float>(
     i: usize,
     n: usize,
     s: F,
-    consts: &[F],
-    #[comptime] axis: usize,
+    h: F,
+    hm: F,
+    c: F,
     pinned: bool,
 ) {
-    let f = s + consts[3 + axis] - consts[2] * v[i];
-    let vn = v[i] + consts[1] * f;
-    let xn = x[i] + consts[0] * vn;
+    let f = s - c * v[i];
+    let vn = v[i] + hm * f;
+    let xn = x[i] + h * vn;
     if pinned {
         out[i] = pin_x[i];
         out[n + i] = pin_v[i];
@@ -242,7 +254,7 @@ fn forward_kernel<F: Float>(
     out: &mut [F],
     particles: usize,
     items: usize,
-    consts: &[F],
+    consts: StepConsts,
     #[comptime] step: bool,
 ) {
     let item = ABSOLUTE_POS;
@@ -254,48 +266,17 @@ fn forward_kernel<F: Float>(
     );
     let i = item * 3;
     if step {
-        // consts = [h, h/m, c, m g_x, m g_y, m g_z]
         let n = items * 3;
         let pinned_here = pinned[item] > F::new(0.0);
-        integrate::<F>(
-            x,
-            v,
-            pin_x,
-            pin_v,
-            out,
-            i,
-            n,
-            s0,
-            consts,
-            0usize,
-            pinned_here,
-        );
-        integrate::<F>(
-            x,
-            v,
-            pin_x,
-            pin_v,
-            out,
-            i + 1,
-            n,
-            s1,
-            consts,
-            1usize,
-            pinned_here,
-        );
-        integrate::<F>(
-            x,
-            v,
-            pin_x,
-            pin_v,
-            out,
-            i + 2,
-            n,
-            s2,
-            consts,
-            2usize,
-            pinned_here,
-        );
+        let h = F::cast_from(consts.h);
+        let hm = F::cast_from(consts.hm);
+        let c = F::cast_from(consts.c);
+        let w0 = s0 + F::cast_from(consts.mg0);
+        let w1 = s1 + F::cast_from(consts.mg1);
+        let w2 = s2 + F::cast_from(consts.mg2);
+        integrate::<F>(x, v, pin_x, pin_v, out, i, n, w0, h, hm, c, pinned_here);
+        integrate::<F>(x, v, pin_x, pin_v, out, i + 1, n, w1, h, hm, c, pinned_here);
+        integrate::<F>(x, v, pin_x, pin_v, out, i + 2, n, w2, h, hm, c, pinned_here);
     } else {
         out[i] = s0;
         out[i + 1] = s1;
@@ -320,7 +301,7 @@ fn upstream_kernel<F: Float>(
     gv: &mut [F],
     particles: usize,
     items: usize,
-    consts: &[F],
+    consts: StepConsts,
     #[comptime] step: bool,
 ) {
     let item = ABSOLUTE_POS;
@@ -330,9 +311,9 @@ fn upstream_kernel<F: Float>(
     let sc = scale[item % particles];
     let i = item * 3;
     if step {
-        let h = consts[0];
-        let hm = consts[1];
-        let c = consts[2];
+        let h = F::cast_from(consts.h);
+        let hm = F::cast_from(consts.hm);
+        let c = F::cast_from(consts.c);
         let n = items * 3;
         let free = pinned[item] <= F::new(0.0);
         #[unroll]
@@ -530,25 +511,20 @@ fn empty(like: &CubeTensor, shape: Vec<usize>) -> CubeTensor {
     )
 }
 
-/// A small f32 buffer of constants.
-fn constants(like: &CubeTensor, values: &[f32]) -> BufferArg {
-    let handle = like.client.create_from_slice(f32::as_bytes(values));
-    // SAFETY: created from exactly `values.len()` floats.
-    unsafe { BufferArg::from_raw_parts(handle, values.len()) }
-}
-
-fn step_constants(like: &CubeTensor, params: &StepParams) -> BufferArg {
-    let m = params.mass;
-    constants(
-        like,
-        &[
-            params.h as f32,
-            (params.h / m) as f32,
-            params.rayleigh as f32,
-            (params.gravity[0] * m) as f32,
-            (params.gravity[1] * m) as f32,
-            (params.gravity[2] * m) as f32,
-        ],
+/// The step's constants as kernel arguments (zeros for the force-only kernels, which do not
+/// read them).
+fn step_constants(params: Option<&StepParams>) -> StepConstsLaunch {
+    let (h, m, c, g) = match params {
+        Some(p) => (p.h, p.mass, p.rayleigh, p.gravity),
+        None => (0.0, 1.0, 0.0, [0.0; 3]),
+    };
+    StepConstsLaunch::new(
+        h as f32,
+        (h / m) as f32,
+        c as f32,
+        (g[0] * m) as f32,
+        (g[1] * m) as f32,
+        (g[2] * m) as f32,
     )
 }
 
@@ -586,7 +562,7 @@ fn forward(
     let out = empty(&x, out_shape);
     let (pinned, pin_x, pin_v, consts) = match pins {
         Some((pinned, pin_x, pin_v, params)) => {
-            let consts = step_constants(&x, &params);
+            let consts = step_constants(Some(&params));
             (
                 prepare(pinned, "pinned"),
                 prepare(pin_x, "pin_x"),
@@ -595,7 +571,7 @@ fn forward(
             )
         }
         // Unread without `step`: any buffers do.
-        None => (x.clone(), x.clone(), x.clone(), constants(&x, &[0.0; 6])),
+        None => (x.clone(), x.clone(), x.clone(), step_constants(None)),
     };
     let (count, dim) = launch_dims(&x, items);
     // SAFETY: every buffer holds what the kernel indexes: states `items · 3`, pins `items`,
@@ -654,8 +630,8 @@ fn backward(
     );
     let is_step = step.is_some();
     let (pinned, consts) = match step {
-        Some((pinned, params)) => (prepare(pinned, "pinned"), step_constants(&x, &params)),
-        None => (x.clone(), constants(&x, &[0.0; 6])),
+        Some((pinned, params)) => (prepare(pinned, "pinned"), step_constants(Some(&params))),
+        None => (x.clone(), step_constants(None)),
     };
     let (count, dim) = launch_dims(&x, items);
     // SAFETY (all launches): buffers as in `forward`; `gs`, `gx`, `gv` hold `items · 3`,
