@@ -71,6 +71,18 @@ pub fn describe(device: &Device) -> String {
     }
 }
 
+/// The largest single buffer `device` can allocate, bytes: on a CubeCL device the runtime's
+/// page limit (wgpu: the smaller of the adapter's largest buffer and largest storage binding;
+/// 128 MiB on Mesa's lavapipe); `None` on the CPU backends, which have no such limit.
+pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
+    use burn::backend::DispatchDevice;
+    match device.clone().inner().as_dispatch() {
+        #[cfg(feature = "wgpu")]
+        DispatchDevice::Cube(d) => Some(d.client().properties().memory.max_page_size),
+        _ => None,
+    }
+}
+
 impl fmt::Display for Backend {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())

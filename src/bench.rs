@@ -18,7 +18,7 @@ use serde::Serialize;
 
 use crate::backend::Backend;
 use crate::cloth::Resampler;
-use crate::data::{ClipBatch, Track};
+use crate::data::{ClipBatch, HostBatch, Track};
 use crate::model::{Kernel, SpringNet};
 use crate::sim::{self, Physics, State};
 use crate::source::{Layout, Scenario, SourceConfig, SpringCloth, simulate_rollout};
@@ -62,6 +62,9 @@ pub struct BenchReport {
     /// The device: Burn's backend name with the adapter (e.g. `cubecl<wgpu<vulkan>>` and the
     /// GPU's name) or the CPU backend.
     pub device: String,
+    /// The largest buffer the device allocates, bytes (`null` on the CPU): a batch's
+    /// `[B, T + 1, P, 3]` positions must fit in one.
+    pub max_buffer_bytes: Option<u64>,
     /// Clips per iteration.
     pub batch: usize,
     /// Steps per clip.
@@ -123,7 +126,9 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let plain = options.backend.device()?;
     let device = plain.clone().autodiff();
     let views: Vec<(&Track, usize)> = tracks.iter().map(|tr| (tr, 0)).collect();
-    let batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &device);
+    let host = HostBatch::new(&views, t, cloth.mass, 1e-3);
+    host.check_fits(&device)?;
+    let batch = host.to_device(&device);
     let physics = Physics {
         frame_dt: 1e-3,
         substeps: 1,
@@ -202,6 +207,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         kernel: options.kernel,
         kernel_used: if fused { "fused" } else { "tensor" },
         device: crate::backend::describe(&plain),
+        max_buffer_bytes: crate::backend::max_buffer_bytes(&plain),
         batch: b,
         steps: t,
         springs: topo.num_springs(),

@@ -32,7 +32,7 @@ fn open(dir: &std::path::Path, config: &Config) -> ClipSet {
         &files,
         &config.data.clips,
         |r| springtime::train::topology(config, r),
-        256,
+        256 << 20,
         |_| {},
     )
     .unwrap()

@@ -27,7 +27,7 @@ fn ground_truth_parameters_reproduce_the_source() {
     let split = data.split().unwrap();
     assert_eq!((split.train.len(), split.test.len()), (3, 1));
     let grid = common::grid_of(&cfg);
-    let set = ClipSet::open(&split.train, &clips, |_| Ok(grid.clone()), 1024, |_| {}).unwrap();
+    let set = ClipSet::open(&split.train, &clips, |_| Ok(grid.clone()), 1 << 30, |_| {}).unwrap();
     // 601 frames (0.6 s at 1 ms, velocities stored): clips start at frames 0, 200 and 400.
     assert_eq!(set.regular.len(), 3 * 3);
     let first = Rollout::load(&split.train[0]).unwrap();

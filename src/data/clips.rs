@@ -10,6 +10,7 @@ use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng, rngs::StdRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::rollout::{MeshTruth, Rollout};
@@ -318,7 +319,7 @@ struct Cache {
 impl Cache {
     /// Keeps `track` if it fits after evicting older entries (never more than `limit` bytes).
     fn insert(&mut self, i: usize, track: &Arc<Track>) {
-        if track.bytes() > self.limit {
+        if track.bytes() > self.limit || self.tracks.contains_key(&i) {
             return;
         }
         while self.bytes + track.bytes() > self.limit {
@@ -344,7 +345,7 @@ impl ClipSet {
         paths: &[PathBuf],
         clips: &ClipConfig,
         topology_of: impl Fn(&Rollout) -> Result<Topology>,
-        cache_mib: usize,
+        cache_bytes: usize,
         mut progress: impl FnMut(usize),
     ) -> Result<Self> {
         if paths.is_empty() {
@@ -360,7 +361,7 @@ impl ClipSet {
             tracks: HashMap::new(),
             order: VecDeque::new(),
             bytes: 0,
-            limit: cache_mib << 20,
+            limit: cache_bytes,
         };
         for (i, path) in paths.iter().enumerate() {
             let rollout = Rollout::load(path)?;
@@ -489,12 +490,12 @@ impl ClipSet {
         Ok(track)
     }
 
-    /// Assembles clips on the host (reading rollouts that are not cached).
+    /// Assembles clips on the host (reading the rollouts that are not cached in parallel).
     pub fn host_batch(&self, clips: &[ClipRef]) -> Result<HostBatch> {
-        let mut tracks = Vec::with_capacity(clips.len());
-        for c in clips {
-            tracks.push((self.track(c.rollout)?, c.offset));
-        }
+        let tracks: Vec<(Arc<Track>, usize)> = clips
+            .par_iter()
+            .map(|c| Ok((self.track(c.rollout)?, c.offset)))
+            .collect::<Result<_>>()?;
         let views: Vec<(&Track, usize)> = tracks.iter().map(|(t, o)| (t.as_ref(), *o)).collect();
         Ok(HostBatch::new(
             &views,
@@ -506,7 +507,9 @@ impl ClipSet {
 
     /// Assembles clips into tensors on `device`.
     pub fn batch(&self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
-        Ok(self.host_batch(clips)?.to_device(device))
+        let host = self.host_batch(clips)?;
+        host.check_fits(device)?;
+        Ok(host.to_device(device))
     }
 }
 
@@ -559,6 +562,25 @@ impl HostBatch {
             clips: b,
             steps: t,
             particles: p,
+        }
+    }
+
+    /// Refuses a batch whose largest tensor (positions or velocities, `[B, T + 1, P, 3]` f32)
+    /// is over `device`'s largest buffer, naming the sizes and what to lower.
+    pub fn check_fits(&self, device: &Device) -> anyhow::Result<()> {
+        let bytes = (self.positions.len() * std::mem::size_of::<f32>()) as u64;
+        match crate::backend::max_buffer_bytes(device) {
+            Some(max) if bytes > max => anyhow::bail!(
+                "a batch of {} clips of {} steps over {} particles needs {:.2} GB per tensor, \
+                 over this device's largest buffer ({:.2} GB): lower the clips per batch \
+                 (`train.*.batch`) or the steps per clip (`data.clips.steps`)",
+                self.clips,
+                self.steps,
+                self.particles,
+                bytes as f64 / 1e9,
+                max as f64 / 1e9
+            ),
+            _ => Ok(()),
         }
     }
 

@@ -15,6 +15,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
+use crate::config::Auto;
+
 /// The `[data]` section: where rollouts are and how they are cut.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -24,8 +26,9 @@ pub struct DataConfig {
     pub dir: PathBuf,
     /// Optional directory of test rollouts (every `.npz` in it); overrides the index's split.
     pub test_dir: Option<PathBuf>,
-    /// Memory for resampled rollouts kept between batches, MiB.
-    pub cache_mib: usize,
+    /// Memory for resampled rollouts kept between batches, MiB; `"auto"` (default): half the
+    /// memory available when the run starts ([`DataConfig::cache_bytes`]).
+    pub cache_mib: Auto<usize>,
     /// How rollouts are cut into clips.
     pub clips: ClipConfig,
 }
@@ -35,10 +38,31 @@ impl Default for DataConfig {
         Self {
             dir: PathBuf::from("data/rollouts"),
             test_dir: None,
-            cache_mib: 4096,
+            cache_mib: Auto::Auto,
             clips: ClipConfig::default(),
         }
     }
+}
+
+impl DataConfig {
+    /// The rollout cache's size, bytes: `cache_mib`, or for `"auto"` half of the memory the
+    /// system reports available (`MemAvailable` of `/proc/meminfo`; 4 GiB where there is no
+    /// such file). A cache smaller than the training rollouts makes every batch read most of
+    /// its clips from disk again (Table 2's 512 rollouts hold about 15 GB).
+    pub fn cache_bytes(&self) -> usize {
+        match self.cache_mib.value() {
+            Some(mib) => mib << 20,
+            None => available_memory().map_or(4 << 30, |bytes| bytes / 2),
+        }
+    }
+}
+
+/// `MemAvailable` of `/proc/meminfo`, bytes.
+fn available_memory() -> Option<usize> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib << 10)
 }
 
 /// Format tag of `index.json`.

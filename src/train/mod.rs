@@ -410,7 +410,7 @@ pub fn open_training_clips(
         &split.train,
         &config.data.clips,
         |first| topology(config, first),
-        config.data.cache_mib,
+        config.data.cache_bytes(),
         |n| bar.set_position(n as u64),
     )?;
     bar.finish();
@@ -980,6 +980,7 @@ impl Fit<'_> {
                 if it + 1 < global {
                     upcoming = Some(prefetch(next_refs(&mut sampler)));
                 }
+                host.check_fits(job.device)?;
                 let batch = host.to_device(job.device);
                 let terms = model.batch_loss(job, &batch, pass, it);
                 let values = terms.values();
