@@ -143,6 +143,12 @@ impl DeviceGraph {
     }
 }
 
+/// `a[ib..ib + 3] − a[ia..ia + 3]`: a spring's vector from its first to its second end.
+#[cube]
+fn difference<F: Float>(a: &[F], ia: usize, ib: usize) -> (F, F, F) {
+    (a[ib] - a[ia], a[ib + 1] - a[ia + 1], a[ib + 2] - a[ia + 2])
+}
+
 /// Spring forces on one particle of one clip (`item = clip · P + p`), scaled: Eqs. 4 and 2.
 #[cube]
 #[allow(clippy::too_many_arguments)]
@@ -171,12 +177,8 @@ fn gather_forces<F: Float>(
         let s = entry / 2;
         let ia = (base + usize::cast_from(ends[2 * s])) * 3;
         let ib = (base + usize::cast_from(ends[2 * s + 1])) * 3;
-        let d0 = x[ib] - x[ia];
-        let d1 = x[ib + 1] - x[ia + 1];
-        let d2 = x[ib + 2] - x[ia + 2];
-        let w0 = v[ib] - v[ia];
-        let w1 = v[ib + 1] - v[ia + 1];
-        let w2 = v[ib + 2] - v[ia + 2];
+        let (d0, d1, d2) = difference::<F>(x, ia, ib);
+        let (w0, w1, w2) = difference::<F>(v, ia, ib);
         let len2 = d0 * d0 + d1 * d1 + d2 * d2;
         let wd = w0 * d0 + w1 * d1 + w2 * d2;
         let inv = F::new(1.0) / F::sqrt(len2);
@@ -377,15 +379,9 @@ fn particle_backward_kernel<F: Float>(
         let s = entry / 2;
         let ia = (base + usize::cast_from(ends[2 * s])) * 3;
         let ib = (base + usize::cast_from(ends[2 * s + 1])) * 3;
-        let d0 = x[ib] - x[ia];
-        let d1 = x[ib + 1] - x[ia + 1];
-        let d2 = x[ib + 2] - x[ia + 2];
-        let w0 = v[ib] - v[ia];
-        let w1 = v[ib + 1] - v[ia + 1];
-        let w2 = v[ib + 2] - v[ia + 2];
-        let g0 = gs[ia] - gs[ib];
-        let g1 = gs[ia + 1] - gs[ib + 1];
-        let g2 = gs[ia + 2] - gs[ib + 2];
+        let (d0, d1, d2) = difference::<F>(x, ia, ib);
+        let (w0, w1, w2) = difference::<F>(v, ia, ib);
+        let (g0, g1, g2) = difference::<F>(gs, ib, ia);
         let len2 = d0 * d0 + d1 * d1 + d2 * d2;
         let wd = w0 * d0 + w1 * d1 + w2 * d2;
         let gd = g0 * d0 + g1 * d1 + g2 * d2;
@@ -452,15 +448,9 @@ fn spring_backward_kernel<F: Float>(
     for clip in first..last {
         let ia = (clip * particles + a) * 3;
         let ib = (clip * particles + bb) * 3;
-        let d0 = x[ib] - x[ia];
-        let d1 = x[ib + 1] - x[ia + 1];
-        let d2 = x[ib + 2] - x[ia + 2];
-        let w0 = v[ib] - v[ia];
-        let w1 = v[ib + 1] - v[ia + 1];
-        let w2 = v[ib + 2] - v[ia + 2];
-        let g0 = gs[ia] - gs[ib];
-        let g1 = gs[ia + 1] - gs[ib + 1];
-        let g2 = gs[ia + 2] - gs[ib + 2];
+        let (d0, d1, d2) = difference::<F>(x, ia, ib);
+        let (w0, w1, w2) = difference::<F>(v, ia, ib);
+        let (g0, g1, g2) = difference::<F>(gs, ib, ia);
         let len2 = d0 * d0 + d1 * d1 + d2 * d2;
         let wd = w0 * d0 + w1 * d1 + w2 * d2;
         let gd = g0 * d0 + g1 * d1 + g2 * d2;
