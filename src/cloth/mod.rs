@@ -4,6 +4,7 @@
 
 mod topology;
 
+pub mod dual;
 pub mod lanes;
 pub(crate) mod resample;
 pub mod triangles;

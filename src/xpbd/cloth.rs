@@ -8,6 +8,8 @@ use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 use super::material::Gamma;
+use crate::cloth::dual::Dual;
+use crate::cloth::lanes::Real;
 use crate::cloth::triangles::{self, Hinge, RestTriangle, V3, add_to, dot, scale, sub};
 
 /// How the constraints are swept in one iteration.
@@ -294,6 +296,51 @@ impl XpbdCloth {
         start: &[V3],
         cfg: &Solve,
     ) -> Result<Equilibrium> {
+        let (x, steps) = self.iterate(gamma.to_array(), load, start.to_vec(), cfg)?;
+        Ok(Equilibrium {
+            residual: self.residual(gamma, load, &x),
+            x,
+            steps,
+        })
+    }
+
+    /// [`solve`](Self::solve) with the derivatives of every iterate with respect to γ
+    /// accumulated beside it in forward mode (dual numbers through the same iterations, as
+    /// paper 001 §3.3.2 does): the equilibrium and `dx/dγ_k` per vertex, zero on clamped ones.
+    /// At a converged equilibrium they equal the implicit-function derivatives
+    /// ([`super::equilibrium::sensitivity`]); before it, they are the iterate's own.
+    pub fn solve_with_derivatives(
+        &self,
+        gamma: &Gamma,
+        load: &Load,
+        start: &[V3],
+        cfg: &Solve,
+    ) -> Result<(Equilibrium, [Vec<V3>; 5])> {
+        let g = gamma.to_array();
+        let params = std::array::from_fn(|k| Dual::<5>::parameter(g[k], k));
+        let start = start.iter().map(|p| p.map(Dual::constant)).collect();
+        let (xd, steps) = self.iterate(params, load, start, cfg)?;
+        let x: Vec<V3> = xd.iter().map(|p| p.map(|c| c.v)).collect();
+        let dx = std::array::from_fn(|k| xd.iter().map(|p| p.map(|c| c.d[k])).collect());
+        Ok((
+            Equilibrium {
+                residual: self.residual(gamma, load, &x),
+                x,
+                steps,
+            },
+            dx,
+        ))
+    }
+
+    /// The XPBD steps of [`solve`](Self::solve) in any [`Scalar`]: γ as
+    /// `[C00, C11, C01, C22, b]`; the positions and the steps taken.
+    fn iterate<R: Scalar>(
+        &self,
+        gamma: [R; 5],
+        load: &Load,
+        start: Vec<[R; 3]>,
+        cfg: &Solve,
+    ) -> Result<(Vec<[R; 3]>, usize)> {
         let n = self.len();
         if start.len() != n
             || load.clamped.len() != n
@@ -316,125 +363,198 @@ impl XpbdCloth {
                 cfg.damping
             );
         }
-        let w: Vec<f64> = (0..n)
+        let w: Vec<R> = (0..n)
             .map(|i| {
                 let m = self.mass[i] + load.added_mass[i];
-                if load.clamped[i].is_some() || m <= 0.0 {
+                R::splat(if load.clamped[i].is_some() || m <= 0.0 {
                     0.0
                 } else {
                     1.0 / m
-                }
+                })
             })
             .collect();
-        let (h, h2) = (cfg.dt, cfg.dt * cfg.dt);
-        let mut x: Vec<V3> = start.to_vec();
-        let mut v = vec![[0.0; 3]; n];
-        let mut lambda_t = vec![[0.0; 3]; self.triangles.len()];
-        let mut lambda_h = vec![0.0; self.hinges.len()];
-        let mut dx = vec![[0.0; 3]; n];
+        let (h, h2) = (R::splat(cfg.dt), R::splat(cfg.dt * cfg.dt));
+        let stiffness = [
+            [gamma[0], gamma[2], R::splat(0.0)],
+            [gamma[2], gamma[1], R::splat(0.0)],
+            [R::splat(0.0), R::splat(0.0), gamma[3]],
+        ];
+        let mut x = start;
+        let zero3 = [R::splat(0.0); 3];
+        let mut v = vec![zero3; n];
+        let mut lambda_t = vec![zero3; self.triangles.len()];
+        let mut lambda_h = vec![R::splat(0.0); self.hinges.len()];
+        let mut dx = vec![zero3; n];
         let (jacobi, relax) = match cfg.sweep {
             Sweep::GaussSeidel => (false, 1.0),
             Sweep::Jacobi { omega } => (true, omega),
         };
         let warm = cfg.warm_start;
+        let keep = R::splat((1.0 - cfg.damping) / cfg.dt);
         let mut steps = 0;
         while steps < cfg.steps {
             let prev = x.clone();
-            let mut push: Vec<V3> = load.force.iter().map(|f| scale(*f, h2)).collect();
+            let mut push: Vec<[R; 3]> = load
+                .force
+                .iter()
+                .map(|f| scale(f.map(R::splat), h2))
+                .collect();
             if warm {
                 self.add_impulses(&x, &lambda_t, &lambda_h, &mut push);
             } else {
-                lambda_t.fill([0.0; 3]);
-                lambda_h.fill(0.0);
+                lambda_t.fill(zero3);
+                lambda_h.fill(R::splat(0.0));
             }
             for i in 0..n {
                 x[i] = match load.clamped[i] {
-                    Some(p) => p,
+                    Some(p) => p.map(R::splat),
                     None => [0, 1, 2].map(|c| x[i][c] + h * v[i][c] + w[i] * push[i][c]),
                 };
             }
             for _ in 0..cfg.iterations {
                 if jacobi {
-                    dx.fill([0.0; 3]);
+                    dx.fill(zero3);
                 }
                 for (t, lam) in self.triangles.iter().zip(lambda_t.iter_mut()) {
-                    let corr = membrane_block(t, &x, &w, gamma, h2, relax, lam);
+                    let corr = membrane_block(t, &x, &w, &stiffness, h2, relax, lam);
                     apply(&t.v, &corr, &mut x, &mut dx, jacobi);
                 }
                 for (hg, lam) in self.hinges.iter().zip(lambda_h.iter_mut()) {
-                    let corr = hinge_block(hg, &x, &w, gamma.b, h2, relax, lam);
+                    let corr = hinge_block(hg, &x, &w, gamma[4], h2, relax, lam);
                     apply(&[hg.c, hg.d, hg.a, hg.b], &corr, &mut x, &mut dx, jacobi);
                 }
                 if jacobi {
                     for i in 0..n {
-                        add_to(&mut x[i], dx[i]);
+                        x[i] = add(x[i], dx[i]);
                     }
                 }
             }
             for i in 0..n {
-                v[i] = scale(sub(x[i], prev[i]), (1.0 - cfg.damping) / h);
+                v[i] = scale(sub(x[i], prev[i]), keep);
             }
             steps += 1;
-            if !x.iter().flatten().all(|c| c.is_finite()) {
+            if !x.iter().flatten().all(|c| c.value().is_finite()) {
                 bail!(
                     "the XPBD solve diverged at step {steps} (dt = {} s)",
                     cfg.dt
                 );
             }
-            if cfg.tolerance > 0.0
-                && steps % 50 == 0
-                && self.residual(gamma, load, &x) < cfg.tolerance
-            {
-                break;
+            if cfg.tolerance > 0.0 && steps % 50 == 0 {
+                let values: Vec<V3> = x.iter().map(|p| p.map(R::value)).collect();
+                let gamma = Gamma::from_array(gamma.map(R::value));
+                if self.residual(&gamma, load, &values) < cfg.tolerance {
+                    break;
+                }
             }
         }
-        Ok(Equilibrium {
-            residual: self.residual(gamma, load, &x),
-            x,
-            steps,
-        })
+        Ok((x, steps))
     }
-}
 
-impl XpbdCloth {
     /// `out += ∇Cᵀλ` over every block: the constraints' impulses (`h²` times their forces).
-    fn add_impulses(&self, x: &[V3], lt: &[[f64; 3]], lh: &[f64], out: &mut [V3]) {
+    fn add_impulses<R: Scalar>(&self, x: &[[R; 3]], lt: &[[R; 3]], lh: &[R], out: &mut [[R; 3]]) {
         for (t, lam) in self.triangles.iter().zip(lt) {
-            let (_, g) = strain(t, x);
+            let (_, g) = strain_of(t, x);
             for (k, &v) in t.v.iter().enumerate() {
                 for row in 0..3 {
-                    add_to(&mut out[v], scale(g[row][k], lam[row]));
+                    out[v] = add(out[v], scale(g[row][k], lam[row]));
                 }
             }
         }
         for (h, &lam) in self.hinges.iter().zip(lh) {
-            let (_, g) = triangles::dihedral(h, x);
+            let (_, g) = triangles::dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]]);
             for (v, gv) in [h.c, h.d, h.a, h.b].into_iter().zip(g) {
-                add_to(&mut out[v], scale(gv, lam));
+                out[v] = add(out[v], scale(gv, lam));
             }
         }
     }
+}
+
+/// The number types the XPBD iterations run in: `f64`, and [`Dual`] numbers carrying the
+/// derivatives with respect to γ.
+pub trait Scalar: Real<Mask = bool> {
+    /// The value (without derivatives).
+    fn value(self) -> f64;
+    /// `y` with `a y = rhs`, `a` 3 × 3 (zero if `a` is singular).
+    fn solve3(a: [[Self; 3]; 3], rhs: [Self; 3]) -> [Self; 3];
+}
+
+/// The LU factors of a 3 × 3 matrix, `None` if singular.
+fn lu3(a: [[f64; 3]; 3]) -> nalgebra::LU<f64, nalgebra::U3, nalgebra::U3> {
+    nalgebra::Matrix3::from_fn(|r, c| a[r][c]).lu()
+}
+
+impl Scalar for f64 {
+    fn value(self) -> f64 {
+        self
+    }
+    fn solve3(a: [[f64; 3]; 3], rhs: [f64; 3]) -> [f64; 3] {
+        lu3(a)
+            .solve(&nalgebra::Vector3::from(rhs))
+            .unwrap_or_else(nalgebra::Vector3::zeros)
+            .into()
+    }
+}
+
+impl<const N: usize> Scalar for Dual<N> {
+    fn value(self) -> f64 {
+        self.v
+    }
+    /// The value's system, then per parameter `a ẏ = ṙ − ȧ y` with the same factors.
+    fn solve3(a: [[Self; 3]; 3], rhs: [Self; 3]) -> [Self; 3] {
+        let lu = lu3(a.map(|row| row.map(|e| e.v)));
+        let solve = |r: [f64; 3]| lu.solve(&nalgebra::Vector3::from(r));
+        let Some(y) = solve(rhs.map(|e| e.v)) else {
+            return [Dual::constant(0.0); 3];
+        };
+        let mut out: [Self; 3] = std::array::from_fn(|r| Dual::constant(y[r]));
+        for k in 0..N {
+            let r: [f64; 3] = std::array::from_fn(|i| {
+                rhs[i].d[k] - (0..3).map(|j| a[i][j].d[k] * y[j]).sum::<f64>()
+            });
+            let dy = solve(r).unwrap_or_else(nalgebra::Vector3::zeros);
+            for i in 0..3 {
+                out[i].d[k] = dy[i];
+            }
+        }
+        out
+    }
+}
+
+fn add<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+
+/// `Σ_{i<n} f(i)`, in order.
+fn sum<R: Real>(n: usize, f: impl Fn(usize) -> R) -> R {
+    (0..n).fold(R::splat(-0.0), |acc, i| acc + f(i))
 }
 
 /// A triangle's Voigt Green strain `(ε_uu, ε_vv, 2ε_uv)` and its gradient: `g[row][k]` is the
 /// gradient of row `row` with respect to the triangle's vertex `k`.
 pub fn strain(t: &RestTriangle, x: &[V3]) -> ([f64; 3], [[V3; 3]; 3]) {
-    let f = t.deformation(x);
+    strain_of(t, x)
+}
+
+/// [`strain`] in any number type.
+#[allow(clippy::type_complexity)]
+fn strain_of<R: Real>(t: &RestTriangle, x: &[[R; 3]]) -> ([R; 3], [[[R; 3]; 3]; 3]) {
+    let m = t.dm_inv.map(|row| row.map(R::splat));
+    let f = triangles::deformation([x[t.v[0]], x[t.v[1]], x[t.v[2]]], m);
     let e = triangles::green(f);
-    let fu: V3 = [f[0][0], f[1][0], f[2][0]];
-    let fv: V3 = [f[0][1], f[1][1], f[2][1]];
-    let m = t.dm_inv;
+    let fu = [f[0][0], f[1][0], f[2][0]];
+    let fv = [f[0][1], f[1][1], f[2][1]];
     let (a, b, c, d) = (m[0][0], m[0][1], m[1][0], m[1][1]);
-    let lin = |p: V3, q: V3, s: f64, r: f64| -> V3 { [0, 1, 2].map(|i| s * p[i] + r * q[i]) };
+    let lin =
+        |p: [R; 3], q: [R; 3], s: R, r: R| -> [R; 3] { [0, 1, 2].map(|i| s * p[i] + r * q[i]) };
     let uu1 = scale(fu, a);
     let uu2 = scale(fu, c);
     let vv1 = scale(fv, b);
     let vv2 = scale(fv, d);
     let uv1 = lin(fv, fu, a, b);
     let uv2 = lin(fv, fu, c, d);
-    let neg = |p: V3, q: V3| -> V3 { [0, 1, 2].map(|i| -(p[i] + q[i])) };
+    let neg = |p: [R; 3], q: [R; 3]| -> [R; 3] { [0, 1, 2].map(|i| -(p[i] + q[i])) };
     (
-        [e[0][0], e[1][1], 2.0 * e[0][1]],
+        [e[0][0], e[1][1], R::splat(2.0) * e[0][1]],
         [
             [neg(uu1, uu2), uu1, uu2],
             [neg(vv1, vv2), vv1, vv2],
@@ -446,47 +566,36 @@ pub fn strain(t: &RestTriangle, x: &[V3]) -> ([f64; 3], [[V3; 3]; 3]) {
 /// One membrane block: solves `(h² A K S + I) Δλ = −h² A K C − λ` (the compliance form
 /// multiplied through by `h² A K`, valid for a singular `K`), adds `relax · Δλ` to `λ` and
 /// returns the corrections `relax · w_k G_kᵀ Δλ` of the three vertices.
-fn membrane_block(
+fn membrane_block<R: Scalar>(
     t: &RestTriangle,
-    x: &[V3],
-    w: &[f64],
-    gamma: &Gamma,
-    h2: f64,
+    x: &[[R; 3]],
+    w: &[R],
+    k: &[[R; 3]; 3],
+    h2: R,
     relax: f64,
-    lambda: &mut [f64; 3],
-) -> [V3; 3] {
-    let (c, g) = strain(t, x);
+    lambda: &mut [R; 3],
+) -> [[R; 3]; 3] {
+    let (c, g) = strain_of(t, x);
     let wk = t.v.map(|v| w[v]);
-    let mut s = [[0.0; 3]; 3];
-    for r in 0..3 {
-        for q in 0..3 {
-            s[r][q] = (0..3).map(|k| wk[k] * dot(g[r][k], g[q][k])).sum();
-        }
-    }
-    let k = gamma.stiffness();
-    let ak: [[f64; 3]; 3] = k.map(|row| row.map(|v| h2 * t.area * v));
-    let mut a = [[0.0; 3]; 3];
-    let mut rhs = [0.0; 3];
-    for r in 0..3 {
-        for q in 0..3 {
-            a[r][q] =
-                (0..3).map(|m| ak[r][m] * s[m][q]).sum::<f64>() + if r == q { 1.0 } else { 0.0 };
-        }
-        rhs[r] = -(0..3).map(|m| ak[r][m] * c[m]).sum::<f64>() - lambda[r];
-    }
+    let s: [[R; 3]; 3] =
+        std::array::from_fn(|r| std::array::from_fn(|q| sum(3, |j| wk[j] * dot(g[r][j], g[q][j]))));
+    let ha = h2 * R::splat(t.area);
+    let ak: [[R; 3]; 3] = k.map(|row| row.map(|v| ha * v));
+    let a: [[R; 3]; 3] = std::array::from_fn(|r| {
+        std::array::from_fn(|q| {
+            sum(3, |m| ak[r][m] * s[m][q]) + R::splat(if r == q { 1.0 } else { 0.0 })
+        })
+    });
+    let rhs: [R; 3] = std::array::from_fn(|r| -sum(3, |m| ak[r][m] * c[m]) - lambda[r]);
     // The system is I plus a positive semi-definite product: never singular in practice.
-    let dl = nalgebra::Matrix3::from_fn(|r, c| a[r][c])
-        .lu()
-        .solve(&nalgebra::Vector3::from(rhs))
-        .unwrap_or_else(nalgebra::Vector3::zeros);
-    let dl: [f64; 3] = std::array::from_fn(|r| relax * dl[r]);
+    let dl = R::solve3(a, rhs).map(|d| R::splat(relax) * d);
     for r in 0..3 {
-        lambda[r] += dl[r];
+        lambda[r] = lambda[r] + dl[r];
     }
-    std::array::from_fn(|k| {
-        let mut d = [0.0; 3];
+    std::array::from_fn(|j| {
+        let mut d = [R::splat(0.0); 3];
         for r in 0..3 {
-            add_to(&mut d, scale(g[r][k], wk[k] * dl[r]));
+            d = add(d, scale(g[r][j], wk[j] * dl[r]));
         }
         d
     })
@@ -494,30 +603,30 @@ fn membrane_block(
 
 /// One hinge: `Δλ = −(b h² θ + λ) / (b h² Σ w |∇θ|² + 1)`, scaled by `relax`; corrections of
 /// `(c, d, a, b)`.
-fn hinge_block(
+fn hinge_block<R: Scalar>(
     h: &Hinge,
-    x: &[V3],
-    w: &[f64],
-    b: f64,
-    h2: f64,
+    x: &[[R; 3]],
+    w: &[R],
+    b: R,
+    h2: R,
     relax: f64,
-    lambda: &mut f64,
-) -> [V3; 4] {
-    let (theta, g) = triangles::dihedral(h, x);
+    lambda: &mut R,
+) -> [[R; 3]; 4] {
+    let (theta, g) = triangles::dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]]);
     let wk = [h.c, h.d, h.a, h.b].map(|v| w[v]);
-    let denom: f64 = b * h2 * (0..4).map(|k| wk[k] * dot(g[k], g[k])).sum::<f64>() + 1.0;
-    let dl = -relax * (b * h2 * theta + *lambda) / denom;
-    *lambda += dl;
+    let denom = b * h2 * sum(4, |k| wk[k] * dot(g[k], g[k])) + R::splat(1.0);
+    let dl = R::splat(-relax) * (b * h2 * theta + *lambda) / denom;
+    *lambda = *lambda + dl;
     std::array::from_fn(|k| scale(g[k], wk[k] * dl))
 }
 
 /// Applies a block's corrections now (Gauss–Seidel) or gathers them (Jacobi).
-fn apply(v: &[usize], corr: &[V3], x: &mut [V3], dx: &mut [V3], jacobi: bool) {
+fn apply<R: Real>(v: &[usize], corr: &[[R; 3]], x: &mut [[R; 3]], dx: &mut [[R; 3]], jacobi: bool) {
     for (&i, d) in v.iter().zip(corr) {
         if jacobi {
-            add_to(&mut dx[i], *d);
+            dx[i] = add(dx[i], *d);
         } else {
-            add_to(&mut x[i], *d);
+            x[i] = add(x[i], *d);
         }
     }
 }
