@@ -7,6 +7,7 @@
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
+use super::equilibrium::Sensitivity;
 use super::material::Gamma;
 use crate::cloth::dual::Dual;
 use crate::cloth::lanes::Real;
@@ -244,20 +245,27 @@ impl XpbdCloth {
 
     /// `∇U(x)`, written into `out`.
     pub fn gradient(&self, gamma: &Gamma, x: &[V3], out: &mut [V3]) {
-        out.fill([0.0; 3]);
+        self.gradient_of(gamma.to_array(), x, out);
+    }
+
+    /// [`gradient`](Self::gradient) in any [`Scalar`], γ as `[C00, C11, C01, C22, b]`.
+    fn gradient_of<R: Scalar>(&self, gamma: [R; 5], x: &[[R; 3]], out: &mut [[R; 3]]) {
+        out.fill([R::splat(0.0); 3]);
+        let [c00, c11, c01, c22, b] = gamma;
         for t in &self.triangles {
-            let (e, g) = strain(t, x);
-            let s = gamma.stress(e);
+            let (e, g) = strain_of(t, x);
+            let s = [c00 * e[0] + c01 * e[1], c01 * e[0] + c11 * e[1], c22 * e[2]];
+            let area = R::splat(t.area);
             for (k, &v) in t.v.iter().enumerate() {
-                for (row, sr) in s.iter().enumerate() {
-                    add_to(&mut out[v], scale(g[row][k], t.area * sr));
+                for (row, &sr) in s.iter().enumerate() {
+                    out[v] = add(out[v], scale(g[row][k], area * sr));
                 }
             }
         }
         for h in &self.hinges {
-            let (theta, g) = triangles::dihedral(h, x);
+            let (theta, g) = triangles::dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]]);
             for (v, gv) in [h.c, h.d, h.a, h.b].into_iter().zip(g) {
-                add_to(&mut out[v], scale(gv, gamma.b * theta));
+                out[v] = add(out[v], scale(gv, b * theta));
             }
         }
     }
@@ -306,20 +314,34 @@ impl XpbdCloth {
 
     /// [`solve`](Self::solve) with the derivatives of every iterate with respect to γ
     /// accumulated beside it in forward mode (dual numbers through the same iterations, as
-    /// paper 001 §3.3.2 does): the equilibrium and `dx/dγ_k` per vertex, zero on clamped ones.
-    /// At a converged equilibrium they equal the implicit-function derivatives
-    /// ([`super::equilibrium::sensitivity`]); before it, they are the iterate's own.
+    /// paper 001 §3.3.2 does): the equilibrium, `dx/dγ_k` per vertex (zero on clamped ones) and
+    /// `dR_G/dγ_k` of the reactions of the clamp `groups`. At a converged equilibrium they
+    /// equal the implicit-function derivatives ([`super::equilibrium::sensitivity`]); before
+    /// it, they are the iterate's own.
     pub fn solve_with_derivatives(
         &self,
         gamma: &Gamma,
         load: &Load,
         start: &[V3],
         cfg: &Solve,
-    ) -> Result<(Equilibrium, [Vec<V3>; 5])> {
+        groups: &[Vec<usize>],
+    ) -> Result<(Equilibrium, Sensitivity)> {
         let g = gamma.to_array();
-        let params = std::array::from_fn(|k| Dual::<5>::parameter(g[k], k));
+        let params: [Dual<5>; 5] = std::array::from_fn(|k| Dual::parameter(g[k], k));
         let start = start.iter().map(|p| p.map(Dual::constant)).collect();
         let (xd, steps) = self.iterate(params, load, start, cfg)?;
+        let mut grad = vec![[Dual::constant(0.0); 3]; xd.len()];
+        self.gradient_of(params, &xd, &mut grad);
+        let reactions = groups
+            .iter()
+            .map(|group| {
+                let mut r = [Dual::<5>::constant(0.0); 3];
+                for &i in group {
+                    r = add(r, grad[i]);
+                }
+                std::array::from_fn(|k| r.map(|c| c.d[k]))
+            })
+            .collect();
         let x: Vec<V3> = xd.iter().map(|p| p.map(|c| c.v)).collect();
         let dx = std::array::from_fn(|k| xd.iter().map(|p| p.map(|c| c.d[k])).collect());
         Ok((
@@ -328,7 +350,7 @@ impl XpbdCloth {
                 x,
                 steps,
             },
-            dx,
+            Sensitivity { dx, reactions },
         ))
     }
 

@@ -269,7 +269,13 @@ mod tests {
             ..Solve::default()
         };
         let (eq, dual) = cloth
-            .solve_with_derivatives(&gamma, &load, &cloth.rest(), &solve)
+            .solve_with_derivatives(
+                &gamma,
+                &load,
+                &cloth.rest(),
+                &solve,
+                std::slice::from_ref(&group),
+            )
             .unwrap();
         // The values are the plain solve's, bit for bit.
         let plain = cloth.solve(&gamma, &load, &cloth.rest(), &solve).unwrap();
@@ -286,13 +292,29 @@ mod tests {
             assert!(scale > 0.0, "γ{k} moves nothing");
             let worst = (0..x.len())
                 .flat_map(|i| (0..3).map(move |c| (i, c)))
-                .map(|(i, c)| (dual[k][i][c] - sens.dx[k][i][c]).abs())
+                .map(|(i, c)| (dual.dx[k][i][c] - sens.dx[k][i][c]).abs())
                 .fold(0.0f64, f64::max);
             // Measured: 1e-9 to 5e-7 relative (b the largest) at a residual of 6.5e-11.
             assert!(
                 worst < 1e-5 * scale,
                 "γ{k}: forward mode and implicit differ by {worst:e} (scale {scale:e})"
             );
+            // Reactions: the change a doubling of γ_k makes, against the reaction itself (the
+            // bending stiffness barely moves the pulled edge's reaction: its derivative is
+            // nearly zero, and the iterate's dx errors, times the membrane's stiffness, are
+            // what is left of it).
+            let (fr, ir) = (dual.reactions[0][k], sens.reactions[0][k]);
+            let reaction = cloth.reaction(&gamma, &load, &x, &group);
+            let size = dot(reaction, reaction).sqrt();
+            let gk = gamma.to_array()[k];
+            for c in 0..3 {
+                assert!(
+                    (fr[c] - ir[c]).abs() * gk < 1e-6 * size,
+                    "reaction γ{k}.{c}: forward {} vs implicit {} (reaction {size:e} N)",
+                    fr[c],
+                    ir[c]
+                );
+            }
         }
     }
 

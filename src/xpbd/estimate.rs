@@ -136,6 +136,18 @@ pub enum Optimizer {
     Adam,
 }
 
+/// How Levenberg–Marquardt's Jacobian gets the equilibria's derivatives `dx/dγ`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Derivatives {
+    /// The implicit-function theorem at the polished equilibrium: one linear solve (ours).
+    #[default]
+    Implicit,
+    /// Forward mode through `fit.forward_steps` XPBD steps from the polished equilibrium, dual
+    /// numbers carried beside the iterates (the paper's way, §3.3.2).
+    Forward,
+}
+
 /// Where each of the fit's equilibria starts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -184,6 +196,10 @@ pub struct FitConfig {
     pub xpbd_steps: usize,
     /// Newton steps polishing every equilibrium.
     pub polish_iterations: usize,
+    /// Where the Jacobian's `dx/dγ` come from.
+    pub derivatives: Derivatives,
+    /// XPBD steps the forward-mode derivatives take (`derivatives = "forward"`).
+    pub forward_steps: usize,
     /// Out-of-plane perturbation of the targets' starts, m.
     pub noise: f64,
     /// Where the fit's equilibria start.
@@ -219,6 +235,8 @@ impl Default for FitConfig {
             bounds_factor: 100.0,
             xpbd_steps: 200,
             polish_iterations: 30,
+            derivatives: Derivatives::Implicit,
+            forward_steps: 2000,
             noise: 1e-4,
             start: FitStart::Target,
             seed: 0,
@@ -331,6 +349,9 @@ impl XpbdConfig {
                 t.refine,
                 t.noise
             );
+        }
+        if self.fit.derivatives == Derivatives::Forward && self.fit.forward_steps == 0 {
+            bail!("`fit.forward_steps` must be positive with `fit.derivatives = \"forward\"`");
         }
         if self.fit.optimizer == Optimizer::Adam {
             if self.fit.descriptor != Descriptor::Fft || self.fit.schedule != Schedule::Joint {
@@ -558,16 +579,31 @@ impl Problem<'_> {
             };
             let norm = t.norm;
             r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / norm));
-            let sens = if with_jacobian {
-                Some(sensitivity(
+            let sens = match (with_jacobian, self.cfg.fit.derivatives) {
+                (false, _) => None,
+                (true, Derivatives::Implicit) => Some(sensitivity(
                     self.cloth,
                     &gamma,
                     &t.setup.load,
                     &x,
                     &t.setup.groups,
-                )?)
-            } else {
-                None
+                )?),
+                (true, Derivatives::Forward) => {
+                    // From the equilibrium itself: the values stay, the derivatives converge.
+                    let solve = Solve {
+                        steps: self.cfg.fit.forward_steps,
+                        tolerance: 0.0,
+                        ..self.solve
+                    };
+                    let (_, sens) = self.cloth.solve_with_derivatives(
+                        &gamma,
+                        &t.setup.load,
+                        &x,
+                        &solve,
+                        &t.setup.groups,
+                    )?;
+                    Some(sens)
+                }
             };
             if let Some(sens) = &sens {
                 // Descriptor derivatives along each dx/dγ_k, by central differences; the energy
