@@ -149,6 +149,17 @@ fn difference<F: Float>(a: &[F], ia: usize, ib: usize) -> (F, F, F) {
     (a[ib] - a[ia], a[ib + 1] - a[ia + 1], a[ib + 2] - a[ia + 2])
 }
 
+/// Entry `e` of the CSR incidence list: the spring `s`, whether the particle is its first
+/// end, and the offsets of its two ends' coordinates in a clip starting at particle `base`.
+#[cube]
+fn incident(incidence: &[u32], ends: &[u32], e: usize, base: usize) -> (usize, bool, usize, usize) {
+    let entry = usize::cast_from(incidence[e]);
+    let s = entry / 2;
+    let ia = (base + usize::cast_from(ends[2 * s])) * 3;
+    let ib = (base + usize::cast_from(ends[2 * s + 1])) * 3;
+    (s, entry % 2 == 0, ia, ib)
+}
+
 /// Spring forces on one particle of one clip (`item = clip · P + p`), scaled: Eqs. 4 and 2.
 #[cube]
 #[allow(clippy::too_many_arguments)]
@@ -173,17 +184,14 @@ fn gather_forces<F: Float>(
     let start = usize::cast_from(offsets[p]);
     let end = usize::cast_from(offsets[p + 1]);
     for e in start..end {
-        let entry = usize::cast_from(incidence[e]);
-        let s = entry / 2;
-        let ia = (base + usize::cast_from(ends[2 * s])) * 3;
-        let ib = (base + usize::cast_from(ends[2 * s + 1])) * 3;
+        let (s, first, ia, ib) = incident(incidence, ends, e, base);
         let (d0, d1, d2) = difference::<F>(x, ia, ib);
         let (w0, w1, w2) = difference::<F>(v, ia, ib);
         let len2 = d0 * d0 + d1 * d1 + d2 * d2;
         let wd = w0 * d0 + w1 * d1 + w2 * d2;
         let inv = F::new(1.0) / F::sqrt(len2);
         let mut coef = k[s] * (F::new(1.0) - l0[s] * inv) + b[s] * wd * inv * inv;
-        if entry % 2 == 1 {
+        if !first {
             coef = -coef;
         }
         f0 += coef * d0;
@@ -375,10 +383,7 @@ fn particle_backward_kernel<F: Float>(
     let start = usize::cast_from(offsets[p]);
     let end = usize::cast_from(offsets[p + 1]);
     for e in start..end {
-        let entry = usize::cast_from(incidence[e]);
-        let s = entry / 2;
-        let ia = (base + usize::cast_from(ends[2 * s])) * 3;
-        let ib = (base + usize::cast_from(ends[2 * s + 1])) * 3;
+        let (s, first, ia, ib) = incident(incidence, ends, e, base);
         let (d0, d1, d2) = difference::<F>(x, ia, ib);
         let (w0, w1, w2) = difference::<F>(v, ia, ib);
         let (g0, g1, g2) = difference::<F>(gs, ib, ia);
@@ -393,7 +398,7 @@ fn particle_backward_kernel<F: Float>(
         // ∂ℓ/∂d = c g + (g·d)(a1 d + a2 w), ∂ℓ/∂w = (g·d) a2 d; the second endpoint adds
         // them, the first subtracts them.
         let mut sign = F::new(1.0);
-        if entry % 2 == 0 {
+        if first {
             sign = F::new(-1.0);
         }
         ax0 += sign * (coef * g0 + gd * (a1 * d0 + a2 * w0));
