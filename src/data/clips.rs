@@ -532,28 +532,35 @@ impl HostBatch {
         let (t, b) = (steps, clips.len());
         let p = clips.first().map_or(0, |c| c.0.particles);
         let frame = p * 3;
-        let mut pos = Vec::with_capacity(b * (t + 1) * frame);
-        let mut vel = Vec::with_capacity(b * (t + 1) * frame);
-        let mut force = Vec::with_capacity(b * t * frame);
-        let mut pinned = Vec::with_capacity(b * p);
-        let m_over_dt = mass / frame_dt;
-        for &(track, offset) in clips {
+        let (states, forces) = ((t + 1) * frame, t * frame);
+        for (track, _) in clips {
             assert_eq!(
                 track.particles, p,
                 "clips of one batch share the particle count"
             );
-            let range = offset * frame..(offset + t + 1) * frame;
-            pos.extend_from_slice(&track.positions[range.clone()]);
-            let v = &track.velocities[range];
-            vel.extend_from_slice(v);
-            force.extend(
-                v[frame..]
-                    .iter()
-                    .zip(&v[..t * frame])
-                    .map(|(&next, &here)| (m_over_dt * (next as f64 - here as f64)) as f32),
-            );
-            pinned.extend(track.pinned.iter().map(|&x| x as u8 as f32));
         }
+        // One clip per task: each writes its own rows (a batch is hundreds of MB to copy).
+        let mut pos = vec![0f32; b * states];
+        let mut vel = vec![0f32; b * states];
+        let mut force = vec![0f32; b * forces];
+        let m_over_dt = mass / frame_dt;
+        pos.par_chunks_mut(states.max(1))
+            .zip(vel.par_chunks_mut(states.max(1)))
+            .zip(force.par_chunks_mut(forces.max(1)))
+            .zip(clips.par_iter())
+            .for_each(|(((pos, vel), force), &(track, offset))| {
+                let range = offset * frame..(offset + t + 1) * frame;
+                pos.copy_from_slice(&track.positions[range.clone()]);
+                let v = &track.velocities[range];
+                vel.copy_from_slice(v);
+                for ((f, &next), &here) in force.iter_mut().zip(&v[frame..]).zip(&v[..t * frame]) {
+                    *f = (m_over_dt * (next as f64 - here as f64)) as f32;
+                }
+            });
+        let pinned = clips
+            .iter()
+            .flat_map(|(track, _)| track.pinned.iter().map(|&x| x as u8 as f32))
+            .collect();
         Self {
             positions: pos,
             velocities: vel,
