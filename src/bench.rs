@@ -102,6 +102,10 @@ fn peer_source(n: usize, steps: usize) -> SourceConfig {
 /// Runs the bench.
 pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let (n, b, t) = (options.n, options.batch, options.steps);
+    anyhow::ensure!(
+        n >= 2 && b >= 1 && t >= 1,
+        "bench needs --n ≥ 2, --batch ≥ 1 and --steps ≥ 1 (got {n}, {b}, {t})"
+    );
     let cfg = peer_source(n, t);
     let cloth = SpringCloth::from_config(&cfg);
     let topo = cloth.topology.clone();

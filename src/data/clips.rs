@@ -492,10 +492,18 @@ impl ClipSet {
 
     /// Assembles clips on the host (reading the rollouts that are not cached in parallel).
     pub fn host_batch(&self, clips: &[ClipRef]) -> Result<HostBatch> {
-        let tracks: Vec<(Arc<Track>, usize)> = clips
+        // Each rollout once, however many of the batch's clips it holds.
+        let mut ids: Vec<usize> = clips.iter().map(|c| c.rollout).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let loaded: HashMap<usize, Arc<Track>> = ids
             .par_iter()
-            .map(|c| Ok((self.track(c.rollout)?, c.offset)))
+            .map(|&i| Ok((i, self.track(i)?)))
             .collect::<Result<_>>()?;
+        let tracks: Vec<(Arc<Track>, usize)> = clips
+            .iter()
+            .map(|c| (loaded[&c.rollout].clone(), c.offset))
+            .collect();
         let views: Vec<(&Track, usize)> = tracks.iter().map(|(t, o)| (t.as_ref(), *o)).collect();
         Ok(HostBatch::new(
             &views,
@@ -530,6 +538,7 @@ impl HostBatch {
     /// `mass (v̂_{j+1} − v̂_j) / frame_dt`, computed in f64.
     pub fn new(clips: &[(&Track, usize)], steps: usize, mass: f64, frame_dt: f64) -> Self {
         let (t, b) = (steps, clips.len());
+        assert!(t >= 1, "a clip needs at least one step");
         let p = clips.first().map_or(0, |c| c.0.particles);
         let frame = p * 3;
         let (states, forces) = ((t + 1) * frame, t * frame);

@@ -45,10 +45,11 @@ impl Default for DataConfig {
 }
 
 impl DataConfig {
-    /// The rollout cache's size, bytes: `cache_mib`, or for `"auto"` half of the memory the
-    /// system reports available (`MemAvailable` of `/proc/meminfo`; 4 GiB where there is no
-    /// such file). A cache smaller than the training rollouts makes every batch read most of
-    /// its clips from disk again (Table 2's 512 rollouts hold about 15 GB).
+    /// The rollout cache's size, bytes: `cache_mib`, or for `"auto"` half of the memory
+    /// available when the run starts: the system's `MemAvailable` (`/proc/meminfo`), or what
+    /// the container's cgroup still allows if that is less; 4 GiB where neither can be read.
+    /// A cache smaller than the training rollouts makes every batch read most of its clips
+    /// from disk again (Table 2's 512 rollouts hold about 15 GB).
     pub fn cache_bytes(&self) -> usize {
         match self.cache_mib.value() {
             Some(mib) => mib << 20,
@@ -57,12 +58,22 @@ impl DataConfig {
     }
 }
 
-/// `MemAvailable` of `/proc/meminfo`, bytes.
+/// The memory this process may still take, bytes: `MemAvailable` of `/proc/meminfo`, capped
+/// by a cgroup v2 limit (`memory.max − memory.current`) where one is set.
 fn available_memory() -> Option<usize> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
     let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: usize = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib << 10)
+    let system = line.split_whitespace().nth(1)?.parse::<usize>().ok()? << 10;
+    let read = |name: &str| -> Option<usize> {
+        std::fs::read_to_string(format!("/sys/fs/cgroup/{name}"))
+            .ok()?
+            .trim()
+            .parse()
+            .ok()
+    };
+    let cgroup =
+        read("memory.max").map(|max| max.saturating_sub(read("memory.current").unwrap_or(0)));
+    Some(cgroup.map_or(system, |c| c.min(system)))
 }
 
 /// Format tag of `index.json`.

@@ -497,6 +497,43 @@ fn prepare(t: CubeTensor, what: &str) -> CubeTensor {
     into_contiguous(t)
 }
 
+/// The batch and particle count of states `x` `[B, P, 3]`, after checking that every tensor
+/// the kernels index holds what they read: the kernels launch unchecked, so a mismatch would
+/// read or write out of bounds on the device. `per_item` pairs a tensor with the values it
+/// must hold per (clip, particle).
+fn check_shapes(
+    x: &CubeTensor,
+    k: &CubeTensor,
+    b: &CubeTensor,
+    per_item: &[(&CubeTensor, usize, &str)],
+    graph: &HostGraph,
+) -> (usize, usize) {
+    let dims = x.meta.shape().to_vec();
+    assert!(
+        dims.len() == 3 && dims[1] == graph.particles && dims[2] == 3,
+        "states must be [B, {}, 3], are {dims:?}",
+        graph.particles
+    );
+    let s = graph.num_springs();
+    for (t, name) in [(k, "k"), (b, "b")] {
+        let n = t.meta.shape().num_elements();
+        assert_eq!(
+            n, s,
+            "{name} must hold one value per spring ({s}), holds {n}"
+        );
+    }
+    let items = dims[0] * dims[1];
+    for &(t, per, name) in per_item {
+        let n = t.meta.shape().num_elements();
+        assert_eq!(
+            n,
+            items * per,
+            "{name} must hold {per} values per clip and particle"
+        );
+    }
+    (dims[0], dims[1])
+}
+
 fn empty(like: &CubeTensor, shape: Vec<usize>) -> CubeTensor {
     empty_device_contiguous_dtype(
         like.client.clone(),
@@ -540,12 +577,23 @@ fn forward(
 ) -> CubeTensor {
     let (x, v) = (prepare(x, "x"), prepare(v, "v"));
     let (k, b) = (prepare(k, "k"), prepare(b, "b"));
-    let dims = x.meta.shape().to_vec();
-    let (batch, particles) = (dims[0], dims[1]);
-    assert_eq!(
-        particles, graph.particles,
-        "states over the graph's particles"
-    );
+    let pins = pins.map(|(pinned, pin_x, pin_v, params)| {
+        (
+            prepare(pinned, "pinned"),
+            prepare(pin_x, "pin_x"),
+            prepare(pin_v, "pin_v"),
+            params,
+        )
+    });
+    let mut per_item = vec![(&v, 3, "v")];
+    if let Some((pinned, pin_x, pin_v, _)) = &pins {
+        per_item.extend([
+            (pinned, 1, "pinned"),
+            (pin_x, 3, "pin_x"),
+            (pin_v, 3, "pin_v"),
+        ]);
+    }
+    let (batch, particles) = check_shapes(&x, &k, &b, &per_item, graph);
     let g = device_graph(graph, &x.device);
     let items = batch * particles;
     let step = pins.is_some();
@@ -557,13 +605,7 @@ fn forward(
     let out = empty(&x, out_shape);
     let (pinned, pin_x, pin_v, consts) = match pins {
         Some((pinned, pin_x, pin_v, params)) => {
-            let consts = step_constants(Some(&params));
-            (
-                prepare(pinned, "pinned"),
-                prepare(pin_x, "pin_x"),
-                prepare(pin_v, "pin_v"),
-                consts,
-            )
+            (pinned, pin_x, pin_v, step_constants(Some(&params)))
         }
         // Unread without `step`: any buffers do.
         None => (x.clone(), x.clone(), x.clone(), step_constants(None)),
@@ -613,8 +655,13 @@ fn backward(
     let (x, v) = (prepare(x, "x"), prepare(v, "v"));
     let (k, b) = (prepare(k, "k"), prepare(b, "b"));
     let grad = prepare(grad, "the upstream gradient");
-    let dims = x.meta.shape().to_vec();
-    let (batch, particles) = (dims[0], dims[1]);
+    let step = step.map(|(pinned, params)| (prepare(pinned, "pinned"), params));
+    let mut per_item = vec![(&v, 3, "v")];
+    match &step {
+        Some((pinned, _)) => per_item.extend([(pinned, 1, "pinned"), (&grad, 9, "the gradient")]),
+        None => per_item.push((&grad, 3, "the gradient")),
+    }
+    let (batch, particles) = check_shapes(&x, &k, &b, &per_item, graph);
     let g = device_graph(graph, &x.device);
     let items = batch * particles;
     let state = vec![batch, particles, 3];
@@ -625,7 +672,7 @@ fn backward(
     );
     let is_step = step.is_some();
     let (pinned, consts) = match step {
-        Some((pinned, params)) => (prepare(pinned, "pinned"), step_constants(Some(&params))),
+        Some((pinned, params)) => (pinned, step_constants(Some(&params))),
         None => (x.clone(), step_constants(None)),
     };
     let (count, dim) = launch_dims(&x, items);
