@@ -18,7 +18,7 @@ use serde::Serialize;
 
 use crate::backend::Backend;
 use crate::cloth::Resampler;
-use crate::data::{ClipBatch, HostBatch, Track};
+use crate::data::{ClipBatch, Track};
 use crate::model::{Kernel, SpringNet};
 use crate::sim::{self, Physics, State};
 use crate::source::{Layout, Scenario, SourceConfig, SpringCloth, simulate_rollout};
@@ -130,9 +130,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let plain = options.backend.device()?;
     let device = plain.clone().autodiff();
     let views: Vec<(&Track, usize)> = tracks.iter().map(|tr| (tr, 0)).collect();
-    let host = HostBatch::new(&views, t, cloth.mass, 1e-3);
-    host.check_fits(&device)?;
-    let batch = host.to_device(&device);
+    let batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &device)?;
     let physics = Physics {
         frame_dt: 1e-3,
         substeps: 1,
@@ -162,7 +160,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
 
     // Forward only: the rollout on the plain device, no graph.
     let fwd_model = model.valid().to_device(&plain);
-    let plain_batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &plain);
+    let plain_batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &plain)?;
     let pinned = plain_batch.pinned.clone();
     let frame = |j: usize| {
         plain_batch

@@ -43,9 +43,9 @@ pub fn select3<R: Real>(mask: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
 
 /// `acc += a`.
 #[inline]
-pub fn add_to(acc: &mut V3, a: V3) {
+pub fn add_to<R: Real>(acc: &mut [R; 3], a: [R; 3]) {
     for c in 0..3 {
-        acc[c] += a[c];
+        acc[c] = acc[c] + a[c];
     }
 }
 

@@ -515,9 +515,7 @@ impl ClipSet {
 
     /// Assembles clips into tensors on `device`.
     pub fn batch(&self, clips: &[ClipRef], device: &Device) -> Result<ClipBatch> {
-        let host = self.host_batch(clips)?;
-        host.check_fits(device)?;
-        Ok(host.to_device(device))
+        self.host_batch(clips)?.to_device(device)
     }
 }
 
@@ -583,7 +581,7 @@ impl HostBatch {
 
     /// Refuses a batch whose largest tensor (positions or velocities, `[B, T + 1, P, 3]` f32)
     /// is over `device`'s largest buffer, naming the sizes and what to lower.
-    pub fn check_fits(&self, device: &Device) -> anyhow::Result<()> {
+    fn check_fits(&self, device: &Device) -> Result<()> {
         let bytes = (self.positions.len() * std::mem::size_of::<f32>()) as u64;
         match crate::backend::max_buffer_bytes(device) {
             Some(max) if bytes > max => anyhow::bail!(
@@ -600,31 +598,32 @@ impl HostBatch {
         }
     }
 
-    /// Uploads the batch to `device`.
-    pub fn to_device(self, device: &Device) -> ClipBatch {
+    /// Uploads the batch to `device`, refusing one that does not fit its buffers.
+    pub fn to_device(self, device: &Device) -> Result<ClipBatch> {
+        self.check_fits(device)?;
         let (b, t, p) = (self.clips, self.steps, self.particles);
         let t4 = |v: Vec<f32>, n: usize| {
             Tensor::<4>::from_data(TensorData::new(v, [b, n, p, 3]), device)
         };
-        ClipBatch {
+        Ok(ClipBatch {
             positions: t4(self.positions, t + 1),
             velocities: t4(self.velocities, t + 1),
             forces: t4(self.forces, t),
             pinned: Tensor::from_data(TensorData::new(self.pinned, [b, p, 1]), device),
-        }
+        })
     }
 }
 
 impl ClipBatch {
     /// Stacks `steps`-step windows `(track, first stored frame)` into a batch on `device` (see
-    /// [`HostBatch::new`]).
+    /// [`HostBatch::new`] and [`HostBatch::to_device`]).
     pub fn new(
         clips: &[(&Track, usize)],
         steps: usize,
         mass: f64,
         frame_dt: f64,
         device: &Device,
-    ) -> Self {
+    ) -> Result<Self> {
         HostBatch::new(clips, steps, mass, frame_dt).to_device(device)
     }
 }

@@ -112,11 +112,6 @@ impl SpringGraph {
     }
 }
 
-/// Whether `device` (with or without autodiff) is a CPU backend with the host kernels.
-pub fn runs_host_kernels(device: &Device) -> bool {
-    FusedOn::of(device) == FusedOn::Host
-}
-
 impl SpringGraph {
     /// Whether the fused spring-force and step ops run here.
     pub fn fused_forces(&self) -> bool {

@@ -980,8 +980,7 @@ impl Fit<'_> {
                 if it + 1 < global {
                     upcoming = Some(prefetch(next_refs(&mut sampler)));
                 }
-                host.check_fits(job.device)?;
-                let batch = host.to_device(job.device);
+                let batch = host.to_device(job.device)?;
                 let terms = model.batch_loss(job, &batch, pass, it);
                 let values = terms.values();
                 if !values.total.is_finite() {

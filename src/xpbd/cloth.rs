@@ -258,14 +258,14 @@ impl XpbdCloth {
             let area = R::splat(t.area);
             for (k, &v) in t.v.iter().enumerate() {
                 for (row, &sr) in s.iter().enumerate() {
-                    out[v] = add(out[v], scale(g[row][k], area * sr));
+                    add_to(&mut out[v], scale(g[row][k], area * sr));
                 }
             }
         }
         for h in &self.hinges {
             let (theta, g) = triangles::dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]]);
             for (v, gv) in [h.c, h.d, h.a, h.b].into_iter().zip(g) {
-                out[v] = add(out[v], scale(gv, b * theta));
+                add_to(&mut out[v], scale(gv, b * theta));
             }
         }
     }
@@ -337,7 +337,7 @@ impl XpbdCloth {
             .map(|group| {
                 let mut r = [Dual::<5>::constant(0.0); 3];
                 for &i in group {
-                    r = add(r, grad[i]);
+                    add_to(&mut r, grad[i]);
                 }
                 std::array::from_fn(|k| r.map(|c| c.d[k]))
             })
@@ -447,7 +447,7 @@ impl XpbdCloth {
                 }
                 if jacobi {
                     for i in 0..n {
-                        x[i] = add(x[i], dx[i]);
+                        add_to(&mut x[i], dx[i]);
                     }
                 }
             }
@@ -478,14 +478,14 @@ impl XpbdCloth {
             let (_, g) = strain_of(t, x);
             for (k, &v) in t.v.iter().enumerate() {
                 for row in 0..3 {
-                    out[v] = add(out[v], scale(g[row][k], lam[row]));
+                    add_to(&mut out[v], scale(g[row][k], lam[row]));
                 }
             }
         }
         for (h, &lam) in self.hinges.iter().zip(lh) {
             let (_, g) = triangles::dihedral_of([x[h.a], x[h.b], x[h.c], x[h.d]]);
             for (v, gv) in [h.c, h.d, h.a, h.b].into_iter().zip(g) {
-                out[v] = add(out[v], scale(gv, lam));
+                add_to(&mut out[v], scale(gv, lam));
             }
         }
     }
@@ -540,10 +540,6 @@ impl<const N: usize> Scalar for Dual<N> {
         }
         out
     }
-}
-
-fn add<R: Real>(a: [R; 3], b: [R; 3]) -> [R; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
 /// `Σ_{i<n} f(i)`, in order.
@@ -617,7 +613,7 @@ fn membrane_block<R: Scalar>(
     std::array::from_fn(|j| {
         let mut d = [R::splat(0.0); 3];
         for r in 0..3 {
-            d = add(d, scale(g[r][j], wk[j] * dl[r]));
+            add_to(&mut d, scale(g[r][j], wk[j] * dl[r]));
         }
         d
     })
@@ -646,9 +642,9 @@ fn hinge_block<R: Scalar>(
 fn apply<R: Real>(v: &[usize], corr: &[[R; 3]], x: &mut [[R; 3]], dx: &mut [[R; 3]], jacobi: bool) {
     for (&i, d) in v.iter().zip(corr) {
         if jacobi {
-            dx[i] = add(dx[i], *d);
+            add_to(&mut dx[i], *d);
         } else {
-            x[i] = add(x[i], *d);
+            add_to(&mut x[i], *d);
         }
     }
 }

@@ -60,7 +60,7 @@ pub fn batch(
         .collect();
     let views: Vec<(&Track, usize)> = tracks.iter().map(|t| (t, offset)).collect();
     let mass = rollouts[0].total_mass / topo.num_particles() as f64;
-    ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device)
+    ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device).unwrap()
 }
 
 /// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends
