@@ -59,6 +59,8 @@ batch = 2
 const SPHERE: &str = r#"
 [scene]
 seconds = 0.4
+settle = 0.2
+perturb = 0.05
 release_height = 0.2
 record_every = 0.02
 
@@ -75,6 +77,8 @@ const TET: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3
 const MESH: &str = r#"
 [scene]
 seconds = 0.3
+settle = 0.1
+perturb = 0.0
 release_height = 0.1
 
 [[scene.colliders]]
@@ -131,6 +135,26 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
         let csv = std::fs::read_to_string(dir.join(format!("d/{name}_motion_rmse.csv"))).unwrap();
         assert!(csv.starts_with("time,springs_rmse_m"), "{csv}");
     }
+    // The motion RMSE's window ends at `seconds`; the steady figures come after settling.
+    let sphere = &json["scenes"]["sphere"];
+    let m = &sphere["models"]["springs"];
+    let curve = m["motion_rmse_over_time"].as_array().unwrap();
+    assert_eq!(curve.len(), 31, "0.6 s recorded every 0.02 s: {m}");
+    assert!((curve[20][0].as_f64().unwrap() - 0.4).abs() < 1e-9, "{m}");
+    assert_eq!(m["motion_rmse_end"], curve[20][1], "{m}");
+    assert_eq!(m["steady_rmse_vs_source"], curve[30][1], "{m}");
+    assert!(m["settled"].is_boolean() && m["speed_rms_end"].as_f64().unwrap() >= 0.0);
+    assert_eq!(sphere["source"]["steady_rmse_vs_source"], 0.0, "{sphere}");
+    // The perturbed source: 5 % on every triangle's modulus moves its drape, but not to
+    // another place (the 1 m sheet on a 0.3 m sphere).
+    let p = &sphere["perturbed"];
+    assert_eq!(p["label"], "fem4x4 ±5%", "{p}");
+    let moved = p["steady_rmse_vs_source"].as_f64().unwrap();
+    assert!(moved > 0.0 && moved < 0.05, "{p}");
+    assert!(
+        json["scenes"]["mesh"]["perturbed"].is_null(),
+        "perturb = 0: none"
+    );
     // The sheet fell onto the sphere and stayed on it.
     let sphere = &json["scenes"]["sphere"]["models"]["springs"];
     assert!(

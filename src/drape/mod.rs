@@ -4,11 +4,14 @@
 //! released flat above colliders it never saw, without pins, and simulated with contact
 //! ([`crate::sim::contact`]). The same happens to the run's source (the coarse FEM or
 //! mass-spring cloth that made its data) and, for an FEM source, to a fine FEM mesh with the
-//! same material at `scene.fine` times the resolution. `drape.json` has, per scene and model,
-//! the motion RMSE (Eq. 14) against the source over time and at the end, the steady-state RMSE
-//! against the fine reference (for the models *and* the coarse source: the paper's claim is
-//! that the surrogate drapes closer to the fine mesh than the coarse FEM that trained it), the
-//! deepest intrusion into the contact layer, the kinetic energy at the end and whether it
+//! same material at `scene.fine` times the resolution, and to the source with its material
+//! perturbed by `scene.perturb` (the drape's sensitivity to parameter error). Every system
+//! runs `scene.seconds` and then `scene.settle` more, so that it comes to rest. `drape.json`
+//! has, per scene and model, the motion RMSE (Eq. 14) against the source over time and at
+//! `seconds`, the steady-state RMSE against the source and the fine reference at the end (for
+//! the models *and* the coarse source: the paper's claim is that the surrogate drapes closer to
+//! the fine mesh than the coarse FEM that trained it), the deepest intrusion into the contact
+//! layer, the kinetic energy and RMS speed at the end, whether it settled and whether it
 //! diverged. `<scene>.png` shows the drapes at the end side by side with the motion RMSE over
 //! time; `<scene>_motion_rmse.csv` has the curves.
 
@@ -31,7 +34,7 @@ use crate::eval;
 use crate::model::ForceModel;
 use crate::progress::Progress;
 use crate::sim::{Contact, ContactAt, ContactParams, Physics};
-use crate::source::{ClothSim, FemCloth, SourceConfig, SourceKind, SpringCloth};
+use crate::source::{ClothSim, SourceConfig, SourceKind};
 use crate::train::{Run, Trained};
 
 type V3 = [f64; 3];
@@ -83,6 +86,8 @@ pub struct SceneResult {
     pub source: Option<Reference>,
     /// The fine FEM reference (FEM sources only).
     pub fine: Option<Reference>,
+    /// The source with its material perturbed by `scene.perturb` (when positive).
+    pub perturbed: Option<Reference>,
     /// Per model kind (`springs`, `neural_ode`, `gnn`).
     pub models: BTreeMap<String, ModelResult>,
     /// Penetrations beyond the contact thickness and divergences, in words.
@@ -100,10 +105,16 @@ pub struct Reference {
     pub dt: f64,
     /// Steady-state (end) RMSE to the fine reference at this mesh's vertices, m.
     pub steady_rmse_vs_fine: Option<f64>,
+    /// Steady-state (end) RMSE to the source at this mesh's vertices, m (0 for the source).
+    pub steady_rmse_vs_source: Option<f64>,
     /// Deepest intrusion into the contact layer, m.
     pub max_penetration: f64,
     /// Kinetic energy at the end, J.
     pub kinetic_energy_end: Option<f64>,
+    /// RMS speed at the end, `√(2 KE / M)`, m/s.
+    pub speed_rms_end: Option<f64>,
+    /// Whether it came to rest: RMS speed at the end below [`SETTLED_SPEED`].
+    pub settled: bool,
     /// Whether it diverged.
     pub diverged: bool,
     /// Wall time of the simulation, s.
@@ -117,21 +128,28 @@ pub struct ModelResult {
     pub run: PathBuf,
     /// Whether the model can take contact (the GNN cannot: it predicts positions).
     pub applicable: bool,
-    /// Motion RMSE (Eq. 14) to the source at the end, m.
+    /// Motion RMSE (Eq. 14) to the source at the end of the experiment (`scene.seconds`), m.
     pub motion_rmse_end: Option<f64>,
-    /// Mean of the motion RMSE over the recorded frames, m.
+    /// Mean of the motion RMSE over the recorded frames up to `scene.seconds`, m.
     pub motion_rmse_mean: Option<f64>,
-    /// Steady-state (end) RMSE to the fine FEM reference at the model's particles, m.
+    /// Steady-state RMSE to the fine FEM reference at the model's particles, after settling
+    /// (`scene.seconds + scene.settle`), m.
     pub steady_rmse_vs_fine: Option<f64>,
+    /// Steady-state RMSE to the source, after settling, m.
+    pub steady_rmse_vs_source: Option<f64>,
     /// Deepest intrusion into the contact layer, m.
     pub max_penetration: Option<f64>,
-    /// Kinetic energy at the end, J.
+    /// Kinetic energy at the end (after settling), J.
     pub kinetic_energy_end: Option<f64>,
+    /// RMS speed at the end, `√(2 KE / M)`, m/s.
+    pub speed_rms_end: Option<f64>,
+    /// Whether it came to rest: RMS speed at the end below [`SETTLED_SPEED`].
+    pub settled: bool,
     /// Whether the simulation diverged.
     pub diverged: bool,
     /// Why, if it diverged or does not apply.
     pub note: Option<String>,
-    /// Motion RMSE to the source over time, `[t, rmse]`.
+    /// Motion RMSE to the source over time (settling included), `[t, rmse]`.
     pub motion_rmse_over_time: Vec<[f64; 2]>,
     /// Wall time of the simulation, s.
     pub wall_seconds: f64,
@@ -150,6 +168,8 @@ pub struct Recording {
     pub frames: Vec<Vec<f32>>,
     /// Kinetic energy at the end, J (None when diverged).
     pub kinetic_energy_end: Option<f64>,
+    /// RMS speed at the end, `√(2 KE / M)`, m/s (None when diverged).
+    pub speed_rms_end: Option<f64>,
     /// Deepest intrusion into the contact layer, m.
     pub deepest: f64,
     /// Why it stopped early.
@@ -158,6 +178,30 @@ pub struct Recording {
     pub dt: f64,
     /// Wall time, s.
     pub wall_seconds: f64,
+}
+
+/// RMS speed below which a drape counts as settled, m/s.
+pub const SETTLED_SPEED: f64 = 0.01;
+
+impl Recording {
+    /// Sets the kinetic energy and RMS speed at the end from the velocities `v` (flat, three
+    /// per particle) and the particles' masses.
+    fn set_end_motion(&mut self, v: impl Iterator<Item = f64>, masses: &[f64]) {
+        let v: Vec<f64> = v.collect();
+        let ke: f64 = v
+            .chunks_exact(3)
+            .zip(masses)
+            .map(|(c, m)| 0.5 * m * c.iter().map(|c| c * c).sum::<f64>())
+            .sum();
+        let total: f64 = masses.iter().sum();
+        self.kinetic_energy_end = Some(ke);
+        self.speed_rms_end = Some((2.0 * ke / total).sqrt());
+    }
+
+    /// Whether it finished at rest.
+    fn settled(&self) -> bool {
+        self.diverged.is_none() && self.speed_rms_end.is_some_and(|s| s < SETTLED_SPEED)
+    }
 }
 
 /// Simulates a host cloth (a source) released at `x0`, for `steps` steps of `dt`, recording
@@ -187,6 +231,7 @@ pub fn simulate_host(
         edges,
         frames: Vec::new(),
         kinetic_energy_end: None,
+        speed_rms_end: None,
         deepest: 0.0,
         diverged: None,
         dt,
@@ -219,12 +264,8 @@ pub fn simulate_host(
     }
     bar.finish();
     if rec.diverged.is_none() {
-        rec.kinetic_energy_end = Some(
-            v.iter()
-                .enumerate()
-                .map(|(i, w)| 0.5 * sim.mass_of(i) * (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]))
-                .sum(),
-        );
+        let masses: Vec<f64> = (0..n).map(|i| sim.mass_of(i)).collect();
+        rec.set_end_motion(v.iter().flatten().copied(), &masses);
     }
     rec.deepest = contact.deepest();
     rec.wall_seconds = start.elapsed().as_secs_f64();
@@ -276,6 +317,7 @@ pub fn simulate_model(
         },
         frames: Vec::new(),
         kinetic_energy_end: None,
+        speed_rms_end: None,
         deepest: contact.deepest(),
         diverged: None,
         dt: physics.sim_dt(),
@@ -286,13 +328,8 @@ pub fn simulate_model(
             rec.frames = s.positions.chunks(p * 3).map(<[f32]>::to_vec).collect();
             let n = s.frames.len();
             let v_end = &s.velocities[(n - 1) * p * 3..];
-            rec.kinetic_energy_end = Some(
-                v_end
-                    .chunks_exact(3)
-                    .zip(topology.masses(physics.mass))
-                    .map(|(c, m)| 0.5 * m * c.iter().map(|c| (*c as f64).powi(2)).sum::<f64>())
-                    .sum::<f64>(),
-            );
+            let masses = topology.masses(physics.mass);
+            rec.set_end_motion(v_end.iter().map(|&c| c as f64), &masses);
             let size = x0.iter().flatten().fold(1.0f64, |m, c| m.max(c.abs()));
             if rec
                 .frames
@@ -428,10 +465,12 @@ struct Job<'a> {
 /// One scene's timing: frames simulated and recorded.
 #[derive(Clone, Copy)]
 struct Frames {
-    /// Data frames simulated.
+    /// Data frames simulated (settling included).
     total: usize,
     /// Data frames per recorded frame.
     every: usize,
+    /// Index of the recorded frame at `scene.seconds` (the end of the motion RMSE's window).
+    scored: usize,
     /// Time between recorded frames, s.
     record_dt: f64,
 }
@@ -487,27 +526,34 @@ impl<'a> Job<'a> {
         ));
         let every = ((cfg.record_every / self.frame_dt).round() as usize).max(1);
         let frames = Frames {
-            total: (cfg.seconds / self.frame_dt).round() as usize,
+            total: ((cfg.seconds + cfg.settle) / self.frame_dt).round() as usize,
             every,
+            scored: (cfg.seconds / self.frame_dt).round() as usize / every,
             record_dt: every as f64 * self.frame_dt,
         };
         let mut warnings = Vec::new();
-        let (coarse, fine) = match &self.source {
+        let refs = match &self.source {
             Some(src) => self.references(scene, &params, src, frames)?,
             None => {
                 warnings.push(
                     "the run has no [source]: no reference drape, only the models' contact figures"
                         .into(),
                 );
-                (None, None)
+                References::default()
             }
         };
+        let References {
+            coarse,
+            fine,
+            perturbed,
+        } = refs;
         let recs = self.simulate_models(scene, &params, frames)?;
         let score = Score {
             coarse: coarse.as_ref(),
             fine: fine.as_ref(),
             thickness: params.thickness,
             record_dt: frames.record_dt,
+            scored: frames.scored,
         };
         let source_ref = coarse
             .as_ref()
@@ -517,6 +563,9 @@ impl<'a> Job<'a> {
             r.steady_rmse_vs_fine = Some(0.0);
             r
         });
+        let perturbed_ref = perturbed
+            .as_ref()
+            .map(|p| score.reference(p, "perturbed source", &mut warnings));
         let models: BTreeMap<String, ModelResult> = recs
             .iter()
             .map(|d| (d.kind.clone(), score.model(d, &mut warnings)))
@@ -531,14 +580,17 @@ impl<'a> Job<'a> {
                 if r.diverged { ", DIVERGED" } else { "" }
             ));
         }
-        if let Some(s) = &source_ref {
-            self.progress.note(&format!(
-                "  source {}: to the fine mesh {}, deepest {:.4} m, {:.1} s wall",
-                s.label,
-                fmt_m(s.steady_rmse_vs_fine),
-                s.max_penetration,
-                s.wall_seconds
-            ));
+        for (who, r) in [("source", &source_ref), ("perturbed", &perturbed_ref)] {
+            if let Some(s) = r {
+                self.progress.note(&format!(
+                    "  {who} {}: to the fine mesh {}, to the source {}, deepest {:.4} m, {:.1} s wall",
+                    s.label,
+                    fmt_m(s.steady_rmse_vs_fine),
+                    fmt_m(s.steady_rmse_vs_source),
+                    s.max_penetration,
+                    s.wall_seconds
+                ));
+            }
         }
         let mut drawn: Vec<&Recording> = Vec::new();
         drawn.extend(coarse.as_ref());
@@ -563,25 +615,24 @@ impl<'a> Job<'a> {
             record_dt: frames.record_dt,
             source: source_ref,
             fine: fine_ref,
+            perturbed: perturbed_ref,
             models,
             warnings,
             wall_seconds: start.elapsed().as_secs_f64(),
         })
     }
 
-    /// The coarse source and (for an FEM source) the fine FEM mesh over the scene, side by side.
+    /// The coarse source, (for an FEM source) the fine FEM mesh and (for `scene.perturb > 0`)
+    /// the perturbed source over the scene, side by side.
     fn references(
         &self,
         scene: &Scene,
         params: &ContactParams,
         src: &SourceConfig,
         frames: Frames,
-    ) -> Result<(Option<Recording>, Option<Recording>)> {
-        let host_run = |src: &SourceConfig| -> Result<Recording> {
-            let sim: Box<dyn ClothSim> = match src.kind {
-                SourceKind::Fem => Box::new(FemCloth::from_config(src)),
-                SourceKind::MassSpring => Box::new(SpringCloth::from_config(src)),
-            };
+    ) -> Result<References> {
+        let host_run = |src: &SourceConfig, perturb: f64| -> Result<Recording> {
+            let sim = crate::source::build_perturbed(src, perturb, PERTURB_SEED);
             let dt = stable_step(sim.as_ref(), params, src.dt);
             let record_dt = frames.record_dt;
             let every = (record_dt / dt).round() as usize;
@@ -593,8 +644,13 @@ impl<'a> Job<'a> {
             let steps = frames.total / frames.every * every;
             let x0 = scene.release(sim.rest_uv(), src.width, src.height);
             let contact = Contact::new(scene.colliders.clone(), *params);
+            let label = if perturb > 0.0 {
+                format!("{} ±{}%", label_of(src), 100.0 * perturb)
+            } else {
+                label_of(src)
+            };
             Ok(simulate_host(
-                &label_of(src),
+                &label,
                 sim.as_ref(),
                 grid_edges(src.nx, src.ny),
                 x0,
@@ -606,11 +662,21 @@ impl<'a> Job<'a> {
             ))
         };
         let fine_src = (src.kind == SourceKind::Fem).then(|| fine_config(src, scene.config.fine));
-        let (c, f) = rayon::join(
-            || host_run(src),
-            || fine_src.as_ref().map(&host_run).transpose(),
+        let perturb = scene.config.perturb;
+        let ((c, p), f) = rayon::join(
+            || {
+                rayon::join(
+                    || host_run(src, 0.0),
+                    || (perturb > 0.0).then(|| host_run(src, perturb)).transpose(),
+                )
+            },
+            || fine_src.as_ref().map(|f| host_run(f, 0.0)).transpose(),
         );
-        Ok((Some(c?), f?))
+        Ok(References {
+            coarse: Some(c?),
+            fine: f?,
+            perturbed: p?,
+        })
     }
 
     /// Every model over the scene (the GNN is recorded as not applicable).
@@ -669,18 +735,34 @@ impl<'a> Job<'a> {
     }
 }
 
+/// Seed of the perturbed source's draw.
+const PERTURB_SEED: u64 = 1;
+
+/// One scene's reference drapes.
+#[derive(Default)]
+struct References {
+    /// The run's source.
+    coarse: Option<Recording>,
+    /// The fine FEM mesh.
+    fine: Option<Recording>,
+    /// The source with its material perturbed.
+    perturbed: Option<Recording>,
+}
+
 /// Scores one scene's recordings against its references.
 struct Score<'a> {
     coarse: Option<&'a Recording>,
     fine: Option<&'a Recording>,
     thickness: f64,
     record_dt: f64,
+    /// Index of the recorded frame at `scene.seconds`.
+    scored: usize,
 }
 
 impl Score<'_> {
-    /// RMSE of the last frame to the fine mesh's last frame (resampled), when both finished.
-    fn vs_fine(&self, rec: &Recording) -> Option<f64> {
-        let f = self.fine?;
+    /// RMSE of the last frame to the reference's last frame (resampled), when both finished.
+    fn steady(rec: &Recording, reference: Option<&Recording>) -> Option<f64> {
+        let f = reference?;
         if f.diverged.is_some() || rec.diverged.is_some() {
             return None;
         }
@@ -689,6 +771,16 @@ impl Score<'_> {
             rec.frames.last()?,
             &resample(&res, f.frames.last()?),
         ))
+    }
+
+    /// [`Score::steady`] against the fine mesh.
+    fn vs_fine(&self, rec: &Recording) -> Option<f64> {
+        Self::steady(rec, self.fine)
+    }
+
+    /// [`Score::steady`] against the source.
+    fn vs_source(&self, rec: &Recording) -> Option<f64> {
+        Self::steady(rec, self.coarse)
     }
 
     /// Warns when `rec` reached the collider's surface or diverged.
@@ -702,6 +794,12 @@ impl Score<'_> {
         }
         if let Some(d) = &rec.diverged {
             warnings.push(d.clone());
+        } else if !rec.settled() {
+            warnings.push(format!(
+                "{who}: still moving at the end (RMS speed {:.3} m/s ≥ {SETTLED_SPEED} m/s): its \
+                 steady-state figures are not at rest; raise scene.settle",
+                rec.speed_rms_end.unwrap_or(f64::NAN)
+            ));
         }
     }
 
@@ -712,8 +810,11 @@ impl Score<'_> {
             label: rec.label.clone(),
             dt: rec.dt,
             steady_rmse_vs_fine: self.vs_fine(rec),
+            steady_rmse_vs_source: self.vs_source(rec),
             max_penetration: rec.deepest,
             kinetic_energy_end: rec.kinetic_energy_end,
+            speed_rms_end: rec.speed_rms_end,
+            settled: rec.settled(),
             diverged: rec.diverged.is_some(),
             wall_seconds: rec.wall_seconds,
         }
@@ -728,8 +829,11 @@ impl Score<'_> {
                 motion_rmse_end: None,
                 motion_rmse_mean: None,
                 steady_rmse_vs_fine: None,
+                steady_rmse_vs_source: None,
                 max_penetration: None,
                 kinetic_energy_end: None,
+                speed_rms_end: None,
+                settled: false,
                 diverged: false,
                 note: Some(GNN_NOT_APPLICABLE.into()),
                 motion_rmse_over_time: Vec::new(),
@@ -754,16 +858,20 @@ impl Score<'_> {
             }
             None => Vec::new(),
         };
-        let complete = rec.diverged.is_none() && !curve.is_empty();
+        let complete = rec.diverged.is_none() && curve.len() > self.scored;
+        let window = &curve[..curve.len().min(self.scored + 1)];
         ModelResult {
             run: draped.run.clone(),
             applicable: true,
-            motion_rmse_end: curve.last().filter(|_| complete).map(|c| c[1]),
+            motion_rmse_end: complete.then(|| curve[self.scored][1]),
             motion_rmse_mean: complete
-                .then(|| curve.iter().map(|c| c[1]).sum::<f64>() / curve.len() as f64),
+                .then(|| window.iter().map(|c| c[1]).sum::<f64>() / window.len() as f64),
             steady_rmse_vs_fine: self.vs_fine(rec),
+            steady_rmse_vs_source: self.vs_source(rec),
             max_penetration: Some(rec.deepest),
             kinetic_energy_end: rec.kinetic_energy_end,
+            speed_rms_end: rec.speed_rms_end,
+            settled: rec.settled(),
             diverged: rec.diverged.is_some(),
             note: rec.diverged.clone(),
             motion_rmse_over_time: curve,
@@ -911,7 +1019,11 @@ fn figure(
             let edges = &rec.edges;
             let (caption, pos) = match (&rec.diverged, rec.frames.last()) {
                 (None, Some(f)) => (
-                    format!("{}: t = {:.1} s", rec.label, scene.config.seconds),
+                    format!(
+                        "{}: t = {:.1} s",
+                        rec.label,
+                        scene.config.seconds + scene.config.settle
+                    ),
                     f,
                 ),
                 (_, _) => {

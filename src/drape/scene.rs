@@ -21,8 +21,16 @@ pub struct SceneFile {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SceneConfig {
-    /// Simulated time, s.
+    /// Simulated time of the experiment (the motion RMSE's window), s.
     pub seconds: f64,
+    /// Further time every system keeps running after `seconds` so that it settles (paper §4.5:
+    /// "the steady state after each system settles"); the steady-state figures are taken at
+    /// `seconds + settle`, s.
+    pub settle: f64,
+    /// Relative perturbation `ε` of a third reference: the source with every element's
+    /// stiffness times `1 + ε·N(0, 1)` (seeded), whose distance to the source is the drape's
+    /// sensitivity to parameter error (its chaos floor); 0: none.
+    pub perturb: f64,
     /// Height of the flat sheet at release (its plane `z`), m.
     pub release_height: f64,
     /// Horizontal position `[x, y]` of the sheet's centre at release, m.
@@ -43,6 +51,8 @@ impl Default for SceneConfig {
     fn default() -> Self {
         Self {
             seconds: 8.0,
+            settle: 22.0,
+            perturb: 0.01,
             release_height: 1.0,
             centre: [0.0, 0.0],
             record_every: 0.02,
@@ -77,6 +87,12 @@ impl SceneConfig {
         };
         pos("seconds", self.seconds)?;
         pos("record_every", self.record_every)?;
+        if !(self.settle.is_finite() && self.settle >= 0.0) {
+            bail!("`scene.settle` must be 0 or positive, is {}", self.settle);
+        }
+        if !(self.perturb.is_finite() && (0.0..1.0).contains(&self.perturb)) {
+            bail!("`scene.perturb` must be in [0, 1), is {}", self.perturb);
+        }
         if !self.release_height.is_finite() || !self.centre.iter().all(|c| c.is_finite()) {
             bail!("`scene.release_height` and `scene.centre` must be finite");
         }

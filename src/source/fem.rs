@@ -145,6 +145,12 @@ pub struct FemCloth {
 impl FemCloth {
     /// The FEM cloth of a source config (`source.kind = "fem"`).
     pub fn from_config(cfg: &SourceConfig) -> Self {
+        Self::from_config_scaled(cfg, &[])
+    }
+
+    /// The FEM cloth of a source config with triangle `t`'s Young's modulus multiplied by
+    /// `scale[t]` (all 1 where `scale` is empty): a perturbed copy of the source's material.
+    pub fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
         let (nx, ny) = (cfg.nx, cfg.ny);
         let (hx, hy) = (cfg.width / (nx - 1) as f64, cfg.height / (ny - 1) as f64);
         let rest_uv: Vec<[f64; 2]> = (0..ny)
@@ -163,6 +169,8 @@ impl FemCloth {
                 let v = t.iter().map(|&i| rest_uv[i][1]).sum::<f64>() / 3.0;
                 map.at(u / cfg.width, v / cfg.height)
             })
+            .zip(scale.iter().chain(std::iter::repeat(&1.0)))
+            .map(|(y, s)| y * s)
             .collect();
         Self::new(
             rest_uv,

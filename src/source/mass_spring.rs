@@ -31,6 +31,12 @@ impl SpringCloth {
     /// The source cloth of a config: the paper's grid with every spring family, `k` from the
     /// stiffness map at each spring's rest midpoint, one `b` for all.
     pub fn from_config(cfg: &SourceConfig) -> Self {
+        Self::from_config_scaled(cfg, &[])
+    }
+
+    /// The spring cloth of a source config with spring `s`'s stiffness multiplied by
+    /// `scale[s]` (all 1 where `scale` is empty): a perturbed copy of the source's material.
+    pub fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
         let spec = GridSpec {
             nx: cfg.nx,
             ny: cfg.ny,
@@ -49,6 +55,8 @@ impl SpringCloth {
                 let [u, v] = topology.midpoint(s);
                 map.at(u / cfg.width, v / cfg.height)
             })
+            .zip(scale.iter().chain(std::iter::repeat(&1.0)))
+            .map(|(k, s)| k * s)
             .collect();
         let b = vec![cfg.damping; topology.num_springs()];
         let mass = cfg.areal_density * cfg.width * cfg.height / topology.num_particles() as f64;

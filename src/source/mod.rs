@@ -403,9 +403,25 @@ pub fn simulate_rollout(
 
 /// Builds the simulator of a source config.
 pub fn build(cfg: &SourceConfig) -> Box<dyn ClothSim> {
+    build_perturbed(cfg, 0.0, 0)
+}
+
+/// Builds the simulator of a source config with its material perturbed: every triangle's
+/// Young's modulus (FEM) or spring's stiffness (mass-spring) times `1 + level · n`, `n` standard
+/// normal from `seed` (the chaos floor's draw, [`crate::diagnose::chaos::perturbation`]).
+/// `level = 0` is the source itself.
+pub fn build_perturbed(cfg: &SourceConfig, level: f64, seed: u64) -> Box<dyn ClothSim> {
+    let scale: Vec<f64> = if level == 0.0 {
+        Vec::new()
+    } else {
+        // More draws than a grid has triangles or springs (structural, shear and bending:
+        // under 6 per vertex); each element takes its own, whatever the count.
+        let noise = crate::diagnose::chaos::perturbation(6 * cfg.nx * cfg.ny, seed);
+        crate::diagnose::chaos::perturbed(&vec![1.0; noise.len()], &noise, level)
+    };
     match cfg.kind {
-        SourceKind::MassSpring => Box::new(SpringCloth::from_config(cfg)),
-        SourceKind::Fem => Box::new(FemCloth::from_config(cfg)),
+        SourceKind::MassSpring => Box::new(SpringCloth::from_config_scaled(cfg, &scale)),
+        SourceKind::Fem => Box::new(FemCloth::from_config_scaled(cfg, &scale)),
     }
 }
 
