@@ -1441,35 +1441,65 @@ fn simulate(
 fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()> {
     let report = crate::drape::run(options, progress)?;
     println!(
-        "{:<12} {:<18} {:>14} {:>16} {:>14} {:>10}",
-        "scene", "system", "RMSE end (m)", "RMSE fine (m)", "deepest (m)", "diverged"
+        "{:<10} {:<22} {:>13} {:>13} {:>13} {:>11} {:>8} {:>9}",
+        "scene",
+        "system",
+        "RMSE end (m)",
+        "rest-src (m)",
+        "rest-fine (m)",
+        "deepest (m)",
+        "settled",
+        "diverged"
     );
     let show = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.4}"));
+    let row = |name: &str,
+               who: &str,
+               end: Option<f64>,
+               src: Option<f64>,
+               fine: Option<f64>,
+               deepest: Option<f64>,
+               settled: &str,
+               diverged: &str| {
+        println!(
+            "{:<10} {:<22} {:>13} {:>13} {:>13} {:>11} {:>8} {:>9}",
+            name,
+            who,
+            show(end),
+            show(src),
+            show(fine),
+            show(deepest),
+            settled,
+            diverged
+        );
+    };
     for (name, s) in &report.scenes {
-        if let Some(src) = &s.source {
-            println!(
-                "{:<12} {:<18} {:>14} {:>16} {:>14.4} {:>10}",
+        for r in [&s.source, &s.perturbed].into_iter().flatten() {
+            row(
                 name,
-                format!("source {}", src.label),
-                "—",
-                show(src.steady_rmse_vs_fine),
-                src.max_penetration,
-                src.diverged
+                &r.label,
+                None,
+                r.steady_rmse_vs_source,
+                r.steady_rmse_vs_fine,
+                Some(r.max_penetration),
+                &r.settled.to_string(),
+                &r.diverged.to_string(),
             );
         }
         for (kind, m) in &s.models {
-            println!(
-                "{:<12} {:<18} {:>14} {:>16} {:>14} {:>10}",
+            let (settled, diverged) = if m.applicable {
+                (m.settled.to_string(), m.diverged.to_string())
+            } else {
+                ("n/a".into(), "n/a".into())
+            };
+            row(
                 name,
                 kind,
-                show(m.motion_rmse_end),
-                show(m.steady_rmse_vs_fine),
-                show(m.max_penetration),
-                if m.applicable {
-                    m.diverged.to_string()
-                } else {
-                    "n/a".into()
-                }
+                m.motion_rmse_end,
+                m.steady_rmse_vs_source,
+                m.steady_rmse_vs_fine,
+                m.max_penetration,
+                &settled,
+                &diverged,
             );
         }
         for w in &s.warnings {

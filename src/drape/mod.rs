@@ -572,8 +572,10 @@ impl<'a> Job<'a> {
             .collect();
         for (who, r) in &models {
             self.progress.note(&format!(
-                "  {who}: motion RMSE at the end {}, to the fine mesh {}, deepest {:.4} m, {:.1} s wall{}",
+                "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}; deepest {:.4} m, {:.1} s wall{}",
+                scene.config.seconds,
                 fmt_m(r.motion_rmse_end),
+                fmt_m(r.steady_rmse_vs_source),
                 fmt_m(r.steady_rmse_vs_fine),
                 r.max_penetration.unwrap_or(0.0),
                 r.wall_seconds,
@@ -583,10 +585,10 @@ impl<'a> Job<'a> {
         for (who, r) in [("source", &source_ref), ("perturbed", &perturbed_ref)] {
             if let Some(s) = r {
                 self.progress.note(&format!(
-                    "  {who} {}: to the fine mesh {}, to the source {}, deepest {:.4} m, {:.1} s wall",
+                    "  {who} {}: at rest to the source {}, to the fine mesh {}; deepest {:.4} m, {:.1} s wall",
                     s.label,
-                    fmt_m(s.steady_rmse_vs_fine),
                     fmt_m(s.steady_rmse_vs_source),
+                    fmt_m(s.steady_rmse_vs_fine),
                     s.max_penetration,
                     s.wall_seconds
                 ));
