@@ -1071,7 +1071,11 @@ fn figure(
             "RMSE (m)",
             &series,
             false,
-            &[],
+            &if scene.config.settle > 0.0 {
+                vec![(scene.config.seconds, "settling from here")]
+            } else {
+                Vec::new()
+            },
         )
     })
 }
