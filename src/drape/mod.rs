@@ -910,16 +910,23 @@ pub fn report_figures(list: &Path) -> Vec<(PathBuf, String)> {
             }
             let num =
                 |v: &serde_json::Value| v.as_f64().map_or("—".into(), |x| format!("{x:.4} m"));
+            let seconds = s["scene"]["seconds"].as_f64().unwrap_or(f64::NAN);
+            // A drape written before `scene.settle` existed ended at `seconds`.
+            let end = match s["scene"]["settle"].as_f64() {
+                Some(settle) => format!("after {seconds:.1} s and {settle:.1} s of settling"),
+                None => format!("at {seconds:.1} s (no settling phase)"),
+            };
             let mut caption = format!(
-                "drape on `{name}` ({}): at the end of the scene; steady-state RMSE to the fine FEM mesh: source {}",
+                "drape on `{name}` ({}): {end}; RMSE at the end to the fine FEM mesh: source {}",
                 dir.display(),
                 num(&s["source"]["steady_rmse_vs_fine"])
             );
             if let Some(models) = s["models"].as_object() {
                 for (kind, m) in models {
                     caption += &format!(
-                        ", {kind} {} (motion RMSE to the source at the end {}, deepest {})",
+                        ", {kind} {} (to the source at the end {}, motion RMSE at {seconds:.1} s {}, deepest {})",
                         num(&m["steady_rmse_vs_fine"]),
+                        num(&m["steady_rmse_vs_source"]),
                         num(&m["motion_rmse_end"]),
                         num(&m["max_penetration"])
                     );
