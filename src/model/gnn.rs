@@ -26,10 +26,12 @@ use std::collections::HashMap;
 use burn::module::Module;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, LinearConfig};
 use burn::tensor::activation::relu;
-use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use rand::Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
+
+use super::kernels::segment::DeviceSegments;
 
 /// The `[model.gnn]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -247,27 +249,21 @@ impl Gnn {
             return self.decoder.forward(h);
         }
         let edges = Tensor::<2>::from_data(TensorData::new(graph.edges.clone(), [e, 4]), device);
-        let idx =
-            |v: &Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [e]), device);
-        let (senders, receivers) = (idx(&graph.senders), idx(&graph.receivers));
+        // Gathers and sums by segment in both directions (no scatter; see `segment`).
+        let senders = DeviceSegments::new(&graph.senders, n, device);
+        let receivers = DeviceSegments::new(&graph.receivers, n, device);
         let mut m = self.edge_encoder.forward(edges);
-        let latent = m.dims()[1];
         for block in &self.blocks {
             let input = Tensor::cat(
                 vec![
                     m.clone(),
-                    h.clone().select(0, senders.clone()),
-                    h.clone().select(0, receivers.clone()),
+                    senders.gather(h.clone()),
+                    receivers.gather(h.clone()),
                 ],
                 1,
             );
             m = m + block.edge.forward(input);
-            let agg = Tensor::<2>::zeros([n, latent], device).select_assign(
-                0,
-                receivers.clone(),
-                m.clone(),
-                IndexingUpdateOp::Add,
-            );
+            let agg = receivers.sum(m.clone());
             h = h.clone() + block.node.forward(Tensor::cat(vec![h, agg], 1));
         }
         self.decoder.forward(h)

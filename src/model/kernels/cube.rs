@@ -28,6 +28,7 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 use cubecl::{CubeDim, calculate_cube_count_elemwise};
 
+use super::segment::{SegmentBackend, Segments, select_rows, sum_by_select_assign};
 use super::{
     HostGraph, RolloutInputs, RolloutKernels, RolloutParams, RolloutTape, SpringBackend,
     SpringGrads, StepParams,
@@ -38,7 +39,7 @@ pub const CLIPS_PER_THREAD: usize = 16;
 
 /// The spring graph on one CubeCL device.
 #[derive(Debug)]
-struct DeviceGraph {
+pub struct DeviceGraph {
     /// Endpoints `a, b` of every spring, `[2S]` u32.
     ends: Handle,
     /// Rest lengths `[S]` f32.
@@ -54,25 +55,44 @@ struct DeviceGraph {
     particles: usize,
 }
 
-/// Device copies of a [`HostGraph`], one per CubeCL device it has run on.
-#[derive(Default)]
-pub struct CubeCache(Mutex<Vec<(CubeDevice, Arc<DeviceGraph>)>>);
+/// Device copies of a host structure (a [`HostGraph`], [`Segments`]), one per CubeCL device it
+/// has run on.
+pub struct CubeCache<T>(Mutex<Vec<(CubeDevice, Arc<T>)>>);
 
-impl Clone for CubeCache {
+impl<T> CubeCache<T> {
+    /// The copy on `device`, made by `upload` on first use.
+    fn get(&self, device: &CubeDevice, upload: impl FnOnce() -> T) -> Arc<T> {
+        let mut cache = self.0.lock().expect("cube device cache");
+        if let Some((_, g)) = cache.iter().find(|(d, _)| d == device) {
+            return g.clone();
+        }
+        let g = Arc::new(upload());
+        cache.push((device.clone(), g.clone()));
+        g
+    }
+}
+
+impl<T> Default for CubeCache<T> {
+    fn default() -> Self {
+        Self(Mutex::new(Vec::new()))
+    }
+}
+
+impl<T> Clone for CubeCache<T> {
     /// A clone starts empty: device buffers are cheap to upload again and belong to one graph.
     fn clone(&self) -> Self {
         Self::default()
     }
 }
 
-impl PartialEq for CubeCache {
+impl<T> PartialEq for CubeCache<T> {
     /// Caches never make two graphs differ.
     fn eq(&self, _: &Self) -> bool {
         true
     }
 }
 
-impl std::fmt::Debug for CubeCache {
+impl<T> std::fmt::Debug for CubeCache<T> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str("CubeCache")
     }
@@ -80,10 +100,10 @@ impl std::fmt::Debug for CubeCache {
 
 /// The graph's buffers on `device`, uploaded on first use.
 fn device_graph(graph: &HostGraph, device: &CubeDevice) -> Arc<DeviceGraph> {
-    let mut cache = graph.cube.0.lock().expect("cube graph cache");
-    if let Some((_, g)) = cache.iter().find(|(d, _)| d == device) {
-        return g.clone();
-    }
+    graph.cube.get(device, || upload_graph(graph, device))
+}
+
+fn upload_graph(graph: &HostGraph, device: &CubeDevice) -> DeviceGraph {
     let client = device.client();
     let (s_count, p) = (graph.num_springs(), graph.particles);
     let ends: Vec<u32> = graph.ends.iter().flat_map(|&(a, b)| [a, b]).collect();
@@ -108,7 +128,7 @@ fn device_graph(graph: &HostGraph, device: &CubeDevice) -> Arc<DeviceGraph> {
         Some(s) => s.iter().map(|&v| v as f32).collect(),
         None => vec![1.0; p],
     };
-    let g = Arc::new(DeviceGraph {
+    DeviceGraph {
         ends: client.create_from_slice(u32::as_bytes(&ends)),
         rest_length: client.create_from_slice(f32::as_bytes(&l0)),
         offsets: client.create_from_slice(u32::as_bytes(&counts)),
@@ -116,9 +136,7 @@ fn device_graph(graph: &HostGraph, device: &CubeDevice) -> Arc<DeviceGraph> {
         scale: client.create_from_slice(f32::as_bytes(&scale)),
         springs: s_count,
         particles: p,
-    });
-    cache.push((device.clone(), g.clone()));
-    g
+    }
 }
 
 impl DeviceGraph {
@@ -854,5 +872,96 @@ impl RolloutKernels for CubeBackend {
         _w: [f64; 3],
     ) -> (CubeTensor, CubeTensor) {
         unimplemented!("{WHOLE_ROLLOUT}")
+    }
+}
+
+/// A [`Segments`] CSR list on one CubeCL device.
+#[derive(Debug)]
+pub struct CubeSegments {
+    /// `[N + 1]` u32.
+    offsets: Handle,
+    /// `[E]` u32.
+    order: Handle,
+    segments: usize,
+    entries: usize,
+}
+
+/// `out[n, l] = Σ values[order[j], l]` over `j ∈ offsets[n]..offsets[n + 1]`: one thread per
+/// output element, its segment summed in order (deterministic, no atomics).
+#[cube(launch_unchecked)]
+fn segment_sum_kernel<F: Float>(
+    values: &[F],
+    offsets: &[u32],
+    order: &[u32],
+    out: &mut [F],
+    width: usize,
+    items: usize,
+) {
+    let item = ABSOLUTE_POS;
+    if item >= items {
+        terminate!();
+    }
+    let n = item / width;
+    let l = item % width;
+    let mut acc = F::new(0.0);
+    let start = usize::cast_from(offsets[n]);
+    let end = usize::cast_from(offsets[n + 1]);
+    for j in start..end {
+        acc += values[usize::cast_from(order[j]) * width + l];
+    }
+    out[item] = acc;
+}
+
+impl SegmentBackend for CubeBackend {
+    fn segment_sum(values: CubeTensor, owner: CubeTensor, segments: Arc<Segments>) -> CubeTensor {
+        if segments.num_entries() == 0 {
+            // Zeros; the kernel's buffers would be empty.
+            return sum_by_select_assign::<Self>(values, owner, &segments);
+        }
+        let values = prepare(values, "the values to sum");
+        let dims = values.meta.shape().to_vec();
+        assert!(
+            dims.len() == 2 && dims[0] == segments.num_entries(),
+            "segment_sum: values must be [{}, L], are {dims:?}",
+            segments.num_entries()
+        );
+        let device = values.device.clone();
+        let g = segments.cube.get(&device, || {
+            let client = device.client();
+            CubeSegments {
+                offsets: client.create_from_slice(u32::as_bytes(segments.offsets())),
+                order: client.create_from_slice(u32::as_bytes(segments.order())),
+                segments: segments.num_segments(),
+                entries: segments.num_entries(),
+            }
+        });
+        let width = dims[1];
+        let items = g.segments * width;
+        let out = empty(&values, vec![g.segments, width]);
+        if items == 0 {
+            return out;
+        }
+        let (count, dim) = launch_dims(&values, items);
+        // SAFETY: `values` holds `E · width` (checked above), the CSR arrays hold `N + 1` and
+        // `E` entries with every `order[j] < E` and offsets within `0..=E` (built by
+        // `Segments::new`), `out` holds `N · width`; the thread guard stops at `items`.
+        unsafe {
+            segment_sum_kernel::launch_unchecked::<f32>(
+                &values.client,
+                count,
+                dim,
+                arg(&values),
+                DeviceGraph::arg(&g.offsets, g.segments + 1),
+                DeviceGraph::arg(&g.order, g.entries),
+                arg(&out),
+                width,
+                items,
+            )
+        };
+        out
+    }
+
+    fn gather_rows(x: CubeTensor, owner: CubeTensor, _segments: Arc<Segments>) -> CubeTensor {
+        select_rows::<Self>(x, owner)
     }
 }

@@ -21,6 +21,7 @@ pub mod cpu;
 mod cube;
 mod host;
 pub mod rollout;
+pub mod segment;
 
 pub use cpu::StepParams;
 pub use rollout::RolloutParams;
@@ -44,7 +45,7 @@ pub struct HostGraph {
     force_scale: Option<Vec<f64>>,
     /// The graph's buffers on the CubeCL devices it ran on.
     #[cfg(feature = "wgpu")]
-    cube: cube::CubeCache,
+    cube: cube::CubeCache<cube::DeviceGraph>,
 }
 
 impl HostGraph {
