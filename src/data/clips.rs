@@ -492,6 +492,19 @@ impl ClipSet {
 
     /// Assembles clips on the host (reading the rollouts that are not cached in parallel).
     pub fn host_batch(&self, clips: &[ClipRef]) -> Result<HostBatch> {
+        self.host_batch_of(clips, self.steps)
+    }
+
+    /// [`host_batch`](Self::host_batch) of the first `steps` steps of each clip (a model that
+    /// reads a window of each clip moves the [`ClipRef`]s and uploads only the window).
+    ///
+    /// Panics if `steps` is 0 or more than the clips'.
+    pub fn host_batch_of(&self, clips: &[ClipRef], steps: usize) -> Result<HostBatch> {
+        assert!(
+            (1..=self.steps).contains(&steps),
+            "{steps} steps of clips of {}",
+            self.steps
+        );
         // Each rollout once, however many of the batch's clips it holds.
         let mut ids: Vec<usize> = clips.iter().map(|c| c.rollout).collect();
         ids.sort_unstable();
@@ -507,7 +520,7 @@ impl ClipSet {
         let views: Vec<(&Track, usize)> = tracks.iter().map(|(t, o)| (t.as_ref(), *o)).collect();
         Ok(HostBatch::new(
             &views,
-            self.steps,
+            steps,
             self.particle_mass(),
             self.info.frame_dt,
         ))

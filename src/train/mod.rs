@@ -621,6 +621,13 @@ pub trait Trainable: Module + Sized {
         "the surrogate's rollout diverged".into()
     }
 
+    /// The stored frames of each clip that the loss reads, when it reads one window of each
+    /// clip rather than all of it (the GNN): the batch then holds a random window of that many
+    /// frames of each clip, cut on the host, so only the window is uploaded.
+    fn clip_window(&self, _job: &Job) -> Option<usize> {
+        None
+    }
+
     /// Whether the gradients are finite (spring networks check `k` and `b`; others trust them).
     fn gradients_finite(&self, _grads: &GradientsParams) -> bool {
         true
@@ -775,6 +782,10 @@ impl Trainable for Gnn {
 
     fn divergence_hint(&self, _job: &Job) -> String {
         "the GNN's one-step loss is not finite; lower `train.gnn.lr`".into()
+    }
+
+    fn clip_window(&self, job: &Job) -> Option<usize> {
+        Some(job.config.model.gnn.window_frames())
     }
 }
 
@@ -959,26 +970,44 @@ impl Fit<'_> {
             }
             let (prepared, trained) = model.begin_pass(train_k, train_b);
             model = prepared;
-            // The next batch is read and assembled on another thread while this one trains.
-            let next_refs = |sampler: &mut Sampler| -> Vec<ClipRef> {
+            // A model that reads one window of each clip gets only that window, drawn per
+            // iteration (so a resumed run draws the same ones); a window longer than the clips
+            // is left to the model to refuse by name.
+            let window = model
+                .clip_window(job)
+                .filter(|&frames| (2..=clips.steps + 1).contains(&frames));
+            let steps = window.map_or(clips.steps, |frames| frames - 1);
+            let next_refs = |sampler: &mut Sampler, it: usize| -> Vec<ClipRef> {
+                let mut rng = StdRng::seed_from_u64(
+                    config.train.seed ^ (it as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
+                );
                 sampler
                     .next(pass.batch)
                     .into_iter()
-                    .map(|i| pool[i])
+                    .map(|i| {
+                        let mut clip = pool[i];
+                        if let Some(frames) = window {
+                            let shift = rng.random_range(0..=clips.steps + 1 - frames);
+                            clip.offset += shift;
+                            clip.start += shift;
+                        }
+                        clip
+                    })
                     .collect()
             };
+            // The next batch is read and assembled on another thread while this one trains.
             let prefetch = |refs: Vec<ClipRef>| {
                 let clips = Arc::clone(clips);
-                std::thread::spawn(move || clips.host_batch(&refs))
+                std::thread::spawn(move || clips.host_batch_of(&refs, steps))
             };
             let mut upcoming = None;
             for it in start_iteration.max(pass_start)..global {
                 let host = match upcoming.take() {
                     Some(handle) => join_batch(handle)?,
-                    None => clips.host_batch(&next_refs(&mut sampler))?,
+                    None => clips.host_batch_of(&next_refs(&mut sampler, it), steps)?,
                 };
                 if it + 1 < global {
-                    upcoming = Some(prefetch(next_refs(&mut sampler)));
+                    upcoming = Some(prefetch(next_refs(&mut sampler, it + 1)));
                 }
                 let batch = host.to_device(job.device)?;
                 let terms = model.batch_loss(job, &batch, pass, it);
