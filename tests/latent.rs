@@ -204,6 +204,7 @@ fn implicit_euler_dissipates_and_newton_meets_its_tolerance() {
     let newton = NewtonConfig {
         tolerance: 1e-6,
         max_iterations: 100,
+        ..NewtonConfig::default()
     };
     let stepper = ImplicitEuler::new(fem.clone(), dt, newton).unwrap();
     let start = deformed(&cloth);

@@ -27,6 +27,11 @@ pub struct NewtonConfig {
     pub tolerance: f64,
     /// At most this many Newton iterations per step; not converging is an error.
     pub max_iterations: usize,
+    /// Try the exact Hessian first and fall back to the PSD-projected one only where it is
+    /// not positive definite. Projection keeps every step a descent step, but where elements
+    /// are compressed (wrinkles) it turns Newton into a slow linear iteration; near a stable
+    /// equilibrium the exact Hessian converges quadratically (static targets use it).
+    pub exact_hessian: bool,
 }
 
 impl Default for NewtonConfig {
@@ -35,6 +40,7 @@ impl Default for NewtonConfig {
         Self {
             tolerance: 1e-4,
             max_iterations: 50,
+            exact_hessian: false,
         }
     }
 }
@@ -176,12 +182,20 @@ impl ImplicitEuler {
                     },
                 ));
             }
-            let mut system = self.assemble(&x, &slot, free);
-            let mut rhs: Vec<f64> = (0..n)
+            let minus_grad: Vec<f64> = (0..n)
                 .filter(|&i| !fixed[i])
                 .flat_map(|i| grad[i].map(|v| -v))
                 .collect();
-            system.solve(&mut rhs)?;
+            let mut rhs = minus_grad.clone();
+            let exact = self.newton.exact_hessian
+                && self
+                    .assemble(&x, &slot, free, false)
+                    .solve(&mut rhs)
+                    .is_ok();
+            if !exact {
+                rhs = minus_grad;
+                self.assemble(&x, &slot, free, true).solve(&mut rhs)?;
+            }
             let slope: f64 = (0..n)
                 .filter(|&i| !fixed[i])
                 .map(|i| {
@@ -243,14 +257,18 @@ impl ImplicitEuler {
         )
     }
 
-    /// `M/h²` plus the PSD-projected element blocks over the free degrees of freedom.
-    fn assemble(&self, x: &[V3], slot: &[usize], free: usize) -> BandMatrix {
+    /// `M/h²` plus the element blocks, PSD-projected with `project`, over the free degrees of
+    /// freedom.
+    fn assemble(&self, x: &[V3], slot: &[usize], free: usize, project: bool) -> BandMatrix {
         let blocks: Vec<(HessianBlock, Vec<f64>)> = self
             .cloth
             .hessian_blocks(x)
             .into_iter()
             .map(|b| {
-                let p = project_psd(&b.matrix, 3 * b.vertices.len());
+                let p = match project {
+                    true => project_psd(&b.matrix, 3 * b.vertices.len()),
+                    false => b.matrix.clone(),
+                };
                 (b, p)
             })
             .collect();

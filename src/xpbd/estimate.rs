@@ -255,6 +255,11 @@ pub struct TargetsConfig {
     /// Standard deviation of Gaussian noise added to every sampled target coordinate, m (a
     /// registered scan's); seeded by `fit.seed`.
     pub noise: f64,
+    /// The simulator that solves the synthetic targets: springtime's XPBD cloth (`"xpbd"`,
+    /// the fit's own model) or the FEM source's cloth brought to rest by Newton's method
+    /// (`"fem"`: another element formulation and bending discretisation; isotropic `[truth]`
+    /// only, no weights; see `xpbd::fem_target`).
+    pub simulator: TargetSimulator,
     /// Read the targets from this folder instead (`<scenario name>.npz` each, as `springtime
     /// xpbd generate` writes them: `positions` `[n², 3]` on the template grid, `reactions` `[G]`):
     /// a user's measured drapes.
@@ -266,9 +271,21 @@ impl Default for TargetsConfig {
         Self {
             refine: 1,
             noise: 0.0,
+            simulator: TargetSimulator::Xpbd,
             dir: None,
         }
     }
+}
+
+/// `targets.simulator`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TargetSimulator {
+    /// springtime's XPBD cloth.
+    #[default]
+    Xpbd,
+    /// The FEM source's cloth at equilibrium (`xpbd::fem_target`).
+    Fem,
 }
 
 /// An estimation job (`configs/xpbd_*.toml`).
@@ -813,27 +830,37 @@ fn make_target(
         let s = sc.setup(&fine_cloth, nf, sw.size, sw.gravity, cfg.fit.noise, seed);
         (&fine_cloth, s)
     };
-    let solve = resolved_solve(cfg, fine, &cfg.materials());
-    let mut xf = fine
-        .solve(&truth, &fine_setup.load, &fine_setup.start, &solve)?
-        .x;
-    let residual = polish(fine, &truth, &fine_setup.load, &mut xf, 50, 1e-11)?;
-    if residual > 1e-6 {
-        progress.note(&format!(
-            "warning: the target {} is not at equilibrium (relative residual {residual:.2e} after \
-             {} steps and the Newton polish): raise `solve.steps`",
-            sc.name(),
-            solve.steps
-        ));
-    }
-    let reactions = fine_setup
-        .groups
-        .iter()
-        .map(|g| {
-            let r = fine.reaction(&truth, &fine_setup.load, &xf, g);
-            dot(r, r).sqrt()
-        })
-        .collect();
+    let (xf, residual, reactions) = match cfg.targets.simulator {
+        TargetSimulator::Xpbd => {
+            let solve = resolved_solve(cfg, fine, &cfg.materials());
+            let mut xf = fine
+                .solve(&truth, &fine_setup.load, &fine_setup.start, &solve)?
+                .x;
+            let residual = polish(fine, &truth, &fine_setup.load, &mut xf, 50, 1e-11)?;
+            if residual > 1e-6 {
+                progress.note(&format!(
+                    "warning: the target {} is not at equilibrium (relative residual \
+                     {residual:.2e} after {} steps and the Newton polish): raise `solve.steps`",
+                    sc.name(),
+                    solve.steps
+                ));
+            }
+            let reactions = fine_setup
+                .groups
+                .iter()
+                .map(|g| {
+                    let r = fine.reaction(&truth, &fine_setup.load, &xf, g);
+                    dot(r, r).sqrt()
+                })
+                .collect();
+            (xf, residual, reactions)
+        }
+        TargetSimulator::Fem => {
+            let t = super::fem_target::solve(fine, nf, &truth, sw.density, sw.gravity, &fine_setup)
+                .with_context(|| format!("the FEM target of scenario `{}`", sc.name()))?;
+            (t.x, t.residual, t.reactions)
+        }
+    };
     let mut rng = StdRng::seed_from_u64(seed ^ 0x7A67_E75E);
     let normal = rand_distr::Normal::new(0.0, cfg.targets.noise.max(f64::MIN_POSITIVE))?;
     let x: Vec<V3> = (0..sw.n * sw.n)
@@ -1229,7 +1256,7 @@ mod tests {
             targets: TargetsConfig {
                 refine,
                 noise,
-                dir: None,
+                ..TargetsConfig::default()
             },
             scenarios: vec![Scenario::FrameShear { angle_deg: 10.0 }],
         }
