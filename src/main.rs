@@ -12,11 +12,12 @@ unsafe extern "C" {
     fn mi_option_set(option: std::ffi::c_int, value: std::ffi::c_long);
 }
 
-/// `mi_option_purge_delay` (15 in mimalloc v2 and v3's `mi_option_e`).
+/// `mi_option_purge_delay` (15 in `mi_option_e` of mimalloc v3, which `libmimalloc-sys` 0.1.49
+/// builds, and of v2).
 const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
 
 /// Keeps freed memory in the process instead of returning it to the kernel after mimalloc's
-/// default 10 ms: the baselines free and reallocate tensors of ~100 MB every step (the GNN's
+/// default delay (1 s in v3; a delay of 1 s measured no faster): the baselines free and reallocate tensors of ~100 MB every step (the GNN's
 /// edge features at Table 2's size), each time faulting in zeroed pages again. Measured on
 /// two cores, a Table 2 GNN iteration on flex: 8.9 s → 5.4 s, peak RSS 4.63 → 4.72 GB.
 /// `MIMALLOC_PURGE_DELAY` in the environment still decides where it is set.

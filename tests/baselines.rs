@@ -101,6 +101,26 @@ fn each_baseline_overfits_one_short_clip() {
         .unwrap();
         assert!(eval["motion_rmse"]["mean"].as_f64().unwrap().is_finite());
         assert!(eval["inference"]["us_per_step"].as_f64().unwrap() > 0.0);
+        // Clips shorter than the GNN's window are refused by name, not by a panic.
+        if kind == "gnn" {
+            common::fails(
+                &springtime(
+                    &[
+                        "train",
+                        "one.toml",
+                        "--no-eval",
+                        "--set",
+                        "model.kind=gnn",
+                        "--set",
+                        "model.gnn.downsample=1000",
+                        "--out",
+                        "gnn_short",
+                    ],
+                    &dir,
+                ),
+                &["data.clips.steps", "model.gnn.downsample"],
+            );
+        }
         // Spring-only commands refuse a baseline run with a clear error.
         let out = springtime(&["report", kind], &dir);
         assert!(!out.status.success());

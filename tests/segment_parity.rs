@@ -96,6 +96,15 @@ fn check(device: &Device, seed: u64) {
         &host_sum(&w_gather, &owner, segments, width),
         &to_f64(xt.grad(&grads).unwrap()),
     );
+    // A strided view (the GNN sums slices of concatenated features, and the backward of `cat`
+    // hands out slices): the right half of [values | values].
+    let wide = Tensor::cat(vec![vt.clone().detach(), vt.clone().detach()], 1);
+    let strided = wide.slice([0..entries, width..2 * width]);
+    assert_close(
+        "segment sum of a strided view",
+        &host_sum(&values, &owner, segments, width),
+        &to_f64(seg.sum(strided)),
+    );
     let empty = to_f64(summed.detach());
     assert!(
         empty[..5 * width].iter().all(|&v| v == 0.0),

@@ -7,7 +7,7 @@
 # Build here, take the binary along (see run.sh), then on the GPU machine:
 #   OUT=/some/dir NODE_IT=64 GNN_IT=400 BUDGET=480 bash .gpu/table2.sh
 # Extra `--set` pairs for every command go in SETS (e.g. for a dry run on lavapipe).
-set -u
+set -u -o pipefail
 OUT=${OUT:-.}
 icd=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
 [ -f "$icd" ] && export VK_DRIVER_FILES=$icd
@@ -19,7 +19,7 @@ for s in ${SETS:-}; do sets+=(--set "$s"); done
 command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
 nproc
 t0=$(date +%s)
-$S generate configs/table2_fem.toml "${sets[@]}" 2>&1 | tail -2
+$S generate configs/table2_fem.toml "${sets[@]}" 2>&1 | tail -2 || exit 1
 t1=$(date +%s)
 echo "generate: $((t1 - t0)) s"
 timeout "${BUDGET:-480}" $S compare configs/table2_fem.toml --backend wgpu --out "$C" "${sets[@]}" \

@@ -11,6 +11,8 @@
 //! vertex order keeps the band narrow) and a backtracking (Armijo) line search on `Φ`.
 //! Implicit Euler dissipates: without forcing, the energy of the discrete motion decreases.
 
+use std::borrow::Cow;
+
 use anyhow::{Result, bail};
 use nalgebra::{DMatrix, SymmetricEigen};
 use serde::{Deserialize, Serialize};
@@ -27,8 +29,8 @@ pub struct NewtonConfig {
     pub tolerance: f64,
     /// At most this many Newton iterations per step; not converging is an error.
     pub max_iterations: usize,
-    /// Try the exact Hessian first and fall back to the PSD-projected one only where it is
-    /// not positive definite. Projection keeps every step a descent step, but where elements
+    /// Try the exact Hessian first, and fall back to the PSD-projected one in a Newton
+    /// iteration where the assembled system is not positive definite. Projection keeps every step a descent step, but where elements
     /// are compressed (wrinkles) it turns Newton into a slow linear iteration; near a stable
     /// equilibrium the exact Hessian converges quadratically (static targets use it).
     pub exact_hessian: bool,
@@ -186,15 +188,16 @@ impl ImplicitEuler {
                 .filter(|&i| !fixed[i])
                 .flat_map(|i| grad[i].map(|v| -v))
                 .collect();
+            let blocks = self.cloth.hessian_blocks(&x);
             let mut rhs = minus_grad.clone();
             let exact = self.newton.exact_hessian
                 && self
-                    .assemble(&x, &slot, free, false)
+                    .assemble(&blocks, &slot, free, false)
                     .solve(&mut rhs)
                     .is_ok();
             if !exact {
                 rhs = minus_grad;
-                self.assemble(&x, &slot, free, true).solve(&mut rhs)?;
+                self.assemble(&blocks, &slot, free, true).solve(&mut rhs)?;
             }
             let slope: f64 = (0..n)
                 .filter(|&i| !fixed[i])
@@ -259,15 +262,19 @@ impl ImplicitEuler {
 
     /// `M/h²` plus the element blocks, PSD-projected with `project`, over the free degrees of
     /// freedom.
-    fn assemble(&self, x: &[V3], slot: &[usize], free: usize, project: bool) -> BandMatrix {
-        let blocks: Vec<(HessianBlock, Vec<f64>)> = self
-            .cloth
-            .hessian_blocks(x)
-            .into_iter()
+    fn assemble(
+        &self,
+        blocks: &[HessianBlock],
+        slot: &[usize],
+        free: usize,
+        project: bool,
+    ) -> BandMatrix {
+        let blocks: Vec<(&HessianBlock, Cow<'_, [f64]>)> = blocks
+            .iter()
             .map(|b| {
                 let p = match project {
-                    true => project_psd(&b.matrix, 3 * b.vertices.len()),
-                    false => b.matrix.clone(),
+                    true => Cow::Owned(project_psd(&b.matrix, 3 * b.vertices.len())),
+                    false => Cow::Borrowed(b.matrix.as_slice()),
                 };
                 (b, p)
             })

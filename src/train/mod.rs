@@ -809,10 +809,10 @@ impl HostWindow {
 pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> Vec<HostWindow> {
     let [b, frames, p, _] = batch.positions.dims();
     let span = config.window_frames();
+    // Refused by name before training starts (`ModelMeta::new`).
     assert!(
         frames >= span,
-        "GNN windows span {span} data frames, the clips have {frames}: raise `data.clips.steps` or \
-         lower `model.gnn.history` / `model.gnn.downsample`"
+        "GNN windows span {span} data frames, the clips have {frames}"
     );
     let pinned: Vec<f32> = batch
         .pinned
@@ -976,7 +976,7 @@ impl Fit<'_> {
             let window = model
                 .clip_window(job)
                 .filter(|&frames| (2..=clips.steps + 1).contains(&frames));
-            let steps = window.map_or(clips.steps, |frames| frames - 1);
+            let window_steps = window.map_or(clips.steps, |frames| frames - 1);
             let next_refs = |sampler: &mut Sampler, it: usize| -> Vec<ClipRef> {
                 let mut rng = StdRng::seed_from_u64(
                     config.train.seed ^ (it as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
@@ -998,13 +998,13 @@ impl Fit<'_> {
             // The next batch is read and assembled on another thread while this one trains.
             let prefetch = |refs: Vec<ClipRef>| {
                 let clips = Arc::clone(clips);
-                std::thread::spawn(move || clips.host_batch_of(&refs, steps))
+                std::thread::spawn(move || clips.host_batch_of(&refs, window_steps))
             };
             let mut upcoming = None;
             for it in start_iteration.max(pass_start)..global {
                 let host = match upcoming.take() {
                     Some(handle) => join_batch(handle)?,
-                    None => clips.host_batch_of(&next_refs(&mut sampler, it), steps)?,
+                    None => clips.host_batch_of(&next_refs(&mut sampler, it), window_steps)?,
                 };
                 if it + 1 < global {
                     upcoming = Some(prefetch(next_refs(&mut sampler, it + 1)));
@@ -1205,6 +1205,19 @@ impl ModelMeta {
             }
             ModelKind::Gnn => {
                 let cfg = &config.model.gnn;
+                let span = cfg.window_frames();
+                if clips.steps + 1 < span {
+                    bail!(
+                        "the GNN trains on windows of {span} data frames ({} velocities of frames \
+                         `model.gnn.downsample` = {} apart, and the next frame), but the clips \
+                         have {} frames: raise `data.clips.steps` to at least {} or lower \
+                         `model.gnn.history` / `model.gnn.downsample`",
+                        cfg.history,
+                        cfg.downsample,
+                        clips.steps + 1,
+                        span - 1
+                    );
+                }
                 let pool: Vec<ClipRef> = clips.all_clips();
                 let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0005_7A75);
                 let refs: Vec<ClipRef> = sampler.next(64).into_iter().map(|i| pool[i]).collect();

@@ -367,6 +367,12 @@ impl XpbdConfig {
                 t.noise
             );
         }
+        if t.dir.is_some() && t.simulator == TargetSimulator::Fem {
+            bail!(
+                "`targets.dir` reads the targets from files, so `targets.simulator = \"fem\"` \
+                 would not be used: give one of them"
+            );
+        }
         if self.fit.derivatives == Derivatives::Forward && self.fit.forward_steps == 0 {
             bail!("`fit.forward_steps` must be positive with `fit.derivatives = \"forward\"`");
         }
@@ -858,6 +864,13 @@ fn make_target(
         TargetSimulator::Fem => {
             let t = super::fem_target::solve(fine, nf, &truth, sw.density, sw.gravity, &fine_setup)
                 .with_context(|| format!("the FEM target of scenario `{}`", sc.name()))?;
+            if t.residual > super::fem_target::WARN_RESIDUAL {
+                progress.note(&format!(
+                    "warning: the FEM target {} is not at equilibrium (relative residual {:.2e})",
+                    sc.name(),
+                    t.residual
+                ));
+            }
             (t.x, t.residual, t.reactions)
         }
     };

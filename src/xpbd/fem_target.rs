@@ -11,13 +11,14 @@
 //!
 //! The equilibrium is a sequence of proximal Newton solves: implicit-Euler steps of `STEP` s
 //! with no momentum (`x̃ = x`), each minimising `E(x) − Σ mᵢ g·xᵢ + ‖x − x̃‖²_M / 2h²` with the
-//! clamps as Dirichlet conditions (exact Hessians, projected only where not positive definite),
+//! clamps as Dirichlet conditions (the exact Hessian; in a Newton iteration where it is not
+//! positive definite, every element block projected),
 //! until a step moves no vertex by more than `1e-10` of the swatch — in practice until Newton
 //! finds the start of a step already within its tolerance, a force residual of `1e-6` of the
 //! heaviest vertex's weight on every free vertex (`1e-5`, `1e-4` where round-off stalls Newton
 //! above that). A fixed point of that map is an equilibrium of the cloth.
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 
 use super::cloth::XpbdCloth;
 use super::material::Gamma;
@@ -37,18 +38,32 @@ const MAX_STEPS: usize = 20_000;
 /// Newton's tolerances, tightest first (fractions of the heaviest vertex's weight).
 const TOLERANCES: [f64; 3] = [1e-6, 1e-5, 1e-4];
 
-/// Proximal steps from `x` until one moves no vertex by more than `still`.
+/// A target whose relative residual `‖∇E − f‖ / ‖f‖` is above this gets a warning (measured:
+/// 2e-6 to 5e-5 on the `xpbd_fem` targets, whose per-vertex forces are within the tolerance).
+pub const WARN_RESIDUAL: f64 = 1e-4;
+
+/// How [`settle`] ended.
+enum Settled {
+    /// A step moved no vertex by more than the threshold.
+    AtRest,
+    /// Newton failed at this tolerance; `x` is where it stood.
+    Stalled(anyhow::Error),
+}
+
+/// Proximal steps from `x` until one moves no vertex by more than `still`; an error when
+/// `MAX_STEPS` do not get there.
 fn settle(
     stepper: &ImplicitEuler,
     x: &mut Vec<V3>,
     pinned: &[usize],
     at: &[V3],
     still: f64,
-) -> Result<()> {
+) -> Result<Settled> {
     for _ in 0..MAX_STEPS {
-        let (next, _) = stepper
-            .step(x, x, pinned, at)
-            .context("a Newton solve failed")?;
+        let next = match stepper.step(x, x, pinned, at) {
+            Ok((next, _)) => next,
+            Err(e) => return Ok(Settled::Stalled(e.context("a Newton solve failed"))),
+        };
         let moved = x
             .iter()
             .zip(&next)
@@ -56,10 +71,10 @@ fn settle(
             .fold(0.0, f64::max);
         *x = next;
         if moved <= still {
-            return Ok(());
+            return Ok(Settled::AtRest);
         }
     }
-    bail!("not at rest after {MAX_STEPS} proximal steps of {STEP} s")
+    bail!("FEM target: not at rest after {MAX_STEPS} proximal steps of {STEP} s")
 }
 
 /// A target solved by the FEM cloth: positions on the fine grid, the relative equilibrium
@@ -78,7 +93,8 @@ pub struct FemTarget {
 /// Young's modulus (N/m) and Poisson ratio of an isotropic γ; an error names `[truth]`
 /// otherwise.
 fn isotropic(truth: &Gamma) -> Result<(f64, f64)> {
-    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(b.abs());
+    // To the digits a config holds (`mu = 76923` for E = 2e5, ν = 0.3 is 1e-6 off).
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-5 * a.abs().max(b.abs());
     let nu = truth.c01 / truth.c00;
     let youngs = truth.c00 * (1.0 - nu * nu);
     if !close(truth.c00, truth.c11) || !close(truth.c22, youngs / (2.0 * (1.0 + nu))) {
@@ -145,20 +161,26 @@ pub fn solve(
     )?;
     // The tightest tolerance Newton reaches: a wrinkled equilibrium's force residual can stall
     // at round-off above it, and then the next looser one carries on from where it stalled.
+    // Running out of proximal steps is not a stall: that is an error at once.
     let mut x = setup.start.clone();
-    let mut failure = None;
+    let mut first_failure = None;
     for &tolerance in &TOLERANCES {
         stepper.newton.tolerance = tolerance;
-        match settle(&stepper, &mut x, &pinned, &at, 1e-10 * size) {
-            Ok(()) => {
-                failure = None;
+        match settle(&stepper, &mut x, &pinned, &at, 1e-10 * size)? {
+            Settled::AtRest => {
+                first_failure = None;
                 break;
             }
-            Err(e) => failure = Some(e),
+            Settled::Stalled(e) => {
+                first_failure.get_or_insert(e);
+            }
         }
     }
-    if let Some(e) = failure {
-        return Err(e.context("FEM target: no equilibrium"));
+    if let Some(e) = first_failure {
+        return Err(e.context(format!(
+            "FEM target: Newton stalls above every tolerance down to {:e} of a vertex's weight",
+            TOLERANCES[TOLERANCES.len() - 1]
+        )));
     }
     // ∇E − f per vertex: −(internal forces) − m g.
     let cloth = &stepper.cloth;

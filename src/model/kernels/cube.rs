@@ -509,7 +509,7 @@ fn arg(t: &CubeTensor) -> BufferArg {
 fn prepare(t: CubeTensor, what: &str) -> CubeTensor {
     assert!(
         t.dtype == DType::F32,
-        "the CubeCL spring kernels run in f32; {what} is {:?}",
+        "springtime's CubeCL kernels run in f32; {what} is {:?}",
         t.dtype
     );
     into_contiguous(t)

@@ -47,7 +47,11 @@ impl Segments {
     ///
     /// Panics if an owner is out of range or there are more than `u32::MAX` of either.
     pub fn new(owner: &[i64], segments: usize) -> Self {
-        assert!(segments < u32::MAX as usize && owner.len() < u32::MAX as usize);
+        assert!(
+            segments < u32::MAX as usize && owner.len() < u32::MAX as usize,
+            "{segments} segments or {} entries do not fit 32-bit indices",
+            owner.len()
+        );
         let owner: Vec<u32> = owner
             .iter()
             .map(|&n| {
