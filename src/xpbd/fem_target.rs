@@ -15,8 +15,8 @@
 //! positive definite, every element block projected),
 //! until a step moves no vertex by more than `1e-10` of the swatch — in practice until Newton
 //! finds the start of a step already within its tolerance, a force residual of `1e-6` of the
-//! heaviest vertex's weight on every free vertex (`1e-5`, `1e-4` where round-off stalls Newton
-//! above that). A fixed point of that map is an equilibrium of the cloth.
+//! heaviest vertex's weight on every free vertex (`1e-5`, `1e-4`, `1e-3` where Newton stalls
+//! above that: round-off, or on finer grids slow convergence in the wrinkles). A fixed point of that map is an equilibrium of the cloth.
 
 use anyhow::{Result, bail};
 
@@ -36,7 +36,7 @@ const STEP: f64 = 0.01;
 const MAX_STEPS: usize = 20_000;
 
 /// Newton's tolerances, tightest first (fractions of the heaviest vertex's weight).
-const TOLERANCES: [f64; 3] = [1e-6, 1e-5, 1e-4];
+const TOLERANCES: [f64; 4] = [1e-6, 1e-5, 1e-4, 1e-3];
 
 /// A target whose relative residual `‖∇E − f‖ / ‖f‖` is above this gets a warning (measured:
 /// 2e-6 to 5e-5 on the `xpbd_fem` targets, whose per-vertex forces are within the tolerance).
@@ -163,24 +163,23 @@ pub fn solve(
     // at round-off above it, and then the next looser one carries on from where it stalled.
     // Running out of proximal steps is not a stall: that is an error at once.
     let mut x = setup.start.clone();
-    let mut first_failure = None;
+    let mut failures = Vec::new();
     for &tolerance in &TOLERANCES {
         stepper.newton.tolerance = tolerance;
         match settle(&stepper, &mut x, &pinned, &at, 1e-10 * size)? {
             Settled::AtRest => {
-                first_failure = None;
+                failures.clear();
                 break;
             }
-            Settled::Stalled(e) => {
-                first_failure.get_or_insert(e);
-            }
+            Settled::Stalled(e) => failures.push(format!("at {tolerance:e}: {e:#}")),
         }
     }
-    if let Some(e) = first_failure {
-        return Err(e.context(format!(
-            "FEM target: Newton stalls above every tolerance down to {:e} of a vertex's weight",
-            TOLERANCES[TOLERANCES.len() - 1]
-        )));
+    if !failures.is_empty() {
+        bail!(
+            "FEM target: Newton stalls at every tolerance (fractions of the heaviest vertex's \
+             weight): {}",
+            failures.join("; ")
+        );
     }
     // ∇E − f per vertex: −(internal forces) − m g.
     let cloth = &stepper.cloth;
