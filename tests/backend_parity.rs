@@ -65,27 +65,13 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn) -> Outcome {
     }
 }
 
-fn assert_close(name: &str, a: &[f64], b: &[f64], rel: f64) {
-    assert_eq!(a.len(), b.len());
-    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    let worst = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max);
-    assert!(
-        worst <= rel * scale,
-        "{name}: largest difference {worst:e} against a scale of {scale:e}"
-    );
-}
-
 fn compare(reference: &Device, other: &Device, label: &str) {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.3);
     let rollouts: Vec<Rollout> = (0..2).map(|s| common::rollout(&cfg, s).1).collect();
     for on in [ForceOn::Simulated, ForceOn::Target] {
         let a = run(reference, &rollouts, on);
         let b = run(other, &rollouts, on);
-        assert_close(
+        common::assert_close(
             &format!("{label} {on:?} positions"),
             &a.positions,
             &b.positions,
@@ -97,8 +83,8 @@ fn compare(reference: &Device, other: &Device, label: &str) {
             a.loss,
             b.loss
         );
-        assert_close(&format!("{label} {on:?} dL/dk"), &a.grad_k, &b.grad_k, 1e-4);
-        assert_close(&format!("{label} {on:?} dL/db"), &a.grad_b, &b.grad_b, 1e-4);
+        common::assert_close(&format!("{label} {on:?} dL/dk"), &a.grad_k, &b.grad_k, 1e-4);
+        common::assert_close(&format!("{label} {on:?} dL/db"), &a.grad_b, &b.grad_b, 1e-4);
     }
 }
 

@@ -70,18 +70,9 @@ fn run(device: &Device, kernel: Kernel, seed: u64, topo: &Topology) -> Outcome {
     }
 }
 
+/// Within 1e-5 of the reference's largest magnitude.
 fn assert_close(name: &str, a: &[f64], b: &[f64]) {
-    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    let worst = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max);
-    assert!(scale > 0.0, "{name} is all zero");
-    assert!(
-        worst <= 1e-5 * scale,
-        "{name}: largest difference {worst:e} against a scale of {scale:e}"
-    );
+    common::assert_close(name, a, b, 1e-5);
 }
 
 #[test]

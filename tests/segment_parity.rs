@@ -29,19 +29,9 @@ fn host_gather(rows: &[f64], owner: &[i64], width: usize) -> Vec<f64> {
         .collect()
 }
 
+/// Within 1e-5 of the reference's largest magnitude.
 fn assert_close(name: &str, a: &[f64], b: &[f64]) {
-    assert_eq!(a.len(), b.len(), "{name}: lengths");
-    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    let worst = a
-        .iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0, f64::max);
-    assert!(scale > 0.0, "{name} is all zero");
-    assert!(
-        worst <= 1e-5 * scale,
-        "{name}: largest difference {worst:e} against a scale of {scale:e}"
-    );
+    common::assert_close(name, a, b, 1e-5);
 }
 
 fn check(device: &Device, seed: u64) {

@@ -147,3 +147,20 @@ pub fn wgpu() -> Option<Device> {
     eprintln!("skipping wgpu: no adapter on this machine (or a build without `wgpu`)");
     None
 }
+
+/// Asserts that `b` equals `a` within `rel` of `a`'s largest magnitude, which must not be zero
+/// (a comparison of zeros cannot fail).
+pub fn assert_close(name: &str, a: &[f64], b: &[f64], rel: f64) {
+    assert_eq!(a.len(), b.len(), "{name}: lengths");
+    let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    let worst = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(scale > 0.0, "{name} is all zero");
+    assert!(
+        worst <= rel * scale,
+        "{name}: largest difference {worst:e} against a scale of {scale:e}"
+    );
+}
