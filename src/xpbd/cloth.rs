@@ -127,6 +127,29 @@ impl Load {
         self.added_mass[i] += mass;
         add_to(&mut self.force[i], scale(g, mass));
     }
+
+    /// The relative equilibrium residual `‖∇U − f‖ / ‖f‖` over the free vertices, given the
+    /// energy gradient `grad` of any cloth model.
+    pub fn residual(&self, grad: &[V3]) -> f64 {
+        let (mut r2, mut f2) = (0.0, 0.0);
+        for i in 0..grad.len() {
+            if self.clamped[i].is_none() {
+                let d = sub(grad[i], self.force[i]);
+                r2 += dot(d, d);
+                f2 += dot(self.force[i], self.force[i]);
+            }
+        }
+        (r2 / f2.max(f64::MIN_POSITIVE)).sqrt()
+    }
+
+    /// The force the clamps of `group` exert on the cloth: `Σ (∇U − f)` over its vertices.
+    pub fn reaction(&self, grad: &[V3], group: &[usize]) -> V3 {
+        let mut r = [0.0; 3];
+        for &i in group {
+            add_to(&mut r, sub(grad[i], self.force[i]));
+        }
+        r
+    }
 }
 
 /// A cloth at equilibrium.
@@ -274,26 +297,14 @@ impl XpbdCloth {
     pub fn residual(&self, gamma: &Gamma, load: &Load, x: &[V3]) -> f64 {
         let mut g = vec![[0.0; 3]; x.len()];
         self.gradient(gamma, x, &mut g);
-        let (mut r2, mut f2) = (0.0, 0.0);
-        for i in 0..x.len() {
-            if load.clamped[i].is_none() {
-                let d = sub(g[i], load.force[i]);
-                r2 += dot(d, d);
-                f2 += dot(load.force[i], load.force[i]);
-            }
-        }
-        (r2 / f2.max(f64::MIN_POSITIVE)).sqrt()
+        load.residual(&g)
     }
 
     /// The force the clamps of `group` exert on the cloth: `Σ (∇U − f)` over its vertices.
     pub fn reaction(&self, gamma: &Gamma, load: &Load, x: &[V3], group: &[usize]) -> V3 {
         let mut g = vec![[0.0; 3]; x.len()];
         self.gradient(gamma, x, &mut g);
-        let mut r = [0.0; 3];
-        for &i in group {
-            add_to(&mut r, sub(g[i], load.force[i]));
-        }
-        r
+        load.reaction(&g, group)
     }
 
     /// Steps from `start` (at rest) to equilibrium (see [`Solve`]).

@@ -181,36 +181,23 @@ pub fn solve(
             failures.join("; ")
         );
     }
-    // ∇E − f per vertex: −(internal forces) − m g.
-    let cloth = &stepper.cloth;
-    let mut internal = vec![[0.0; 3]; x.len()];
-    cloth.internal_forces(&x, &vec![[0.0; 3]; x.len()], &mut internal);
-    let unbalanced: Vec<V3> = internal
-        .iter()
-        .zip(cloth.masses())
-        .map(|(f, &m)| [0, 1, 2].map(|c| -f[c] - m * gravity[c]))
-        .collect();
-    let (mut r2, mut f2) = (0.0, 0.0);
-    for (i, c) in setup.load.clamped.iter().enumerate() {
-        if c.is_none() {
-            r2 += dot(unbalanced[i], unbalanced[i]);
-            let w = [0, 1, 2].map(|k| cloth.masses()[i] * gravity[k]);
-            f2 += dot(w, w);
-        }
-    }
+    // ∇E = −(internal forces); the load's forces are gravity on the same lumped masses.
+    let mut grad = vec![[0.0; 3]; x.len()];
+    stepper
+        .cloth
+        .internal_forces(&x, &vec![[0.0; 3]; x.len()], &mut grad);
+    let grad: Vec<V3> = grad.iter().map(|f| f.map(|c| -c)).collect();
     let reactions = setup
         .groups
         .iter()
         .map(|g| {
-            let r = g.iter().fold([0.0; 3], |acc, &i| {
-                [0, 1, 2].map(|c| acc[c] + unbalanced[i][c])
-            });
+            let r = setup.load.reaction(&grad, g);
             dot(r, r).sqrt()
         })
         .collect();
     Ok(FemTarget {
+        residual: setup.load.residual(&grad),
         x,
-        residual: (r2 / f2.max(f64::MIN_POSITIVE)).sqrt(),
         reactions,
     })
 }

@@ -32,7 +32,8 @@ use burn::tensor::{IndexingUpdateOp, Int, Shape, Tensor, TensorData};
 /// index without bounds checks.
 #[derive(Debug)]
 pub struct Segments {
-    owner: Vec<u32>,
+    /// Entries `E`.
+    entries: usize,
     /// `offsets[n]..offsets[n + 1]` are segment `n`'s positions in `order`, `[N + 1]`.
     offsets: Vec<u32>,
     /// Entries grouped by segment, in increasing order within each, `[E]`.
@@ -76,7 +77,7 @@ impl Segments {
             fill[n as usize] += 1;
         }
         Self {
-            owner,
+            entries: owner.len(),
             offsets,
             order,
             #[cfg(feature = "wgpu")]
@@ -91,12 +92,7 @@ impl Segments {
 
     /// Number of entries `E`.
     pub fn num_entries(&self) -> usize {
-        self.owner.len()
-    }
-
-    /// The segment of every entry.
-    pub fn owner(&self) -> &[u32] {
-        &self.owner
+        self.entries
     }
 
     /// CSR offsets `[N + 1]`.
@@ -214,33 +210,64 @@ mod ndarray_impl {
     cpu_segments!(burn::backend::NdArray);
 }
 
-/// The backward of [`SegmentBackend::segment_sum`]: each entry gets its segment's gradient.
-#[derive(Debug)]
-struct SegmentSumBackward;
+/// The two ops, each the other's adjoint.
+#[derive(Debug, Clone, Copy)]
+enum SegmentOp {
+    /// [`SegmentBackend::segment_sum`].
+    Sum,
+    /// [`SegmentBackend::gather_rows`].
+    Gather,
+}
 
-impl<B: SegmentBackend> Backward<B, 1> for SegmentSumBackward {
-    type State = (IntTensor<B>, Arc<Segments>);
-
-    fn backward(
+impl SegmentOp {
+    fn run<B: SegmentBackend>(
         self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (owner, segments) = ops.state;
-        if let Some(node) = &ops.parents[0] {
-            grads.register::<B>(node.id, B::gather_rows(grad, owner, segments));
+        x: FloatTensor<B>,
+        owner: IntTensor<B>,
+        segments: Arc<Segments>,
+    ) -> FloatTensor<B> {
+        match self {
+            Self::Sum => B::segment_sum(x, owner, segments),
+            Self::Gather => B::gather_rows(x, owner, segments),
+        }
+    }
+
+    /// The op whose forward is this one's vector-Jacobian product.
+    fn adjoint(self) -> Self {
+        match self {
+            Self::Sum => Self::Gather,
+            Self::Gather => Self::Sum,
+        }
+    }
+
+    /// The op on `Autodiff<B>`: one node whose backward is the adjoint op.
+    fn record<B: SegmentBackend, C: CheckpointStrategy>(
+        self,
+        x: FloatTensor<Autodiff<B, C>>,
+        owner: IntTensor<B>,
+        segments: Arc<Segments>,
+    ) -> FloatTensor<Autodiff<B, C>> {
+        match (SegmentBackward(self.adjoint()))
+            .prepare::<C>([x.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = self.run::<B>(x.into_primitive(), owner.clone(), segments.clone());
+                prep.finish((owner, segments), out)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(self.run::<B>(x.into_primitive(), owner, segments))
+            }
         }
     }
 }
 
-/// The backward of [`SegmentBackend::gather_rows`]: each row gets the sum of its entries'
-/// gradients.
+/// The backward of a segment op: its adjoint op applied to the upstream gradient.
 #[derive(Debug)]
-struct GatherRowsBackward;
+struct SegmentBackward(SegmentOp);
 
-impl<B: SegmentBackend> Backward<B, 1> for GatherRowsBackward {
+impl<B: SegmentBackend> Backward<B, 1> for SegmentBackward {
     type State = (IntTensor<B>, Arc<Segments>);
 
     fn backward(
@@ -252,7 +279,7 @@ impl<B: SegmentBackend> Backward<B, 1> for GatherRowsBackward {
         let grad = grads.consume::<B>(&ops.node);
         let (owner, segments) = ops.state;
         if let Some(node) = &ops.parents[0] {
-            grads.register::<B>(node.id, B::segment_sum(grad, owner, segments));
+            grads.register::<B>(node.id, self.0.run::<B>(grad, owner, segments));
         }
     }
 }
@@ -263,19 +290,7 @@ impl<B: SegmentBackend, C: CheckpointStrategy> SegmentBackend for Autodiff<B, C>
         owner: IntTensor<Self>,
         segments: Arc<Segments>,
     ) -> FloatTensor<Self> {
-        match SegmentSumBackward
-            .prepare::<C>([values.node()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::segment_sum(values.into_primitive(), owner.clone(), segments.clone());
-                prep.finish((owner, segments), out)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::segment_sum(values.into_primitive(), owner, segments))
-            }
-        }
+        SegmentOp::Sum.record::<B, C>(values, owner, segments)
     }
 
     fn gather_rows(
@@ -283,18 +298,6 @@ impl<B: SegmentBackend, C: CheckpointStrategy> SegmentBackend for Autodiff<B, C>
         owner: IntTensor<Self>,
         segments: Arc<Segments>,
     ) -> FloatTensor<Self> {
-        match GatherRowsBackward
-            .prepare::<C>([x.node()])
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => {
-                let out = B::gather_rows(x.into_primitive(), owner.clone(), segments.clone());
-                prep.finish((owner, segments), out)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::gather_rows(x.into_primitive(), owner, segments))
-            }
-        }
+        SegmentOp::Gather.record::<B, C>(x, owner, segments)
     }
 }
