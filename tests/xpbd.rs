@@ -1,7 +1,8 @@
 //! `springtime xpbd estimate` end to end on a small swatch: the sim-to-sim fit recovers the
 //! targets' material from another starting guess, writes `estimate.json` with the interface's
 //! keys, refuses to overwrite it, and a bad config names its key; `xpbd descriptors` fits with
-//! each of the four descriptors and counts their discrimination.
+//! each of the four descriptors and counts their discrimination; a drape over a ledge (contact)
+//! identifies b.
 
 mod common;
 
@@ -416,4 +417,65 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
     // generate does not overwrite without --force.
     let again = springtime(&["xpbd", "generate", "small.toml", "--out", "tg"], &dir);
     assert!(!again.status.success());
+}
+
+#[test]
+fn a_ledge_drape_identifies_b_and_what_it_cannot_do_is_named() {
+    let dir = common::temp_dir("xpbd-ledge");
+    let ledge = |overhang: &str| {
+        SMALL.replace(
+            "max_iterations = 20",
+            "max_iterations = 20\nschedule = \"bending_first\"\nrounds = 2",
+        ) + &format!("\n[[scenarios]]\nkind = \"ledge_drape\"\noverhang = {overhang}\n")
+    };
+    std::fs::write(dir.join("ledge.toml"), ledge("0.4")).unwrap();
+    run_ok(&dir, &["xpbd", "estimate", "ledge.toml", "--out", "est"]);
+    let json = estimate_json(&dir);
+    // The drape over the ledge is the only bending target: b comes from it.
+    for key in ["C00", "C11", "C01", "C22", "b"] {
+        let e = json["relative_error"][key].as_f64().unwrap();
+        assert!(e < 5e-3, "relative error of {key}: {e}");
+    }
+    let refused = |args: &[&str], want: &[&str]| {
+        let out = springtime(args, &dir);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} succeeded");
+        for w in want {
+            assert!(err.contains(w), "{args:?}: {err}");
+        }
+    };
+    std::fs::write(dir.join("far.toml"), ledge("0.9")).unwrap();
+    refused(
+        &["xpbd", "estimate", "far.toml", "--out", "far"],
+        &["far.toml", "scenarios.overhang"],
+    );
+    refused(
+        &[
+            "xpbd",
+            "estimate",
+            "ledge.toml",
+            "--out",
+            "fwd",
+            "--set",
+            "fit.derivatives=\"forward\"",
+        ],
+        &["fit.derivatives", "ledge_drape_0.4"],
+    );
+    // The FEM targets (an isotropic truth) have no collider.
+    refused(
+        &[
+            "xpbd",
+            "estimate",
+            "ledge.toml",
+            "--out",
+            "fem",
+            "--set",
+            "targets.simulator=\"fem\"",
+            "--set",
+            "truth.e_v=1.0e5",
+            "--set",
+            "truth.mu=35714.2857142857",
+        ],
+        &["ledge_drape_0.4", "no contact"],
+    );
 }

@@ -25,7 +25,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Tensor, TensorData};
-use parry3d_f64::bounding_volume::Aabb;
+use parry3d_f64::bounding_volume::{Aabb, BoundingVolume};
 use parry3d_f64::math::{Pose, Rot3, Vector};
 use parry3d_f64::query::PointQuery;
 use parry3d_f64::shape::{SharedShape, TriMesh, TriMeshFlags};
@@ -188,6 +188,9 @@ pub struct Collider {
     /// `colliders[i] (kind)` or the mesh file, for messages.
     pub name: String,
     shape: SharedShape,
+    /// The collider is the points within this distance of `shape` (a rounded box: its inner
+    /// box, rounded exactly), m.
+    rounding: f64,
     /// The shape's bounding box in its own frame (infinite for a plane): a point farther from
     /// it than the reach is skipped without projecting onto the shape.
     local_aabb: Aabb,
@@ -321,11 +324,10 @@ impl ColliderConfig {
                 format!("{at} (capsule)"),
             ),
             ColliderKind::RoundedBox => {
+                // The inner box, rounded in `hit`: parry projects onto a round shape by GJK,
+                // to about 1e-7 m, too coarse for a Newton solve's Hessian.
                 let [x, y, z] = self.half_extents.expect("validated");
-                (
-                    SharedShape::round_cuboid(x, y, z, self.radius.unwrap_or(0.0)),
-                    format!("{at} (rounded box)"),
-                )
+                (SharedShape::cuboid(x, y, z), format!("{at} (rounded box)"))
             }
             ColliderKind::Mesh => {
                 let file = self.mesh.as_ref().expect("validated");
@@ -342,10 +344,15 @@ impl ColliderConfig {
         let [rx, ry, rz] = self.rotation_deg.map(f64::to_radians);
         let rotation =
             Rot3::from_rotation_z(rz) * Rot3::from_rotation_y(ry) * Rot3::from_rotation_x(rx);
+        let rounding = match self.kind {
+            ColliderKind::RoundedBox => self.radius.unwrap_or(0.0),
+            _ => 0.0,
+        };
         Ok(Collider {
             name,
-            local_aabb: shape.compute_local_aabb(),
+            local_aabb: shape.compute_local_aabb().loosened(rounding),
             shape,
+            rounding,
             translation: self.translation,
             rotation,
             friction: self.friction,
@@ -502,7 +509,7 @@ impl Collider {
         let proj = self.shape.project_point(pose, q, false);
         let delta = q - proj.point;
         let len = delta.length();
-        let distance = if proj.is_inside { -len } else { len };
+        let distance = if proj.is_inside { -len } else { len } - self.rounding;
         if distance >= reach {
             return None;
         }
@@ -521,10 +528,11 @@ impl Collider {
                 .map(|n| pose.rotation * n)
                 .unwrap_or(Vector::new(0.0, 0.0, 1.0))
         };
+        let point = proj.point + normal * self.rounding;
         Some(Hit {
             distance,
             normal: [normal.x, normal.y, normal.z],
-            point: [proj.point.x, proj.point.y, proj.point.z],
+            point: [point.x, point.y, point.z],
             velocity,
         })
     }

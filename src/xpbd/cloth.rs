@@ -7,6 +7,7 @@
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
+use super::contact::StaticContact;
 use super::equilibrium::Sensitivity;
 use super::material::Gamma;
 use crate::cloth::dual::Dual;
@@ -91,9 +92,9 @@ impl Default for Solve {
     }
 }
 
-/// Boundary conditions: clamped vertices held at given positions, external forces and the
-/// masses of hanging weights.
-#[derive(Debug, Clone, PartialEq)]
+/// Boundary conditions: clamped vertices held at given positions, external forces, the
+/// masses of hanging weights and a collider the cloth rests on.
+#[derive(Debug, Clone)]
 pub struct Load {
     /// The prescribed position of each clamped vertex (`None`: free).
     pub clamped: Vec<Option<V3>>,
@@ -101,6 +102,8 @@ pub struct Load {
     pub force: Vec<V3>,
     /// Mass hung on each vertex (weights), kg: it moves with the vertex.
     pub added_mass: Vec<f64>,
+    /// A rigid body under the cloth (a ledge), whose penalty layer is part of the potential.
+    pub contact: Option<StaticContact>,
 }
 
 impl Load {
@@ -110,6 +113,7 @@ impl Load {
             clamped: vec![None; cloth.len()],
             force: cloth.mass.iter().map(|&m| scale(g, m)).collect(),
             added_mass: vec![0.0; cloth.len()],
+            contact: None,
         }
     }
 
@@ -119,6 +123,7 @@ impl Load {
             clamped: vec![None; n],
             force: vec![[0.0; 3]; n],
             added_mass: vec![0.0; n],
+            contact: None,
         }
     }
 
@@ -129,7 +134,7 @@ impl Load {
     }
 
     /// The relative equilibrium residual `‖∇U − f‖ / ‖f‖` over the free vertices, given the
-    /// energy gradient `grad` of any cloth model.
+    /// gradient `grad` of any cloth model's energy plus the contact's ([`Self::add_contact`]).
     pub fn residual(&self, grad: &[V3]) -> f64 {
         let (mut r2, mut f2) = (0.0, 0.0);
         for i in 0..grad.len() {
@@ -142,13 +147,27 @@ impl Load {
         (r2 / f2.max(f64::MIN_POSITIVE)).sqrt()
     }
 
-    /// The force the clamps of `group` exert on the cloth: `Σ (∇U − f)` over its vertices.
+    /// The force the clamps of `group` exert on the cloth: `Σ (∇U − f)` over its vertices
+    /// (`grad` as in [`Self::residual`]).
     pub fn reaction(&self, grad: &[V3], group: &[usize]) -> V3 {
         let mut r = [0.0; 3];
         for &i in group {
             add_to(&mut r, sub(grad[i], self.force[i]));
         }
         r
+    }
+
+    /// `grad += ∇E_c(x)`, the contact's part of the potential's gradient (nothing without a
+    /// collider).
+    pub fn add_contact(&self, x: &[V3], grad: &mut [V3]) {
+        if let Some(c) = &self.contact {
+            c.add_gradient(x, grad);
+        }
+    }
+
+    /// The contact's penalty energy at `x`, J (0 without a collider).
+    pub fn contact_energy(&self, x: &[V3]) -> f64 {
+        self.contact.as_ref().map_or(0.0, |c| c.energy(x))
     }
 }
 
@@ -293,17 +312,25 @@ impl XpbdCloth {
         }
     }
 
-    /// The relative equilibrium residual `‖∇U − f‖ / ‖f‖` over the free vertices.
+    /// `∇U(x) + ∇E_c(x)`: the gradient of the elastic energy and of `load`'s contact, the
+    /// part of the potential's gradient that is not the constant force (written into `out`).
+    pub fn net_gradient(&self, gamma: &Gamma, load: &Load, x: &[V3], out: &mut [V3]) {
+        self.gradient(gamma, x, out);
+        load.add_contact(x, out);
+    }
+
+    /// The relative equilibrium residual `‖∇U + ∇E_c − f‖ / ‖f‖` over the free vertices.
     pub fn residual(&self, gamma: &Gamma, load: &Load, x: &[V3]) -> f64 {
         let mut g = vec![[0.0; 3]; x.len()];
-        self.gradient(gamma, x, &mut g);
+        self.net_gradient(gamma, load, x, &mut g);
         load.residual(&g)
     }
 
-    /// The force the clamps of `group` exert on the cloth: `Σ (∇U − f)` over its vertices.
+    /// The force the clamps of `group` exert on the cloth: `Σ (∇U + ∇E_c − f)` over its
+    /// vertices.
     pub fn reaction(&self, gamma: &Gamma, load: &Load, x: &[V3], group: &[usize]) -> V3 {
         let mut g = vec![[0.0; 3]; x.len()];
-        self.gradient(gamma, x, &mut g);
+        self.net_gradient(gamma, load, x, &mut g);
         load.reaction(&g, group)
     }
 
@@ -337,6 +364,13 @@ impl XpbdCloth {
         cfg: &Solve,
         groups: &[Vec<usize>],
     ) -> Result<(Equilibrium, Sensitivity)> {
+        if load.contact.is_some() {
+            bail!(
+                "forward-mode derivatives do not follow contact (the ledge's penalty is applied \
+                 at the positions' values): use the implicit ones (`fit.derivatives = \
+                 \"implicit\"`)"
+            );
+        }
         let g = gamma.to_array();
         let params: [Dual<5>; 5] = std::array::from_fn(|k| Dual::parameter(g[k], k));
         let start = start.iter().map(|p| p.map(Dual::constant)).collect();
@@ -424,6 +458,21 @@ impl XpbdCloth {
         };
         let warm = cfg.warm_start;
         let keep = R::splat((1.0 - cfg.damping) / cfg.dt);
+        if let Some(c) = &load.contact {
+            // The contact force is explicit: stable while `h² m_i κ / m_i` is well below 1.
+            let worst = (0..n)
+                .filter(|&i| load.clamped[i].is_none())
+                .map(|i| c.stiffness[i] / (self.mass[i] + load.added_mass[i]))
+                .fold(0.0, f64::max);
+            if cfg.dt * cfg.dt * worst > 0.5 {
+                bail!(
+                    "the XPBD step dt = {} s is too long for the contact's stiffness κ = {worst:.3e}/s² \
+                     (dt² κ must stay below 0.5): lower `solve.dt` or the scenario's `stiffness`",
+                    cfg.dt
+                );
+            }
+        }
+        let mut contact = vec![[0.0; 3]; if load.contact.is_some() { n } else { 0 }];
         let mut steps = 0;
         while steps < cfg.steps {
             let prev = x.clone();
@@ -432,6 +481,15 @@ impl XpbdCloth {
                 .iter()
                 .map(|f| scale(f.map(R::splat), h2))
                 .collect();
+            if let Some(c) = &load.contact {
+                // At the values: the forward-mode derivatives refuse contact.
+                let values: Vec<V3> = x.iter().map(|p| p.map(R::value)).collect();
+                contact.fill([0.0; 3]);
+                c.add_gradient(&values, &mut contact);
+                for (p, f) in push.iter_mut().zip(&contact) {
+                    add_to(p, scale(f.map(R::splat), -h2));
+                }
+            }
             if warm {
                 self.add_impulses(&x, &lambda_t, &lambda_h, &mut push);
             } else {

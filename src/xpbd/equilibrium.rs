@@ -5,7 +5,9 @@
 //! at a converged equilibrium give the same values, a test checks). The energy is linear in γ, `U = Σ_k γ_k U_k`, so
 //! `dx_f/dγ_k = −H_ff⁻¹ ∇_f U_k` over the free coordinates `f`, and a clamp group's reaction
 //! `R_G = Σ_{i∈G} (∇_i U − f_i)` changes by `Σ_{i∈G} (H_{i f} dx_f/dγ_k + ∇_i U_k)`.
-//! The Hessian's columns are central differences of the exact gradient.
+//! The Hessian's columns are central differences of the exact gradient. A load's contact
+//! (`super::contact`) is part of the potential, `Π = U + E_c − f·x`, and of the Hessian; it
+//! does not depend on γ, so `∇U_k` stays the elastic energy's alone.
 
 use anyhow::{Result, bail};
 use nalgebra::{DMatrix, DVector};
@@ -30,8 +32,15 @@ fn free_vertices(load: &Load) -> Vec<usize> {
         .collect()
 }
 
-/// Columns `∂(∇U)/∂x_j` for every free coordinate `j` (rows: every coordinate).
-fn hessian_columns(cloth: &XpbdCloth, gamma: &Gamma, x: &[V3], free: &[usize]) -> DMatrix<f64> {
+/// Columns `∂(∇U + ∇E_c)/∂x_j` for every free coordinate `j` (rows: every coordinate), the
+/// contact of `load` included.
+fn hessian_columns(
+    cloth: &XpbdCloth,
+    gamma: &Gamma,
+    load: &Load,
+    x: &[V3],
+    free: &[usize],
+) -> DMatrix<f64> {
     let n = x.len();
     let size = cloth
         .rest_uv
@@ -45,9 +54,9 @@ fn hessian_columns(cloth: &XpbdCloth, gamma: &Gamma, x: &[V3], free: &[usize]) -
     for (col, &v) in free.iter().enumerate() {
         for c in 0..3 {
             y[v][c] = x[v][c] + eps;
-            cloth.gradient(gamma, &y, &mut gp);
+            cloth.net_gradient(gamma, load, &y, &mut gp);
             y[v][c] = x[v][c] - eps;
-            cloth.gradient(gamma, &y, &mut gm);
+            cloth.net_gradient(gamma, load, &y, &mut gm);
             y[v][c] = x[v][c];
             for i in 0..n {
                 for d in 0..3 {
@@ -79,9 +88,9 @@ fn free_block(h: &DMatrix<f64>, free: &[usize]) -> DMatrix<f64> {
     DMatrix::from_fn(nf, nf, |r, c| h[(3 * free[r / 3] + r % 3, c)])
 }
 
-/// `Π(x) = U(x) − f·x`, the potential whose stationary points are the equilibria.
+/// `Π(x) = U(x) + E_c(x) − f·x`, the potential whose stationary points are the equilibria.
 fn potential(cloth: &XpbdCloth, gamma: &Gamma, load: &Load, x: &[V3]) -> f64 {
-    cloth.energy(gamma, x)
+    cloth.energy(gamma, x) + load.contact_energy(x)
         - x.iter()
             .zip(&load.force)
             .map(|(a, b)| dot(*a, *b))
@@ -107,12 +116,12 @@ pub fn polish(
         if residual < tolerance {
             break;
         }
-        cloth.gradient(gamma, x, &mut g);
+        cloth.net_gradient(gamma, load, x, &mut g);
         let r = DVector::from_fn(3 * free.len(), |k, _| {
             let (v, c) = (free[k / 3], k % 3);
             g[v][c] - load.force[v][c]
         });
-        let h = free_block(&hessian_columns(cloth, gamma, x, &free), &free);
+        let h = free_block(&hessian_columns(cloth, gamma, load, x, &free), &free);
         let mut step = match h.clone().cholesky() {
             Some(ch) => ch.solve(&(-&r)),
             None => h.lu().solve(&(-&r)).unwrap_or_else(|| -&r),
@@ -160,7 +169,7 @@ pub fn sensitivity(
 ) -> Result<Sensitivity> {
     let free = free_vertices(load);
     let n = x.len();
-    let h = hessian_columns(cloth, gamma, x, &free);
+    let h = hessian_columns(cloth, gamma, load, x, &free);
     let hf = free_block(&h, &free);
     let lu = hf.lu();
     let mut dx: [Vec<V3>; 5] = std::array::from_fn(|_| vec![[0.0; 3]; n]);
@@ -207,7 +216,7 @@ pub fn adjoint(
     grad_r: &[V3],
 ) -> Result<[f64; 5]> {
     let free = free_vertices(load);
-    let h = hessian_columns(cloth, gamma, x, &free);
+    let h = hessian_columns(cloth, gamma, load, x, &free);
     let mut w = DVector::from_fn(3 * free.len(), |j, _| grad_x[free[j / 3]][j % 3]);
     for (group, gr) in groups.iter().zip(grad_r) {
         for &i in group {

@@ -388,10 +388,13 @@ impl XpbdConfig {
             }
         }
         for sc in &self.scenarios {
-            if let Scenario::HangingWeight { mass } = sc
-                && !(mass.is_finite() && *mass >= 0.0)
-            {
-                bail!("`scenarios.mass` of a hanging_weight must be a mass ≥ 0 (kg), is {mass}");
+            sc.validate()?;
+            if sc.contact_stiffness().is_some() && self.fit.derivatives == Derivatives::Forward {
+                bail!(
+                    "`fit.derivatives = \"forward\"` does not follow the contact of `{}`: use \
+                     \"implicit\"",
+                    sc.name()
+                );
             }
         }
         if self.truth.is_none() && self.targets.dir.is_none() {
@@ -797,7 +800,8 @@ impl LeastSquares for Problem<'_> {
 }
 
 /// The config's solve with its step resolved for the given materials: `dt = 0` becomes
-/// `√(0.1 m_min / C_max)` over their stiffest membrane modulus.
+/// `√(0.1 m_min / C_max)` over their stiffest membrane modulus, or `√(0.1 / κ)` for the
+/// stiffest contact of the scenarios where that is shorter.
 pub fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth, materials: &[Gamma]) -> Solve {
     let mut solve = cfg.solve;
     if solve.dt <= 0.0 {
@@ -807,6 +811,15 @@ pub fn resolved_solve(cfg: &XpbdConfig, cloth: &XpbdCloth, materials: &[Gamma]) 
             .fold(0.0, f64::max);
         let m = cloth.mass.iter().copied().fold(f64::INFINITY, f64::min);
         solve.dt = (0.1 * m / stiff).sqrt();
+        // The contact's explicit force as well: `dt² κ = 0.1` at most.
+        if let Some(kappa) = cfg
+            .scenarios
+            .iter()
+            .filter_map(Scenario::contact_stiffness)
+            .reduce(f64::max)
+        {
+            solve.dt = solve.dt.min((0.1 / kappa).sqrt());
+        }
     }
     solve
 }

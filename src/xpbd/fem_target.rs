@@ -127,6 +127,12 @@ pub fn solve(
              only): use the XPBD targets for `hanging_weight`"
         );
     }
+    if setup.load.contact.is_some() {
+        bail!(
+            "`targets.simulator = \"fem\"` has no contact (its Newton solve knows no collider): \
+             use the XPBD targets for `ledge_drape`"
+        );
+    }
     let triangles = grid_triangles(n, n, Diagonal::Alternating);
     let cloth = FemCloth::new(
         fine.rest_uv.clone(),

@@ -1,7 +1,7 @@
 //! Static cloth parameters from drapes (paper 001): an XPBD cloth with
 //! an orthotropic StVK membrane and dihedral bending solved quasi-statically to equilibrium
 //! (`cloth`), its parameters γ = (C00, C11, C01, C22, b) in SI and the paper's CGS units
-//! (`material`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
+//! (`material`), contact with a rigid ledge (`contact`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
 //! box-constrained Levenberg–Marquardt solver (`lm`), the equilibrium's Newton polish and
 //! implicit-function derivatives (`equilibrium`), the equilibrium as a differentiable Burn op
 //! (`op`) and the Adam fit through it (`adam`), the loading scenarios (`scenario`), targets
@@ -11,6 +11,7 @@
 
 pub mod adam;
 pub mod cloth;
+pub mod contact;
 pub mod descriptor;
 pub mod equilibrium;
 pub mod estimate;
