@@ -23,8 +23,10 @@ use super::equilibrium::{polish, sensitivity};
 use super::lm::{self, LeastSquares, Lm};
 use super::material::{Gamma, NAMES};
 use super::op::StaticProblem;
+use super::registration::{RegistrationError, Scan, register};
 use super::scenario::{Scenario, Setup};
 use crate::cloth::triangles::{V3, dot};
+use crate::cloth::{Diagonal, grid_triangles};
 use crate::data::npz::{Array, Npz};
 use crate::progress::Progress;
 
@@ -253,8 +255,15 @@ pub struct TargetsConfig {
     /// in for another simulator (paper 001 §5); 1 = the fit's own grid.
     pub refine: usize,
     /// Standard deviation of Gaussian noise added to every sampled target coordinate, m (a
-    /// registered scan's); seeded by `fit.seed`.
+    /// registered scan's); seeded by `fit.seed`. With `stamp`, the noise of the scan instead.
     pub noise: f64,
+    /// `stamp = s > 0`: each target is a registered scan (paper 001 §3.2, `xpbd::registration`)
+    /// instead of the equilibrium sampled at the template's vertices. The scan is the solved
+    /// (`refine` times finer) mesh with `noise` on every free vertex; every `s`-th template
+    /// row and column (and the last) is stamped as landmarks, which take the scan's positions;
+    /// the other vertices are interpolated between them and projected along the normal onto
+    /// the scan. 0 (default): no registration.
+    pub stamp: usize,
     /// The simulator that solves the synthetic targets: springtime's XPBD cloth (`"xpbd"`,
     /// the fit's own model) or the FEM source's cloth brought to rest by Newton's method
     /// (`"fem"`: another element formulation and bending discretisation; isotropic `[truth]`
@@ -271,6 +280,7 @@ impl Default for TargetsConfig {
         Self {
             refine: 1,
             noise: 0.0,
+            stamp: 0,
             simulator: TargetSimulator::Xpbd,
             dir: None,
         }
@@ -365,6 +375,14 @@ impl XpbdConfig {
                 "`targets.refine` must be 1 to 8 and `targets.noise` a length ≥ 0 (m), are {} and {}",
                 t.refine,
                 t.noise
+            );
+        }
+        if t.stamp >= self.swatch.n {
+            bail!(
+                "`targets.stamp` ({}) must be below the template's {} vertices per side: every \
+                 `stamp`-th row and column is a landmark",
+                t.stamp,
+                self.swatch.n
             );
         }
         if t.dir.is_some() && t.simulator == TargetSimulator::Fem {
@@ -472,6 +490,10 @@ pub struct ScenarioFit {
     pub target_residual: f64,
     /// The target's reaction magnitude, N.
     pub target_reaction: f64,
+    /// A registered target's distance to the true positions of its material points
+    /// (`targets.stamp`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub registration: Option<RegistrationError>,
     /// Every vertex's distance to the target, m (drawn in `error_map.png`).
     #[serde(skip)]
     pub vertex_error: Vec<f64>,
@@ -491,6 +513,8 @@ struct Target {
     descriptor: Option<Vec<f64>>,
     /// Where the fit's equilibria start (`fit.start`).
     branch: Vec<V3>,
+    /// How far a registered target is from its material points.
+    registration: Option<RegistrationError>,
 }
 
 impl Target {
@@ -530,6 +554,7 @@ impl Target {
             x,
             residual,
             reactions,
+            registration: None,
         }
     }
 }
@@ -734,6 +759,7 @@ impl Problem<'_> {
                     max_vertex_error: vertex_error.iter().copied().fold(0.0, f64::max),
                     target_residual: t.residual,
                     target_reaction: t.reactions.first().copied().unwrap_or(0.0),
+                    registration: t.registration,
                     vertex_error,
                 }
             })
@@ -846,7 +872,15 @@ fn make_target(
         (cloth, setup.clone())
     } else {
         fine_cloth = XpbdCloth::grid(nf, nf, sw.size, sw.size, sw.density)?;
-        let s = sc.setup(&fine_cloth, nf, sw.size, sw.gravity, cfg.fit.noise, seed);
+        let s = sc.setup_refined(
+            &fine_cloth,
+            nf,
+            sw.size,
+            sw.gravity,
+            cfg.fit.noise,
+            seed,
+            refine,
+        );
         (&fine_cloth, s)
     };
     let (xf, residual, reactions) = match cfg.targets.simulator {
@@ -889,19 +923,55 @@ fn make_target(
     };
     let mut rng = StdRng::seed_from_u64(seed ^ 0x7A67_E75E);
     let normal = rand_distr::Normal::new(0.0, cfg.targets.noise.max(f64::MIN_POSITIVE))?;
-    let x: Vec<V3> = (0..sw.n * sw.n)
-        .map(|k| {
-            let (r, c) = (k / sw.n, k % sw.n);
-            let mut p = xf[r * refine * nf + c * refine];
-            if cfg.targets.noise > 0.0 && setup.load.clamped[k].is_none() {
-                for v in &mut p {
-                    *v += rng.sample(normal);
-                }
+    let mut noisy = |p: &mut V3, clamped: bool| {
+        if cfg.targets.noise > 0.0 && !clamped {
+            for v in p.iter_mut() {
+                *v += rng.sample(normal);
             }
-            p
+        }
+    };
+    // The template vertex `k`'s node on the solved grid.
+    let node = |k: usize| (k / sw.n) * refine * nf + (k % sw.n) * refine;
+    if cfg.targets.stamp == 0 {
+        let x: Vec<V3> = (0..sw.n * sw.n)
+            .map(|k| {
+                let mut p = xf[node(k)];
+                noisy(&mut p, setup.load.clamped[k].is_some());
+                p
+            })
+            .collect();
+        return Ok(Target::new(sc, setup, x, residual, reactions));
+    }
+    // A scan of the solved mesh, registered to the template through its stamped landmarks.
+    let mut vertices = xf.clone();
+    for (p, c) in vertices.iter_mut().zip(&fine_setup.load.clamped) {
+        noisy(p, c.is_some());
+    }
+    let scan = Scan {
+        vertices,
+        triangles: grid_triangles(nf, nf, Diagonal::Alternating),
+    };
+    let s = cfg.targets.stamp;
+    let on = |i: usize| i % s == 0 || i == sw.n - 1;
+    let landmarks: Vec<Option<V3>> = (0..sw.n * sw.n)
+        .map(|k| match setup.load.clamped[k] {
+            Some(p) => Some(p),
+            None => (on(k / sw.n) && on(k % sw.n)).then(|| scan.vertices[node(k)]),
         })
         .collect();
-    Ok(Target::new(sc, setup, x, residual, reactions))
+    let template = grid_triangles(sw.n, sw.n, Diagonal::Alternating);
+    let cell = sw.size / (sw.n - 1) as f64;
+    let reg = register(sw.n * sw.n, &template, &landmarks, &scan, cell)
+        .with_context(|| format!("registering the scan of `{}`", sc.name()))?;
+    let truth: Vec<V3> = (0..sw.n * sw.n).map(|k| xf[node(k)]).collect();
+    let mut target = Target::new(sc, setup, reg.x, residual, reactions);
+    target.registration = Some(RegistrationError::of(
+        &target.x,
+        &truth,
+        reg.landmarks,
+        reg.projected,
+    ));
+    Ok(target)
 }
 
 /// The job's targets: read from `targets.dir`, or generated with the true material.
@@ -1323,6 +1393,44 @@ mod tests {
         assert!(
             moved == 9 && (0.4e-3..2.5e-3).contains(&rms),
             "{moved} {rms}"
+        );
+    }
+
+    #[test]
+    fn a_registered_scan_keeps_its_landmarks_and_every_stamped_vertex_is_exact() {
+        // A 7 × 7 cantilever (bent out of plane) scanned from its 13 × 13 solve.
+        let progress = Progress::quiet();
+        let mut cfg = config(2, 0.0);
+        cfg.swatch.n = 7;
+        cfg.swatch.gravity = [0.0, 0.0, -9.81];
+        cfg.scenarios = vec![Scenario::Cantilever];
+        let cloth = XpbdCloth::grid(7, 7, 0.1, 0.1, 0.224).unwrap();
+        let sc = &cfg.scenarios[0];
+        let sampled = make_target(&cfg, &cloth, sc, 0, &progress).unwrap();
+        assert!(sampled.registration.is_none());
+        let drop = sampled.x.iter().map(|p| -p[2]).fold(0.0, f64::max);
+        assert!(drop > 0.02, "the cantilever drops {drop} m");
+        // Every vertex stamped: the registration is the sampling.
+        cfg.targets.stamp = 1;
+        let all = make_target(&cfg, &cloth, sc, 0, &progress).unwrap();
+        assert_eq!(all.x, sampled.x);
+        let err = all.registration.unwrap();
+        assert_eq!((err.max, err.landmarks, err.projected), (0.0, 49, 0));
+        // Every other row and column: 16 stamped vertices (4 of them on the clamped first
+        // row) and 10 more clamped ones keep their positions; the others are registered.
+        cfg.targets.stamp = 2;
+        let reg = make_target(&cfg, &cloth, sc, 0, &progress).unwrap();
+        let err = reg.registration.unwrap();
+        assert_eq!(err.landmarks, 26);
+        for k in 0..49 {
+            let (r, c) = (k / 7, k % 7);
+            if (r % 2 == 0 && c % 2 == 0) || r < 2 {
+                assert_eq!(reg.x[k], sampled.x[k], "landmark {k}");
+            }
+        }
+        assert!(
+            err.projected > 0 && err.max > 0.0 && err.max < 0.02,
+            "{err:?}"
         );
     }
 }

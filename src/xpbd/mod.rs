@@ -4,7 +4,8 @@
 //! (`material`), contact with a rigid ledge (`contact`), the phase-free DFT shape descriptor of Eq. 9 (`descriptor`) and a
 //! box-constrained Levenberg–Marquardt solver (`lm`), the equilibrium's Newton polish and
 //! implicit-function derivatives (`equilibrium`), the equilibrium as a differentiable Burn op
-//! (`op`) and the Adam fit through it (`adam`), the loading scenarios (`scenario`), targets
+//! (`op`) and the Adam fit through it (`adam`), the loading scenarios (`scenario`), the registration of scans to the template
+//! (`registration`), targets
 //! solved by the FEM source's cloth instead (`fem_target`), and the
 //! sim-to-sim estimation of `springtime xpbd estimate` (`estimate`) and the descriptor study of
 //! `springtime xpbd descriptors` (`study`).
@@ -19,6 +20,7 @@ pub mod fem_target;
 pub mod lm;
 pub mod material;
 pub mod op;
+pub mod registration;
 pub mod scenario;
 pub mod study;
 

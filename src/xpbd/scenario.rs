@@ -189,6 +189,24 @@ impl Scenario {
         noise: f64,
         seed: u64,
     ) -> Setup {
+        self.setup_refined(cloth, n, size, g, noise, seed, 1)
+    }
+
+    /// [`setup`](Self::setup) on a grid `refine` times finer than the template's (`n` its
+    /// vertices per side): the held strip of a cantilever or a ledge drape is the template's
+    /// first two rows, `refine + 1` rows of this grid.
+    #[allow(clippy::too_many_arguments)]
+    pub fn setup_refined(
+        &self,
+        cloth: &XpbdCloth,
+        n: usize,
+        size: f64,
+        g: V3,
+        noise: f64,
+        seed: u64,
+        refine: usize,
+    ) -> Setup {
+        let held_rows = refine.max(1) + 1;
         let mut load = Load::gravity(cloth, g);
         let rest = cloth.rest();
         let id = |r: usize, c: usize| r * n + c;
@@ -238,7 +256,7 @@ impl Scenario {
                 })
             }
             Scenario::Cantilever => {
-                let held: Vec<usize> = (0..2 * n).collect();
+                let held: Vec<usize> = (0..held_rows * n).collect();
                 for &i in &held {
                     load.clamped[i] = Some(rest[i]);
                 }
@@ -273,7 +291,7 @@ impl Scenario {
                 stiffness,
             } => {
                 let edge = (1.0 - overhang) * size;
-                let held: Vec<usize> = (0..2 * n).collect();
+                let held: Vec<usize> = (0..held_rows * n).collect();
                 for &i in &held {
                     load.clamped[i] = Some([rest[i][0], rest[i][1], thickness]);
                 }
