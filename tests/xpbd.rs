@@ -461,6 +461,18 @@ fn a_ledge_drape_identifies_b_and_what_it_cannot_do_is_named() {
         ],
         &["fit.derivatives", "ledge_drape_0.4"],
     );
+    refused(
+        &[
+            "xpbd",
+            "estimate",
+            "ledge.toml",
+            "--out",
+            "stamp",
+            "--set",
+            "targets.stamp=5",
+        ],
+        &["targets.stamp"],
+    );
     // The FEM targets (an isotropic truth) have no collider.
     refused(
         &[

@@ -952,7 +952,7 @@ fn make_target(
         triangles: grid_triangles(nf, nf, Diagonal::Alternating),
     };
     let s = cfg.targets.stamp;
-    let on = |i: usize| i % s == 0 || i == sw.n - 1;
+    let on = |i: usize| i.is_multiple_of(s) || i == sw.n - 1;
     let landmarks: Vec<Option<V3>> = (0..sw.n * sw.n)
         .map(|k| match setup.load.clamped[k] {
             Some(p) => Some(p),

@@ -227,7 +227,7 @@ mod tests {
             triangles: tris,
         };
         let (truth, template) = sheet(9, shape);
-        let stamped = |k: usize| (k % 9) % 2 == 0 && (k / 9) % 2 == 0;
+        let stamped = |k: usize| (k % 9).is_multiple_of(2) && (k / 9).is_multiple_of(2);
         let landmarks: Vec<Option<V3>> = (0..81).map(|k| stamped(k).then_some(truth[k])).collect();
         let reg = register(81, &template, &landmarks, &scan, 0.1).unwrap();
         assert_eq!(reg.landmarks, 25);
@@ -257,7 +257,7 @@ mod tests {
         let map = |u: f64, v: f64| [1.03 * u + 0.2 * v, 0.98 * v, 0.0];
         let (fine, tris) = sheet(17, map);
         let (truth, template) = sheet(9, map);
-        let on = |i: usize| i % 3 == 0 || i == 8;
+        let on = |i: usize| i.is_multiple_of(3) || i == 8;
         let landmarks: Vec<Option<V3>> = (0..81)
             .map(|k| (on(k % 9) && on(k / 9)).then_some(truth[k]))
             .collect();
