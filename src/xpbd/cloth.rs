@@ -176,7 +176,7 @@ impl Load {
 pub struct Equilibrium {
     /// Positions.
     pub x: Vec<V3>,
-    /// `‖∇U − f‖ / ‖f‖` over the free vertices' coordinates.
+    /// `‖∇U + ∇E_c − f‖ / ‖f‖` over the free vertices' coordinates (`E_c`: the load's contact).
     pub residual: f64,
     /// Steps taken.
     pub steps: usize,
@@ -409,14 +409,16 @@ impl XpbdCloth {
         cfg: &Solve,
     ) -> Result<(Vec<[R; 3]>, usize)> {
         let n = self.len();
+        let contact = load.contact.as_ref().map_or(n, |c| c.stiffness.len());
         if start.len() != n
             || load.clamped.len() != n
             || load.force.len() != n
             || load.added_mass.len() != n
+            || contact != n
         {
             bail!(
-                "the start ({}), clamps ({}), forces ({}) and hung masses ({}) must each have one \
-                 entry per vertex ({n})",
+                "the start ({}), clamps ({}), forces ({}), hung masses ({}) and contact \
+                 stiffnesses ({contact}) must each have one entry per vertex ({n})",
                 start.len(),
                 load.clamped.len(),
                 load.force.len(),

@@ -97,7 +97,7 @@ fn potential(cloth: &XpbdCloth, gamma: &Gamma, load: &Load, x: &[V3]) -> f64 {
             .sum::<f64>()
 }
 
-/// Newton steps on `∇U = f` from `x` (clamped vertices held), each with a backtracking line
+/// Newton steps on `∇U + ∇E_c = f` from `x` (clamped vertices held), each with a backtracking line
 /// search on `Π`, until the relative residual is below `tolerance` or `iterations` are done.
 /// Returns the residual reached.
 pub fn polish(

@@ -121,7 +121,8 @@ impl Default for Swatch {
 pub enum Schedule {
     /// All five at once on every target.
     Joint,
-    /// The paper's §5 schedule: `b` alone on the bending targets (cantilevers), then the four
+    /// The paper's §5 schedule: `b` alone on the bending targets (cantilevers and ledge
+    /// drapes), then the four
     /// membrane parameters on the others, `rounds` times.
     BendingFirst,
 }
@@ -405,8 +406,43 @@ impl XpbdConfig {
                 bail!("`fit.adam_steps` and `fit.adam_lr` must be positive");
             }
         }
+        if t.stamp > 0 && t.dir.is_some() {
+            bail!(
+                "`targets.stamp` registers synthetic scans, but `targets.dir` reads the targets \
+                 from files: give one of them"
+            );
+        }
         for sc in &self.scenarios {
             sc.validate()?;
+            if let Scenario::LedgeDrape {
+                overhang, radius, ..
+            } = *sc
+            {
+                let cell = s.size / (s.n - 1) as f64;
+                if (1.0 - overhang) * s.size - radius < cell {
+                    bail!(
+                        "`scenarios.overhang` = {overhang} of `{}` leaves the held rows (the first \
+                         {cell} m) off the ledge's flat top on this swatch: lower it, or \
+                         `scenarios.radius`",
+                        sc.name()
+                    );
+                }
+                let g = s.gravity;
+                if !(g[0] == 0.0 && g[1] == 0.0 && g[2] < 0.0) {
+                    bail!(
+                        "`swatch.gravity` must point down (−z) for `{}`: the ledge's top faces +z, \
+                         is {g:?}",
+                        sc.name()
+                    );
+                }
+                if t.simulator == TargetSimulator::Fem {
+                    bail!(
+                        "`targets.simulator = \"fem\"` has no contact (its Newton solve knows no \
+                         collider): `{}` needs the XPBD targets",
+                        sc.name()
+                    );
+                }
+            }
             if sc.contact_stiffness().is_some() && self.fit.derivatives == Derivatives::Forward {
                 bail!(
                     "`fit.derivatives = \"forward\"` does not follow the contact of `{}`: use \

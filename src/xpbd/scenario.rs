@@ -330,6 +330,12 @@ impl Scenario {
                 })
             }
         };
+        // A ledge drape's start is perturbed away from the ledge only (up on the top, out past
+        // the edge), never into it.
+        let ledge_edge = match *self {
+            Scenario::LedgeDrape { overhang, .. } => Some((1.0 - overhang) * size),
+            _ => None,
+        };
         let mut rng = StdRng::seed_from_u64(seed);
         let start = rest
             .iter()
@@ -338,7 +344,12 @@ impl Scenario {
                 Some(c) => c,
                 None => {
                     let mut q = map(p);
-                    q[normal] += noise * rng.random_range(-1.0..1.0);
+                    let xi = noise * rng.random_range(-1.0..1.0);
+                    match ledge_edge {
+                        Some(edge) if p[1] <= edge => q[2] += xi.abs(),
+                        Some(_) => q[1] += xi.abs(),
+                        None => q[normal] += xi,
+                    }
                     q
                 }
             })
@@ -396,8 +407,9 @@ mod tests {
         // The cloth rests in the layer and never reaches the ledge's surface.
         let deepest = contact.deepest(&x);
         assert!(deepest > 0.0 && deepest < 0.001, "deepest {deepest}");
-        // Nothing passes into the box: below the top's rounding, every vertex is past the face.
+        // Nothing reaches the box, and below the top's rounding every vertex is past the face.
         for p in &x {
+            assert!(contact.collider.query(0.0, *p).distance > 0.0, "{p:?}");
             assert!(p[2] > -0.005 || p[1] > edge, "{p:?} is inside the ledge");
         }
         // Balance of the whole cloth: clamps, ledge and gravity.
