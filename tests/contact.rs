@@ -53,6 +53,24 @@ fn placed(cloth: &SpringCloth, tilt: f64, lift: f64) -> Vec<V3> {
         .collect()
 }
 
+/// The test sheet dropped flat from `lift` onto `collider` alone: where it is after 800 steps.
+fn dropped(collider: &Collider, lift: f64) -> Vec<V3> {
+    let cloth = sheet(0.5, 0.1);
+    let contact = Contact::new(vec![collider.clone()], params(250.0));
+    let mut x = placed(&cloth, 0.0, lift);
+    let mut v = vec![[0.0; 3]; x.len()];
+    simulate(&cloth, &mut x, &mut v, &contact, 800);
+    x
+}
+
+/// The largest coordinate difference between two configurations, m.
+fn largest_difference(a: &[V3], b: &[V3]) -> f64 {
+    a.iter()
+        .zip(b)
+        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
+        .fold(0.0, f64::max)
+}
+
 fn simulate(cloth: &SpringCloth, x: &mut [V3], v: &mut [V3], contact: &Contact, steps: usize) {
     let pinned = vec![false; x.len()];
     let mut scratch = Vec::new();
@@ -295,20 +313,8 @@ fn mesh_colliders_match_the_analytic_box_and_sphere() {
     // A 96 × 48 polygon sphere lies within r (1 − cos(π/48)) ≈ 2.1e-3 of the ball.
     assert!(worst_sphere < 2.2e-3, "sphere mesh vs ball: {worst_sphere}");
     // The same drop on both boxes ends in the same place.
-    let cloth = sheet(0.5, 0.1);
-    let drop = |c: &Collider| {
-        let contact = Contact::new(vec![c.clone()], params(250.0));
-        let mut x = placed(&cloth, 0.0, 0.8);
-        let mut v = vec![[0.0; 3]; x.len()];
-        simulate(&cloth, &mut x, &mut v, &contact, 800);
-        x
-    };
-    let (a, b) = (drop(&box_mesh), drop(&box_shape));
-    let gap = a
-        .iter()
-        .zip(&b)
-        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0.0, f64::max);
+    let (a, b) = (dropped(&box_mesh, 0.8), dropped(&box_shape, 0.8));
+    let gap = largest_difference(&a, &b);
     assert!(gap < 1e-6, "drops differ by {gap} m");
     assert!(a.iter().any(|p| p[2] < 0.7), "the sheet did not fall");
 }
@@ -474,20 +480,8 @@ fn a_rounded_box_is_rounded_exactly() {
         "kind = \"rounded_box\"\nhalf_extents = [0.0, 0.0, 0.0]\nradius = 0.3\n\
          translation = [0.05, 0.0, 0.0]",
     );
-    let cloth = sheet(0.5, 0.1);
-    let drop = |c: &Collider| {
-        let contact = Contact::new(vec![c.clone()], params(250.0));
-        let mut x = placed(&cloth, 0.0, 0.4);
-        let mut v = vec![[0.0; 3]; x.len()];
-        simulate(&cloth, &mut x, &mut v, &contact, 800);
-        x
-    };
-    let (a, b) = (drop(&ball), drop(&point));
-    let gap = a
-        .iter()
-        .zip(&b)
-        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
-        .fold(0.0, f64::max);
+    let (a, b) = (dropped(&ball, 0.4), dropped(&point, 0.4));
+    let gap = largest_difference(&a, &b);
     assert!(gap < 1e-9, "drops differ by {gap} m");
     // It fell onto the ball and stayed outside it.
     let from_centre = |p: &[f64; 3]| ((p[0] - 0.05).powi(2) + p[1].powi(2) + p[2].powi(2)).sqrt();

@@ -264,16 +264,11 @@ impl Topology {
             ));
         }
         // Each undirected edge with the vertices opposite it (one on the border, two inside).
-        let mut opposite: std::collections::BTreeMap<[usize; 2], Vec<usize>> = Default::default();
-        for t in &ccw {
-            for j in 0..3 {
-                let (a, b) = (t[j], t[(j + 1) % 3]);
-                opposite
-                    .entry([a.min(b), a.max(b)])
-                    .or_default()
-                    .push(t[(j + 2) % 3]);
-            }
-        }
+        let opposite: std::collections::BTreeMap<[usize; 2], Vec<usize>> =
+            crate::cloth::triangles::edges_with_opposites(&ccw)
+                .into_iter()
+                .map(|(e, w)| (e, w.into_iter().map(|(c, _)| c).collect()))
+                .collect();
         let mut springs: Vec<[usize; 2]> = opposite.keys().copied().collect();
         let mut family = vec![SpringFamily::Structural; springs.len()];
         if hinges {

@@ -149,18 +149,10 @@ pub struct Hinge {
 
 /// Every interior edge of a triangle mesh, sorted by `(a, b)`.
 pub fn hinges(triangles: &[[usize; 3]]) -> Vec<Hinge> {
-    let mut edges: std::collections::HashMap<(usize, usize), Vec<(usize, usize)>> =
-        std::collections::HashMap::new();
-    for (e, t) in triangles.iter().enumerate() {
-        for k in 0..3 {
-            let (a, b, c) = (t[k], t[(k + 1) % 3], t[(k + 2) % 3]);
-            edges.entry((a.min(b), a.max(b))).or_default().push((c, e));
-        }
-    }
-    let mut out: Vec<Hinge> = edges
+    let mut out: Vec<Hinge> = edges_with_opposites(triangles)
         .into_iter()
         .filter(|(_, w)| w.len() == 2)
-        .map(|((a, b), w)| Hinge {
+        .map(|([a, b], w)| Hinge {
             a,
             b,
             c: w[0].0,
@@ -170,6 +162,21 @@ pub fn hinges(triangles: &[[usize; 3]]) -> Vec<Hinge> {
         .collect();
     out.sort_by_key(|h| (h.a, h.b));
     out
+}
+
+/// Every undirected edge `[a, b]` (`a < b`) of `triangles` with, for each triangle on it (one
+/// on the border, two inside), the vertex opposite it and the triangle's index.
+pub fn edges_with_opposites(
+    triangles: &[[usize; 3]],
+) -> std::collections::BTreeMap<[usize; 2], Vec<(usize, usize)>> {
+    let mut edges: std::collections::BTreeMap<[usize; 2], Vec<(usize, usize)>> = Default::default();
+    for (e, t) in triangles.iter().enumerate() {
+        for k in 0..3 {
+            let (a, b, c) = (t[k], t[(k + 1) % 3], t[(k + 2) % 3]);
+            edges.entry([a.min(b), a.max(b)]).or_default().push((c, e));
+        }
+    }
+    edges
 }
 
 /// Signed dihedral angle of a hinge and its gradient with respect to `(c, d, a, b)`.

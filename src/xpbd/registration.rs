@@ -16,7 +16,7 @@ use parry3d_f64::query::{Ray, RayCast};
 use parry3d_f64::shape::TriMesh;
 use serde::Serialize;
 
-use crate::cloth::triangles::{V3, add_to, cross, dot, sub};
+use crate::cloth::triangles::{V3, add_to, cross, dot, edges_with_opposites, sub};
 
 /// A scanned surface: vertices and triangles.
 #[derive(Debug, Clone)]
@@ -96,31 +96,23 @@ pub fn register(
     // neighbours, so that the interpolation runs along the border there (with every neighbour,
     // a border vertex would be pulled inwards by a third of a cell, and an affine map would not
     // be reproduced).
-    let mut faces: std::collections::HashMap<(usize, usize), usize> = Default::default();
-    for t in triangles {
-        for k in 0..3 {
-            let (a, b) = (t[k], t[(k + 1) % 3]);
-            *faces.entry((a.min(b), a.max(b))).or_default() += 1;
-        }
-    }
+    let edges = edges_with_opposites(triangles);
     let mut border = vec![false; len];
-    for (&(a, b), &f) in &faces {
-        if f == 1 {
-            border[a] = true;
-            border[b] = true;
+    for ([a, b], faces) in &edges {
+        if faces.len() == 1 {
+            border[*a] = true;
+            border[*b] = true;
         }
     }
     let mut neighbours = vec![Vec::new(); len];
-    for (&(a, b), &f) in &faces {
-        if !border[a] || f == 1 {
+    for (&[a, b], faces) in &edges {
+        let on_border = faces.len() == 1;
+        if !border[a] || on_border {
             neighbours[a].push(b);
         }
-        if !border[b] || f == 1 {
+        if !border[b] || on_border {
             neighbours[b].push(a);
         }
-    }
-    for n in &mut neighbours {
-        n.sort_unstable();
     }
     // Harmonic interpolation between the landmarks (Gauss–Seidel to rest), from their mean.
     let mut mean = [0.0; 3];
