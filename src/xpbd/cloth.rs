@@ -474,7 +474,6 @@ impl XpbdCloth {
                 );
             }
         }
-        let mut contact = vec![[0.0; 3]; if load.contact.is_some() { n } else { 0 }];
         let mut steps = 0;
         while steps < cfg.steps {
             let prev = x.clone();
@@ -485,11 +484,9 @@ impl XpbdCloth {
                 .collect();
             if let Some(c) = &load.contact {
                 // At the values: the forward-mode derivatives refuse contact.
-                let values: Vec<V3> = x.iter().map(|p| p.map(R::value)).collect();
-                contact.fill([0.0; 3]);
-                c.add_gradient(&values, &mut contact);
-                for (p, f) in push.iter_mut().zip(&contact) {
-                    add_to(p, scale(f.map(R::splat), -h2));
+                for (i, p) in push.iter_mut().enumerate() {
+                    let g = c.vertex_gradient(i, x[i].map(R::value));
+                    add_to(p, scale(g.map(R::splat), -h2));
                 }
             }
             if warm {

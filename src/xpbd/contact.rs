@@ -38,14 +38,22 @@ impl StaticContact {
             .sum()
     }
 
-    /// `out += ∇E_c`: on each vertex in the layer, `−m_i κ φ n` (the contact force is its
-    /// negative, along the normal).
+    /// `∂E_c/∂x_i` of vertex `i` at `p`: `−m_i κ φ n` in the layer, zero outside (the contact
+    /// force is its negative, along the normal). A vertex's term depends on its own position
+    /// only, so the contact's Hessian is block diagonal.
+    pub fn vertex_gradient(&self, i: usize, p: V3) -> V3 {
+        let (phi, n) = self.intrusion(p);
+        if phi > 0.0 {
+            scale(n, -self.stiffness[i] * phi)
+        } else {
+            [0.0; 3]
+        }
+    }
+
+    /// `out += ∇E_c` (see [`Self::vertex_gradient`]).
     pub fn add_gradient(&self, x: &[V3], out: &mut [V3]) {
-        for ((&p, &k), o) in x.iter().zip(&self.stiffness).zip(out) {
-            let (phi, n) = self.intrusion(p);
-            if phi > 0.0 {
-                add_to(o, scale(n, -k * phi));
-            }
+        for (i, (&p, o)) in x.iter().zip(out).enumerate() {
+            add_to(o, self.vertex_gradient(i, p));
         }
     }
 
@@ -57,11 +65,9 @@ impl StaticContact {
 
     /// The total contact force on the cloth, N.
     pub fn force(&self, x: &[V3]) -> V3 {
-        let mut g = vec![[0.0; 3]; x.len()];
-        self.add_gradient(x, &mut g);
         let mut f = [0.0; 3];
-        for p in g {
-            add_to(&mut f, scale(p, -1.0));
+        for (i, &p) in x.iter().enumerate() {
+            add_to(&mut f, scale(self.vertex_gradient(i, p), -1.0));
         }
         f
     }

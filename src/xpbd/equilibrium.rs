@@ -54,13 +54,27 @@ fn hessian_columns(
     for (col, &v) in free.iter().enumerate() {
         for c in 0..3 {
             y[v][c] = x[v][c] + eps;
-            cloth.net_gradient(gamma, load, &y, &mut gp);
+            cloth.gradient(gamma, &y, &mut gp);
             y[v][c] = x[v][c] - eps;
-            cloth.net_gradient(gamma, load, &y, &mut gm);
+            cloth.gradient(gamma, &y, &mut gm);
             y[v][c] = x[v][c];
             for i in 0..n {
                 for d in 0..3 {
                     h[(3 * i + d, 3 * col + c)] = (gp[i][d] - gm[i][d]) / (2.0 * eps);
+                }
+            }
+            // The contact's block is the moved vertex's own: one query each way, not a
+            // gradient over every vertex.
+            if let Some(contact) = &load.contact {
+                let (mut up, mut down) = (x[v], x[v]);
+                up[c] += eps;
+                down[c] -= eps;
+                let (gu, gd) = (
+                    contact.vertex_gradient(v, up),
+                    contact.vertex_gradient(v, down),
+                );
+                for d in 0..3 {
+                    h[(3 * v + d, 3 * col + c)] += (gu[d] - gd[d]) / (2.0 * eps);
                 }
             }
         }

@@ -213,6 +213,9 @@ impl Scenario {
         let mut groups = Vec::new();
         // The start's out-of-plane coordinate.
         let mut normal = 2;
+        // A ledge drape's edge: its start is perturbed away from the ledge only (up on the top,
+        // out past the edge), never into it.
+        let mut ledge_edge = None;
         // Every vertex first follows the clamps' map; then the clamps are set.
         let map: Box<dyn Fn(V3) -> V3> = match *self {
             Scenario::FrameShear { angle_deg } => {
@@ -291,6 +294,7 @@ impl Scenario {
                 stiffness,
             } => {
                 let edge = (1.0 - overhang) * size;
+                ledge_edge = Some(edge);
                 let held: Vec<usize> = (0..held_rows * n).collect();
                 for &i in &held {
                     load.clamped[i] = Some([rest[i][0], rest[i][1], thickness]);
@@ -329,12 +333,6 @@ impl Scenario {
                     }
                 })
             }
-        };
-        // A ledge drape's start is perturbed away from the ledge only (up on the top, out past
-        // the edge), never into it.
-        let ledge_edge = match *self {
-            Scenario::LedgeDrape { overhang, .. } => Some((1.0 - overhang) * size),
-            _ => None,
         };
         let mut rng = StdRng::seed_from_u64(seed);
         let start = rest
