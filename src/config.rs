@@ -88,6 +88,14 @@ impl Config {
                 self.model.kind.name()
             );
         }
+        if self.cloth.curvature
+            && (self.cloth.layout != SpringLayout::Grid || self.model.kind != ModelKind::Springs)
+        {
+            bail!(
+                "`cloth.curvature = true` adds curvature elements to a grid of springs: it needs \
+                 `cloth.layout = \"grid\"` and `model.kind = \"springs\"`"
+            );
+        }
         if self.sim.substeps == Auto::Value(0) {
             bail!("`sim.substeps` must be at least 1");
         }

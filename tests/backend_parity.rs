@@ -14,11 +14,25 @@ struct Outcome {
     loss: f64,
     grad_k: Vec<f64>,
     grad_b: Vec<f64>,
+    /// `∂L/∂κ` of the curvature elements (empty without).
+    grad_kappa: Vec<f64>,
 }
 
-fn run(device: &Device, rollouts: &[Rollout], on: ForceOn) -> Outcome {
+fn run(device: &Device, rollouts: &[Rollout], on: ForceOn, curvature: bool) -> Outcome {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.3);
-    let topo = common::grid_of(&cfg);
+    let mut topo = common::grid_of(&cfg);
+    if curvature {
+        let spec = springtime::cloth::GridSpec {
+            nx: cfg.nx,
+            ny: cfg.ny,
+            curvature: true,
+            ..Default::default()
+        };
+        topo = springtime::cloth::Topology::grid(&spec, cfg.width, cfg.height);
+    }
+    let kappa: Vec<f64> = (0..topo.curvature.len())
+        .map(|i| 3.0 + ((i as f64) * 0.53).sin())
+        .collect();
     let s = topo.num_springs();
     let k: Vec<f64> = (0..s)
         .map(|i| 40.0 + 20.0 * ((i as f64) * 0.37).sin())
@@ -26,7 +40,7 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn) -> Outcome {
     let b: Vec<f64> = (0..s).map(|i| 5.0 + ((i as f64) * 0.91).cos()).collect();
     let ad = device.clone().autodiff();
     let batch = common::batch(&cfg, rollouts, 100, 60, &ad);
-    let model = SpringNet::new(&topo, &k, &b, &ad);
+    let model = SpringNet::new(&topo, &k, &b, &ad).with_curvature(&kappa);
     let physics = Physics {
         frame_dt: rollouts[0].frame_dt,
         substeps: 1,
@@ -62,15 +76,26 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn) -> Outcome {
         loss: value,
         grad_k: to_f64(model.k.val().grad(&grads).unwrap()),
         grad_b: to_f64(model.b.val().grad(&grads).unwrap()),
+        grad_kappa: model
+            .curvature
+            .as_ref()
+            .map(|c| to_f64(c.kappa.val().grad(&grads).unwrap()))
+            .unwrap_or_default(),
     }
 }
 
 fn compare(reference: &Device, other: &Device, label: &str) {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.3);
     let rollouts: Vec<Rollout> = (0..2).map(|s| common::rollout(&cfg, s).1).collect();
-    for on in [ForceOn::Simulated, ForceOn::Target] {
-        let a = run(reference, &rollouts, on);
-        let b = run(other, &rollouts, on);
+    // With curvature elements wgpu adds their forces in tensor ops beside its spring kernels.
+    for (on, curvature) in [
+        (ForceOn::Simulated, false),
+        (ForceOn::Target, false),
+        (ForceOn::Simulated, true),
+    ] {
+        let label = &format!("{label} (curvature {curvature})");
+        let a = run(reference, &rollouts, on, curvature);
+        let b = run(other, &rollouts, on, curvature);
         common::assert_close(
             &format!("{label} {on:?} positions"),
             &a.positions,
@@ -85,6 +110,15 @@ fn compare(reference: &Device, other: &Device, label: &str) {
         );
         common::assert_close(&format!("{label} {on:?} dL/dk"), &a.grad_k, &b.grad_k, 1e-4);
         common::assert_close(&format!("{label} {on:?} dL/db"), &a.grad_b, &b.grad_b, 1e-4);
+        assert_eq!(a.grad_kappa.is_empty(), !curvature);
+        if curvature {
+            common::assert_close(
+                &format!("{label} {on:?} dL/dκ"),
+                &a.grad_kappa,
+                &b.grad_kappa,
+                1e-4,
+            );
+        }
     }
 }
 

@@ -533,3 +533,61 @@ fn a_run_killed_with_sigkill_resumes_to_the_uninterrupted_result() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
+    let dir = setup("cli-curvature");
+    let out = ok(&springtime(
+        &["train", "tiny.toml", "--set", "cloth.curvature=true"],
+        &dir,
+    ));
+    let run = dir.join("runs/tiny");
+    let npz = Npz::read(&run.join("springs.npz")).unwrap();
+    let (ends, shape) = npz.int("curvature", &[None, Some(3)]).unwrap();
+    // 6 rows of 4 elements and 4 interior rows of 6 columns.
+    assert_eq!(shape, [48, 3], "{out}");
+    assert_eq!(&ends[..3], &[0, 1, 2]);
+    let kappa = npz.f32("curvature_k", &[Some(48)]).unwrap().0;
+    let model: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("defaults.json")).unwrap()).unwrap();
+    let k_init = model["k_init"].as_f64().unwrap() as f32;
+    // The stiffness pass moved κ from `k_init / 20`, and kept it non-negative.
+    assert!(
+        kappa.iter().all(|&v| v >= 0.0) && kappa.iter().any(|&v| (v - k_init / 20.0).abs() > 1e-3),
+        "κ {kappa:?} from {}",
+        k_init / 20.0
+    );
+    // eval reloads the run with its elements: the same figure as training's evaluation.
+    let motion = |text: &str| {
+        text.lines()
+            .find(|l| l.starts_with("motion RMSE"))
+            .unwrap_or_default()
+            .to_string()
+    };
+    let again = ok(&springtime(&["eval", "runs/tiny"], &dir));
+    assert_eq!(motion(&again), motion(&out));
+    assert!(!motion(&out).is_empty(), "{out}");
+    ok(&springtime(&["export", "runs/tiny", "--out", "e"], &dir));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("e/surrogate.json")).unwrap())
+            .unwrap();
+    assert_eq!(json["curvature"].as_array().unwrap().len(), 48);
+    assert_eq!(json["curvature_k"].as_array().unwrap().len(), 48);
+    // Curvature elements live on a grid.
+    fails(
+        &springtime(
+            &[
+                "train",
+                "tiny.toml",
+                "--out",
+                "runs/mesh",
+                "--set",
+                "cloth.curvature=true",
+                "--set",
+                "cloth.layout=\"data\"",
+            ],
+            &dir,
+        ),
+        &["cloth.curvature", "cloth.layout"],
+    );
+}

@@ -621,6 +621,8 @@ fn small_surrogate() -> SurrogateJson {
         rayleigh: 0.05,
         gravity: [0.0, 0.0, -9.81],
         dt: Some(1e-3),
+        curvature: Vec::new(),
+        curvature_k: Vec::new(),
     }
 }
 

@@ -36,6 +36,10 @@ pub struct GridSpec {
     pub bending_stride: usize,
     /// Where the particles and springs come from: the paper's grid, or the data's mesh.
     pub layout: SpringLayout,
+    /// Curvature elements (ours): every three consecutive particles along a grid row or column
+    /// resist their second difference `x_i − 2x_j + x_l` with a learned stiffness (grid only).
+    /// Springs have no linear bending stiffness about the flat state; these do.
+    pub curvature: bool,
 }
 
 /// The surrogate's particles and springs: `cloth.layout`.
@@ -59,6 +63,7 @@ impl Default for GridSpec {
             shear_anti: true,
             bending_stride: 2,
             layout: SpringLayout::Grid,
+            curvature: false,
         }
     }
 }
@@ -154,6 +159,12 @@ pub struct Topology {
     pub rest_length: Vec<f64>,
     /// Family of every spring.
     pub family: Vec<SpringFamily>,
+    /// Curvature elements `(i, j, l)`: three consecutive particles of a grid row or column, `j`
+    /// in the middle (`cloth.curvature`; empty without). Each has the energy `½ κ |x_i − 2x_j +
+    /// x_l|²`, which is zero on the flat rest grid and under every rigid motion, and grows with
+    /// the square of the bend angle at `j`: the linear bending stiffness about the flat state
+    /// that springs, whose lengths change only to second order in that angle, do not have.
+    pub curvature: Vec<[usize; 3]>,
     /// Each particle's mass relative to the mean (mean 1): `None` for equal masses (a grid);
     /// on a data mesh, the lumped rest area (a third of each adjacent triangle's). The mean
     /// mass stays `total_mass / P` everywhere: a particle of relative mass `w` feels its spring
@@ -204,6 +215,19 @@ impl Topology {
             add(SpringFamily::Bending, 0, 0, s);
             add(SpringFamily::Bending, s, 0, 0);
         }
+        let mut curvature = Vec::new();
+        if spec.curvature {
+            for r in 0..ny {
+                for c in 1..nx.saturating_sub(1) {
+                    curvature.push([id(r, c - 1), id(r, c), id(r, c + 1)]);
+                }
+            }
+            for r in 1..ny.saturating_sub(1) {
+                for c in 0..nx {
+                    curvature.push([id(r - 1, c), id(r, c), id(r + 1, c)]);
+                }
+            }
+        }
         let mut topo = Self {
             grid: Some([nx, ny]),
             triangles: grid_triangles(nx, ny, Diagonal::Main),
@@ -213,6 +237,7 @@ impl Topology {
             springs,
             rest_length: Vec::new(),
             family,
+            curvature,
             mass_weight: None,
         };
         topo.rest_length = topo
@@ -309,6 +334,7 @@ impl Topology {
             springs,
             rest_length,
             family,
+            curvature: Vec::new(),
             mass_weight,
         })
     }

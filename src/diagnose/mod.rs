@@ -118,9 +118,12 @@ impl Inputs {
         Physics::new(&self.config.sim, frame_dt, self.mass)
     }
 
-    /// A spring network on the run's grid with the run's kernel.
+    /// A spring network on the run's grid with the run's kernel (and the learned curvature
+    /// elements, when the run has them: the chaos floor perturbs `k` and `b` only).
     pub fn network(&self, k: &[f64], b: &[f64]) -> SpringNet {
-        SpringNet::new(&self.topology, k, b, &self.device).with_kernel(self.config.model.kernel)
+        SpringNet::new(&self.topology, k, b, &self.device)
+            .with_kernel(self.config.model.kernel)
+            .with_curvature(&self.model.curvature_values())
     }
 }
 

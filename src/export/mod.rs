@@ -217,6 +217,13 @@ pub struct SurrogateJson {
     pub gravity: [f64; 3],
     /// Integration step the surrogate was trained with (frame time / substeps), s, when known.
     pub dt: Option<f64>,
+    /// Curvature elements `(i, j, l)` of a grid (`cloth.curvature`), each with the energy
+    /// `½ κ |x_i − 2x_j + x_l|²`; absent without.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub curvature: Vec<[usize; 3]>,
+    /// Stiffness `κ` per curvature element, N/m.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub curvature_k: Vec<f32>,
 }
 
 impl SurrogateJson {
@@ -242,6 +249,8 @@ impl SurrogateJson {
             rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
             gravity: config.sim.gravity.or(crate::sim::GRAVITY),
             dt,
+            curvature: topo.curvature.clone(),
+            curvature_k: model.curvature_values().iter().map(|&x| x as f32).collect(),
         }
     }
 
@@ -300,6 +309,23 @@ impl SurrogateJson {
         }
         if let Some(&[a, b]) = self.springs.iter().find(|&&[a, b]| a >= p || b >= p) {
             bail!("key `springs` has a spring ({a}, {b}) past the {p} particles");
+        }
+        if self.curvature_k.len() != self.curvature.len() {
+            bail!(
+                "key `curvature_k` has {} entries, key `curvature` has {}",
+                self.curvature_k.len(),
+                self.curvature.len()
+            );
+        }
+        if let Some(e) = self.curvature.iter().find(|e| e.iter().any(|&i| i >= p)) {
+            bail!("key `curvature` has an element {e:?} past the {p} particles");
+        }
+        if let Some(v) = self
+            .curvature_k
+            .iter()
+            .find(|v| !(v.is_finite() && **v >= 0.0))
+        {
+            bail!("key `curvature_k` holds {v}: every value must be finite and non-negative");
         }
         if let Some(i) = self.pinned.iter().find(|&&i| i >= p) {
             bail!("key `pinned` has particle {i}, past the {p} particles");
@@ -375,11 +401,13 @@ impl SurrogateJson {
             rayleigh,
             gravity,
             dt,
+            curvature,
+            curvature_k,
         } = self;
         fn j<T: Serialize>(v: &T) -> Result<String> {
             Ok(serde_json::to_string(v)?)
         }
-        let fields: [(&str, String); 17] = [
+        let mut fields: Vec<(&str, String)> = vec![
             ("format", j(format)?),
             ("units", j(units)?),
             ("grid", j(grid)?),
@@ -398,6 +426,10 @@ impl SurrogateJson {
             ("gravity", j(gravity)?),
             ("dt", j(dt)?),
         ];
+        if !curvature.is_empty() {
+            fields.push(("curvature", j(curvature)?));
+            fields.push(("curvature_k", j(curvature_k)?));
+        }
         let body: Vec<String> = fields
             .iter()
             .map(|(key, v)| format!("  \"{key}\": {v}"))
@@ -820,10 +852,9 @@ impl<'a> Export<'a> {
         let topo = &self.run.topology;
         let json = SurrogateJson::of(self.run, self.model, pinned, dt);
         let (rayleigh, gravity) = (json.rayleigh, json.gravity);
-        let (k, b) = (self.model.k_values(), self.model.b_values());
         let p = topo.num_particles();
         crate::io::write_text(&self.paths.json, &json.to_text()?)?;
-        let mut npz = crate::train::run::springs_npz(topo, &k, &b, self.run.particle_mass());
+        let mut npz = crate::train::run::springs_npz(topo, self.model, self.run.particle_mass());
         npz.insert("mass", Array::f64(&[p], &json.masses));
         npz.insert("rest_positions", Array::f32(&[p, 3], &self.rest));
         let mut pin_mask = vec![false; p];
@@ -891,6 +922,8 @@ mod tests {
             rayleigh: 0.1,
             gravity: [0.0, 0.0, -9.81],
             dt: None,
+            curvature: Vec::new(),
+            curvature_k: Vec::new(),
         };
         let text = j.to_text().unwrap();
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();

@@ -103,6 +103,12 @@ impl SpringSheet {
     /// `base`'s (the material keys are the FEM's and are not used).
     pub fn cloth(&self, base: &ClothConfig) -> Result<ClothConfig> {
         let s = &self.surrogate;
+        if !s.curvature.is_empty() {
+            bail!(
+                "the surrogate has curvature elements (cloth.curvature = true), which the latent \
+                 potential does not model yet: distill a surrogate trained without them"
+            );
+        }
         let Some([nx, ny]) = s.grid else {
             bail!(
                 "the surrogate lives on its data's mesh (cloth.layout = \"data\"): latent \
@@ -135,6 +141,7 @@ impl SpringSheet {
             springs: s.springs.clone(),
             rest_length: s.rest_length.clone(),
             family: s.family.clone(),
+            curvature: s.curvature.clone(),
             mass_weight: {
                 let mean = s.masses.iter().sum::<f64>() / s.masses.len().max(1) as f64;
                 let equal = s.masses.iter().all(|&m| (m - mean).abs() <= 1e-12 * mean);
@@ -148,6 +155,7 @@ impl SpringSheet {
         let s = &self.surrogate;
         let f64s = |v: &[f32]| -> Vec<f64> { v.iter().map(|&x| x as f64).collect() };
         SpringNet::new(&self.topology(), &f64s(&s.k), &f64s(&s.b), device)
+            .with_curvature(&f64s(&s.curvature_k))
     }
 
     /// The explicit integrator's constants for frames `frame_dt` apart: as many substeps as

@@ -54,6 +54,9 @@ pub struct ModelConfig {
     pub k_init: Auto<f64>,
     /// Initial damping of every spring, N·s/m (springs); `"auto"`: fitted with `k_init`.
     pub b_init: Auto<f64>,
+    /// Initial stiffness of every curvature element (`cloth.curvature`), N/m; `"auto"`:
+    /// `k_init / 20` (ours: a bending stiffness `κ h²` small beside the membrane's).
+    pub curvature_init: Auto<f64>,
     /// Spring-force implementation: the fused kernel or the tensor-op reference (springs).
     pub kernel: Kernel,
     /// The Neural ODE's architecture.
@@ -69,6 +72,7 @@ impl Default for ModelConfig {
             kind: ModelKind::Springs,
             k_init: Auto::Auto,
             b_init: Auto::Auto,
+            curvature_init: Auto::Auto,
             kernel: Kernel::Fused,
             neural_ode: NeuralOdeConfig::default(),
             gnn: GnnConfig::default(),
@@ -86,8 +90,21 @@ impl ModelConfig {
                 anyhow::bail!("`model.{key}` must be finite or \"auto\", is {x}");
             }
         }
+        if let Auto::Value(x) = self.curvature_init
+            && !(x.is_finite() && x > 0.0)
+        {
+            anyhow::bail!(
+                "`model.curvature_init` must be positive (its learning rate is a fraction of \
+                 it) or \"auto\", is {x}"
+            );
+        }
         self.neural_ode.validate()?;
         self.gnn.validate()
+    }
+
+    /// The curvature elements' initial stiffness beside springs of initial stiffness `k_init`.
+    pub fn curvature_init_for(&self, k_init: f64) -> f64 {
+        self.curvature_init.or(k_init / 20.0)
     }
 }
 
@@ -127,12 +144,13 @@ impl ForceModel for SpringNet {
         pin_v: Tensor<3>,
         params: StepParams,
     ) -> Option<(Tensor<3>, Tensor<3>, Tensor<3>)> {
-        self.graph.fused_forces().then(|| {
+        self.graph.fused_curvature().then(|| {
+            let (k, b) = self.kernel_params();
             kernels::cloth_step(
                 x,
                 v,
-                self.k.val(),
-                self.b.val(),
+                k,
+                b,
                 pinned.clone(),
                 pin_x,
                 pin_v,

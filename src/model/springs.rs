@@ -104,7 +104,8 @@ impl SpringGraph {
                     &topology.rest_length,
                     topology.num_particles(),
                 )
-                .with_force_scale(scale),
+                .with_force_scale(scale)
+                .with_curvature(&topology.curvature),
             ),
             kernel: Kernel::Fused,
             fused_on: FusedOn::of(device),
@@ -113,9 +114,17 @@ impl SpringGraph {
 }
 
 impl SpringGraph {
-    /// Whether the fused spring-force and step ops run here.
+    /// Whether the fused spring-force op runs here (for the springs; on the CPU also for the
+    /// curvature elements).
     pub fn fused_forces(&self) -> bool {
         self.kernel == Kernel::Fused && self.fused_on != FusedOn::Nowhere
+    }
+
+    /// Whether the fused ops take the curvature elements along with the springs: the CPU
+    /// kernels do; the CubeCL kernels know springs only, so there the elements' forces are
+    /// tensor ops beside the fused spring forces, and the step is tensor ops.
+    pub fn fused_curvature(&self) -> bool {
+        self.fused_forces() && (self.fused_on == FusedOn::Host || self.host.num_triples() == 0)
     }
 
     /// Whether the fused whole-rollout op ([`kernels::rollout_loss`]) runs here.
@@ -135,7 +144,8 @@ impl SpringGraph {
 /// (the mass-weighted sum, the momentum change, stays zero).
 ///
 /// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
-/// reference when `graph.kernel` says so (or the device has no fused kernel).
+/// reference when `graph.kernel` says so (or the device has no fused kernel). Springs only: on
+/// a graph with curvature elements use [`SpringNet::forces`].
 pub fn spring_forces(
     graph: &SpringGraph,
     x: Tensor<3>,
@@ -143,7 +153,8 @@ pub fn spring_forces(
     k: Tensor<1>,
     b: Tensor<1>,
 ) -> Tensor<3> {
-    if graph.fused_forces() {
+    if graph.fused_forces() && (graph.host.num_triples() == 0 || graph.fused_on == FusedOn::Cube) {
+        // (the CubeCL kernels read the springs' `k` and `b` only)
         kernels::spring_forces(x, v, k, b, &graph.host)
     } else {
         spring_forces_reference(graph, x, v, k, b)
@@ -182,7 +193,75 @@ pub fn spring_forces_reference(
     }
 }
 
-/// The learnable surrogate: one stiffness and one damping per spring.
+/// The curvature elements of a grid ([`Topology::curvature`], ours): three consecutive
+/// particles `(i, j, l)` of a row or column with the energy `½ κ_t |x_i − 2x_j + x_l|²`.
+///
+/// The force `κ_t e` with `e = x_i − 2x_j + x_l` acts as `−κ_t e` on `i` and `l` and `+2κ_t e`
+/// on `j`: it sums to zero (momentum), vanishes on the flat rest grid and under rigid motions,
+/// and is linear in the positions. The CPU kernels add it after the springs (their `k` holds
+/// the springs' values, then `κ`: [`SpringNet::kernel_params`]); this tensor-op form is their
+/// reference and runs where they do not.
+#[derive(Module, Debug)]
+pub struct Curvature {
+    /// Stiffness `κ_t` in N/m, `[T]`.
+    pub kappa: Param<Tensor<1>>,
+    /// First particle `i` of every element, `[T]`.
+    pub ii: Tensor<1, Int>,
+    /// Middle particle `j`, `[T]`.
+    pub ij: Tensor<1, Int>,
+    /// Last particle `l`, `[T]`.
+    pub il: Tensor<1, Int>,
+    /// `[i, l, j]`, `[3T]`: the scatter index of the forces.
+    pub ends: Tensor<1, Int>,
+}
+
+impl Curvature {
+    /// The elements `triples` with stiffness `kappa` on `device`.
+    pub fn new(triples: &[[usize; 3]], kappa: &[f64], device: &Device) -> Self {
+        let t = triples.len();
+        assert_eq!(kappa.len(), t, "one curvature stiffness per element");
+        let int = |v: Vec<i64>| {
+            let n = v.len();
+            Tensor::<1, Int>::from_data(TensorData::new(v, [n]), device)
+        };
+        let col = |c: usize| -> Vec<i64> { triples.iter().map(|e| e[c] as i64).collect() };
+        let ends = [col(0), col(2), col(1)].concat();
+        Self {
+            kappa: Param::from_tensor(Tensor::<1>::from_data(
+                TensorData::new(kappa.to_vec(), [t]),
+                device,
+            )),
+            ii: int(col(0)),
+            ij: int(col(1)),
+            il: int(col(2)),
+            ends: int(ends),
+        }
+    }
+
+    /// The elements' forces on every particle, `[B, P, 3]`.
+    pub fn forces(&self, x: Tensor<3>) -> Tensor<3> {
+        let [batch, p, _] = x.dims();
+        let t = self.ii.dims()[0];
+        let e = x.clone().select(1, self.ii.clone()) + x.clone().select(1, self.il.clone())
+            - x.select(1, self.ij.clone()).mul_scalar(2.0); // [B, T, 3]
+        let f = e * self.kappa.val().reshape([1, t, 1]);
+        let all = Tensor::cat(vec![f.clone().neg(), f.clone().neg(), f.mul_scalar(2.0)], 1);
+        Tensor::zeros([batch, p, 3], &all.device()).select_assign(
+            1,
+            self.ends.clone(),
+            all,
+            burn::tensor::IndexingUpdateOp::Add,
+        )
+    }
+
+    /// Current stiffness values on the host.
+    pub fn values(&self) -> Vec<f64> {
+        to_f64(self.kappa.val())
+    }
+}
+
+/// The learnable surrogate: one stiffness and one damping per spring, and with `cloth.curvature`
+/// one stiffness per curvature element.
 #[derive(Module, Debug)]
 pub struct SpringNet {
     /// Stiffness `k_s` in N/m, `[S]`.
@@ -191,10 +270,14 @@ pub struct SpringNet {
     pub b: Param<Tensor<1>>,
     /// Endpoints and rest lengths (constants).
     pub graph: SpringGraph,
+    /// The curvature elements, when the topology has them.
+    pub curvature: Option<Curvature>,
 }
 
 impl SpringNet {
-    /// A network over `topology` with the given per-spring `k` and `b`.
+    /// A network over `topology` with the given per-spring `k` and `b` (and, when the topology
+    /// has curvature elements, their stiffness `kappa` set by [`SpringNet::with_curvature`]; 0
+    /// until then).
     pub fn new(topology: &Topology, k: &[f64], b: &[f64], device: &Device) -> Self {
         let s = topology.num_springs();
         assert_eq!(k.len(), s, "one stiffness per spring");
@@ -206,10 +289,62 @@ impl SpringNet {
                 device,
             ))
         };
+        let curvature = (!topology.curvature.is_empty()).then(|| {
+            Curvature::new(
+                &topology.curvature,
+                &vec![0.0; topology.curvature.len()],
+                device,
+            )
+        });
         Self {
             k: t(k),
             b: t(b),
             graph: SpringGraph::new(topology, device),
+            curvature,
+        }
+    }
+
+    /// The same network with curvature stiffness `kappa`, one value per element of the topology
+    /// it was built on (a value for every element; none when it has none).
+    ///
+    /// Panics if the count differs.
+    pub fn with_curvature(mut self, kappa: &[f64]) -> Self {
+        match &mut self.curvature {
+            Some(c) => {
+                let t = c.ii.dims()[0];
+                assert_eq!(kappa.len(), t, "one curvature stiffness per element");
+                let device = c.ii.device();
+                c.kappa = Param::from_tensor(Tensor::<1>::from_data(
+                    TensorData::new(kappa.to_vec(), [t]),
+                    &device,
+                ));
+            }
+            None => assert!(kappa.is_empty(), "the topology has no curvature elements"),
+        }
+        self
+    }
+
+    /// Current curvature stiffness values on the host (empty without curvature elements).
+    pub fn curvature_values(&self) -> Vec<f64> {
+        self.curvature
+            .as_ref()
+            .map(Curvature::values)
+            .unwrap_or_default()
+    }
+
+    /// The fused ops' `k` and `b`: the springs' values, then (with curvature elements) the
+    /// elements' `κ` and a zero damping.
+    pub fn kernel_params(&self) -> (Tensor<1>, Tensor<1>) {
+        match &self.curvature {
+            None => (self.k.val(), self.b.val()),
+            Some(c) => {
+                let kappa = c.kappa.val();
+                let zeros = kappa.zeros_like();
+                (
+                    Tensor::cat(vec![self.k.val(), kappa], 0),
+                    Tensor::cat(vec![self.b.val(), zeros], 0),
+                )
+            }
         }
     }
 
@@ -225,9 +360,18 @@ impl SpringNet {
         Self::new(topology, &vec![k; s], &vec![b; s], device)
     }
 
-    /// Internal forces at state `(x, v)`, `[B, P, 3]` (see [`spring_forces`]).
+    /// Internal forces at state `(x, v)`, `[B, P, 3]` (see [`spring_forces`]), with the
+    /// curvature elements' ([`Curvature::forces`]).
     pub fn forces(&self, x: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
-        spring_forces(&self.graph, x, v, self.k.val(), self.b.val())
+        if self.graph.fused_curvature() {
+            let (k, b) = self.kernel_params();
+            return kernels::spring_forces(x, v, k, b, &self.graph.host);
+        }
+        let f = spring_forces(&self.graph, x.clone(), v, self.k.val(), self.b.val());
+        match &self.curvature {
+            Some(c) => f + c.forces(x),
+            None => f,
+        }
     }
 
     /// Current stiffness values on the host.

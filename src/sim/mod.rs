@@ -94,6 +94,11 @@ impl Physics {
             self.rayleigh,
             self.sim_dt(),
         )
+        .with_curvature(
+            &topology.curvature,
+            &model.curvature_values(),
+            topology.num_particles(),
+        )
     }
 
     /// The integration step `frame_dt / substeps`.

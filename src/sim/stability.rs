@@ -54,6 +54,35 @@ impl Stability {
         }
     }
 
+    /// The same estimate with the curvature elements `triples` of stiffness `kappa` added to
+    /// `ω²` (negative values count as zero): their stiffness matrix `Σ κ_t a aᵀ`, `a = (1, −2,
+    /// 1)` on `(i, j, l)`, is bounded by its largest absolute row sum (Gershgorin), `max_p Σ_t
+    /// 4 |a_p| κ_t`, and the largest eigenvalue of a sum of positive semi-definite matrices by
+    /// the sum of theirs, so the bound stays on the safe side.
+    pub fn with_curvature(
+        mut self,
+        triples: &[[usize; 3]],
+        kappa: &[f64],
+        particles: usize,
+    ) -> Self {
+        if triples.is_empty() {
+            return self;
+        }
+        let mut row = vec![0.0; particles];
+        for (&[i, j, l], &k) in triples.iter().zip(kappa) {
+            let k = 4.0 * k.max(0.0);
+            row[i] += k;
+            row[j] += 2.0 * k;
+            row[l] += k;
+        }
+        let bound = row.iter().copied().fold(0.0, f64::max);
+        let max = kappa.iter().copied().fold(0.0, f64::max);
+        self.omega2 += bound / self.mass;
+        self.parameters
+            .push_str(&format!(", largest curvature κ = {max:.4} N/m"));
+        self
+    }
+
     /// `dt²ω² + 2·dt·γ`: the step is stable while this is below 4.
     pub fn number(&self) -> f64 {
         self.dt * self.dt * self.omega2 + 2.0 * self.dt * self.gamma

@@ -44,6 +44,7 @@ impl SpringCloth {
             shear_anti: true,
             bending_stride: 2,
             layout: SpringLayout::Grid,
+            curvature: false,
         };
         let topology = Topology::grid(&spec, cfg.width, cfg.height);
         let map = StiffnessMap {

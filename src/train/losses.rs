@@ -292,11 +292,12 @@ fn fused_loss(
         gravity: physics.gravity,
         state_budget: budget_mib << 20,
     };
+    let (k, b) = model.kernel_params();
     let terms = kernels::rollout_loss(
         x0,
         v0,
-        model.k.val(),
-        model.b.val(),
+        k,
+        b,
         batch.pinned.clone(),
         batch.positions.clone(),
         batch.forces.clone(),

@@ -510,7 +510,11 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     let summary = match config.model.kind {
         ModelKind::Springs => {
             let model = SpringNet::uniform(&topo, resolution.k_init, resolution.b_init, &device)
-                .with_kernel(config.model.kernel);
+                .with_kernel(config.model.kernel)
+                .with_curvature(&vec![
+                    config.model.curvature_init_for(resolution.k_init);
+                    topo.curvature.len()
+                ]);
             let (summary, mut model) = fit.run(model)?;
             if config.train.scale_search {
                 let (scaled, scaled_physics, record) = scale::search(
@@ -543,13 +547,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                 RunDir::save_module(&scaled, &run.model())?;
                 model = scaled;
             }
-            run::write_springs(
-                &run.springs(),
-                &topo,
-                &model.k_values(),
-                &model.b_values(),
-                physics.mass,
-            )?;
+            run::write_springs(&run.springs(), &topo, &model, physics.mass)?;
             summary
         }
         ModelKind::NeuralOde => fit.run(meta.neural_ode(config, &device))?.0,
@@ -606,6 +604,12 @@ pub trait Trainable: Module + Sized {
         (self, None)
     }
 
+    /// A parameter the pass steps at its own learning rate, `factor × lr` (spring networks: the
+    /// curvature stiffness in a pass that trains `k`), after [`Trainable::begin_pass`].
+    fn own_rate(&self, _train_k: bool) -> Option<(ParamId, f64)> {
+        None
+    }
+
     /// RMSE of `k` and `b` against the ground truth, when the model has springs and it is known.
     fn parameter_rmse(&self, _truth: Option<&Truth>) -> Option<(f64, f64)> {
         None
@@ -660,11 +664,23 @@ impl Trainable for SpringNet {
     fn begin_pass(mut self, train_k: bool, train_b: bool) -> (Self, Option<Vec<ParamId>>) {
         self.k = self.k.clone().set_require_grad(train_k);
         self.b = self.b.clone().set_require_grad(train_b);
+        if let Some(c) = &mut self.curvature {
+            c.kappa = c.kappa.clone().set_require_grad(train_k);
+        }
         let ids = [(train_k, self.k.id), (train_b, self.b.id)]
             .into_iter()
             .filter_map(|(t, id)| t.then_some(id))
             .collect();
         (self, Some(ids))
+    }
+
+    /// The curvature stiffness steps at the rate that moves it by the same fraction of its size
+    /// as `k` (Adam's steps are about `lr` whatever the gradient's scale): `lr · mean κ / mean k`.
+    fn own_rate(&self, train_k: bool) -> Option<(ParamId, f64)> {
+        let c = self.curvature.as_ref().filter(|_| train_k)?;
+        let mean = |v: Vec<f64>| v.iter().map(|x| x.max(0.0)).sum::<f64>() / v.len().max(1) as f64;
+        let (kappa, k) = (mean(c.values()), mean(self.k_values()));
+        (kappa > 0.0 && k > 0.0).then(|| (c.kappa.id, kappa / k))
     }
 
     fn parameter_rmse(&self, truth: Option<&Truth>) -> Option<(f64, f64)> {
@@ -686,13 +702,17 @@ impl Trainable for SpringNet {
     }
 
     fn gradients_finite(&self, grads: &GradientsParams) -> bool {
-        [self.k.id, self.b.id].into_iter().all(|id| {
-            grads.get::<1>(id).is_none_or(|g| {
-                crate::model::springs::to_f64(g)
-                    .iter()
-                    .all(|x| x.is_finite())
+        let kappa = self.curvature.as_ref().map(|c| c.kappa.id);
+        [Some(self.k.id), Some(self.b.id), kappa]
+            .into_iter()
+            .flatten()
+            .all(|id| {
+                grads.get::<1>(id).is_none_or(|g| {
+                    crate::model::springs::to_f64(g)
+                        .iter()
+                        .all(|x| x.is_finite())
+                })
             })
-        })
     }
 
     /// `ω²` grows with every `k_s` and `γ` with every `b_s` (sums of positive semi-definite
@@ -708,7 +728,12 @@ impl Trainable for SpringNet {
         let b_part = 2.0 * dt * (st.gamma - c / m);
         let budget = TRAIN_STABILITY_LIMIT - 2.0 * dt * c / m;
         let negative = |v: &[f64], trained: bool| trained && v.iter().any(|&x| x < 0.0);
-        if k_part + b_part <= budget && !negative(&k, train_k) && !negative(&b, train_b) {
+        let kappa = self.curvature_values();
+        if k_part + b_part <= budget
+            && !negative(&k, train_k)
+            && !negative(&b, train_b)
+            && !negative(&kappa, train_k)
+        {
             return (self, 0);
         }
         let (k_budget, b_budget) = match (train_k, train_b) {
@@ -729,6 +754,12 @@ impl Trainable for SpringNet {
         };
         if train_k {
             self.k = clamp(self.k, k_budget * m / (dt * dt * unit));
+            // A curvature element adds at most 16 κ to its middle particle's row of the
+            // stiffness matrix (`with_curvature`'s bound, 32 κ where a row and a column element
+            // meet): one tenth of the stiffness budget bounds it.
+            if let Some(c) = self.curvature.as_mut() {
+                c.kappa = clamp(c.kappa.clone(), 0.1 * k_budget * m / (dt * dt * 32.0));
+            }
         }
         if train_b {
             self.b = clamp(self.b, b_budget * m / (2.0 * dt * unit));
@@ -970,6 +1001,7 @@ impl Fit<'_> {
             }
             let (prepared, trained) = model.begin_pass(train_k, train_b);
             model = prepared;
+            let own_rate = model.own_rate(train_k);
             // A model that reads one window of each clip gets only that window, drawn per
             // iteration (so a resumed run draws the same ones); a window longer than the clips
             // is left to the model to refuse by name.
@@ -1035,6 +1067,12 @@ impl Fit<'_> {
                 }
                 let mut grads = terms.total.backward();
                 let lr = pass.lr_at(it - pass_start);
+                let own_step = own_rate.map(|(id, factor)| {
+                    (
+                        lr * factor,
+                        GradientsParams::from_params(&mut grads, &model, &[id]),
+                    )
+                });
                 // One Adam step per learning rate: with `lr_b`, k's and b's gradients step
                 // separately (Adam's moments are per parameter, so this is Adam with two rates).
                 let steps: Vec<(f64, GradientsParams)> =
@@ -1054,6 +1092,8 @@ impl Fit<'_> {
                         }
                         (None, _) => vec![(lr, GradientsParams::from_grads(grads, &model))],
                     };
+                let steps: Vec<(f64, GradientsParams)> =
+                    steps.into_iter().chain(own_step).collect();
                 dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
                 if steps.iter().all(|(_, g)| model.gradients_finite(g)) {
                     for (lr, grads) in steps {

@@ -431,19 +431,20 @@ impl ModelMeta {
 
 /// Writes the exportable surrogate: `springs` `[S, 2]`, `rest_length`, `k`, `b` `[S]`, and the
 /// sheet (`rest_uv` `[P, 2]`, `grid` = `[nx, ny]` on a grid, `triangles` `[M, 3]`, `width`,
-/// `height`, `particle_mass` (the mean), `family`).
+/// `height`, `particle_mass` (the mean), `family`); with curvature elements also `curvature`
+/// `[T, 3]` (`i, j, l`) and `curvature_k` `[T]`.
 pub fn write_springs(
     path: &Path,
     topology: &Topology,
-    k: &[f64],
-    b: &[f64],
+    model: &SpringNet,
     particle_mass: f64,
 ) -> Result<()> {
-    springs_npz(topology, k, b, particle_mass).write(path)
+    springs_npz(topology, model, particle_mass).write(path)
 }
 
 /// The arrays of [`write_springs`], to write or to extend.
-pub fn springs_npz(topology: &Topology, k: &[f64], b: &[f64], particle_mass: f64) -> Npz {
+pub fn springs_npz(topology: &Topology, model: &SpringNet, particle_mass: f64) -> Npz {
+    let (k, b) = (&model.k_values()[..], &model.b_values()[..]);
     let s = topology.num_springs();
     let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<_>>();
     let mut npz = Npz::default();
@@ -483,6 +484,20 @@ pub fn springs_npz(topology: &Topology, k: &[f64], b: &[f64], particle_mass: f64
     npz.insert("width", Array::scalar(topology.width));
     npz.insert("height", Array::scalar(topology.height));
     npz.insert("particle_mass", Array::scalar(particle_mass));
+    if !topology.curvature.is_empty() {
+        let t = topology.curvature.len();
+        let ends: Vec<i32> = topology
+            .curvature
+            .iter()
+            .flatten()
+            .map(|&v| v as i32)
+            .collect();
+        npz.insert("curvature", Array::i32(&[t, 3], &ends));
+        npz.insert(
+            "curvature_k",
+            Array::f32(&[t], &f32s(&model.curvature_values())),
+        );
+    }
     npz
 }
 
@@ -679,7 +694,24 @@ fn read_springs(
             .map(f64::from)
             .collect())
     };
-    Ok(SpringNet::new(topology, &read("k")?, &read("b")?, device).with_kernel(config.model.kernel))
+    let kappa = match topology.curvature.len() {
+        0 => Vec::new(),
+        t => npz
+            .f32("curvature_k", &[Some(t)])
+            .with_context(|| {
+                format!(
+                    "{}: the run's config has `cloth.curvature = true`",
+                    path.display()
+                )
+            })?
+            .0
+            .into_iter()
+            .map(f64::from)
+            .collect(),
+    };
+    Ok(SpringNet::new(topology, &read("k")?, &read("b")?, device)
+        .with_kernel(config.model.kernel)
+        .with_curvature(&kappa))
 }
 
 #[cfg(test)]

@@ -78,11 +78,13 @@ pub fn search(
     progress: &Progress,
 ) -> Result<(SpringNet, Physics, ScaleSearch)> {
     let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
-    let (k, b) = (model.k_values(), model.b_values());
+    let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
+    // The curvature elements are stiffnesses: they scale with `k`.
     let scaled = |fk: f64, fb: f64| {
-        let k: Vec<f64> = k.iter().map(|v| v * fk).collect();
-        let b: Vec<f64> = b.iter().map(|v| v * fb).collect();
-        SpringNet::new(topology, &k, &b, device).with_kernel(model.graph.kernel)
+        let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
+        SpringNet::new(topology, &times(&k, fk), &times(&b, fb), device)
+            .with_kernel(model.graph.kernel)
+            .with_curvature(&times(&kappa, fk))
     };
     // Every pair is simulated once: the coarse k row meets the b row at its best k, and the
     // start (1, 1) lies on the k row.

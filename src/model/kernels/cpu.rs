@@ -41,6 +41,8 @@ pub struct StepParams {
 /// The springs with checked indices, so that the loops can skip bounds checks.
 pub(super) struct Springs<'a, T> {
     ends: &'a [(u32, u32)],
+    /// Curvature elements `(i, j, l)`, whose `k` and `b` follow the springs'.
+    triples: &'a [(u32, u32, u32)],
     l0: Vec<T>,
     /// Per-particle factor on the spring forces ([`HostGraph::with_force_scale`]).
     scale: Option<Vec<T>>,
@@ -50,6 +52,7 @@ impl<'a, T: Float> Springs<'a, T> {
     pub(super) fn new(g: &'a HostGraph) -> Self {
         Self {
             ends: &g.ends,
+            triples: &g.triples,
             l0: g
                 .rest_length
                 .iter()
@@ -245,6 +248,134 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
     }
 }
 
+/// Accumulates the curvature elements' forces of one chunk into `out`: with `e = x_i − 2x_j +
+/// x_l`, `ė` the same of the velocities and `f = κ e + β ė` (`κ`, `β` the element's entries of
+/// `k`, `b` after the springs'), `−f` on `i` and `l` and `2f` on `j`.
+///
+/// # Safety
+/// As [`chunk_forces`], and `k`, `b` hold one value per spring and per element.
+#[inline(always)]
+unsafe fn chunk_curvature<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    out: &mut [Lane<T, L>],
+) {
+    let two = T::one() + T::one();
+    let offset = sp.ends.len();
+    for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
+        let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
+        // SAFETY: element indices < particles (HostGraph::with_curvature) and the caller's
+        // length contract.
+        unsafe {
+            let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
+            for c in 0..3 {
+                let mut f = [T::zero(); L];
+                let (xi, xj, xl) = (
+                    x.get_unchecked(i + c),
+                    x.get_unchecked(j + c),
+                    x.get_unchecked(l + c),
+                );
+                let (vi, vj, vl) = (
+                    v.get_unchecked(i + c),
+                    v.get_unchecked(j + c),
+                    v.get_unchecked(l + c),
+                );
+                for q in 0..L {
+                    f[q] = kt * (xi[q] - two * xj[q] + xl[q]) + bt * (vi[q] - two * vj[q] + vl[q]);
+                }
+                let o = out.get_unchecked_mut(i + c);
+                for q in 0..L {
+                    o[q] = o[q] - f[q];
+                }
+                let o = out.get_unchecked_mut(j + c);
+                for q in 0..L {
+                    o[q] = o[q] + two * f[q];
+                }
+                let o = out.get_unchecked_mut(l + c);
+                for q in 0..L {
+                    o[q] = o[q] - f[q];
+                }
+            }
+        }
+    }
+}
+
+/// Back-propagates `gf` through the curvature elements' forces of one chunk (see
+/// [`chunk_curvature`]): with `q = −g_i + 2g_j − g_l`, `∂ℓ/∂e = κ q`, `∂ℓ/∂ė = β q`, `∂ℓ/∂κ = e·q`,
+/// `∂ℓ/∂β = ė·q` (summed over the lanes).
+///
+/// # Safety
+/// As [`chunk_curvature`], and `gk`, `gb` hold one value per spring and per element.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn chunk_curvature_backward<T: Float, const L: usize>(
+    sp: &Springs<T>,
+    x: &[Lane<T, L>],
+    v: &[Lane<T, L>],
+    k: &[T],
+    b: &[T],
+    gf: &[Lane<T, L>],
+    gx: &mut [Lane<T, L>],
+    gv: &mut [Lane<T, L>],
+    gk: &mut [T],
+    gb: &mut [T],
+) {
+    let two = T::one() + T::one();
+    let offset = sp.ends.len();
+    for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
+        let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
+        // SAFETY: as in `chunk_curvature`.
+        unsafe {
+            let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
+            let (mut dk, mut db) = (T::zero(), T::zero());
+            for c in 0..3 {
+                let mut q = [T::zero(); L];
+                {
+                    let (gi, gj, gl) = (
+                        gf.get_unchecked(i + c),
+                        gf.get_unchecked(j + c),
+                        gf.get_unchecked(l + c),
+                    );
+                    let (xi, xj, xl) = (
+                        x.get_unchecked(i + c),
+                        x.get_unchecked(j + c),
+                        x.get_unchecked(l + c),
+                    );
+                    let (vi, vj, vl) = (
+                        v.get_unchecked(i + c),
+                        v.get_unchecked(j + c),
+                        v.get_unchecked(l + c),
+                    );
+                    for p in 0..L {
+                        q[p] = two * gj[p] - gi[p] - gl[p];
+                        dk = dk + (xi[p] - two * xj[p] + xl[p]) * q[p];
+                        db = db + (vi[p] - two * vj[p] + vl[p]) * q[p];
+                    }
+                }
+                for (acc, coef) in [(&mut *gx, kt), (&mut *gv, bt)] {
+                    let a = acc.get_unchecked_mut(i + c);
+                    for p in 0..L {
+                        a[p] = a[p] + coef * q[p];
+                    }
+                    let a = acc.get_unchecked_mut(j + c);
+                    for p in 0..L {
+                        a[p] = a[p] - two * coef * q[p];
+                    }
+                    let a = acc.get_unchecked_mut(l + c);
+                    for p in 0..L {
+                        a[p] = a[p] + coef * q[p];
+                    }
+                }
+            }
+            *gk.get_unchecked_mut(offset + t) = *gk.get_unchecked(offset + t) + dk;
+            *gb.get_unchecked_mut(offset + t) = *gb.get_unchecked(offset + t) + db;
+        }
+    }
+}
+
 /// Whether the 8-lane AVX2 kernels may run.
 pub(super) fn wide() -> bool {
     #[cfg(target_arch = "x86_64")]
@@ -326,6 +457,9 @@ pub(super) unsafe fn run_forces<T: Float, const L: usize>(
         } else {
             chunk_forces(sp, x, v, k, b, out)
         }
+        if !sp.triples.is_empty() {
+            chunk_curvature(sp, x, v, k, b, out)
+        }
     }
     if let Some(scale) = &sp.scale {
         for (i, f) in out.iter_mut().enumerate() {
@@ -372,6 +506,9 @@ pub(super) unsafe fn run_backward<T: Float, const L: usize>(
         } else {
             chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
         }
+        if !sp.triples.is_empty() {
+            chunk_curvature_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
+        }
     }
 }
 
@@ -391,7 +528,7 @@ pub fn forces<T: Float + Send + Sync>(
             && out.len().is_multiple_of(stride)
             && !out.is_empty()
     );
-    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    assert!(k.len() == g.num_params() && b.len() == g.num_params());
     let batch = out.len() / stride;
     dispatch_lanes!(batch, T, forces_lanes, (g, x, v, k, b, out))
 }
@@ -446,8 +583,8 @@ pub fn forces_backward<T: Float + Send + Sync>(
             && n.is_multiple_of(stride)
             && n > 0
     );
-    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
-    assert!(gk.len() == g.num_springs() && gb.len() == g.num_springs());
+    assert!(k.len() == g.num_params() && b.len() == g.num_params());
+    assert!(gk.len() == g.num_params() && gb.len() == g.num_params());
     let no_step = None;
     dispatch_lanes!(
         n / stride,
@@ -485,7 +622,7 @@ pub fn step<T: Float + Send + Sync>(
     let n = x.len();
     assert!(v.len() == n && pins.x.len() == n && pins.v.len() == n && pins.pinned.len() * 3 == n);
     assert!(out.len() == 3 * n && n.is_multiple_of(stride) && n > 0);
-    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
+    assert!(k.len() == g.num_params() && b.len() == g.num_params());
     dispatch_lanes!(
         n / stride,
         T,
@@ -585,8 +722,8 @@ pub fn step_backward<T: Float + Send + Sync>(
             && gout.len() == 3 * n
     );
     assert!(n.is_multiple_of(stride) && n > 0);
-    assert!(k.len() == g.num_springs() && b.len() == g.num_springs());
-    assert!(gk.len() == g.num_springs() && gb.len() == g.num_springs());
+    assert!(k.len() == g.num_params() && b.len() == g.num_params());
+    assert!(gk.len() == g.num_params() && gb.len() == g.num_params());
     let step = Some((pinned, params));
     dispatch_lanes!(
         n / stride,
@@ -619,7 +756,7 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;
-    let s_count = g.num_springs();
+    let s_count = g.num_params();
     let partials: Vec<Vec<T>> = gx
         .par_chunks_mut(L * stride)
         .zip(gv.par_chunks_mut(L * stride))

@@ -140,7 +140,7 @@ fn forces_backward<B: HostAccess, T: HostFloat>(
         B::read::<T>(&b),
     );
     let gs = B::read::<T>(&grad);
-    let s = graph.num_springs();
+    let s = graph.num_params();
     let (mut gx, mut gv) = (vec![T::zero(); xs.len()], vec![T::zero(); xs.len()]);
     let (mut gk, mut gb) = (vec![T::zero(); s], vec![T::zero(); s]);
     cpu::forces_backward(
@@ -208,7 +208,7 @@ fn step_backward<B: HostAccess, T: HostFloat>(
         B::read::<T>(&b),
     );
     let (ps, gs) = (B::read::<T>(&pinned), B::read::<T>(&grad));
-    let s = graph.num_springs();
+    let s = graph.num_params();
     let (mut gx, mut gv) = (vec![T::zero(); xs.len()], vec![T::zero(); xs.len()]);
     let (mut gk, mut gb) = (vec![T::zero(); s], vec![T::zero(); s]);
     cpu::step_backward(
@@ -276,7 +276,7 @@ fn rollout_backward<B: HostAccess, T: HostFloat>(
     let (gk, gb) = with_data::<B, T, _>(inputs, |d| {
         rollout::backward(graph, d, params, T::untape(tape), w)
     });
-    let (s, device) = (graph.num_springs(), inputs.k.device());
+    let (s, device) = (graph.num_params(), inputs.k.device());
     (
         upload::<B, T>(gk, vec![s], &device),
         upload::<B, T>(gb, vec![s], &device),

@@ -39,6 +39,9 @@ use burn::tensor::Tensor;
 #[derive(Debug, Clone, PartialEq)]
 pub struct HostGraph {
     ends: Vec<(u32, u32)>,
+    /// Curvature elements `(i, j, l)` ([`HostGraph::with_curvature`]); their stiffness and
+    /// damping follow the springs' in the ops' `k` and `b`.
+    triples: Vec<(u32, u32, u32)>,
     rest_length: Vec<f64>,
     particles: usize,
     /// `1 / w` on each particle's spring forces (relative masses `w`); `None`: equal masses.
@@ -67,6 +70,7 @@ impl HostGraph {
             .collect();
         Self {
             ends,
+            triples: Vec::new(),
             rest_length: rest_length.to_vec(),
             particles,
             force_scale: None,
@@ -94,9 +98,39 @@ impl HostGraph {
         self
     }
 
+    /// The same graph with the curvature elements `triples` (grid rows and columns of three
+    /// particles, [`crate::cloth::Topology::curvature`]): the ops' `k` and `b` then hold one
+    /// value per spring, then one per element.
+    ///
+    /// Panics if an element names a particle past the graph's.
+    pub fn with_curvature(mut self, triples: &[[usize; 3]]) -> Self {
+        self.triples = triples
+            .iter()
+            .map(|t| {
+                assert!(
+                    t.iter().all(|&i| i < self.particles),
+                    "curvature element {t:?} outside {} particles",
+                    self.particles
+                );
+                (t[0] as u32, t[1] as u32, t[2] as u32)
+            })
+            .collect();
+        self
+    }
+
     /// Number of springs.
     pub fn num_springs(&self) -> usize {
         self.ends.len()
+    }
+
+    /// Number of curvature elements.
+    pub fn num_triples(&self) -> usize {
+        self.triples.len()
+    }
+
+    /// Entries of the ops' `k` and `b`: one per spring and per curvature element.
+    pub fn num_params(&self) -> usize {
+        self.ends.len() + self.triples.len()
     }
 
     /// Number of particles.

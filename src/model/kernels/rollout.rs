@@ -75,7 +75,7 @@ impl<T> RolloutData<'_, T> {
         assert!(self.x0.len() == b * stride && self.v0.len() == b * stride);
         assert!(self.pinned.len() == b * g.particles);
         assert!(self.path.len() == b * (t + 1) * stride && self.target.len() == b * t * stride);
-        assert!(self.k.len() == g.num_springs() && self.b.len() == g.num_springs());
+        assert!(self.k.len() == g.num_params() && self.b.len() == g.num_params());
     }
 }
 
@@ -400,7 +400,7 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
         substeps: n,
         ..params
     };
-    let s_count = g.num_springs();
+    let s_count = g.num_params();
     let (b, p) = (data.batch as f64, g.particles as f64);
     // ∂L_f/∂f̄ = 2 φ (f̄ − f̂)/(BTP); ∂L_J/∂f̄_j = 2 φ c_j F (J − Ĵ)/(BP); ∂L_x/∂x = 2 φ (x − x̂)/(BTP).
     let cf = cast::<T>(2.0 * w[0] / (b * t as f64 * p));
