@@ -571,6 +571,8 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("e/surrogate.json")).unwrap())
             .unwrap();
+    // A reader of the first format, which knows springs only, must not take it for one.
+    assert_eq!(json["format"], "springtime-surrogate/2");
     assert_eq!(json["curvature"].as_array().unwrap().len(), 48);
     assert_eq!(json["curvature_k"].as_array().unwrap().len(), 48);
     // Curvature elements live on a grid.

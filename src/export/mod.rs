@@ -174,6 +174,9 @@ pub fn write_ply(
 
 /// The `format` tag of [`SurrogateJson`].
 pub const FORMAT: &str = "springtime-surrogate/1";
+/// The format tag of a surrogate with curvature elements: a reader of the first version, which
+/// knows springs only, must not take it for one.
+pub const FORMAT_CURVATURE: &str = "springtime-surrogate/2";
 
 /// `surrogate.json`: everything needed to simulate the learned cloth elsewhere (and what
 /// `springtime latent train --from` distills; [`SurrogateJson::read`]).
@@ -232,7 +235,12 @@ impl SurrogateJson {
     pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], dt: Option<f64>) -> Self {
         let (topo, config) = (&run.topology, &run.config);
         Self {
-            format: FORMAT.into(),
+            format: if topo.curvature.is_empty() {
+                FORMAT
+            } else {
+                FORMAT_CURVATURE
+            }
+            .into(),
             units: "SI: m, kg, s, N/m, N·s/m".into(),
             grid: topo.grid,
             triangles: topo.triangles.clone(),
@@ -267,8 +275,13 @@ impl SurrogateJson {
 
     /// Checks the format tag and that the per-particle and per-spring arrays agree.
     pub fn validate(&self) -> Result<()> {
-        if self.format != FORMAT {
-            bail!("key `format` is {:?}, expected {FORMAT:?}", self.format);
+        let expected = if self.curvature.is_empty() {
+            FORMAT
+        } else {
+            FORMAT_CURVATURE
+        };
+        if self.format != expected {
+            bail!("key `format` is {:?}, expected {expected:?}", self.format);
         }
         if let Some([nx, ny]) = self.grid
             && (nx < 2 || ny < 2)

@@ -341,6 +341,13 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
             run_dir.display()
         );
     };
+    if !run.topology.curvature.is_empty() {
+        bail!(
+            "{}: the fold test's host simulator has springs only, and this surrogate has \
+             curvature elements (cloth.curvature = true): fold a run trained without them",
+            run_dir.display()
+        );
+    }
     let cloth = SpringCloth {
         k: model.k_values(),
         b: model.b_values(),

@@ -137,7 +137,11 @@ pub fn loss_with_budget(
         return fused_loss(model, physics, batch, weights, budget_mib);
     }
     let mut terms = motion_loss(model, physics, batch, weights, on);
-    let k_neg = relu(model.k.val().neg()).sum();
+    let k_neg = relu(model.k.val().neg()).sum()
+        + model.curvature.as_ref().map_or_else(
+            || model.k.val().zeros_like().sum(),
+            |c| relu(c.kappa.val().neg()).sum(),
+        );
     let b_neg = relu(model.b.val().neg()).sum();
     terms.total = terms.total
         + k_neg.clone().mul_scalar(weights.k_neg)
@@ -308,7 +312,11 @@ fn fused_loss(
     #[allow(clippy::single_range_in_vec_init)]
     let term = |i: usize| terms.clone().slice([i..i + 1]);
     let (force, impulse, position) = (term(0), term(1), term(2));
-    let k_neg = relu(model.k.val().neg()).sum();
+    let k_neg = relu(model.k.val().neg()).sum()
+        + model.curvature.as_ref().map_or_else(
+            || model.k.val().zeros_like().sum(),
+            |c| relu(c.kappa.val().neg()).sum(),
+        );
     let b_neg = relu(model.b.val().neg()).sum();
     let total = force.clone().mul_scalar(weights.force)
         + impulse.clone().mul_scalar(weights.impulse)

@@ -483,6 +483,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         topology: &topo,
         truth: truth.as_ref(),
         device: &device,
+        curvature_lr_factor: config.model.curvature_init_for(resolution.k_init) / resolution.k_init,
     };
     // The model's constants: new ones, or those of the run being resumed.
     let meta = match (&previous, ModelMeta::read(&run.meta())) {
@@ -585,6 +586,8 @@ pub struct Job<'a> {
     pub truth: Option<&'a Truth>,
     /// The training device.
     pub device: &'a Device,
+    /// The curvature elements' learning rate as a fraction of the pass's: `κ_init / k_init`.
+    pub curvature_lr_factor: f64,
 }
 
 /// A model family the clip-training loop can fit.
@@ -606,7 +609,7 @@ pub trait Trainable: Module + Sized {
 
     /// A parameter the pass steps at its own learning rate, `factor × lr` (spring networks: the
     /// curvature stiffness in a pass that trains `k`), after [`Trainable::begin_pass`].
-    fn own_rate(&self, _train_k: bool) -> Option<(ParamId, f64)> {
+    fn own_rate(&self, _job: &Job, _train_k: bool) -> Option<(ParamId, f64)> {
         None
     }
 
@@ -675,12 +678,11 @@ impl Trainable for SpringNet {
     }
 
     /// The curvature stiffness steps at the rate that moves it by the same fraction of its size
-    /// as `k` (Adam's steps are about `lr` whatever the gradient's scale): `lr · mean κ / mean k`.
-    fn own_rate(&self, train_k: bool) -> Option<(ParamId, f64)> {
+    /// as `k` (Adam's steps are about `lr` whatever the gradient's scale): `lr · κ_init /
+    /// k_init`, from the run's initial values (so a resumed run steps as an uninterrupted one).
+    fn own_rate(&self, job: &Job, train_k: bool) -> Option<(ParamId, f64)> {
         let c = self.curvature.as_ref().filter(|_| train_k)?;
-        let mean = |v: Vec<f64>| v.iter().map(|x| x.max(0.0)).sum::<f64>() / v.len().max(1) as f64;
-        let (kappa, k) = (mean(c.values()), mean(self.k_values()));
-        (kappa > 0.0 && k > 0.0).then(|| (c.kappa.id, kappa / k))
+        Some((c.kappa.id, job.curvature_lr_factor))
     }
 
     fn parameter_rmse(&self, truth: Option<&Truth>) -> Option<(f64, f64)> {
@@ -753,12 +755,17 @@ impl Trainable for SpringNet {
             param.map(|t| Tensor::from_inner(t.inner().clamp(0.0, cap as f32)).require_grad())
         };
         if train_k {
-            self.k = clamp(self.k, k_budget * m / (dt * dt * unit));
-            // A curvature element adds at most 16 κ to its middle particle's row of the
-            // stiffness matrix (`with_curvature`'s bound, 32 κ where a row and a column element
-            // meet): one tenth of the stiffness budget bounds it.
+            // With curvature elements the springs get nine tenths of the stiffness budget and
+            // the elements the rest: an element adds 8 κ to its middle particle's row of the
+            // stiffness matrix and 4 κ to each end's, 32 κ in all inside the sheet
+            // (`Stability::with_curvature`'s bound), so the sum stays within the budget.
+            let spring_share = if self.curvature.is_some() { 0.9 } else { 1.0 };
+            self.k = clamp(self.k, spring_share * k_budget * m / (dt * dt * unit));
             if let Some(c) = self.curvature.as_mut() {
-                c.kappa = clamp(c.kappa.clone(), 0.1 * k_budget * m / (dt * dt * 32.0));
+                c.kappa = clamp(
+                    c.kappa.clone(),
+                    (1.0 - spring_share) * k_budget * m / (dt * dt * 32.0),
+                );
             }
         }
         if train_b {
@@ -1001,7 +1008,7 @@ impl Fit<'_> {
             }
             let (prepared, trained) = model.begin_pass(train_k, train_b);
             model = prepared;
-            let own_rate = model.own_rate(train_k);
+            let own_rate = model.own_rate(job, train_k);
             // A model that reads one window of each clip gets only that window, drawn per
             // iteration (so a resumed run draws the same ones); a window longer than the clips
             // is left to the model to refuse by name.

@@ -694,6 +694,19 @@ fn read_springs(
             .map(f64::from)
             .collect())
     };
+    if npz.has("curvature") {
+        let (ends, _) = npz.int("curvature", &[Some(topology.curvature.len()), Some(3)])?;
+        let same = ends
+            .chunks(3)
+            .zip(&topology.curvature)
+            .all(|(a, b)| a.iter().zip(b).all(|(&x, &y)| x == y as i64));
+        if !same {
+            bail!(
+                "{}: its curvature elements are not those of the run's grid",
+                path.display()
+            );
+        }
+    }
     let kappa = match topology.curvature.len() {
         0 => Vec::new(),
         t => npz

@@ -10,6 +10,8 @@ surrogate's own explicit rollout. Usage: python3 tests/thirdparty/implicit_sprin
 import json, sys, numpy as np
 run = sys.argv[1]; fps_div = int(sys.argv[2]) if len(sys.argv) > 2 else 1
 j = json.load(open(f'{run}/surrogate.json'))
+if j['format'] != 'springtime-surrogate/1':
+    sys.exit(f"{run}/surrogate.json is {j['format']}: this script knows springs only")
 d = np.load(f'{run}/rollout.npz')
 X = d['positions'].reshape(d['positions'].shape[0], -1, 3).astype(np.float64)
 pin = d['pinned'].astype(bool)
