@@ -542,6 +542,7 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
         &dir,
     ));
     let run = dir.join("runs/tiny");
+    assert!(run.join("report/curvature_map.png").exists(), "{out}");
     let npz = Npz::read(&run.join("springs.npz")).unwrap();
     let (ends, shape) = npz.int("curvature", &[None, Some(3)]).unwrap();
     // 6 rows of 4 elements and 4 interior rows of 6 columns.

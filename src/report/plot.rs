@@ -570,6 +570,47 @@ pub fn spring_map_rows_png(
     })
 }
 
+/// Writes the curvature elements' stiffness `kappa` (one per element of `topology.curvature`)
+/// as two particle maps, each element drawn at its middle particle: the elements along the
+/// grid's rows (left) and along its columns (right), one colour range, particles that are the
+/// middle of no element grey.
+pub fn curvature_map_png(
+    path: &Path,
+    topology: &Topology,
+    kappa: &[f64],
+    title: &str,
+) -> Result<()> {
+    if kappa.len() != topology.curvature.len() {
+        bail!(
+            "{} values for {} curvature elements",
+            kappa.len(),
+            topology.curvature.len()
+        );
+    }
+    let p = topology.num_particles();
+    let (mut rows, mut cols) = (vec![f64::NAN; p], vec![f64::NAN; p]);
+    for (&[i, j, _], &v) in topology.curvature.iter().zip(kappa) {
+        // A row element's ends share the middle's rest v; a column element's its u.
+        let along_row = (topology.rest_uv[i][1] - topology.rest_uv[j][1]).abs()
+            < 1e-9 * topology.height.max(1.0);
+        if along_row {
+            rows[j] = v;
+        } else {
+            cols[j] = v;
+        }
+    }
+    let range = value_range(&[kappa]);
+    let (pw, ph) = MAP_PANEL;
+    png_figure(path, 2 * pw + COLORBAR_WIDTH, TITLE_HEIGHT + ph, |root| {
+        let body = self::title(root, title, 18)?;
+        let (maps, bar) = body.split_horizontally(2 * pw);
+        let cells = maps.split_evenly((1, 2));
+        draw_particle_map(&cells[0], topology, &rows, "along rows", range)?;
+        draw_particle_map(&cells[1], topology, &cols, "along columns", range)?;
+        draw_colorbar(&bar, range, "κ (N/m)")
+    })
+}
+
 /// Draws one value per particle of a grid `topology` as a filled square around its rest
 /// position (a cell of the grid spacing), coloured on viridis over `range` (NaN grey).
 /// No colour bar: see [`draw_colorbar`].

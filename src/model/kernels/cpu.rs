@@ -248,6 +248,45 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
     }
 }
 
+/// `a_i − 2a_j + a_l` of the lane rows `i`, `j`, `l` (component offsets included).
+///
+/// # Safety
+/// The three rows exist.
+#[inline(always)]
+unsafe fn second_difference<T: Float, const L: usize>(
+    a: &[Lane<T, L>],
+    i: usize,
+    j: usize,
+    l: usize,
+) -> Lane<T, L> {
+    let two = T::one() + T::one();
+    // SAFETY: forwarded contract.
+    let (ai, aj, al) = unsafe { (a.get_unchecked(i), a.get_unchecked(j), a.get_unchecked(l)) };
+    std::array::from_fn(|q| ai[q] - two * aj[q] + al[q])
+}
+
+/// Adds `s · (w, −2w, w)` to the lane rows `i`, `j`, `l`: the transpose of
+/// [`second_difference`].
+///
+/// # Safety
+/// The three rows exist.
+#[inline(always)]
+unsafe fn add_second_difference_transpose<T: Float, const L: usize>(
+    acc: &mut [Lane<T, L>],
+    (i, j, l): (usize, usize, usize),
+    w: &Lane<T, L>,
+    s: T,
+) {
+    let minus_two_s = -(s + s);
+    for (row, f) in [(i, s), (j, minus_two_s), (l, s)] {
+        // SAFETY: forwarded contract.
+        let a = unsafe { acc.get_unchecked_mut(row) };
+        for q in 0..L {
+            a[q] = a[q] + f * w[q];
+        }
+    }
+}
+
 /// Accumulates the curvature elements' forces of one chunk into `out`: with `e = x_i − 2x_j +
 /// x_l`, `ė` the same of the velocities and `f = κ e + β ė` (`κ`, `β` the element's entries of
 /// `k`, `b` after the springs'), `−f` on `i` and `l` and `2f` on `j`.
@@ -263,7 +302,6 @@ unsafe fn chunk_curvature<T: Float, const L: usize>(
     b: &[T],
     out: &mut [Lane<T, L>],
 ) {
-    let two = T::one() + T::one();
     let offset = sp.ends.len();
     for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
         let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
@@ -272,40 +310,19 @@ unsafe fn chunk_curvature<T: Float, const L: usize>(
         unsafe {
             let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
             for c in 0..3 {
-                let mut f = [T::zero(); L];
-                let (xi, xj, xl) = (
-                    x.get_unchecked(i + c),
-                    x.get_unchecked(j + c),
-                    x.get_unchecked(l + c),
-                );
-                let (vi, vj, vl) = (
-                    v.get_unchecked(i + c),
-                    v.get_unchecked(j + c),
-                    v.get_unchecked(l + c),
-                );
-                for q in 0..L {
-                    f[q] = kt * (xi[q] - two * xj[q] + xl[q]) + bt * (vi[q] - two * vj[q] + vl[q]);
-                }
-                let o = out.get_unchecked_mut(i + c);
-                for q in 0..L {
-                    o[q] = o[q] - f[q];
-                }
-                let o = out.get_unchecked_mut(j + c);
-                for q in 0..L {
-                    o[q] = o[q] + two * f[q];
-                }
-                let o = out.get_unchecked_mut(l + c);
-                for q in 0..L {
-                    o[q] = o[q] - f[q];
-                }
+                let rows = (i + c, j + c, l + c);
+                let e = second_difference(x, rows.0, rows.1, rows.2);
+                let de = second_difference(v, rows.0, rows.1, rows.2);
+                let f: Lane<T, L> = std::array::from_fn(|q| kt * e[q] + bt * de[q]);
+                add_second_difference_transpose(out, rows, &f, -T::one());
             }
         }
     }
 }
 
 /// Back-propagates `gf` through the curvature elements' forces of one chunk (see
-/// [`chunk_curvature`]): with `q = −g_i + 2g_j − g_l`, `∂ℓ/∂e = κ q`, `∂ℓ/∂ė = β q`, `∂ℓ/∂κ = e·q`,
-/// `∂ℓ/∂β = ė·q` (summed over the lanes).
+/// [`chunk_curvature`]): with `q = −(g_i − 2g_j + g_l)`, `∂ℓ/∂e = κ q`, `∂ℓ/∂ė = β q`,
+/// `∂ℓ/∂κ = e·q`, `∂ℓ/∂β = ė·q` (summed over the lanes).
 ///
 /// # Safety
 /// As [`chunk_curvature`], and `gk`, `gb` hold one value per spring and per element.
@@ -323,7 +340,6 @@ unsafe fn chunk_curvature_backward<T: Float, const L: usize>(
     gk: &mut [T],
     gb: &mut [T],
 ) {
-    let two = T::one() + T::one();
     let offset = sp.ends.len();
     for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
         let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
@@ -332,43 +348,17 @@ unsafe fn chunk_curvature_backward<T: Float, const L: usize>(
             let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
             let (mut dk, mut db) = (T::zero(), T::zero());
             for c in 0..3 {
-                let mut q = [T::zero(); L];
-                {
-                    let (gi, gj, gl) = (
-                        gf.get_unchecked(i + c),
-                        gf.get_unchecked(j + c),
-                        gf.get_unchecked(l + c),
-                    );
-                    let (xi, xj, xl) = (
-                        x.get_unchecked(i + c),
-                        x.get_unchecked(j + c),
-                        x.get_unchecked(l + c),
-                    );
-                    let (vi, vj, vl) = (
-                        v.get_unchecked(i + c),
-                        v.get_unchecked(j + c),
-                        v.get_unchecked(l + c),
-                    );
-                    for p in 0..L {
-                        q[p] = two * gj[p] - gi[p] - gl[p];
-                        dk = dk + (xi[p] - two * xj[p] + xl[p]) * q[p];
-                        db = db + (vi[p] - two * vj[p] + vl[p]) * q[p];
-                    }
+                let rows = (i + c, j + c, l + c);
+                let g = second_difference(gf, rows.0, rows.1, rows.2);
+                let q: Lane<T, L> = std::array::from_fn(|p| -g[p]);
+                let e = second_difference(x, rows.0, rows.1, rows.2);
+                let de = second_difference(v, rows.0, rows.1, rows.2);
+                for p in 0..L {
+                    dk = dk + e[p] * q[p];
+                    db = db + de[p] * q[p];
                 }
-                for (acc, coef) in [(&mut *gx, kt), (&mut *gv, bt)] {
-                    let a = acc.get_unchecked_mut(i + c);
-                    for p in 0..L {
-                        a[p] = a[p] + coef * q[p];
-                    }
-                    let a = acc.get_unchecked_mut(j + c);
-                    for p in 0..L {
-                        a[p] = a[p] - two * coef * q[p];
-                    }
-                    let a = acc.get_unchecked_mut(l + c);
-                    for p in 0..L {
-                        a[p] = a[p] + coef * q[p];
-                    }
-                }
+                add_second_difference_transpose(gx, rows, &q, kt);
+                add_second_difference_transpose(gv, rows, &q, bt);
             }
             *gk.get_unchecked_mut(offset + t) = *gk.get_unchecked(offset + t) + dk;
             *gb.get_unchecked_mut(offset + t) = *gb.get_unchecked(offset + t) + db;
