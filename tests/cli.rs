@@ -545,10 +545,10 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
     assert!(run.join("report/curvature_map.png").exists(), "{out}");
     let npz = Npz::read(&run.join("springs.npz")).unwrap();
     let (ends, shape) = npz.int("curvature", &[None, Some(3)]).unwrap();
-    // 6 rows of 4 elements and 4 interior rows of 6 columns.
-    assert_eq!(shape, [48, 3], "{out}");
+    // 6 rows of 4 elements, 4 interior rows of 6 columns, 4 × 4 interior particles × 2 diagonals.
+    assert_eq!(shape, [80, 3], "{out}");
     assert_eq!(&ends[..3], &[0, 1, 2]);
-    let kappa = npz.f32("curvature_k", &[Some(48)]).unwrap().0;
+    let kappa = npz.f32("curvature_k", &[Some(80)]).unwrap().0;
     let model: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("defaults.json")).unwrap()).unwrap();
     let k_init = model["k_init"].as_f64().unwrap() as f32;
@@ -574,8 +574,8 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
             .unwrap();
     // A reader of the first format, which knows springs only, must not take it for one.
     assert_eq!(json["format"], "springtime-surrogate/2");
-    assert_eq!(json["curvature"].as_array().unwrap().len(), 48);
-    assert_eq!(json["curvature_k"].as_array().unwrap().len(), 48);
+    assert_eq!(json["curvature"].as_array().unwrap().len(), 80);
+    assert_eq!(json["curvature_k"].as_array().unwrap().len(), 80);
     // Curvature elements live on a grid.
     fails(
         &springtime(

@@ -36,8 +36,9 @@ pub struct GridSpec {
     pub bending_stride: usize,
     /// Where the particles and springs come from: the paper's grid, or the data's mesh.
     pub layout: SpringLayout,
-    /// Curvature elements (ours): every three consecutive particles along a grid row or column
-    /// resist their second difference `x_i − 2x_j + x_l` with a learned stiffness (grid only).
+    /// Curvature elements (ours): every three consecutive particles along a grid row, column or
+    /// diagonal resist their second difference `x_i − 2x_j + x_l` with a learned stiffness (grid
+    /// only).
     /// Springs have no linear bending stiffness about the flat state; these do.
     pub curvature: bool,
 }
@@ -159,8 +160,8 @@ pub struct Topology {
     pub rest_length: Vec<f64>,
     /// Family of every spring.
     pub family: Vec<SpringFamily>,
-    /// Curvature elements `(i, j, l)`: three consecutive particles of a grid row or column, `j`
-    /// in the middle (`cloth.curvature`; empty without). Each has the energy `½ κ |x_i − 2x_j +
+    /// Curvature elements `(i, j, l)`: three consecutive particles of a grid row, column or
+    /// diagonal, `j` in the middle (`cloth.curvature`; empty without). Each has the energy `½ κ |x_i − 2x_j +
     /// x_l|²`, which is zero on the flat rest grid and under every rigid motion, and grows with
     /// the square of the bend angle at `j`: the linear bending stiffness about the flat state
     /// that springs, whose lengths change only to second order in that angle, do not have.
@@ -225,6 +226,13 @@ impl Topology {
             for r in 1..ny.saturating_sub(1) {
                 for c in 0..nx {
                     curvature.push([id(r - 1, c), id(r, c), id(r + 1, c)]);
+                }
+            }
+            // The diagonals resist twist, which rows and columns alone do not see.
+            for r in 1..ny.saturating_sub(1) {
+                for c in 1..nx.saturating_sub(1) {
+                    curvature.push([id(r - 1, c - 1), id(r, c), id(r + 1, c + 1)]);
+                    curvature.push([id(r - 1, c + 1), id(r, c), id(r + 1, c - 1)]);
                 }
             }
         }

@@ -194,7 +194,7 @@ pub fn spring_forces_reference(
 }
 
 /// The curvature elements of a grid ([`Topology::curvature`], ours): three consecutive
-/// particles `(i, j, l)` of a row or column with the energy `½ κ_t |x_i − 2x_j + x_l|²`.
+/// particles `(i, j, l)` of a row, column or diagonal with the energy `½ κ_t |x_i − 2x_j + x_l|²`.
 ///
 /// The force `κ_t e` with `e = x_i − 2x_j + x_l` acts as `−κ_t e` on `i` and `l` and `+2κ_t e`
 /// on `j`: it sums to zero (momentum), vanishes on the flat rest grid and under rigid motions,

@@ -6,7 +6,7 @@
 //! |---|---|
 //! | `training_curves.png` | each loss term per training pass and `rmse_k`/`rmse_b` (when the data has ground truth), log scale |
 //! | `stiffness_map.png`, `damping_map.png` | learned `k` and `b` on the rest sheet, one panel per spring family, above the ground truth when known, one colour range |
-//! | `curvature_map.png` | with `cloth.curvature`: the curvature elements' `κ` at their middle particles, along rows and along columns |
+//! | `curvature_map.png` | with `cloth.curvature`: the curvature elements' `κ` at their middle particles, one panel per direction (rows, columns, both diagonals) |
 //! | `fem_stiffness.png` | an FEM source's triangle stiffness map beside the learned structural springs (FEM data only) |
 //! | `fig7.png` | learned against true `k` and `b` (or their distributions without ground truth) and the per-frame motion RMSE over the test rollouts |
 //! | `rollout.gif`, `rollout_frames.png` | the first test rollout: source landmarks and the surrogate's free rollout side by side |
@@ -223,10 +223,11 @@ pub fn build(
             file,
             "Learned curvature stiffness on the rest sheet",
             format!(
-                "Every curvature element (three consecutive particles of a row or column, energy \
-                 ½κ|x_i − 2x_j + x_l|²) drawn at its middle particle, coloured by its κ ({lo:.3} to \
-                 {hi:.3} N/m): the elements along the grid's rows on the left, along its columns \
-                 on the right (border particles, the middle of none, grey)."
+                "Every curvature element (three consecutive particles of a row, column or \
+                 diagonal, energy ½κ|x_i − 2x_j + x_l|²) drawn at its middle particle, coloured by \
+                 its κ ({lo:.3} to {hi:.3} N/m), one panel per direction: along the rows, the \
+                 columns, the main and the anti diagonal (border particles, the middle of none, \
+                 grey)."
             ),
         ));
     }

@@ -571,9 +571,9 @@ pub fn spring_map_rows_png(
 }
 
 /// Writes the curvature elements' stiffness `kappa` (one per element of `topology.curvature`)
-/// as two particle maps, each element drawn at its middle particle: the elements along the
-/// grid's rows (left) and along its columns (right), one colour range, particles that are the
-/// middle of no element grey.
+/// as particle maps, each element drawn at its middle particle, one panel per direction (along
+/// the rows, the columns, the main and the anti diagonal), one colour range; particles that are
+/// the middle of no element of a direction grey.
 pub fn curvature_map_png(
     path: &Path,
     topology: &Topology,
@@ -587,26 +587,47 @@ pub fn curvature_map_png(
             topology.curvature.len()
         );
     }
+    const DIRECTIONS: [&str; 4] = [
+        "along rows",
+        "along columns",
+        "main diagonal",
+        "anti diagonal",
+    ];
     let p = topology.num_particles();
-    let (mut rows, mut cols) = (vec![f64::NAN; p], vec![f64::NAN; p]);
-    for (&[i, j, _], &v) in topology.curvature.iter().zip(kappa) {
-        // A row element's ends share the middle's rest v; a column element's its u.
-        let along_row = (topology.rest_uv[i][1] - topology.rest_uv[j][1]).abs()
-            < 1e-9 * topology.height.max(1.0);
-        if along_row {
-            rows[j] = v;
+    let mut panels = vec![vec![f64::NAN; p]; DIRECTIONS.len()];
+    let tol = 1e-9 * topology.width.max(topology.height).max(1.0);
+    for (&[i, j, l], &v) in topology.curvature.iter().zip(kappa) {
+        let (du, dv) = (
+            topology.rest_uv[l][0] - topology.rest_uv[i][0],
+            topology.rest_uv[l][1] - topology.rest_uv[i][1],
+        );
+        let direction = if dv.abs() < tol {
+            0
+        } else if du.abs() < tol {
+            1
+        } else if du * dv > 0.0 {
+            2
         } else {
-            cols[j] = v;
-        }
+            3
+        };
+        panels[direction][j] = v;
     }
+    let shown: Vec<(&str, &Vec<f64>)> = DIRECTIONS
+        .iter()
+        .zip(&panels)
+        .filter(|(_, v)| v.iter().any(|x| x.is_finite()))
+        .map(|(d, v)| (*d, v))
+        .collect();
     let range = value_range(&[kappa]);
     let (pw, ph) = MAP_PANEL;
-    png_figure(path, 2 * pw + COLORBAR_WIDTH, TITLE_HEIGHT + ph, |root| {
+    let n = shown.len().max(1) as u32;
+    png_figure(path, n * pw + COLORBAR_WIDTH, TITLE_HEIGHT + ph, |root| {
         let body = self::title(root, title, 18)?;
-        let (maps, bar) = body.split_horizontally(2 * pw);
-        let cells = maps.split_evenly((1, 2));
-        draw_particle_map(&cells[0], topology, &rows, "along rows", range)?;
-        draw_particle_map(&cells[1], topology, &cols, "along columns", range)?;
+        let (maps, bar) = body.split_horizontally(n * pw);
+        let cells = maps.split_evenly((1, n as usize));
+        for (cell, (name, values)) in cells.iter().zip(&shown) {
+            draw_particle_map(cell, topology, values, name, range)?;
+        }
         draw_colorbar(&bar, range, "κ (N/m)")
     })
 }

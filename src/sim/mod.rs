@@ -5,7 +5,7 @@ pub mod contact;
 mod stability;
 
 pub use contact::{Contact, ContactConfig, ContactParams};
-pub use stability::Stability;
+pub use stability::{Stability, curvature_bound};
 
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};

@@ -23,6 +23,20 @@ pub struct Stability {
     pub parameters: String,
 }
 
+/// The Gershgorin bound of the curvature elements' stiffness matrix `Σ κ_t a aᵀ` (`a = (1, −2,
+/// 1)` on `(i, j, l)`): its largest absolute row sum, `max_p Σ_t 4 |a_p| κ_t` (negative `κ` count
+/// as zero); 64 κ inside a grid with row, column and diagonal elements.
+pub fn curvature_bound(triples: &[[usize; 3]], kappa: &[f64], particles: usize) -> f64 {
+    let mut row = vec![0.0; particles];
+    for (&[i, j, l], &k) in triples.iter().zip(kappa) {
+        let k = 4.0 * k.max(0.0);
+        row[i] += k;
+        row[j] += 2.0 * k;
+        row[l] += k;
+    }
+    row.iter().copied().fold(0.0, f64::max)
+}
+
 impl Stability {
     /// Estimates the stiffest mode of `topology` with per-spring `k`, `b` (negative values count
     /// as zero), particle `mass` and Rayleigh constant `rayleigh`, at step `dt`.
@@ -68,14 +82,7 @@ impl Stability {
         if triples.is_empty() {
             return self;
         }
-        let mut row = vec![0.0; particles];
-        for (&[i, j, l], &k) in triples.iter().zip(kappa) {
-            let k = 4.0 * k.max(0.0);
-            row[i] += k;
-            row[j] += 2.0 * k;
-            row[l] += k;
-        }
-        let bound = row.iter().copied().fold(0.0, f64::max);
+        let bound = curvature_bound(triples, kappa, particles);
         let max = kappa.iter().copied().fold(0.0, f64::max);
         self.omega2 += bound / self.mass;
         self.parameters

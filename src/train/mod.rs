@@ -756,15 +756,18 @@ impl Trainable for SpringNet {
         };
         if train_k {
             // With curvature elements the springs get nine tenths of the stiffness budget and
-            // the elements the rest: an element adds 8 κ to its middle particle's row of the
-            // stiffness matrix and 4 κ to each end's, 32 κ in all inside the sheet
-            // (`Stability::with_curvature`'s bound), so the sum stays within the budget.
+            // the elements the rest, bounded as `Stability::with_curvature` bounds them (an
+            // element adds 8 κ to its middle particle's row of the stiffness matrix and 4 κ to
+            // each end's), so the sum stays within the budget.
             let spring_share = if self.curvature.is_some() { 0.9 } else { 1.0 };
             self.k = clamp(self.k, spring_share * k_budget * m / (dt * dt * unit));
             if let Some(c) = self.curvature.as_mut() {
+                let ones = vec![1.0; topo.curvature.len()];
+                let unit_c =
+                    crate::sim::curvature_bound(&topo.curvature, &ones, topo.num_particles());
                 c.kappa = clamp(
                     c.kappa.clone(),
-                    (1.0 - spring_share) * k_budget * m / (dt * dt * 32.0),
+                    (1.0 - spring_share) * k_budget * m / (dt * dt * unit_c),
                 );
             }
         }

@@ -98,7 +98,7 @@ impl HostGraph {
         self
     }
 
-    /// The same graph with the curvature elements `triples` (grid rows and columns of three
+    /// The same graph with the curvature elements `triples` (grid rows, columns and diagonals of three
     /// particles, [`crate::cloth::Topology::curvature`]): the ops' `k` and `b` then hold one
     /// value per spring, then one per element.
     ///
