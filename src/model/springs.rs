@@ -333,7 +333,8 @@ impl SpringNet {
     }
 
     /// The fused ops' `k` and `b`: the springs' values, then (with curvature elements) the
-    /// elements' `κ` and a zero damping.
+    /// elements' `κ` and, in `b`, zeros the kernels do not read (the elements have no damping;
+    /// the entries keep `k` and `b` paired).
     pub fn kernel_params(&self) -> (Tensor<1>, Tensor<1>) {
         match &self.curvature {
             None => (self.k.val(), self.b.val()),

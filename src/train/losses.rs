@@ -137,12 +137,7 @@ pub fn loss_with_budget(
         return fused_loss(model, physics, batch, weights, budget_mib);
     }
     let mut terms = motion_loss(model, physics, batch, weights, on);
-    let k_neg = relu(model.k.val().neg()).sum()
-        + model.curvature.as_ref().map_or_else(
-            || model.k.val().zeros_like().sum(),
-            |c| relu(c.kappa.val().neg()).sum(),
-        );
-    let b_neg = relu(model.b.val().neg()).sum();
+    let (k_neg, b_neg) = negativity(model);
     terms.total = terms.total
         + k_neg.clone().mul_scalar(weights.k_neg)
         + b_neg.clone().mul_scalar(weights.b_neg);
@@ -195,6 +190,16 @@ fn frame_force_error(traj: &sim::Trajectory, batch: &ClipBatch, physics: &Physic
 /// forces are compared (`T`, or `T − 2` for [`ForceOn::Frames`]):
 /// - `L_f = 1/(B·N·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
 /// - `J = Δt [Σ_j f_j − (f_0 + f_{N−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
+/// The penalties on negative parameters: the sum of `relu(−k)` over the springs and the
+/// curvature elements' `κ`, and the sum of `relu(−b)`.
+fn negativity(model: &SpringNet) -> (Tensor<1>, Tensor<1>) {
+    let mut k_neg = relu(model.k.val().neg()).sum();
+    if let Some(c) = &model.curvature {
+        k_neg = k_neg + relu(c.kappa.val().neg()).sum();
+    }
+    (k_neg, relu(model.b.val().neg()).sum())
+}
+
 /// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (when there is a simulated rollout).
 pub fn motion_loss(
     model: &dyn ForceModel,
@@ -312,12 +317,7 @@ fn fused_loss(
     #[allow(clippy::single_range_in_vec_init)]
     let term = |i: usize| terms.clone().slice([i..i + 1]);
     let (force, impulse, position) = (term(0), term(1), term(2));
-    let k_neg = relu(model.k.val().neg()).sum()
-        + model.curvature.as_ref().map_or_else(
-            || model.k.val().zeros_like().sum(),
-            |c| relu(c.kappa.val().neg()).sum(),
-        );
-    let b_neg = relu(model.b.val().neg()).sum();
+    let (k_neg, b_neg) = negativity(model);
     let total = force.clone().mul_scalar(weights.force)
         + impulse.clone().mul_scalar(weights.impulse)
         + position.clone().mul_scalar(weights.position)

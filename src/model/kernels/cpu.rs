@@ -255,9 +255,7 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
 #[inline(always)]
 unsafe fn second_difference<T: Float, const L: usize>(
     a: &[Lane<T, L>],
-    i: usize,
-    j: usize,
-    l: usize,
+    (i, j, l): (usize, usize, usize),
 ) -> Lane<T, L> {
     let two = T::one() + T::one();
     // SAFETY: forwarded contract.
@@ -288,32 +286,30 @@ unsafe fn add_second_difference_transpose<T: Float, const L: usize>(
 }
 
 /// Accumulates the curvature elements' forces of one chunk into `out`: with `e = x_i − 2x_j +
-/// x_l`, `ė` the same of the velocities and `f = κ e + β ė` (`κ`, `β` the element's entries of
-/// `k`, `b` after the springs'), `−f` on `i` and `l` and `2f` on `j`.
+/// x_l` and `f = κ e` (`κ` the element's entry of `k` after the springs'), `−f` on `i` and `l`
+/// and `2f` on `j`. The elements have no damping: their entries of `b` (which keep `k` and `b`
+/// paired, one entry per spring and per element) are neither read nor given a gradient.
 ///
 /// # Safety
-/// As [`chunk_forces`], and `k`, `b` hold one value per spring and per element.
+/// As [`chunk_forces`], and `k` holds one value per spring and per element.
 #[inline(always)]
 unsafe fn chunk_curvature<T: Float, const L: usize>(
     sp: &Springs<T>,
     x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
     k: &[T],
-    b: &[T],
     out: &mut [Lane<T, L>],
 ) {
     let offset = sp.ends.len();
     for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
-        let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
+        let rows = (3 * i as usize, 3 * j as usize, 3 * l as usize);
         // SAFETY: element indices < particles (HostGraph::with_curvature) and the caller's
         // length contract.
         unsafe {
-            let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
+            let kt = *k.get_unchecked(offset + t);
             for c in 0..3 {
-                let rows = (i + c, j + c, l + c);
-                let e = second_difference(x, rows.0, rows.1, rows.2);
-                let de = second_difference(v, rows.0, rows.1, rows.2);
-                let f: Lane<T, L> = std::array::from_fn(|q| kt * e[q] + bt * de[q]);
+                let rows = (rows.0 + c, rows.1 + c, rows.2 + c);
+                let e = second_difference(x, rows);
+                let f: Lane<T, L> = std::array::from_fn(|q| kt * e[q]);
                 add_second_difference_transpose(out, rows, &f, -T::one());
             }
         }
@@ -321,47 +317,38 @@ unsafe fn chunk_curvature<T: Float, const L: usize>(
 }
 
 /// Back-propagates `gf` through the curvature elements' forces of one chunk (see
-/// [`chunk_curvature`]): with `q = −(g_i − 2g_j + g_l)`, `∂ℓ/∂e = κ q`, `∂ℓ/∂ė = β q`,
-/// `∂ℓ/∂κ = e·q`, `∂ℓ/∂β = ė·q` (summed over the lanes).
+/// [`chunk_curvature`]): with `q = −(g_i − 2g_j + g_l)`, `∂ℓ/∂e = κ q` and `∂ℓ/∂κ = e·q`
+/// (summed over the lanes).
 ///
 /// # Safety
-/// As [`chunk_curvature`], and `gk`, `gb` hold one value per spring and per element.
+/// As [`chunk_curvature`], and `gk` holds one value per spring and per element.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 unsafe fn chunk_curvature_backward<T: Float, const L: usize>(
     sp: &Springs<T>,
     x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
     k: &[T],
-    b: &[T],
     gf: &[Lane<T, L>],
     gx: &mut [Lane<T, L>],
-    gv: &mut [Lane<T, L>],
     gk: &mut [T],
-    gb: &mut [T],
 ) {
     let offset = sp.ends.len();
     for (t, &(i, j, l)) in sp.triples.iter().enumerate() {
-        let (i, j, l) = (3 * i as usize, 3 * j as usize, 3 * l as usize);
+        let rows = (3 * i as usize, 3 * j as usize, 3 * l as usize);
         // SAFETY: as in `chunk_curvature`.
         unsafe {
-            let (kt, bt) = (*k.get_unchecked(offset + t), *b.get_unchecked(offset + t));
-            let (mut dk, mut db) = (T::zero(), T::zero());
+            let kt = *k.get_unchecked(offset + t);
+            let mut dk = T::zero();
             for c in 0..3 {
-                let rows = (i + c, j + c, l + c);
-                let g = second_difference(gf, rows.0, rows.1, rows.2);
+                let rows = (rows.0 + c, rows.1 + c, rows.2 + c);
+                let g = second_difference(gf, rows);
                 let q: Lane<T, L> = std::array::from_fn(|p| -g[p]);
-                let e = second_difference(x, rows.0, rows.1, rows.2);
-                let de = second_difference(v, rows.0, rows.1, rows.2);
+                let e = second_difference(x, rows);
                 for p in 0..L {
                     dk = dk + e[p] * q[p];
-                    db = db + de[p] * q[p];
                 }
                 add_second_difference_transpose(gx, rows, &q, kt);
-                add_second_difference_transpose(gv, rows, &q, bt);
             }
             *gk.get_unchecked_mut(offset + t) = *gk.get_unchecked(offset + t) + dk;
-            *gb.get_unchecked_mut(offset + t) = *gb.get_unchecked(offset + t) + db;
         }
     }
 }
@@ -448,7 +435,7 @@ pub(super) unsafe fn run_forces<T: Float, const L: usize>(
             chunk_forces(sp, x, v, k, b, out)
         }
         if !sp.triples.is_empty() {
-            chunk_curvature(sp, x, v, k, b, out)
+            chunk_curvature(sp, x, k, out)
         }
     }
     if let Some(scale) = &sp.scale {
@@ -497,7 +484,7 @@ pub(super) unsafe fn run_backward<T: Float, const L: usize>(
             chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
         }
         if !sp.triples.is_empty() {
-            chunk_curvature_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
+            chunk_curvature_backward(sp, x, k, gf, gx, gk)
         }
     }
 }
