@@ -183,13 +183,6 @@ fn frame_force_error(traj: &sim::Trajectory, batch: &ClipBatch, physics: &Physic
         .mul_scalar(physics.mass / (2.0 * physics.frame_dt * physics.frame_dt))
 }
 
-/// The force, impulse and position losses of any [`ForceModel`] on a batch of clips, built
-/// from tensor ops (the penalty terms are zero).
-///
-/// With `T` steps per clip, `P` particles and pinned particles masked out, and `N` frames whose
-/// forces are compared (`T`, or `T − 2` for [`ForceOn::Frames`]):
-/// - `L_f = 1/(B·N·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
-/// - `J = Δt [Σ_j f_j − (f_0 + f_{N−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
 /// The penalties on negative parameters: the sum of `relu(−k)` over the springs and the
 /// curvature elements' `κ`, and the sum of `relu(−b)`.
 fn negativity(model: &SpringNet) -> (Tensor<1>, Tensor<1>) {
@@ -200,6 +193,13 @@ fn negativity(model: &SpringNet) -> (Tensor<1>, Tensor<1>) {
     (k_neg, relu(model.b.val().neg()).sum())
 }
 
+/// The force, impulse and position losses of any [`ForceModel`] on a batch of clips, built
+/// from tensor ops (the penalty terms are zero).
+///
+/// With `T` steps per clip, `P` particles and pinned particles masked out, and `N` frames whose
+/// forces are compared (`T`, or `T − 2` for [`ForceOn::Frames`]):
+/// - `L_f = 1/(B·N·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
+/// - `J = Δt [Σ_j f_j − (f_0 + f_{N−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
 /// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (when there is a simulated rollout).
 pub fn motion_loss(
     model: &dyn ForceModel,

@@ -41,7 +41,7 @@ pub struct StepParams {
 /// The springs with checked indices, so that the loops can skip bounds checks.
 pub(super) struct Springs<'a, T> {
     ends: &'a [(u32, u32)],
-    /// Curvature elements `(i, j, l)`, whose `k` and `b` follow the springs'.
+    /// Curvature elements `(i, j, l)`, whose `κ` follow the springs' `k` (their `b` entries unused).
     triples: &'a [(u32, u32, u32)],
     l0: Vec<T>,
     /// Per-particle factor on the spring forces ([`HostGraph::with_force_scale`]).

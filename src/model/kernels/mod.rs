@@ -39,8 +39,8 @@ use burn::tensor::Tensor;
 #[derive(Debug, Clone, PartialEq)]
 pub struct HostGraph {
     ends: Vec<(u32, u32)>,
-    /// Curvature elements `(i, j, l)` ([`HostGraph::with_curvature`]); their stiffness and
-    /// damping follow the springs' in the ops' `k` and `b`.
+    /// Curvature elements `(i, j, l)` ([`HostGraph::with_curvature`]); their stiffness follows
+    /// the springs' in the ops' `k` (their entries of `b`, which keep the two paired, are unused).
     triples: Vec<(u32, u32, u32)>,
     rest_length: Vec<f64>,
     particles: usize,
