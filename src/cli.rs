@@ -1472,6 +1472,19 @@ fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()
             diverged
         );
     };
+    // A system started from another's settled drape: its distances at rest.
+    let relaxed = |name: &str, who: &str, r: &crate::drape::Relaxed| {
+        row(
+            name,
+            who,
+            None,
+            r.steady_rmse_vs_source,
+            r.steady_rmse_vs_fine,
+            None,
+            &r.settled.to_string(),
+            &r.diverged.to_string(),
+        )
+    };
     for (name, s) in &report.scenes {
         for r in [&s.source, &s.perturbed].into_iter().flatten() {
             row(
@@ -1484,6 +1497,9 @@ fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()
                 &r.settled.to_string(),
                 &r.diverged.to_string(),
             );
+            if let Some(x) = &r.relaxed_from_fine {
+                relaxed(name, &format!("{} from fine", r.label), x);
+            }
         }
         for (kind, m) in &s.models {
             let (settled, diverged) = if m.applicable {
@@ -1501,6 +1517,14 @@ fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()
                 &settled,
                 &diverged,
             );
+            for (from, r) in [
+                ("source", &m.relaxed_from_source),
+                ("fine", &m.relaxed_from_fine),
+            ] {
+                if let Some(r) = r {
+                    relaxed(name, &format!("{kind} from {from}"), r);
+                }
+            }
         }
         for w in &s.warnings {
             eprintln!("warning: {name}: {w}");

@@ -155,6 +155,18 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
         json["scenes"]["mesh"]["perturbed"].is_null(),
         "perturb = 0: none"
     );
+    // Relaxations (`settle` long) from the settled drapes: the model from the source's and
+    // the fine mesh's, the source from the fine mesh's; not the fine mesh itself.
+    for r in [
+        &m["relaxed_from_source"],
+        &m["relaxed_from_fine"],
+        &sphere["source"]["relaxed_from_fine"],
+    ] {
+        assert!((r["seconds"].as_f64().unwrap() - 0.2).abs() < 1e-9, "{r}");
+        assert!(r["steady_rmse_vs_fine"].as_f64().unwrap() >= 0.0, "{r}");
+        assert_eq!(r["diverged"], false, "{r}");
+    }
+    assert!(sphere["fine"]["relaxed_from_fine"].is_null(), "{sphere}");
     // The sheet fell onto the sphere and stayed on it.
     let sphere = &json["scenes"]["sphere"]["models"]["springs"];
     assert!(
@@ -244,4 +256,118 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
         .map(|l| l.split_whitespace().nth(2).unwrap().parse::<f64>().unwrap())
         .fold(f64::INFINITY, f64::min);
     assert!(lowest < 0.15, "the exported sheet fell: lowest z {lowest}");
+}
+
+/// A 5 × 5 mass-spring source and surrogates built from its values without training.
+const SPRING_SOURCE: &str = r#"
+name = "spring_drape"
+
+[cloth]
+nx = 5
+ny = 5
+
+[model]
+k_init = 300.0
+b_init = 0.05
+
+[sim]
+substeps = 2
+rayleigh = 0.1
+
+[data]
+dir = "data"
+
+[data.clips]
+steps = 20
+
+[source]
+kind = "mass_spring"
+nx = 5
+ny = 5
+width = 1.0
+height = 1.0
+stiffness_levels = [300.0]
+layout = "uniform"
+damping = 0.05
+rayleigh = 0.1
+seconds = 0.2
+dt = 5e-4
+frame_stride = 2
+train_rollouts = 2
+test_rollouts = 1
+anchor_radius = 0.2
+
+[train.stiffness]
+iterations = 0
+
+[train.damping]
+iterations = 0
+"#;
+
+const SPHERE_AT_REST: &str = r#"
+[scene]
+seconds = 0.5
+settle = 1.5
+perturb = 0.0
+release_height = 0.1
+record_every = 0.05
+
+[[scene.colliders]]
+kind = "sphere"
+radius = 0.3
+translation = [0.0, 0.0, -0.3]
+friction = 0.5
+"#;
+
+/// `relaxed_from_source`: a surrogate with its source's own springs, started from the source's
+/// settled drape, stays on it; one with a third of the stiffness sags away from it.
+#[test]
+fn a_surrogate_started_from_its_source_drape_keeps_it_only_with_the_source_springs() {
+    let dir = common::temp_dir("drape_relax");
+    std::fs::write(dir.join("springs.toml"), SPRING_SOURCE).unwrap();
+    std::fs::write(dir.join("sphere.toml"), SPHERE_AT_REST).unwrap();
+    ok(&springtime(
+        &["train", "springs.toml", "--out", "same"],
+        &dir,
+    ));
+    ok(&springtime(
+        &[
+            "train",
+            "springs.toml",
+            "--out",
+            "soft",
+            "--set",
+            "model.k_init=100.0",
+        ],
+        &dir,
+    ));
+    let relaxed = |run: &str| {
+        let out = format!("d_{run}");
+        ok(&springtime(
+            &["drape", run, "--scene", "sphere.toml", "--out", &out],
+            &dir,
+        ));
+        let json: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.join(&out).join("drape.json")).unwrap(),
+        )
+        .unwrap();
+        let scene = &json["scenes"]["sphere"];
+        assert_eq!(scene["source"]["settled"], true, "{scene}");
+        let m = &scene["models"]["springs"];
+        let r = &m["relaxed_from_source"];
+        assert_eq!(r["seconds"], 1.5, "{r}");
+        assert_eq!(r["diverged"], false, "{r}");
+        (
+            m["steady_rmse_vs_source"].as_f64().unwrap(),
+            r["steady_rmse_vs_source"].as_f64().unwrap(),
+        )
+    };
+    let (fall, same) = relaxed("same");
+    let (_, soft) = relaxed("soft");
+    assert!(same < 1e-4, "the source's springs hold its drape: {same} m");
+    assert!(fall < 1e-3, "and fall onto it: {fall} m");
+    assert!(
+        soft > 100.0 * same.max(1e-5),
+        "softer springs sag away: {soft} m"
+    );
 }

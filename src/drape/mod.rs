@@ -12,8 +12,11 @@
 //! the models *and* the coarse source: the paper's claim is that the surrogate drapes closer to
 //! the fine mesh than the coarse FEM that trained it), the deepest intrusion into the contact
 //! layer, the kinetic energy and RMS speed at the end, whether it settled and whether it
-//! diverged. `<scene>.png` shows the drapes at the end side by side with the motion RMSE over
-//! time; `<scene>_motion_rmse.csv` has the curves.
+//! diverged. Each model is also started at rest from the source's settled drape and left to
+//! settle again (`relaxed_from_source`): how far its own equilibrium lies from the source's,
+//! which separates the static part of its drape error from the part the fall's path left behind
+//! (friction holds whatever the path laid down). `<scene>.png` shows the drapes at the end side
+//! by side with the motion RMSE over time; `<scene>_motion_rmse.csv` has the curves.
 
 pub mod scene;
 
@@ -117,6 +120,10 @@ pub struct Reference {
     pub settled: bool,
     /// Whether it diverged.
     pub diverged: bool,
+    /// The source only: started at rest from the fine reference's settled drape (its
+    /// vertices are fine vertices) and left to settle; its `steady_rmse_vs_fine` is how far
+    /// the coarse mesh's own equilibrium lies from the fine one's (membrane locking).
+    pub relaxed_from_fine: Option<Relaxed>,
     /// Wall time of the simulation, s.
     pub wall_seconds: f64,
 }
@@ -151,8 +158,35 @@ pub struct ModelResult {
     pub note: Option<String>,
     /// Motion RMSE to the source over time (settling included), `[t, rmse]`.
     pub motion_rmse_over_time: Vec<[f64; 2]>,
+    /// The model started at rest from the source's settled drape (static scenes with a source
+    /// that did not diverge, `scene.settle > 0`).
+    pub relaxed_from_source: Option<Relaxed>,
+    /// The model started at rest from the fine reference's settled drape: with the source's
+    /// `relaxed_from_fine`, the Fig. 8 comparison without the path of a fall.
+    pub relaxed_from_fine: Option<Relaxed>,
     /// Wall time of the simulation, s.
     pub wall_seconds: f64,
+}
+
+/// A model started at rest from the source's settled drape (resampled to its particles) and
+/// simulated `scene.settle` seconds with the same contact: its equilibrium near the source's.
+/// A small `steady_rmse_vs_source` here beside a large one after the fall says the model holds
+/// the source's drape and the difference comes from the path of the fall (where the sheet
+/// landed and what friction then held); a large one says its statics differ.
+#[derive(Debug, Clone, Serialize)]
+pub struct Relaxed {
+    /// RMSE at the end to the source's settled drape (its start), m.
+    pub steady_rmse_vs_source: Option<f64>,
+    /// RMSE at the end to the fine reference's settled drape, m.
+    pub steady_rmse_vs_fine: Option<f64>,
+    /// RMS speed at the end, m/s.
+    pub speed_rms_end: Option<f64>,
+    /// Whether it came to rest: RMS speed at the end below [`SETTLED_SPEED`].
+    pub settled: bool,
+    /// Whether the simulation diverged.
+    pub diverged: bool,
+    /// Simulated time, s.
+    pub seconds: f64,
 }
 
 /// What one simulation recorded.
@@ -356,6 +390,22 @@ fn resample(res: &Resampler, src: &[f32]) -> Vec<f32> {
     out.into_iter().map(|c| c as f32).collect()
 }
 
+/// The last frame of `rec` resampled to the particles at `rest_uv`, lifted out of the
+/// colliders to the contact thickness: the start of a relaxation.
+fn relaxation_start(rec: &Recording, rest_uv: &[[f64; 2]], contact: &Contact) -> Vec<V3> {
+    let res = Resampler::new(&rec.rest_uv, rest_uv);
+    let last = rec
+        .frames
+        .last()
+        .expect("a relaxation starts from a recorded drape");
+    let mut x0: Vec<V3> = resample(&res, last)
+        .chunks(3)
+        .map(|c| [c[0] as f64, c[1] as f64, c[2] as f64])
+        .collect();
+    contact.lift_out(0.0, &mut x0);
+    x0
+}
+
 /// Why a GNN run has no drape.
 const GNN_NOT_APPLICABLE: &str = "not applicable: the GNN predicts positions, not forces, so \
                                   contact forces cannot enter its step (as in the paper)";
@@ -547,7 +597,33 @@ impl<'a> Job<'a> {
             fine,
             perturbed,
         } = refs;
-        let recs = self.simulate_models(scene, &params, frames)?;
+        let recs = self.simulate_models(scene, &params, frames, None)?;
+        let relax = Frames {
+            total: (cfg.settle / self.frame_dt).round() as usize / every * every,
+            ..frames
+        };
+        // Relaxations start at t = 0 with the colliders where they stand then, not where a
+        // drape ended: static scenes only.
+        let relaxes = |r: Option<&Recording>| {
+            r.is_some_and(|r| {
+                r.diverged.is_none()
+                    && !r.frames.is_empty()
+                    && relax.total > 0
+                    && cfg.colliders.iter().all(|k| k.path.len() < 2)
+            })
+        };
+        let mut from_source = Vec::new();
+        if relaxes(coarse.as_ref()) {
+            from_source = self.simulate_models(scene, &params, relax, coarse.as_ref())?;
+        }
+        let mut from_fine = Vec::new();
+        let mut source_from_fine = None;
+        if let (true, Some(src)) = (relaxes(fine.as_ref()), &self.source) {
+            from_fine = self.simulate_models(scene, &params, relax, fine.as_ref())?;
+            let start = fine.as_ref();
+            source_from_fine = Some(self.host_run(scene, &params, src, 0.0, relax, start)?);
+        }
+        let relax_seconds = relax.total as f64 * self.frame_dt;
         let score = Score {
             coarse: coarse.as_ref(),
             fine: fine.as_ref(),
@@ -555,9 +631,13 @@ impl<'a> Job<'a> {
             record_dt: frames.record_dt,
             scored: frames.scored,
         };
-        let source_ref = coarse
-            .as_ref()
-            .map(|c| score.reference(c, "source", &mut warnings));
+        let source_ref = coarse.as_ref().map(|c| {
+            let mut r = score.reference(c, "source", &mut warnings);
+            r.relaxed_from_fine = source_from_fine
+                .as_ref()
+                .map(|x| score.relaxed(x, relax_seconds, &mut warnings));
+            r
+        });
         let fine_ref = fine.as_ref().map(|f| {
             let mut r = score.reference(f, "fine reference", &mut warnings);
             r.steady_rmse_vs_fine = Some(0.0);
@@ -568,15 +648,26 @@ impl<'a> Job<'a> {
             .map(|p| score.reference(p, "perturbed source", &mut warnings));
         let models: BTreeMap<String, ModelResult> = recs
             .iter()
-            .map(|d| (d.kind.clone(), score.model(d, &mut warnings)))
+            .enumerate()
+            .map(|(i, d)| {
+                let mut m = score.model(d, &mut warnings);
+                let mut relaxed = |from: &[Draped]| {
+                    let r = from.get(i).and_then(|r| r.recording.as_ref())?;
+                    Some(score.relaxed(r, relax_seconds, &mut warnings))
+                };
+                m.relaxed_from_source = relaxed(&from_source);
+                m.relaxed_from_fine = relaxed(&from_fine);
+                (d.kind.clone(), m)
+            })
             .collect();
         for (who, r) in &models {
             self.progress.note(&format!(
-                "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}; deepest {:.4} m, {:.1} s wall{}",
+                "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}; started from the source's drape, at rest {} from it; deepest {:.4} m, {:.1} s wall{}",
                 scene.config.seconds,
                 fmt_m(r.motion_rmse_end),
                 fmt_m(r.steady_rmse_vs_source),
                 fmt_m(r.steady_rmse_vs_fine),
+                fmt_m(r.relaxed_from_source.as_ref().and_then(|x| x.steady_rmse_vs_source)),
                 r.max_penetration.unwrap_or(0.0),
                 r.wall_seconds,
                 if r.diverged { ", DIVERGED" } else { "" }
@@ -633,35 +724,8 @@ impl<'a> Job<'a> {
         src: &SourceConfig,
         frames: Frames,
     ) -> Result<References> {
-        let host_run = |src: &SourceConfig, perturb: f64| -> Result<Recording> {
-            let sim = crate::source::build_perturbed(src, perturb, PERTURB_SEED);
-            let dt = stable_step(sim.as_ref(), params, src.dt);
-            let record_dt = frames.record_dt;
-            let every = (record_dt / dt).round() as usize;
-            if every == 0 || (every as f64 * dt - record_dt).abs() > 1e-6 * record_dt {
-                bail!(
-                    "the source's step {dt} s does not divide the recorded interval {record_dt} s"
-                );
-            }
-            let steps = frames.total / frames.every * every;
-            let x0 = scene.release(sim.rest_uv(), src.width, src.height);
-            let contact = Contact::new(scene.colliders.clone(), *params);
-            let label = if perturb > 0.0 {
-                format!("{} ±{}%", label_of(src), 100.0 * perturb)
-            } else {
-                label_of(src)
-            };
-            Ok(simulate_host(
-                &label,
-                sim.as_ref(),
-                grid_edges(src.nx, src.ny),
-                x0,
-                &contact,
-                dt,
-                steps,
-                every,
-                self.progress,
-            ))
+        let host_run = |src: &SourceConfig, perturb: f64| {
+            self.host_run(scene, params, src, perturb, frames, None)
         };
         let fine_src = (src.kind == SourceKind::Fem).then(|| fine_config(src, scene.config.fine));
         let perturb = scene.config.perturb;
@@ -681,12 +745,59 @@ impl<'a> Job<'a> {
         })
     }
 
-    /// Every model over the scene (the GNN is recorded as not applicable).
+    /// A host cloth (the source, perturbed by `perturb`, or the fine mesh) over the scene,
+    /// released flat or, with `start`, at rest from that recording's last frame.
+    fn host_run(
+        &self,
+        scene: &Scene,
+        params: &ContactParams,
+        src: &SourceConfig,
+        perturb: f64,
+        frames: Frames,
+        start: Option<&Recording>,
+    ) -> Result<Recording> {
+        let sim = crate::source::build_perturbed(src, perturb, PERTURB_SEED);
+        let dt = stable_step(sim.as_ref(), params, src.dt);
+        let record_dt = frames.record_dt;
+        let every = (record_dt / dt).round() as usize;
+        if every == 0 || (every as f64 * dt - record_dt).abs() > 1e-6 * record_dt {
+            bail!("the source's step {dt} s does not divide the recorded interval {record_dt} s");
+        }
+        let steps = frames.total / frames.every * every;
+        let contact = Contact::new(scene.colliders.clone(), *params);
+        let mut label = if perturb > 0.0 {
+            format!("{} ±{}%", label_of(src), 100.0 * perturb)
+        } else {
+            label_of(src)
+        };
+        let x0 = match start {
+            Some(r) => {
+                label = format!("{label} from {}", r.label);
+                relaxation_start(r, sim.rest_uv(), &contact)
+            }
+            None => scene.release(sim.rest_uv(), src.width, src.height),
+        };
+        Ok(simulate_host(
+            &label,
+            sim.as_ref(),
+            grid_edges(src.nx, src.ny),
+            x0,
+            &contact,
+            dt,
+            steps,
+            every,
+            self.progress,
+        ))
+    }
+
+    /// Every model over the scene (the GNN is recorded as not applicable), released flat or,
+    /// with `start`, at rest from that recording's last frame.
     fn simulate_models(
         &self,
         scene: &Scene,
         params: &ContactParams,
         frames: Frames,
+        start: Option<&Recording>,
     ) -> Result<Vec<Draped>> {
         let mut recs = Vec::new();
         for m in self.models {
@@ -713,10 +824,19 @@ impl<'a> Job<'a> {
                     continue;
                 }
             };
-            let x0 = scene.release(&m.topology.rest_uv, self.width, self.height);
             let contact = Contact::new(scene.colliders.clone(), *params);
+            let (x0, label) = match start {
+                Some(r) => (
+                    relaxation_start(r, &m.topology.rest_uv, &contact),
+                    format!("{kind} from {}", r.label),
+                ),
+                None => (
+                    scene.release(&m.topology.rest_uv, self.width, self.height),
+                    kind.clone(),
+                ),
+            };
             let rec = simulate_model(
-                &kind,
+                &label,
                 model,
                 &physics,
                 &m.topology,
@@ -818,11 +938,26 @@ impl Score<'_> {
             speed_rms_end: rec.speed_rms_end,
             settled: rec.settled(),
             diverged: rec.diverged.is_some(),
+            relaxed_from_fine: None,
             wall_seconds: rec.wall_seconds,
         }
     }
 
-    /// A model's figures: motion RMSE to the coarse source over time, to the fine mesh at rest.
+    /// A relaxation's figures: `rec` ran `seconds` from another system's drape.
+    fn relaxed(&self, rec: &Recording, seconds: f64, warnings: &mut Vec<String>) -> Relaxed {
+        self.warn(&rec.label, rec, warnings);
+        Relaxed {
+            steady_rmse_vs_source: self.vs_source(rec),
+            steady_rmse_vs_fine: self.vs_fine(rec),
+            speed_rms_end: rec.speed_rms_end,
+            settled: rec.settled(),
+            diverged: rec.diverged.is_some(),
+            seconds,
+        }
+    }
+
+    /// A model's figures: motion RMSE to the coarse source over time, to the fine mesh at rest
+    /// (the relaxations are the caller's).
     fn model(&self, draped: &Draped, warnings: &mut Vec<String>) -> ModelResult {
         let Some(rec) = &draped.recording else {
             return ModelResult {
@@ -839,6 +974,8 @@ impl Score<'_> {
                 diverged: false,
                 note: Some(GNN_NOT_APPLICABLE.into()),
                 motion_rmse_over_time: Vec::new(),
+                relaxed_from_source: None,
+                relaxed_from_fine: None,
                 wall_seconds: 0.0,
             };
         };
@@ -877,6 +1014,8 @@ impl Score<'_> {
             diverged: rec.diverged.is_some(),
             note: rec.diverged.clone(),
             motion_rmse_over_time: curve,
+            relaxed_from_source: None,
+            relaxed_from_fine: None,
             wall_seconds: rec.wall_seconds,
         }
     }
@@ -929,6 +1068,20 @@ pub fn report_figures(list: &Path) -> Vec<(PathBuf, String)> {
                         num(&m["steady_rmse_vs_source"]),
                         num(&m["motion_rmse_end"]),
                         num(&m["max_penetration"])
+                    );
+                }
+            }
+            // Without the path of a fall: each started from the fine mesh's settled drape.
+            let from_fine = &s["source"]["relaxed_from_fine"];
+            if from_fine.is_object() {
+                caption += &format!(
+                    "; started from the fine mesh's drape, at rest from it: source {}",
+                    num(&from_fine["steady_rmse_vs_fine"])
+                );
+                for (kind, m) in s["models"].as_object().into_iter().flatten() {
+                    caption += &format!(
+                        ", {kind} {}",
+                        num(&m["relaxed_from_fine"]["steady_rmse_vs_fine"])
                     );
                 }
             }

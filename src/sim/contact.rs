@@ -585,6 +585,24 @@ impl Contact {
         f64::from_bits(self.deepest.load(Ordering::Relaxed))
     }
 
+    /// Moves every point of `x` nearer than the contact thickness to a collider's surface at
+    /// time `t` out along that surface's normal to the thickness. A drape resampled onto
+    /// other particles cuts corners (a particle interpolated between two that rest on a
+    /// rounded edge lies inside it); lifted, it starts where resting cloth would be.
+    pub fn lift_out(&self, t: f64, x: &mut [V3]) {
+        for c in &self.colliders {
+            for p in x.iter_mut() {
+                let hit = c.query(t, *p);
+                let gap = self.params.thickness - hit.distance;
+                if gap > 0.0 {
+                    for (pi, ni) in p.iter_mut().zip(hit.normal) {
+                        *pi += gap * ni;
+                    }
+                }
+            }
+        }
+    }
+
     fn record(&self, intrusion: f64) {
         // Non-negative floats order like their bit patterns.
         self.deepest
