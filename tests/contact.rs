@@ -491,3 +491,54 @@ fn a_rounded_box_is_rounded_exactly() {
         "the sheet entered the ball"
     );
 }
+
+#[test]
+fn lift_out_puts_points_at_the_resting_distance_of_every_collider() {
+    // A ground plane and a sphere sunk halfway into it: points inside either, or within
+    // `rest` of it, end exactly `rest` from the nearer surface and outside both; points
+    // already farther stay where they are.
+    let contact = Contact::new(
+        vec![
+            collider("kind = \"plane\""),
+            collider("kind = \"sphere\"\nradius = 0.5"),
+        ],
+        params(250.0),
+    );
+    let rest = 0.05 - G / 2.5e5;
+    let start: Vec<V3> = vec![
+        [2.0, 0.0, -0.3],  // below the ground
+        [0.0, 0.0, 0.2],   // inside the sphere
+        [0.0, 0.45, 0.05], // inside the sphere, near the ground
+        [2.0, 1.0, 0.7],   // clear of both
+        [0.0, 0.0, 0.53],  // in the sphere's layer
+    ];
+    let mut x = start.clone();
+    contact.lift_out(0.0, &mut x, rest);
+    for (p, p0) in x.iter().zip(&start) {
+        let d = contact
+            .colliders
+            .iter()
+            .map(|c| c.query(0.0, *p).distance)
+            .fold(f64::INFINITY, f64::min);
+        let d0 = contact
+            .colliders
+            .iter()
+            .map(|c| c.query(0.0, *p0).distance)
+            .fold(f64::INFINITY, f64::min);
+        if d0 >= rest {
+            assert_eq!(p, p0, "a point clear of the layer moved");
+        } else {
+            assert!(
+                (d - rest).abs() < 1e-9,
+                "{p0:?} -> {p:?}: {d} m from a surface"
+            );
+        }
+    }
+    assert!(
+        (x[0][2] - rest).abs() < 1e-12,
+        "below the ground: straight up, {:?}",
+        x[0]
+    );
+    let r = (x[1][0].powi(2) + x[1][1].powi(2) + x[1][2].powi(2)).sqrt();
+    assert!((r - 0.5 - rest).abs() < 1e-9 && x[1][2] > 0.0, "{:?}", x[1]);
+}

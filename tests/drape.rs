@@ -1,7 +1,9 @@
 //! `springtime drape` end to end on a tiny sheet: a 4 × 4 FEM source, a 4 × 4 surrogate
 //! trained for a few steps on free pinned rollouts, a mesh and an analytic scene. Checks the
-//! interface (drape.json keys, figure, curves), the refusals (finished output, bad mesh,
-//! unstable contact) and `export --scene`; the physics is in tests/contact.rs.
+//! interface (drape.json keys, figure, curves, relaxations), the refusals (finished output,
+//! bad mesh, unstable contact) and `export --scene`; then the relaxations' meaning on a 5 × 5
+//! mass-spring source with surrogates holding its springs or softer ones. The physics is in
+//! tests/contact.rs.
 
 mod common;
 
@@ -166,7 +168,11 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
         assert!(r["steady_rmse_vs_fine"].as_f64().unwrap() >= 0.0, "{r}");
         assert_eq!(r["diverged"], false, "{r}");
     }
-    assert!(sphere["fine"]["relaxed_from_fine"].is_null(), "{sphere}");
+    assert_eq!(
+        sphere["fine"].get("relaxed_from_fine"),
+        Some(&serde_json::Value::Null),
+        "the fine mesh does not relax from itself: {sphere}"
+    );
     // The sheet fell onto the sphere and stayed on it.
     let sphere = &json["scenes"]["sphere"]["models"]["springs"];
     assert!(
@@ -355,7 +361,7 @@ fn a_surrogate_started_from_its_source_drape_keeps_it_only_with_the_source_sprin
         assert_eq!(scene["source"]["settled"], true, "{scene}");
         let m = &scene["models"]["springs"];
         let r = &m["relaxed_from_source"];
-        assert_eq!(r["seconds"], 1.5, "{r}");
+        assert!((r["seconds"].as_f64().unwrap() - 1.5).abs() < 1e-9, "{r}");
         assert_eq!(r["diverged"], false, "{r}");
         (
             m["steady_rmse_vs_source"].as_f64().unwrap(),

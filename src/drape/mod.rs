@@ -15,7 +15,8 @@
 //! diverged. Each model is also started at rest from the source's settled drape and left to
 //! settle again (`relaxed_from_source`): how far its own equilibrium lies from the source's,
 //! which separates the static part of its drape error from the part the fall's path left behind
-//! (friction holds whatever the path laid down). `<scene>.png` shows the drapes at the end side
+//! (friction holds whatever the path laid down); each model and the source likewise from the
+//! fine mesh's drape (`relaxed_from_fine`: the Fig. 8 comparison without a fall). `<scene>.png` shows the drapes at the end side
 //! by side with the motion RMSE over time; `<scene>_motion_rmse.csv` has the curves.
 
 pub mod scene;
@@ -158,24 +159,28 @@ pub struct ModelResult {
     pub note: Option<String>,
     /// Motion RMSE to the source over time (settling included), `[t, rmse]`.
     pub motion_rmse_over_time: Vec<[f64; 2]>,
-    /// The model started at rest from the source's settled drape (static scenes with a source
-    /// that did not diverge, `scene.settle > 0`).
+    /// The model started at rest from the source's drape at the end (static scenes, a source
+    /// that did not diverge, `scene.settle` at least `scene.record_every`; otherwise `None` and
+    /// a warning, as when that drape had not come to rest).
     pub relaxed_from_source: Option<Relaxed>,
-    /// The model started at rest from the fine reference's settled drape: with the source's
-    /// `relaxed_from_fine`, the Fig. 8 comparison without the path of a fall.
+    /// The model started at rest from the fine reference's settled drape (an FEM source, the
+    /// same conditions): with the source's `relaxed_from_fine`, the Fig. 8 comparison without
+    /// the path of a fall.
     pub relaxed_from_fine: Option<Relaxed>,
     /// Wall time of the simulation, s.
     pub wall_seconds: f64,
 }
 
-/// A model started at rest from the source's settled drape (resampled to its particles) and
-/// simulated `scene.settle` seconds with the same contact: its equilibrium near the source's.
-/// A small `steady_rmse_vs_source` here beside a large one after the fall says the model holds
-/// the source's drape and the difference comes from the path of the fall (where the sheet
-/// landed and what friction then held); a large one says its statics differ.
+/// A system started at rest from another's settled drape (resampled to its particles) and
+/// simulated `scene.settle` seconds with the same contact: its equilibrium near that drape.
+/// Started from the source's drape, a small `steady_rmse_vs_source` beside a large one after
+/// the fall says the model holds the source's drape and the difference comes from the path of
+/// the fall (where the sheet landed and what friction then held); a large one says its statics
+/// differ. Started from the fine mesh's, `steady_rmse_vs_fine` is how far the system's own
+/// equilibrium lies from the fine one's.
 #[derive(Debug, Clone, Serialize)]
 pub struct Relaxed {
-    /// RMSE at the end to the source's settled drape (its start), m.
+    /// RMSE at the end to the source's settled drape, m.
     pub steady_rmse_vs_source: Option<f64>,
     /// RMSE at the end to the fine reference's settled drape, m.
     pub steady_rmse_vs_fine: Option<f64>,
@@ -391,8 +396,14 @@ fn resample(res: &Resampler, src: &[f32]) -> Vec<f32> {
 }
 
 /// The last frame of `rec` resampled to the particles at `rest_uv`, lifted out of the
-/// colliders to the contact thickness: the start of a relaxation.
-fn relaxation_start(rec: &Recording, rest_uv: &[[f64; 2]], contact: &Contact) -> Vec<V3> {
+/// colliders to where cloth under `gravity` rests in the contact layer: the start of a
+/// relaxation.
+fn relaxation_start(
+    rec: &Recording,
+    rest_uv: &[[f64; 2]],
+    contact: &Contact,
+    gravity: V3,
+) -> Vec<V3> {
     let res = Resampler::new(&rec.rest_uv, rest_uv);
     let last = rec
         .frames
@@ -402,7 +413,10 @@ fn relaxation_start(rec: &Recording, rest_uv: &[[f64; 2]], contact: &Contact) ->
         .chunks(3)
         .map(|c| [c[0] as f64, c[1] as f64, c[2] as f64])
         .collect();
-    contact.lift_out(0.0, &mut x0);
+    // Where resting cloth sits: `g/κ` into the layer.
+    let g = gravity.iter().map(|c| c * c).sum::<f64>().sqrt();
+    let p = &contact.params;
+    contact.lift_out(0.0, &mut x0, p.thickness - g / p.stiffness);
     x0
 }
 
@@ -602,23 +616,36 @@ impl<'a> Job<'a> {
             total: (cfg.settle / self.frame_dt).round() as usize / every * every,
             ..frames
         };
-        // Relaxations start at t = 0 with the colliders where they stand then, not where a
-        // drape ended: static scenes only.
-        let relaxes = |r: Option<&Recording>| {
-            r.is_some_and(|r| {
-                r.diverged.is_none()
-                    && !r.frames.is_empty()
-                    && relax.total > 0
-                    && cfg.colliders.iter().all(|k| k.path.len() < 2)
-            })
+        // Relaxations start at rest from a settled drape, at t = 0 with the colliders where
+        // they stand then, not where a drape ended: static scenes only.
+        let mut relaxes = |r: Option<&Recording>| {
+            let r = r?;
+            let why = if relax.total == 0 {
+                "scene.settle is shorter than scene.record_every"
+            } else if cfg.colliders.iter().any(|k| k.path.len() >= 2) {
+                "a collider moves"
+            } else if r.diverged.is_some() || r.frames.is_empty() {
+                "it diverged"
+            } else {
+                if !r.settled() {
+                    warnings.push(format!(
+                        "the {} drape had not come to rest: the relaxations from it include \
+                         its own unfinished motion",
+                        r.label
+                    ));
+                }
+                return Some(());
+            };
+            warnings.push(format!("no relaxation from the {} drape: {why}", r.label));
+            None
         };
         let mut from_source = Vec::new();
-        if relaxes(coarse.as_ref()) {
+        if relaxes(coarse.as_ref()).is_some() {
             from_source = self.simulate_models(scene, &params, relax, coarse.as_ref())?;
         }
         let mut from_fine = Vec::new();
         let mut source_from_fine = None;
-        if let (true, Some(src)) = (relaxes(fine.as_ref()), &self.source) {
+        if let (Some(()), Some(src)) = (relaxes(fine.as_ref()), &self.source) {
             from_fine = self.simulate_models(scene, &params, relax, fine.as_ref())?;
             let start = fine.as_ref();
             source_from_fine = Some(self.host_run(scene, &params, src, 0.0, relax, start)?);
@@ -773,7 +800,7 @@ impl<'a> Job<'a> {
         let x0 = match start {
             Some(r) => {
                 label = format!("{label} from {}", r.label);
-                relaxation_start(r, sim.rest_uv(), &contact)
+                relaxation_start(r, sim.rest_uv(), &contact, src.gravity)
             }
             None => scene.release(sim.rest_uv(), src.width, src.height),
         };
@@ -827,7 +854,7 @@ impl<'a> Job<'a> {
             let contact = Contact::new(scene.colliders.clone(), *params);
             let (x0, label) = match start {
                 Some(r) => (
-                    relaxation_start(r, &m.topology.rest_uv, &contact),
+                    relaxation_start(r, &m.topology.rest_uv, &contact, physics.gravity),
                     format!("{kind} from {}", r.label),
                 ),
                 None => (

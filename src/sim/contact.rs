@@ -585,20 +585,29 @@ impl Contact {
         f64::from_bits(self.deepest.load(Ordering::Relaxed))
     }
 
-    /// Moves every point of `x` nearer than the contact thickness to a collider's surface at
-    /// time `t` out along that surface's normal to the thickness. A drape resampled onto
-    /// other particles cuts corners (a particle interpolated between two that rest on a
-    /// rounded edge lies inside it); lifted, it starts where resting cloth would be.
-    pub fn lift_out(&self, t: f64, x: &mut [V3]) {
-        for c in &self.colliders {
-            for p in x.iter_mut() {
-                let hit = c.query(t, *p);
-                let gap = self.params.thickness - hit.distance;
-                if gap > 0.0 {
-                    for (pi, ni) in p.iter_mut().zip(hit.normal) {
-                        *pi += gap * ni;
+    /// Moves every point of `x` nearer than `rest` to a collider's surface at time `t` out
+    /// along that surface's normal to `rest` (pass the resting depth `δ − g/κ` to start cloth
+    /// where it would rest). A drape resampled onto other particles cuts corners (a particle
+    /// interpolated between two that rest on a rounded edge lies inside it). Repeated while a
+    /// point moves (a point lifted out of one collider into another), at most 8 times; a point
+    /// inside a collider thinner than itself leaves by the nearest side.
+    pub fn lift_out(&self, t: f64, x: &mut [V3], rest: f64) {
+        for _ in 0..8 {
+            let mut moved = false;
+            for c in &self.colliders {
+                for p in x.iter_mut() {
+                    let hit = c.query(t, *p);
+                    let gap = rest - hit.distance;
+                    if gap > 1e-12 * rest.abs().max(1.0) {
+                        for (pi, ni) in p.iter_mut().zip(hit.normal) {
+                            *pi += gap * ni;
+                        }
+                        moved = true;
                     }
                 }
+            }
+            if !moved {
+                break;
             }
         }
     }
