@@ -689,12 +689,18 @@ impl<'a> Job<'a> {
             .collect();
         for (who, r) in &models {
             self.progress.note(&format!(
-                "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}; started from the source's drape, at rest {} from it; deepest {:.4} m, {:.1} s wall{}",
+                "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}{}; deepest {:.4} m, {:.1} s wall{}",
                 scene.config.seconds,
                 fmt_m(r.motion_rmse_end),
                 fmt_m(r.steady_rmse_vs_source),
                 fmt_m(r.steady_rmse_vs_fine),
-                fmt_m(r.relaxed_from_source.as_ref().and_then(|x| x.steady_rmse_vs_source)),
+                match &r.relaxed_from_source {
+                    Some(x) => format!(
+                        "; started from the source's drape, at rest {} from it",
+                        fmt_m(x.steady_rmse_vs_source)
+                    ),
+                    None => String::new(),
+                },
                 r.max_penetration.unwrap_or(0.0),
                 r.wall_seconds,
                 if r.diverged { ", DIVERGED" } else { "" }
