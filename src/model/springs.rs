@@ -6,6 +6,7 @@ use burn::module::{Module, Param};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
+use super::kernels::segment::{DeviceSegments, Segments};
 use super::kernels::{self, HostGraph};
 use crate::cloth::Topology;
 
@@ -211,13 +212,18 @@ pub struct Curvature {
     pub ij: Tensor<1, Int>,
     /// Last particle `l`, `[T]`.
     pub il: Tensor<1, Int>,
-    /// `[i, l, j]`, `[3T]`: the scatter index of the forces.
+    /// `[i, l, j]`, `[3T]`: the particle each entry of the forces goes to.
     pub ends: Tensor<1, Int>,
+    /// The same entries grouped by particle: the forces are summed by
+    /// [`kernels::segment`] (a gather on CubeCL devices, where a scatter walks every entry
+    /// per column), as the GNN sums its messages.
+    #[module(skip)]
+    pub segments: Arc<Segments>,
 }
 
 impl Curvature {
-    /// The elements `triples` with stiffness `kappa` on `device`.
-    pub fn new(triples: &[[usize; 3]], kappa: &[f64], device: &Device) -> Self {
+    /// The elements `triples` over `particles` particles with stiffness `kappa` on `device`.
+    pub fn new(triples: &[[usize; 3]], particles: usize, kappa: &[f64], device: &Device) -> Self {
         let t = triples.len();
         assert_eq!(kappa.len(), t, "one curvature stiffness per element");
         let int = |v: Vec<i64>| {
@@ -226,6 +232,7 @@ impl Curvature {
         };
         let col = |c: usize| -> Vec<i64> { triples.iter().map(|e| e[c] as i64).collect() };
         let ends = [col(0), col(2), col(1)].concat();
+        let segments = Arc::new(Segments::new(&ends, particles));
         Self {
             kappa: Param::from_tensor(Tensor::<1>::from_data(
                 TensorData::new(kappa.to_vec(), [t]),
@@ -235,6 +242,7 @@ impl Curvature {
             ij: int(col(1)),
             il: int(col(2)),
             ends: int(ends),
+            segments,
         }
     }
 
@@ -246,12 +254,10 @@ impl Curvature {
             - x.select(1, self.ij.clone()).mul_scalar(2.0); // [B, T, 3]
         let f = e * self.kappa.val().reshape([1, t, 1]);
         let all = Tensor::cat(vec![f.clone().neg(), f.clone().neg(), f.mul_scalar(2.0)], 1);
-        Tensor::zeros([batch, p, 3], &all.device()).select_assign(
-            1,
-            self.ends.clone(),
-            all,
-            burn::tensor::IndexingUpdateOp::Add,
-        )
+        // Entries as rows ([3T, B·3]), summed by particle, back to [B, P, 3].
+        let rows = all.swap_dims(0, 1).reshape([3 * t, batch * 3]);
+        let sum = DeviceSegments::over(self.segments.clone(), self.ends.clone()).sum(rows);
+        sum.reshape([p, batch, 3]).swap_dims(0, 1)
     }
 
     /// Current stiffness values on the host.
@@ -292,6 +298,7 @@ impl SpringNet {
         let curvature = (!topology.curvature.is_empty()).then(|| {
             Curvature::new(
                 &topology.curvature,
+                topology.num_particles(),
                 &vec![0.0; topology.curvature.len()],
                 device,
             )

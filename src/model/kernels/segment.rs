@@ -141,6 +141,20 @@ impl DeviceSegments {
         Self { host, owner }
     }
 
+    /// `segments` with its owner list `owner` already on a device (a module's field, which
+    /// moves with the module).
+    pub fn over(segments: Arc<Segments>, owner: Tensor<1, Int>) -> Self {
+        assert_eq!(
+            owner.dims()[0],
+            segments.num_entries(),
+            "one owner per entry of the segmentation"
+        );
+        Self {
+            host: segments,
+            owner,
+        }
+    }
+
     /// `[E, L] → [N, L]`: the rows of `values` summed by segment.
     pub fn sum(&self, values: Tensor<2>) -> Tensor<2> {
         Tensor::from_dispatch(<Dispatch as SegmentBackend>::segment_sum(
