@@ -387,6 +387,14 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("sim.substeps"), "{err}");
+        let err = Config::parse("", &["train.least_squares.stencil=0".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("train.least_squares.stencil"), "{err}");
+        let err = Config::parse("[train.least_squares]\ntarget = \"forces\"\n", &[])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("train.least_squares.target"), "{err}");
         let err = Config::parse("backend = \"cuda\"", &[])
             .unwrap_err()
             .to_string();

@@ -124,6 +124,8 @@ pub struct Track {
     /// Velocities `[F, P, 3]` (stored, or central differences of positions — backward at a
     /// window's last frame; frame 0 of a window without stored velocities starts no clip).
     pub velocities: Vec<f32>,
+    /// Whether the velocities are the file's own (not differences of positions).
+    pub stored_velocities: bool,
     /// Pinned particles.
     pub pinned: Vec<bool>,
 }
@@ -138,6 +140,7 @@ impl Track {
             particles: p,
             positions: x0.iter().flat_map(|q| q.map(|c| c as f32)).collect(),
             velocities: vec![0.0; p * 3],
+            stored_velocities: true,
             pinned: vec![false; p],
         }
     }
@@ -161,6 +164,7 @@ impl Track {
             particles: rollout.landmarks,
             pinned: resampler.pinned(&rollout.pinned),
             velocities: rollout.velocities.expect("checked above"),
+            stored_velocities: true,
             positions: rollout.positions,
         }
     }
@@ -221,6 +225,7 @@ impl Track {
             particles: p,
             positions,
             velocities,
+            stored_velocities: rollout.velocities.is_some(),
             pinned: resampler.pinned(&rollout.pinned),
         }
     }
@@ -469,6 +474,12 @@ impl ClipSet {
             .chain(&self.low_velocity)
             .copied()
             .collect()
+    }
+
+    /// Whether every particle copies one landmark (no interpolation between the data's
+    /// vertices).
+    pub fn particles_are_landmarks(&self) -> bool {
+        self.resampler.as_ref().is_some_and(Resampler::is_exact)
     }
 
     /// Particle mass `ρA/P`.

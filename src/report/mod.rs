@@ -167,6 +167,22 @@ pub fn build(
         }
         mesh = r.mesh.clone().map(|m| (r.rest_uv.clone(), m));
     }
+    if let Ok(text) = std::fs::read_to_string(run.least_squares()) {
+        let r: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", run.least_squares().display()))?;
+        notes.push(format!(
+            "training started from the per-spring least-squares fit of the data's forces \
+             (`train.least_squares`, least_squares.json): stencil ±{} over {} frames, force \
+             residual {:.3} of the target against the uniform start's {:.3}; {} of {} values \
+             fixed at 0",
+            r["stencil"],
+            r["frames"],
+            r["residual_fitted"].as_f64().unwrap_or(f64::NAN),
+            r["residual_initial"].as_f64().unwrap_or(f64::NAN),
+            r["fixed_at_zero"],
+            r["unknowns"]
+        ));
+    }
     let (k, b) = (model.k_values(), model.b_values());
     let mut inputs = Inputs {
         name: config.name.clone(),

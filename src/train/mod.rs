@@ -4,6 +4,7 @@
 //! trains `b` with `k` frozen on regular clips. `mode = "single"` trains both at once.
 
 pub mod init;
+pub mod least_squares;
 pub mod losses;
 pub mod run;
 pub mod scale;
@@ -146,6 +147,9 @@ pub struct TrainConfig {
     /// paper). For a force-level fit (`force_on = "target"`), whose values least squares
     /// shrinks; the substeps are raised as the scaled network needs.
     pub scale_search: bool,
+    /// Start a spring network from the per-spring least-squares fit of the data's forces
+    /// (ours; off: the paper's uniform start).
+    pub least_squares: least_squares::LeastSquaresConfig,
     /// The stiffness pass.
     pub stiffness: PassConfig,
     /// The damping pass.
@@ -168,6 +172,7 @@ impl Default for TrainConfig {
             state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
             project_stable: true,
             scale_search: false,
+            least_squares: least_squares::LeastSquaresConfig::default(),
             stiffness: PassConfig {
                 lr: 2.0,
                 clips: ClipPool::LowVelocity,
@@ -250,7 +255,7 @@ impl TrainConfig {
         if !(self.adam_epsilon > 0.0) {
             bail!("`train.adam_epsilon` must be positive");
         }
-        Ok(())
+        self.least_squares.validate()
     }
 
     /// The passes to run for a model family. Spring networks follow `mode`; the Neural ODE
@@ -510,7 +515,8 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     };
     let summary = match config.model.kind {
         ModelKind::Springs => {
-            let model = SpringNet::uniform(&topo, resolution.k_init, resolution.b_init, &device)
+            let model = fit
+                .initial_springs(&resolution)?
                 .with_kernel(config.model.kernel)
                 .with_curvature(&vec![
                     config.model.curvature_init_for(resolution.k_init);
@@ -893,6 +899,9 @@ pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> V
         .collect()
 }
 
+/// A least-squares fit leaving more than this relative force residual gets a warning.
+const UNRELIABLE_RESIDUAL: f64 = 0.9;
+
 /// The training loop shared by every model family: passes of Adam over clip batches, metrics,
 /// checkpoints, resume and a clear stop on a non-finite loss.
 struct Fit<'a> {
@@ -925,6 +934,76 @@ impl Fit<'_> {
             run.truncate_metrics(out.1)?;
         }
         Ok(out)
+    }
+
+    /// The spring network training starts from: the uniform `k_init`, `b_init`, or with
+    /// `train.least_squares.enabled` (and not resuming) the per-spring least-squares fit of the
+    /// data's forces, projected into the stable region; its record goes to
+    /// `least_squares.json`.
+    fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
+        let (job, config) = (self.job, &self.job.config.train.least_squares);
+        let (topo, device) = (job.topology, job.device);
+        let (k0, b0) = (resolution.k_init, resolution.b_init);
+        if !config.enabled || self.previous.is_some() {
+            return Ok(SpringNet::uniform(topo, k0, b0, device));
+        }
+        if !job.topology.curvature.is_empty() {
+            self.progress.note(
+                "least squares fits the springs only: the curvature elements start at their \
+                 initial κ, whose forces the fit does not see",
+            );
+        }
+        if !self.clips.particles_are_landmarks() {
+            self.progress.note(
+                "least squares: the particles are interpolated between the data's landmarks, \
+                 whose averaged accelerations no spring attached to one produces; the fit is \
+                 reliable on the data's own vertices (`cloth.layout = \"data\"`, or a grid of \
+                 the data's grid)",
+            );
+        }
+        let fit = least_squares::fit(config, self.clips, &job.physics, (k0, b0), self.progress)?;
+        let r = &fit.record;
+        let mut line = format!(
+            "least squares: stencil ±{} over {} frames ({} samples): force residual {:.3} of \
+             the target (uniform start {:.3}); {} CG iterations; {} of {} unknowns fixed at 0, \
+             {} unconstrained",
+            r.stencil,
+            r.frames,
+            r.samples,
+            r.residual_fitted,
+            r.residual_initial,
+            r.iterations,
+            r.fixed_at_zero,
+            r.unknowns,
+            r.unconstrained
+        );
+        if let Some((k, b)) = job.truth {
+            line += &format!(
+                "; rmse_k {:.3e}, rmse_b {:.3e}",
+                rmse(&fit.k, k),
+                rmse(&fit.b, b)
+            );
+        }
+        self.progress.note(&line);
+        if r.residual_fitted > UNRELIABLE_RESIDUAL {
+            self.progress.note(&format!(
+                "least squares: the springs explain only {:.1} % of the data's force (mean \
+                 square); the rest is noise of the differenced target or forces springs do not \
+                 make, and least squares shrinks values fitted to noisy strains \
+                 (`train.scale_search = true` rescales the network)",
+                100.0 * (1.0 - r.residual_fitted.powi(2))
+            ));
+        }
+        crate::io::write_json(&self.run.least_squares(), r)?;
+        let (model, clamped) =
+            SpringNet::new(topo, &fit.k, &fit.b, device).project_stable(job, true, true);
+        if clamped > 0 {
+            self.progress.note(&format!(
+                "least squares: {clamped} spring values clamped into the stable region \
+                 (dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT})"
+            ));
+        }
+        Ok(model)
     }
 
     /// Says what training did besides plain Adam steps: skipped steps, clips left out of a

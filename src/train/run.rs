@@ -217,6 +217,11 @@ impl RunDir {
         self.dir.join("defaults.json")
     }
 
+    /// `least_squares.json`: the per-spring least-squares start (`train.least_squares`).
+    pub fn least_squares(&self) -> PathBuf {
+        self.dir.join("least_squares.json")
+    }
+
     /// `run.json`.
     pub fn state_path(&self) -> PathBuf {
         self.dir.join("run.json")

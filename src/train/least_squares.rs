@@ -1,0 +1,684 @@
+//! Per-spring least squares: the spring network whose forces best explain the data's (ours,
+//! `train.least_squares`; off by default, the paper starts from a uniform network).
+//!
+//! Eq. 4 is linear in every spring's `k` and `b`, so the teacher-forced force fit of a whole
+//! network is a linear least-squares problem — the per-spring form of the uniform fit that
+//! [`super::init`] solves. For every free particle `i` at a centre frame `j` of the training
+//! clips, with the stencil `w` of that fit,
+//!
+//! `m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² − m g + c v̄_j = Σ_s k_s ē_s + b_s f̄_s`,
+//!
+//! where `ē_s`, `f̄_s` are the tent-weighted means over frames `j − w < q < j + w` of spring
+//! `s`'s unit-stiffness force `±(|d| − l₀) d̂` and unit-damping force `±((v_b − v_a)·d̂) d̂` on `i`
+//! (divided by its relative mass), and `v̄` the same mean of the track's velocities (stored, or
+//! central differences). With stored frames of the data's own step (`w = 1`, a semi-implicit
+//! Euler source), the left side is the exact net force, and the source's network solves the
+//! system exactly.
+//!
+//! The normal equations are sparse — two springs couple only through a shared particle — and
+//! are assembled as 2 × 2 blocks (`k`, `b` of one spring against another), then solved by
+//! conjugate gradients with a block-Jacobi preconditioner. A Tikhonov term of relative weight
+//! `prior` pulls each unknown towards the run's initial uniform value: a spring that no frame
+//! stretches keeps it. Negative values are fixed at zero and the rest solved again; the
+//! network is then projected into the explicit step's stable region as training does.
+
+use std::collections::BTreeSet;
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::cloth::Topology;
+use crate::config::Auto;
+use crate::data::ClipSet;
+use crate::progress::Progress;
+use crate::sim::Physics;
+
+/// The `[train.least_squares]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LeastSquaresConfig {
+    /// Start the spring network from the per-spring least-squares fit instead of a uniform one.
+    pub enabled: bool,
+    /// Where the target force comes from.
+    pub target: Target,
+    /// Half-width of the acceleration stencil in frames (`"auto"`: the one of 1, 2, 4, 8, 16
+    /// whose fit on a sample of the frames explains the largest share of its target force).
+    pub stencil: Auto<usize>,
+    /// At most this many centre frames, spread evenly over every training clip.
+    pub frames: usize,
+    /// Weight of the pull towards the initial uniform `k`, `b`, relative to the mean diagonal
+    /// of the normal equations (per parameter kind).
+    pub prior: f64,
+    /// Conjugate-gradient iterations per solve, at most.
+    pub max_iterations: usize,
+    /// Relative residual of the normal equations at which the solve stops.
+    pub tolerance: f64,
+}
+
+impl Default for LeastSquaresConfig {
+    fn default() -> Self {
+        Self {
+            enabled: false,
+            target: Target::Auto,
+            stencil: Auto::Auto,
+            frames: 4096,
+            prior: 1e-9,
+            max_iterations: 20_000,
+            tolerance: 1e-10,
+        }
+    }
+}
+
+/// The target force of the fit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Target {
+    /// From the stored velocities where a rollout has them, else from positions.
+    #[default]
+    Auto,
+    /// `m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)²`: tent-weighted means of the forces over the
+    /// stencil.
+    Positions,
+    /// `m (v_{j+w} − v_j) / (wΔt)`: the mean over frames `j … j + w − 1` (exact for a
+    /// semi-implicit Euler source with `w = 1`; positions stored in f32 lose that precision in
+    /// their second differences). Needs stored velocities.
+    Velocities,
+}
+
+impl LeastSquaresConfig {
+    /// Checks ranges; errors name the key.
+    pub fn validate(&self) -> Result<()> {
+        if self.stencil == Auto::Value(0) {
+            bail!("`train.least_squares.stencil` must be at least 1 frame (or \"auto\")");
+        }
+        if self.frames == 0 {
+            bail!("`train.least_squares.frames` must be at least 1");
+        }
+        if !(self.prior > 0.0 && self.prior.is_finite()) {
+            bail!(
+                "`train.least_squares.prior` must be a positive number, is {}",
+                self.prior
+            );
+        }
+        if self.max_iterations == 0 {
+            bail!("`train.least_squares.max_iterations` must be at least 1");
+        }
+        if !(self.tolerance > 0.0 && self.tolerance < 1.0) {
+            bail!(
+                "`train.least_squares.tolerance` must be in (0, 1), is {}",
+                self.tolerance
+            );
+        }
+        Ok(())
+    }
+}
+
+/// What a least-squares fit found, written to `least_squares.json` in the run.
+#[derive(Debug, Clone, Serialize)]
+pub struct LeastSquaresRecord {
+    /// Stencil half-width, frames.
+    pub stencil: usize,
+    /// Centre frames used.
+    pub frames: usize,
+    /// Of them, those whose target came from stored velocities.
+    pub velocity_frames: usize,
+    /// Free particle × centre frame samples (three force rows each).
+    pub samples: usize,
+    /// Unknowns (`k` and `b` of every spring).
+    pub unknowns: usize,
+    /// Unknowns that no sample constrains (they keep the initial value).
+    pub unconstrained: usize,
+    /// RMS of the target force, N.
+    pub target_rms: f64,
+    /// Relative force residual `|y − Jθ| / |y|` of the initial uniform network.
+    pub residual_initial: f64,
+    /// The same of the fitted network (before the stability projection).
+    pub residual_fitted: f64,
+    /// Conjugate-gradient iterations, over every solve.
+    pub iterations: usize,
+    /// Relative residual of the normal equations at the end of the last solve.
+    pub normal_residual: f64,
+    /// Unknowns fixed at zero because the unconstrained solution was negative.
+    pub fixed_at_zero: usize,
+    /// The stencils `"auto"` tried on a sample of the frames (empty for a given stencil).
+    pub trials: Vec<StencilTrial>,
+    /// Seconds for the trials, the assembly and the solves.
+    pub seconds: f64,
+}
+
+/// The fitted values.
+#[derive(Debug, Clone)]
+pub struct LeastSquaresFit {
+    /// Stiffness per spring, N/m.
+    pub k: Vec<f64>,
+    /// Damping per spring, N·s/m.
+    pub b: Vec<f64>,
+    /// What the fit found.
+    pub record: LeastSquaresRecord,
+}
+
+/// The normal equations `A θ = g` of the force fit in 2 × 2 blocks per pair of springs that
+/// share a particle (block-row `s` holds `s`'s `k` and `b` rows), with `yᵀy`.
+#[derive(Debug, Clone)]
+struct Normal {
+    row_start: Vec<usize>,
+    col: Vec<usize>,
+    blocks: Vec<[f64; 4]>,
+    rhs: Vec<f64>,
+    yy: f64,
+    rows: usize,
+    samples: usize,
+}
+
+/// Each particle's springs, their sign on it, and where each pair's block lies.
+struct Pattern {
+    incident: Vec<Vec<(usize, f64)>>,
+    /// Per particle, `deg²` block indices (row-major over its incident springs).
+    slots: Vec<Vec<usize>>,
+    row_start: Vec<usize>,
+    col: Vec<usize>,
+}
+
+impl Pattern {
+    fn new(topo: &Topology) -> Self {
+        let p = topo.num_particles();
+        let mut incident = vec![Vec::new(); p];
+        for (s, &[a, b]) in topo.springs.iter().enumerate() {
+            incident[a].push((s, 1.0));
+            incident[b].push((s, -1.0));
+        }
+        let mut neighbours: Vec<BTreeSet<usize>> = vec![BTreeSet::new(); topo.num_springs()];
+        for inc in &incident {
+            for &(s, _) in inc {
+                neighbours[s].extend(inc.iter().map(|&(r, _)| r));
+            }
+        }
+        let mut row_start = vec![0];
+        let mut col = Vec::new();
+        for n in &neighbours {
+            col.extend(n.iter().copied());
+            row_start.push(col.len());
+        }
+        let slot = |s: usize, r: usize| {
+            let row = &col[row_start[s]..row_start[s + 1]];
+            row_start[s] + row.binary_search(&r).expect("in the pattern")
+        };
+        let slots = incident
+            .iter()
+            .map(|inc| {
+                inc.iter()
+                    .flat_map(|&(s, _)| inc.iter().map(move |&(r, _)| (s, r)))
+                    .map(|(s, r)| slot(s, r))
+                    .collect()
+            })
+            .collect();
+        Self {
+            incident,
+            slots,
+            row_start,
+            col,
+        }
+    }
+
+    fn empty_normal(&self) -> Normal {
+        Normal {
+            row_start: self.row_start.clone(),
+            col: self.col.clone(),
+            blocks: vec![[0.0; 4]; self.col.len()],
+            rhs: vec![0.0; 2 * (self.row_start.len() - 1)],
+            yy: 0.0,
+            rows: 0,
+            samples: 0,
+        }
+    }
+}
+
+impl Normal {
+    fn merge(mut self, other: Normal) -> Normal {
+        for (a, b) in self.blocks.iter_mut().zip(&other.blocks) {
+            for (x, y) in a.iter_mut().zip(b) {
+                *x += y;
+            }
+        }
+        for (a, b) in self.rhs.iter_mut().zip(&other.rhs) {
+            *a += b;
+        }
+        self.yy += other.yy;
+        self.rows += other.rows;
+        self.samples += other.samples;
+        self
+    }
+
+    fn unknowns(&self) -> usize {
+        self.rhs.len()
+    }
+
+    /// `out = A x` restricted to the rows and columns `free`, plus `shift ∘ x`.
+    fn apply(&self, x: &[f64], shift: &[f64], free: &[bool], out: &mut [f64]) {
+        out.par_chunks_mut(2).enumerate().for_each(|(s, o)| {
+            let (mut k, mut b) = (0.0, 0.0);
+            for q in self.row_start[s]..self.row_start[s + 1] {
+                let (r, m) = (self.col[q], &self.blocks[q]);
+                k += m[0] * x[2 * r] + m[1] * x[2 * r + 1];
+                b += m[2] * x[2 * r] + m[3] * x[2 * r + 1];
+            }
+            for (d, v) in [k, b].into_iter().enumerate() {
+                let i = 2 * s + d;
+                o[d] = if free[i] { v + shift[i] * x[i] } else { 0.0 };
+            }
+        });
+    }
+
+    fn diagonal(&self) -> Vec<[f64; 4]> {
+        (0..self.unknowns() / 2)
+            .map(|s| {
+                let row = &self.col[self.row_start[s]..self.row_start[s + 1]];
+                self.blocks[self.row_start[s] + row.binary_search(&s).expect("own block")]
+            })
+            .collect()
+    }
+
+    /// `|y − J θ|² = yᵀy − 2 θᵀg + θᵀAθ`, relative to `yᵀy`, as an RMS ratio.
+    fn relative_residual(&self, theta: &[f64]) -> f64 {
+        let mut a_theta = vec![0.0; theta.len()];
+        self.apply(
+            theta,
+            &vec![0.0; theta.len()],
+            &vec![true; theta.len()],
+            &mut a_theta,
+        );
+        let quad: f64 = theta.iter().zip(&a_theta).map(|(x, y)| x * y).sum();
+        let lin: f64 = theta.iter().zip(&self.rhs).map(|(x, y)| x * y).sum();
+        ((self.yy - 2.0 * lin + quad).max(0.0) / self.yy.max(f64::MIN_POSITIVE)).sqrt()
+    }
+}
+
+/// Stencil half-widths `"auto"` tries (those that fit in a clip).
+const STENCILS: [usize; 5] = [1, 2, 4, 8, 16];
+/// Centre frames of each trial fit of `"auto"`.
+const TRIAL_FRAMES: usize = 1024;
+
+/// Fits `k`, `b` per spring to the clips of `clips` with the physics of `physics`, starting from
+/// (and pulled towards) the uniform `k_init`, `b_init`. With `stencil = "auto"`, each stencil of
+/// 1, 2, 4, 8 and 16 frames is first fitted on a sample of the frames, and the one whose network
+/// explains the largest share of its target force is fitted on all of them.
+pub fn fit(
+    config: &LeastSquaresConfig,
+    clips: &ClipSet,
+    physics: &Physics,
+    init: (f64, f64),
+    progress: &Progress,
+) -> Result<LeastSquaresFit> {
+    let start = Instant::now();
+    let (stencil, trials) = match config.stencil {
+        Auto::Value(w) => (w, Vec::new()),
+        Auto::Auto => {
+            let trial = LeastSquaresConfig {
+                frames: config.frames.min(TRIAL_FRAMES),
+                ..config.clone()
+            };
+            let mut trials = Vec::new();
+            for w in STENCILS.into_iter().filter(|&w| 2 * w <= clips.steps) {
+                let r = fit_with(&trial, clips, physics, w, init, &Progress::quiet())?.record;
+                progress.note(&format!(
+                    "least squares, trial: stencil ±{w} leaves a force residual of {:.4} of the \
+                     target",
+                    r.residual_fitted
+                ));
+                trials.push(StencilTrial {
+                    stencil: w,
+                    residual: r.residual_fitted,
+                });
+            }
+            let best = trials
+                .iter()
+                .min_by(|a, b| a.residual.total_cmp(&b.residual))
+                .ok_or_else(|| {
+                    anyhow::anyhow!(
+                        "`train.least_squares`: clips of {} steps fit no stencil",
+                        clips.steps
+                    )
+                })?;
+            (best.stencil, trials)
+        }
+    };
+    let mut fit = fit_with(config, clips, physics, stencil, init, progress)?;
+    fit.record.trials = trials;
+    fit.record.seconds = start.elapsed().as_secs_f64();
+    Ok(fit)
+}
+
+/// One stencil tried by `stencil = "auto"`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct StencilTrial {
+    /// Half-width, frames.
+    pub stencil: usize,
+    /// Relative force residual of its fit on the sample.
+    pub residual: f64,
+}
+
+/// [`fit`] with the stencil `stencil`.
+fn fit_with(
+    config: &LeastSquaresConfig,
+    clips: &ClipSet,
+    physics: &Physics,
+    stencil: usize,
+    (k_init, b_init): (f64, f64),
+    progress: &Progress,
+) -> Result<LeastSquaresFit> {
+    let start = Instant::now();
+    let topo = &clips.topology;
+    let w = stencil;
+    let t = clips.steps;
+    if 2 * w > t {
+        bail!(
+            "`train.least_squares.stencil` = {w} needs clips of at least {} steps; \
+             `data.clips.steps` is {t}",
+            2 * w
+        );
+    }
+    // Every centre frame whose stencil lies inside a training clip, once.
+    let mut centres = BTreeSet::new();
+    for clip in clips.all_clips() {
+        centres.extend((clip.offset + w..=clip.offset + t - w).map(|j| (clip.rollout, j)));
+    }
+    let stride = centres.len().div_ceil(config.frames).max(1);
+    let centres: Vec<(usize, usize)> = centres.into_iter().step_by(stride).collect();
+    let mut by_rollout: Vec<(usize, Vec<usize>)> = Vec::new();
+    for (r, j) in centres {
+        match by_rollout.last_mut() {
+            Some((last, js)) if *last == r => js.push(j),
+            _ => by_rollout.push((r, vec![j])),
+        }
+    }
+    let pattern = Pattern::new(topo);
+    let bar = progress.bar(by_rollout.len() as u64, "least squares");
+    let mut normal = pattern.empty_normal();
+    let mut velocity_frames = 0;
+    for (rollout, js) in &by_rollout {
+        let track = clips.track(*rollout)?;
+        let velocities = match config.target {
+            Target::Auto => track.stored_velocities,
+            Target::Positions => false,
+            Target::Velocities if track.stored_velocities => true,
+            Target::Velocities => bail!(
+                "`train.least_squares.target = \"velocities\"`: training rollout {} stores no \
+                 `velocities` (use \"positions\" or \"auto\")",
+                clips.name(*rollout)
+            ),
+        };
+        if velocities {
+            velocity_frames += js.len();
+        }
+        let stencil = Stencil { w, velocities };
+        let part = js
+            .par_iter()
+            .fold(
+                || pattern.empty_normal(),
+                |mut acc, &j| {
+                    accumulate(&mut acc, &pattern, topo, &track, physics, j, stencil);
+                    acc
+                },
+            )
+            .reduce(|| pattern.empty_normal(), Normal::merge);
+        normal = normal.merge(part);
+        bar.inc(1);
+    }
+    bar.finish();
+    if normal.samples == 0 {
+        bail!("`train.least_squares`: the training clips have no free particle to fit");
+    }
+    let n = normal.unknowns();
+    let initial: Vec<f64> = (0..n)
+        .map(|i| if i % 2 == 0 { k_init } else { b_init })
+        .collect();
+    let residual_initial = normal.relative_residual(&initial);
+    // Tikhonov weights per kind, relative to that kind's mean diagonal.
+    let diag = normal.diagonal();
+    let mean = |d: usize| diag.iter().map(|m| m[d]).sum::<f64>() / diag.len() as f64;
+    let (mean_k, mean_b) = (mean(0), mean(3));
+    let shift: Vec<f64> = (0..n)
+        .map(|i| config.prior * if i % 2 == 0 { mean_k } else { mean_b })
+        .collect();
+    let unconstrained = diag
+        .iter()
+        .flat_map(|m| [m[0], m[3]])
+        .filter(|&d| d == 0.0)
+        .count();
+    let mut theta = initial.clone();
+    let mut free = vec![true; n];
+    let (mut iterations, mut normal_residual) = (0, 0.0);
+    for _round in 0..8 {
+        let (it, res) = solve(&normal, &shift, &initial, &free, &mut theta, config);
+        iterations += it;
+        normal_residual = res;
+        let negative: Vec<usize> = (0..n).filter(|&i| free[i] && theta[i] < 0.0).collect();
+        if negative.is_empty() {
+            break;
+        }
+        for i in negative {
+            free[i] = false;
+            theta[i] = 0.0;
+        }
+    }
+    // A last round may leave negatives when the rounds ran out.
+    theta.iter_mut().for_each(|v| *v = v.max(0.0));
+    let residual_fitted = normal.relative_residual(&theta);
+    let record = LeastSquaresRecord {
+        stencil: w,
+        frames: by_rollout.iter().map(|(_, js)| js.len()).sum(),
+        velocity_frames,
+        samples: normal.samples,
+        unknowns: n,
+        unconstrained,
+        target_rms: (normal.yy / normal.rows.max(1) as f64).sqrt(),
+        residual_initial,
+        residual_fitted,
+        iterations,
+        normal_residual,
+        fixed_at_zero: free.iter().filter(|f| !**f).count(),
+        trials: Vec::new(),
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    Ok(LeastSquaresFit {
+        k: theta.iter().step_by(2).copied().collect(),
+        b: theta.iter().skip(1).step_by(2).copied().collect(),
+        record,
+    })
+}
+
+/// The half-width of the stencil and where its target comes from.
+#[derive(Debug, Clone, Copy)]
+struct Stencil {
+    w: usize,
+    velocities: bool,
+}
+
+impl Stencil {
+    /// The frames whose forces the target at centre `j` averages, with their weights.
+    fn weights(self, j: usize) -> Vec<(usize, f64)> {
+        let w = self.w;
+        if self.velocities {
+            (j..j + w).map(|q| (q, 1.0 / w as f64)).collect()
+        } else {
+            (j + 1 - w..j + w)
+                .map(|q| (q, (w - q.abs_diff(j)) as f64 / (w * w) as f64))
+                .collect()
+        }
+    }
+}
+
+/// Adds the rows of the free particles at centre frame `j` of `track`.
+fn accumulate(
+    acc: &mut Normal,
+    pattern: &Pattern,
+    topo: &Topology,
+    track: &crate::data::Track,
+    physics: &Physics,
+    j: usize,
+    stencil: Stencil,
+) {
+    let w = stencil.w;
+    let p = topo.num_particles();
+    let at = |buf: &[f32], q: usize, i: usize| -> [f64; 3] {
+        let o = (q * p + i) * 3;
+        [buf[o] as f64, buf[o + 1] as f64, buf[o + 2] as f64]
+    };
+    // Weighted per-spring unit forces and per-particle velocities over the stencil.
+    let mut fk = vec![[0f64; 3]; topo.num_springs()];
+    let mut fb = vec![[0f64; 3]; topo.num_springs()];
+    let mut v_mean = vec![[0f64; 3]; p];
+    for (q, weight) in stencil.weights(j) {
+        for (s, (&[a, b], &l0)) in topo.springs.iter().zip(&topo.rest_length).enumerate() {
+            let (xa, xb) = (at(&track.positions, q, a), at(&track.positions, q, b));
+            let (va, vb) = (at(&track.velocities, q, a), at(&track.velocities, q, b));
+            let d = [0, 1, 2].map(|c| xb[c] - xa[c]);
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+            let u = d.map(|c| c / len);
+            let along = (0..3).map(|c| (vb[c] - va[c]) * u[c]).sum::<f64>();
+            for c in 0..3 {
+                fk[s][c] += weight * (len - l0) * u[c];
+                fb[s][c] += weight * along * u[c];
+            }
+        }
+        for (i, v) in v_mean.iter_mut().enumerate() {
+            let vq = at(&track.velocities, q, i);
+            for c in 0..3 {
+                v[c] += weight * vq[c];
+            }
+        }
+    }
+    let (m, c, g) = (physics.mass, physics.rayleigh, physics.gravity);
+    let h = w as f64 * physics.frame_dt;
+    let mut cols: Vec<([f64; 3], [f64; 3])> = Vec::new();
+    for i in (0..p).filter(|&i| !track.pinned[i]) {
+        let accel: [f64; 3] = if stencil.velocities {
+            let (a, e) = (at(&track.velocities, j, i), at(&track.velocities, j + w, i));
+            [0, 1, 2].map(|d| (e[d] - a[d]) / h)
+        } else {
+            let (a, b, e) = (
+                at(&track.positions, j - w, i),
+                at(&track.positions, j, i),
+                at(&track.positions, j + w, i),
+            );
+            [0, 1, 2].map(|d| (e[d] - 2.0 * b[d] + a[d]) / (h * h))
+        };
+        let y: [f64; 3] = [0, 1, 2].map(|d| m * (accel[d] - g[d]) + c * v_mean[i][d]);
+        let scale = topo.mass_weight.as_ref().map_or(1.0, |mw| 1.0 / mw[i]);
+        cols.clear();
+        cols.extend(pattern.incident[i].iter().map(|&(s, sign)| {
+            let f = sign * scale;
+            (fk[s].map(|x| f * x), fb[s].map(|x| f * x))
+        }));
+        let dot = |x: &[f64; 3], y: &[f64; 3]| x[0] * y[0] + x[1] * y[1] + x[2] * y[2];
+        let deg = cols.len();
+        for (ai, (ka, ba)) in cols.iter().enumerate() {
+            let s = pattern.incident[i][ai].0;
+            acc.rhs[2 * s] += dot(ka, &y);
+            acc.rhs[2 * s + 1] += dot(ba, &y);
+            for (bi, (kb, bb)) in cols.iter().enumerate() {
+                let block = &mut acc.blocks[pattern.slots[i][ai * deg + bi]];
+                block[0] += dot(ka, kb);
+                block[1] += dot(ka, bb);
+                block[2] += dot(ba, kb);
+                block[3] += dot(ba, bb);
+            }
+        }
+        acc.yy += dot(&y, &y);
+        acc.rows += 3;
+        acc.samples += 1;
+    }
+}
+
+/// Conjugate gradients on `(A + diag(shift)) θ = g + shift ∘ prior` over the unknowns `free`
+/// (the others stay as they are), preconditioned by the inverse 2 × 2 diagonal blocks. Returns
+/// the iterations and the final relative residual.
+fn solve(
+    normal: &Normal,
+    shift: &[f64],
+    prior: &[f64],
+    free: &[bool],
+    theta: &mut [f64],
+    config: &LeastSquaresConfig,
+) -> (usize, f64) {
+    let n = theta.len();
+    // The fixed unknowns' contribution moves to the right-hand side.
+    let all = vec![true; n];
+    let mut a_theta = vec![0.0; n];
+    normal.apply(theta, shift, &all, &mut a_theta);
+    let mut r: Vec<f64> = (0..n)
+        .map(|i| {
+            if free[i] {
+                normal.rhs[i] + shift[i] * prior[i] - a_theta[i]
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let b_norm = (0..n)
+        .filter(|&i| free[i])
+        .map(|i| (normal.rhs[i] + shift[i] * prior[i]).powi(2))
+        .sum::<f64>()
+        .sqrt()
+        .max(f64::MIN_POSITIVE);
+    // Inverse diagonal blocks (with the shift; a fixed unknown's row and column dropped).
+    let inverse: Vec<[f64; 4]> = normal
+        .diagonal()
+        .iter()
+        .enumerate()
+        .map(|(s, m)| {
+            let (fk, fb) = (free[2 * s], free[2 * s + 1]);
+            let a = if fk { m[0] + shift[2 * s] } else { 1.0 };
+            let d = if fb { m[3] + shift[2 * s + 1] } else { 1.0 };
+            let (b, c) = if fk && fb { (m[1], m[2]) } else { (0.0, 0.0) };
+            let det = a * d - b * c;
+            [d / det, -b / det, -c / det, a / det]
+        })
+        .collect();
+    let precondition = |r: &[f64], z: &mut [f64]| {
+        for (s, m) in inverse.iter().enumerate() {
+            let (x, y) = (r[2 * s], r[2 * s + 1]);
+            z[2 * s] = if free[2 * s] {
+                m[0] * x + m[1] * y
+            } else {
+                0.0
+            };
+            z[2 * s + 1] = if free[2 * s + 1] {
+                m[2] * x + m[3] * y
+            } else {
+                0.0
+            };
+        }
+    };
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
+    let mut z = vec![0.0; n];
+    precondition(&r, &mut z);
+    let mut p = z.clone();
+    let mut rz = dot(&r, &z);
+    let mut ap = vec![0.0; n];
+    let mut residual = dot(&r, &r).sqrt() / b_norm;
+    let mut it = 0;
+    while it < config.max_iterations && residual > config.tolerance {
+        normal.apply(&p, shift, free, &mut ap);
+        let pap = dot(&p, &ap);
+        if !(pap > 0.0) {
+            break;
+        }
+        let alpha = rz / pap;
+        for i in 0..n {
+            theta[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        precondition(&r, &mut z);
+        let rz_next = dot(&r, &z);
+        for i in 0..n {
+            p[i] = z[i] + rz_next / rz * p[i];
+        }
+        rz = rz_next;
+        residual = dot(&r, &r).sqrt() / b_norm;
+        it += 1;
+    }
+    (it, residual)
+}
