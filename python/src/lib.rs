@@ -279,6 +279,8 @@ impl Run {
             particles: p,
             positions,
             velocities,
+            // Only frame 0's are given (the path's frames move pinned particles only).
+            stored_velocities: false,
             pinned,
         };
         let frame_dt = frame_dt.unwrap_or(self.loaded.meta.frame_dt);

@@ -11,9 +11,11 @@
 //! where `ē_s`, `f̄_s` are the tent-weighted means over frames `j − w < q < j + w` of spring
 //! `s`'s unit-stiffness force `±(|d| − l₀) d̂` and unit-damping force `±((v_b − v_a)·d̂) d̂` on `i`
 //! (divided by its relative mass), and `v̄` the same mean of the track's velocities (stored, or
-//! central differences). With stored frames of the data's own step (`w = 1`, a semi-implicit
-//! Euler source), the left side is the exact net force, and the source's network solves the
-//! system exactly.
+//! central differences). Where the files store velocities (`target = "auto"`), the target is
+//! `m (v_{j+w} − v_j) / (wΔt) − m g + c v̄` instead, with plain means over frames `j … j + w − 1`:
+//! positions stored in f32 lose precision in their second differences. For a semi-implicit
+//! Euler source stored at its own step, that target is the exact mean net force, and the
+//! source's network solves the system exactly.
 //!
 //! The normal equations are sparse — two springs couple only through a shared particle — and
 //! are assembled as 2 × 2 blocks (`k`, `b` of one spring against another), then solved by
@@ -46,7 +48,7 @@ pub struct LeastSquaresConfig {
     /// Half-width of the acceleration stencil in frames (`"auto"`: the one of 1, 2, 4, 8, 16
     /// whose fit on a sample of the frames explains the largest share of its target force).
     pub stencil: Auto<usize>,
-    /// At most this many centre frames, spread evenly over every training clip.
+    /// At most this many centre frames: every n-th of all the training clips' centre frames.
     pub frames: usize,
     /// Weight of the pull towards the initial uniform `k`, `b`, relative to the mean diagonal
     /// of the normal equations (per parameter kind).
@@ -82,8 +84,8 @@ pub enum Target {
     /// stencil.
     Positions,
     /// `m (v_{j+w} − v_j) / (wΔt)`: the mean over frames `j … j + w − 1` (exact for a
-    /// semi-implicit Euler source with `w = 1`; positions stored in f32 lose that precision in
-    /// their second differences). Needs stored velocities.
+    /// semi-implicit Euler source stored at its own step; positions stored in f32 lose that
+    /// precision in their second differences). Needs stored velocities.
     Velocities,
 }
 
@@ -140,6 +142,8 @@ pub struct LeastSquaresRecord {
     pub iterations: usize,
     /// Relative residual of the normal equations at the end of the last solve.
     pub normal_residual: f64,
+    /// Whether the last solve reached `tolerance` and the active set settled.
+    pub converged: bool,
     /// Unknowns fixed at zero because the unconstrained solution was negative.
     pub fixed_at_zero: usize,
     /// The stencils `"auto"` tried on a sample of the frames (empty for a given stencil).
@@ -159,17 +163,22 @@ pub struct LeastSquaresFit {
     pub record: LeastSquaresRecord,
 }
 
-/// The normal equations `A θ = g` of the force fit in 2 × 2 blocks per pair of springs that
-/// share a particle (block-row `s` holds `s`'s `k` and `b` rows), with `yᵀy`.
+/// The sums of the normal equations `A θ = g` of the force fit: 2 × 2 blocks per pair of
+/// springs that share a particle (in the order of a [`Pattern`]'s `col`; block-row `s` holds
+/// `s`'s `k` and `b` rows), `g`, and `yᵀy`.
 #[derive(Debug, Clone)]
-struct Normal {
-    row_start: Vec<usize>,
-    col: Vec<usize>,
+struct Sums {
     blocks: Vec<[f64; 4]>,
     rhs: Vec<f64>,
     yy: f64,
     rows: usize,
     samples: usize,
+}
+
+/// Accumulated sums with their sparsity pattern.
+struct Normal<'a> {
+    pattern: &'a Pattern,
+    sums: Sums,
 }
 
 /// Each particle's springs, their sign on it, and where each pair's block lies.
@@ -222,10 +231,8 @@ impl Pattern {
         }
     }
 
-    fn empty_normal(&self) -> Normal {
-        Normal {
-            row_start: self.row_start.clone(),
-            col: self.col.clone(),
+    fn empty_sums(&self) -> Sums {
+        Sums {
             blocks: vec![[0.0; 4]; self.col.len()],
             rhs: vec![0.0; 2 * (self.row_start.len() - 1)],
             yy: 0.0,
@@ -235,8 +242,8 @@ impl Pattern {
     }
 }
 
-impl Normal {
-    fn merge(mut self, other: Normal) -> Normal {
+impl Sums {
+    fn add(&mut self, other: &Sums) {
         for (a, b) in self.blocks.iter_mut().zip(&other.blocks) {
             for (x, y) in a.iter_mut().zip(b) {
                 *x += y;
@@ -248,19 +255,21 @@ impl Normal {
         self.yy += other.yy;
         self.rows += other.rows;
         self.samples += other.samples;
-        self
     }
+}
 
+impl Normal<'_> {
     fn unknowns(&self) -> usize {
-        self.rhs.len()
+        self.sums.rhs.len()
     }
 
     /// `out = A x` restricted to the rows and columns `free`, plus `shift ∘ x`.
     fn apply(&self, x: &[f64], shift: &[f64], free: &[bool], out: &mut [f64]) {
+        let (row_start, col) = (&self.pattern.row_start, &self.pattern.col);
         out.par_chunks_mut(2).enumerate().for_each(|(s, o)| {
             let (mut k, mut b) = (0.0, 0.0);
-            for q in self.row_start[s]..self.row_start[s + 1] {
-                let (r, m) = (self.col[q], &self.blocks[q]);
+            for q in row_start[s]..row_start[s + 1] {
+                let (r, m) = (col[q], &self.sums.blocks[q]);
                 k += m[0] * x[2 * r] + m[1] * x[2 * r + 1];
                 b += m[2] * x[2 * r] + m[3] * x[2 * r + 1];
             }
@@ -272,11 +281,22 @@ impl Normal {
     }
 
     fn diagonal(&self) -> Vec<[f64; 4]> {
+        let (row_start, col) = (&self.pattern.row_start, &self.pattern.col);
         (0..self.unknowns() / 2)
             .map(|s| {
-                let row = &self.col[self.row_start[s]..self.row_start[s + 1]];
-                self.blocks[self.row_start[s] + row.binary_search(&s).expect("own block")]
+                let row = &col[row_start[s]..row_start[s + 1]];
+                self.sums.blocks[row_start[s] + row.binary_search(&s).expect("own block")]
             })
+            .collect()
+    }
+
+    /// `g + shift ∘ prior − (A + diag(shift)) θ`: minus the objective's gradient (halved).
+    fn descent(&self, theta: &[f64], shift: &[f64], prior: &[f64]) -> Vec<f64> {
+        let n = theta.len();
+        let mut a_theta = vec![0.0; n];
+        self.apply(theta, shift, &vec![true; n], &mut a_theta);
+        (0..n)
+            .map(|i| self.sums.rhs[i] + shift[i] * prior[i] - a_theta[i])
             .collect()
     }
 
@@ -290,10 +310,16 @@ impl Normal {
             &mut a_theta,
         );
         let quad: f64 = theta.iter().zip(&a_theta).map(|(x, y)| x * y).sum();
-        let lin: f64 = theta.iter().zip(&self.rhs).map(|(x, y)| x * y).sum();
-        ((self.yy - 2.0 * lin + quad).max(0.0) / self.yy.max(f64::MIN_POSITIVE)).sqrt()
+        let lin: f64 = theta.iter().zip(&self.sums.rhs).map(|(x, y)| x * y).sum();
+        let yy = self.sums.yy;
+        ((yy - 2.0 * lin + quad).max(0.0) / yy.max(f64::MIN_POSITIVE)).sqrt()
     }
 }
+
+/// Runs of frames per rollout summed on their own (in parallel) before being added in order.
+const PARTIALS: usize = 16;
+/// Rounds of the active set at most.
+const MAX_ROUNDS: usize = 16;
 
 /// Stencil half-widths `"auto"` tries (those that fit in a clip).
 const STENCILS: [usize; 5] = [1, 2, 4, 8, 16];
@@ -395,7 +421,7 @@ fn fit_with(
     }
     let pattern = Pattern::new(topo);
     let bar = progress.bar(by_rollout.len() as u64, "least squares");
-    let mut normal = pattern.empty_normal();
+    let mut sums = pattern.empty_sums();
     let mut velocity_frames = 0;
     for (rollout, js) in &by_rollout {
         let track = clips.track(*rollout)?;
@@ -413,32 +439,46 @@ fn fit_with(
             velocity_frames += js.len();
         }
         let stencil = Stencil { w, velocities };
-        let part = js
-            .par_iter()
-            .fold(
-                || pattern.empty_normal(),
-                |mut acc, &j| {
+        // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
+        // on every run and machine.
+        let parts: Vec<Sums> = js
+            .par_chunks(js.len().div_ceil(PARTIALS).max(1))
+            .map(|chunk| {
+                let mut acc = pattern.empty_sums();
+                for &j in chunk {
                     accumulate(&mut acc, &pattern, topo, &track, physics, j, stencil);
-                    acc
-                },
-            )
-            .reduce(|| pattern.empty_normal(), Normal::merge);
-        normal = normal.merge(part);
+                }
+                acc
+            })
+            .collect();
+        for part in &parts {
+            sums.add(part);
+        }
         bar.inc(1);
     }
     bar.finish();
-    if normal.samples == 0 {
+    if sums.samples == 0 {
         bail!("`train.least_squares`: the training clips have no free particle to fit");
     }
+    let normal = Normal {
+        pattern: &pattern,
+        sums,
+    };
     let n = normal.unknowns();
     let initial: Vec<f64> = (0..n)
         .map(|i| if i % 2 == 0 { k_init } else { b_init })
         .collect();
     let residual_initial = normal.relative_residual(&initial);
-    // Tikhonov weights per kind, relative to that kind's mean diagonal.
+    // Tikhonov weights per kind, relative to that kind's mean diagonal (the other kind's where a
+    // kind has none: static data stretches springs but moves none).
     let diag = normal.diagonal();
-    let mean = |d: usize| diag.iter().map(|m| m[d]).sum::<f64>() / diag.len() as f64;
-    let (mean_k, mean_b) = (mean(0), mean(3));
+    let mean = |d: usize| diag.iter().map(|m| m[d]).sum::<f64>() / diag.len().max(1) as f64;
+    let (mean_k, mean_b) = match (mean(0), mean(3)) {
+        (k, b) if k > 0.0 && b > 0.0 => (k, b),
+        (k, _) if k > 0.0 => (k, k),
+        (_, b) if b > 0.0 => (b, b),
+        _ => (1.0, 1.0),
+    };
     let shift: Vec<f64> = (0..n)
         .map(|i| config.prior * if i % 2 == 0 { mean_k } else { mean_b })
         .collect();
@@ -447,37 +487,47 @@ fn fit_with(
         .flat_map(|m| [m[0], m[3]])
         .filter(|&d| d == 0.0)
         .count();
+    // Non-negative values by an active set: negatives are fixed at zero, and a fixed value
+    // whose gradient would raise it is released, until neither happens.
     let mut theta = initial.clone();
     let mut free = vec![true; n];
     let (mut iterations, mut normal_residual) = (0, 0.0);
-    for _round in 0..8 {
+    let mut settled = false;
+    for _round in 0..MAX_ROUNDS {
         let (it, res) = solve(&normal, &shift, &initial, &free, &mut theta, config);
         iterations += it;
         normal_residual = res;
         let negative: Vec<usize> = (0..n).filter(|&i| free[i] && theta[i] < 0.0).collect();
-        if negative.is_empty() {
-            break;
-        }
-        for i in negative {
+        for &i in &negative {
             free[i] = false;
             theta[i] = 0.0;
         }
+        let descent = normal.descent(&theta, &shift, &initial);
+        let released: Vec<usize> = (0..n).filter(|&i| !free[i] && descent[i] > 0.0).collect();
+        for &i in &released {
+            free[i] = true;
+        }
+        if negative.is_empty() && released.is_empty() {
+            settled = true;
+            break;
+        }
     }
-    // A last round may leave negatives when the rounds ran out.
+    // Rounds that ran out end on the last fixing: the values are non-negative either way.
     theta.iter_mut().for_each(|v| *v = v.max(0.0));
     let residual_fitted = normal.relative_residual(&theta);
     let record = LeastSquaresRecord {
         stencil: w,
         frames: by_rollout.iter().map(|(_, js)| js.len()).sum(),
         velocity_frames,
-        samples: normal.samples,
+        samples: normal.sums.samples,
         unknowns: n,
         unconstrained,
-        target_rms: (normal.yy / normal.rows.max(1) as f64).sqrt(),
+        target_rms: (normal.sums.yy / normal.sums.rows.max(1) as f64).sqrt(),
         residual_initial,
         residual_fitted,
         iterations,
         normal_residual,
+        converged: settled && normal_residual <= config.tolerance,
         fixed_at_zero: free.iter().filter(|f| !**f).count(),
         trials: Vec::new(),
         seconds: start.elapsed().as_secs_f64(),
@@ -512,7 +562,7 @@ impl Stencil {
 
 /// Adds the rows of the free particles at centre frame `j` of `track`.
 fn accumulate(
-    acc: &mut Normal,
+    acc: &mut Sums,
     pattern: &Pattern,
     topo: &Topology,
     track: &crate::data::Track,
@@ -605,21 +655,15 @@ fn solve(
 ) -> (usize, f64) {
     let n = theta.len();
     // The fixed unknowns' contribution moves to the right-hand side.
-    let all = vec![true; n];
-    let mut a_theta = vec![0.0; n];
-    normal.apply(theta, shift, &all, &mut a_theta);
-    let mut r: Vec<f64> = (0..n)
-        .map(|i| {
-            if free[i] {
-                normal.rhs[i] + shift[i] * prior[i] - a_theta[i]
-            } else {
-                0.0
-            }
-        })
-        .collect();
+    let mut r = normal.descent(theta, shift, prior);
+    for (r, &f) in r.iter_mut().zip(free) {
+        if !f {
+            *r = 0.0;
+        }
+    }
     let b_norm = (0..n)
         .filter(|&i| free[i])
-        .map(|i| (normal.rhs[i] + shift[i] * prior[i]).powi(2))
+        .map(|i| (normal.sums.rhs[i] + shift[i] * prior[i]).powi(2))
         .sum::<f64>()
         .sqrt()
         .max(f64::MIN_POSITIVE);
@@ -634,7 +678,16 @@ fn solve(
             let d = if fb { m[3] + shift[2 * s + 1] } else { 1.0 };
             let (b, c) = if fk && fb { (m[1], m[2]) } else { (0.0, 0.0) };
             let det = a * d - b * c;
-            [d / det, -b / det, -c / det, a / det]
+            if det > 0.0 && det.is_finite() {
+                [d / det, -b / det, -c / det, a / det]
+            } else {
+                [
+                    1.0 / a.max(f64::MIN_POSITIVE),
+                    0.0,
+                    0.0,
+                    1.0 / d.max(f64::MIN_POSITIVE),
+                ]
+            }
         })
         .collect();
     let precondition = |r: &[f64], z: &mut [f64]| {

@@ -517,11 +517,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         ModelKind::Springs => {
             let model = fit
                 .initial_springs(&resolution)?
-                .with_kernel(config.model.kernel)
-                .with_curvature(&vec![
-                    config.model.curvature_init_for(resolution.k_init);
-                    topo.curvature.len()
-                ]);
+                .with_kernel(config.model.kernel);
             let (summary, mut model) = fit.run(model)?;
             if config.train.scale_search {
                 let (scaled, scaled_physics, record) = scale::search(
@@ -936,16 +932,19 @@ impl Fit<'_> {
         Ok(out)
     }
 
-    /// The spring network training starts from: the uniform `k_init`, `b_init`, or with
-    /// `train.least_squares.enabled` (and not resuming) the per-spring least-squares fit of the
-    /// data's forces, projected into the stable region; its record goes to
-    /// `least_squares.json`.
+    /// The spring network training starts from (with its curvature elements at their initial
+    /// `κ`): the uniform `k_init`, `b_init`, or with `train.least_squares.enabled` the
+    /// per-spring least-squares fit of the data's forces, projected into the stable region;
+    /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
+    /// this network, so the fit is skipped there.
     fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
         let (job, config) = (self.job, &self.job.config.train.least_squares);
         let (topo, device) = (job.topology, job.device);
         let (k0, b0) = (resolution.k_init, resolution.b_init);
-        if !config.enabled || self.previous.is_some() {
-            return Ok(SpringNet::uniform(topo, k0, b0, device));
+        let kappa = vec![job.config.model.curvature_init_for(k0); topo.curvature.len()];
+        let checkpointed = self.previous.is_some_and(|s| s.checkpoint > 0);
+        if !config.enabled || checkpointed {
+            return Ok(SpringNet::uniform(topo, k0, b0, device).with_curvature(&kappa));
         }
         if !job.topology.curvature.is_empty() {
             self.progress.note(
@@ -995,8 +994,17 @@ impl Fit<'_> {
             ));
         }
         crate::io::write_json(&self.run.least_squares(), r)?;
-        let (model, clamped) =
-            SpringNet::new(topo, &fit.k, &fit.b, device).project_stable(job, true, true);
+        if !r.converged {
+            self.progress.note(&format!(
+                "least squares: the solve stopped at a relative residual of {:.1e} (tolerance \
+                 {:.0e}) after {} conjugate-gradient iterations; raise \
+                 `train.least_squares.max_iterations` or `prior`",
+                r.normal_residual, config.tolerance, r.iterations
+            ));
+        }
+        let (model, clamped) = SpringNet::new(topo, &fit.k, &fit.b, device)
+            .with_curvature(&kappa)
+            .project_stable(job, true, true);
         if clamped > 0 {
             self.progress.note(&format!(
                 "least squares: {clamped} spring values clamped into the stable region \

@@ -6,9 +6,9 @@ RK4, area-lumped masses, edge dashpots and air drag, an irregular jittered mesh,
 `configs/thirdparty_mesh.toml` (the surrogate on the data's own mesh) must learn the stiffness
 map and beat the best uniform network, where the paper's grid over the same landmarks cannot.
 
-Measured with the recipe's least-squares start (2 cores): data mesh Spearman 0.63, +21.0 % over
-the best uniform network at 3 s and +34.8 % at 0.8 s; 13 x 13 grid Spearman -0.19, -54 % and
--98 % (with the Adam force fit the recipe had before: 0.60, +24.5 %, +29.7 %; -0.16, -84 %,
+Measured with the recipe's least-squares start (2 cores): data mesh Spearman 0.63, +23.7 % over
+the best uniform network at 3 s and +29.8 % at 0.8 s; 13 x 13 grid Spearman -0.19, -54 % and
+-97 % (with the Adam force fit the recipe had before: 0.60, +24.5 %, +29.7 %; -0.16, -84 %,
 -118 %); the thresholds below leave room for another NumPy's rounding of a chaotic cloth.
 """
 
