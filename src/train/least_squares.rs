@@ -487,33 +487,10 @@ fn fit_with(
         .flat_map(|m| [m[0], m[3]])
         .filter(|&d| d == 0.0)
         .count();
-    // Non-negative values by an active set: negatives are fixed at zero, and a fixed value
-    // whose gradient would raise it is released, until neither happens.
-    let mut theta = initial.clone();
-    let mut free = vec![true; n];
-    let (mut iterations, mut normal_residual) = (0, 0.0);
-    let mut settled = false;
-    for _round in 0..MAX_ROUNDS {
-        let (it, res) = solve(&normal, &shift, &initial, &free, &mut theta, config);
-        iterations += it;
-        normal_residual = res;
-        let negative: Vec<usize> = (0..n).filter(|&i| free[i] && theta[i] < 0.0).collect();
-        for &i in &negative {
-            free[i] = false;
-            theta[i] = 0.0;
-        }
-        let descent = normal.descent(&theta, &shift, &initial);
-        let released: Vec<usize> = (0..n).filter(|&i| !free[i] && descent[i] > 0.0).collect();
-        for &i in &released {
-            free[i] = true;
-        }
-        if negative.is_empty() && released.is_empty() {
-            settled = true;
-            break;
-        }
-    }
-    // Rounds that ran out end on the last fixing: the values are non-negative either way.
-    theta.iter_mut().for_each(|v| *v = v.max(0.0));
+    let solution = solve_nonnegative(&normal, &shift, &initial, config);
+    let (theta, free) = (solution.theta, solution.free);
+    let (iterations, normal_residual, settled) =
+        (solution.iterations, solution.residual, solution.settled);
     let residual_fitted = normal.relative_residual(&theta);
     let record = LeastSquaresRecord {
         stencil: w,
@@ -642,6 +619,61 @@ fn accumulate(
     }
 }
 
+/// A non-negative solution of the regularised normal equations and how it was reached.
+struct Solution {
+    theta: Vec<f64>,
+    /// The unknowns not fixed at zero.
+    free: Vec<bool>,
+    iterations: usize,
+    residual: f64,
+    /// Whether the active set settled (no negative free value, no fixed value to release).
+    settled: bool,
+}
+
+/// Minimises `½ θᵀ(A + Λ)θ − (g + Λ prior)ᵀθ` over `θ ≥ 0` by an active set: negatives are fixed
+/// at zero, and a fixed value whose gradient would raise it is released, until neither happens
+/// (then the KKT conditions hold to the solve's tolerance).
+fn solve_nonnegative(
+    normal: &Normal,
+    shift: &[f64],
+    prior: &[f64],
+    config: &LeastSquaresConfig,
+) -> Solution {
+    let n = prior.len();
+    let mut theta = prior.to_vec();
+    let mut free = vec![true; n];
+    let (mut iterations, mut residual) = (0, 0.0);
+    let mut settled = false;
+    for _round in 0..MAX_ROUNDS {
+        let (it, res) = solve(normal, shift, prior, &free, &mut theta, config);
+        iterations += it;
+        residual = res;
+        let negative: Vec<usize> = (0..n).filter(|&i| free[i] && theta[i] < 0.0).collect();
+        for &i in &negative {
+            free[i] = false;
+            theta[i] = 0.0;
+        }
+        let descent = normal.descent(&theta, shift, prior);
+        let released: Vec<usize> = (0..n).filter(|&i| !free[i] && descent[i] > 0.0).collect();
+        for &i in &released {
+            free[i] = true;
+        }
+        if negative.is_empty() && released.is_empty() {
+            settled = true;
+            break;
+        }
+    }
+    // Rounds that ran out end on the last fixing: the values are non-negative either way.
+    theta.iter_mut().for_each(|v| *v = v.max(0.0));
+    Solution {
+        theta,
+        free,
+        iterations,
+        residual,
+        settled,
+    }
+}
+
 /// Conjugate gradients on `(A + diag(shift)) θ = g + shift ∘ prior` over the unknowns `free`
 /// (the others stay as they are), preconditioned by the inverse 2 × 2 diagonal blocks. Returns
 /// the iterations and the final relative residual.
@@ -734,4 +766,187 @@ fn solve(
         it += 1;
     }
     (it, residual)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::Track;
+    use nalgebra::{DMatrix, DVector};
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// A free triangle of three springs with random states over six frames, its sums over
+    /// centres 1…4 (positions target, `w = 1`), and the same rows built densely.
+    fn problem(seed: u64) -> (Topology, Sums, DMatrix<f64>, DVector<f64>) {
+        let topo = Topology::of_points(&[[0.0, 0.0], [1.0, 0.0], [0.2, 0.9]], 1.0, 1.0, false)
+            .expect("a triangle");
+        let mut rng = StdRng::seed_from_u64(seed);
+        let (frames, p) = (6, 3);
+        let mut noise = |scale: f64| scale * (rng.random::<f64>() - 0.5);
+        let positions: Vec<f32> = (0..frames)
+            .flat_map(|_| topo.rest_uv.clone())
+            .flat_map(|[u, v]| [u, v, 0.0])
+            .map(|c| (c + noise(0.4)) as f32)
+            .collect();
+        let velocities: Vec<f32> = (0..frames * p * 3).map(|_| noise(2.0) as f32).collect();
+        let track = Track {
+            frames,
+            particles: p,
+            positions,
+            velocities,
+            stored_velocities: false,
+            pinned: vec![false; p],
+        };
+        let physics = Physics {
+            frame_dt: 0.1,
+            substeps: 1,
+            mass: 0.7,
+            rayleigh: 0.1,
+            gravity: [0.0, 0.0, -9.81],
+        };
+        let pattern = Pattern::new(&topo);
+        let mut sums = pattern.empty_sums();
+        let stencil = Stencil {
+            w: 1,
+            velocities: false,
+        };
+        for j in 1..=4 {
+            accumulate(&mut sums, &pattern, &topo, &track, &physics, j, stencil);
+        }
+        // The dense rows: one per (centre, particle, axis).
+        let at = |buf: &[f32], q: usize, i: usize| -> [f64; 3] {
+            [0, 1, 2].map(|d| buf[(q * p + i) * 3 + d] as f64)
+        };
+        let s_count = topo.num_springs();
+        let mut jac = DMatrix::zeros(4 * p * 3, 2 * s_count);
+        let mut y = DVector::zeros(4 * p * 3);
+        for (c, j) in (1..=4).enumerate() {
+            for i in 0..p {
+                let w = topo.mass_weight.as_ref().map_or(1.0, |m| m[i]);
+                for d in 0..3 {
+                    let row = (c * p + i) * 3 + d;
+                    let (xm, x0, xp) = (
+                        at(&track.positions, j - 1, i)[d],
+                        at(&track.positions, j, i)[d],
+                        at(&track.positions, j + 1, i)[d],
+                    );
+                    let accel = (xp - 2.0 * x0 + xm) / physics.frame_dt.powi(2);
+                    y[row] = physics.mass * (accel - physics.gravity[d])
+                        + physics.rayleigh * at(&track.velocities, j, i)[d];
+                    for (s, &[a, b]) in topo.springs.iter().enumerate() {
+                        let sign = if i == a {
+                            1.0
+                        } else if i == b {
+                            -1.0
+                        } else {
+                            continue;
+                        };
+                        let (xa, xb) = (at(&track.positions, j, a), at(&track.positions, j, b));
+                        let (va, vb) = (at(&track.velocities, j, a), at(&track.velocities, j, b));
+                        let dv: Vec<f64> = (0..3).map(|e| xb[e] - xa[e]).collect();
+                        let len = dv.iter().map(|x| x * x).sum::<f64>().sqrt();
+                        let u: Vec<f64> = dv.iter().map(|x| x / len).collect();
+                        let along: f64 = (0..3).map(|e| (vb[e] - va[e]) * u[e]).sum();
+                        jac[(row, 2 * s)] = sign / w * (len - topo.rest_length[s]) * u[d];
+                        jac[(row, 2 * s + 1)] = sign / w * along * u[d];
+                    }
+                }
+            }
+        }
+        (topo, sums, jac, y)
+    }
+
+    /// The dense `A` of a `Normal`, column by column.
+    fn dense(normal: &Normal) -> DMatrix<f64> {
+        let n = normal.unknowns();
+        let mut a = DMatrix::zeros(n, n);
+        for c in 0..n {
+            let mut e = vec![0.0; n];
+            e[c] = 1.0;
+            let mut out = vec![0.0; n];
+            normal.apply(&e, &vec![0.0; n], &vec![true; n], &mut out);
+            for r in 0..n {
+                a[(r, c)] = out[r];
+            }
+        }
+        a
+    }
+
+    #[test]
+    fn blocked_normal_equations_equal_the_dense_rows() {
+        let (topo, sums, jac, y) = problem(1);
+        let pattern = Pattern::new(&topo);
+        let normal = Normal {
+            pattern: &pattern,
+            sums,
+        };
+        let a = dense(&normal);
+        let want = jac.transpose() * &jac;
+        let g = jac.transpose() * &y;
+        let scale = want.abs().max();
+        assert!((a - &want).abs().max() < 1e-9 * scale, "A differs from JᵀJ");
+        for (r, (x, w)) in normal.sums.rhs.iter().zip(g.iter()).enumerate() {
+            assert!((x - w).abs() < 1e-9 * g.abs().max(), "g[{r}] {x} vs {w}");
+        }
+        assert!((normal.sums.yy - y.dot(&y)).abs() < 1e-9 * y.dot(&y));
+        assert_eq!(normal.sums.rows, y.len());
+    }
+
+    /// Against every active set of the six unknowns (the non-negative optimum is the feasible
+    /// restricted solution of least objective): the same minimiser, on random problems of which
+    /// some need the constraint.
+    #[test]
+    fn the_active_set_finds_the_non_negative_optimum() {
+        let config = LeastSquaresConfig::default();
+        let mut constrained = 0;
+        for seed in 0..24 {
+            let (topo, sums, _, _) = problem(seed);
+            let pattern = Pattern::new(&topo);
+            let normal = Normal {
+                pattern: &pattern,
+                sums,
+            };
+            let n = normal.unknowns();
+            let prior: Vec<f64> = (0..n).map(|i| if i % 2 == 0 { 5.0 } else { 0.5 }).collect();
+            let shift = vec![1e-6 * dense(&normal).diagonal().mean(); n];
+            let a = dense(&normal) + DMatrix::from_diagonal(&DVector::from_vec(shift.clone()));
+            let g =
+                DVector::from_iterator(n, (0..n).map(|i| normal.sums.rhs[i] + shift[i] * prior[i]));
+            let objective = |t: &DVector<f64>| 0.5 * t.dot(&(&a * t)) - g.dot(t);
+            let mut best: Option<(f64, DVector<f64>)> = None;
+            for mask in 0u32..1 << n {
+                let idx: Vec<usize> = (0..n).filter(|&i| mask >> i & 1 == 1).collect();
+                let mut t = DVector::zeros(n);
+                if !idx.is_empty() {
+                    let sub = DMatrix::from_fn(idx.len(), idx.len(), |r, c| a[(idx[r], idx[c])]);
+                    let rhs = DVector::from_iterator(idx.len(), idx.iter().map(|&i| g[i]));
+                    let x = sub.lu().solve(&rhs).expect("positive definite");
+                    for (&i, v) in idx.iter().zip(x.iter()) {
+                        t[i] = *v;
+                    }
+                }
+                if t.iter().all(|&v| v >= -1e-12) {
+                    let f = objective(&t);
+                    if best.as_ref().is_none_or(|(b, _)| f < *b) {
+                        best = Some((f, t));
+                    }
+                }
+            }
+            let (f_best, t_best) = best.expect("θ = 0 is feasible");
+            let got = solve_nonnegative(&normal, &shift, &prior, &config);
+            let t_got = DVector::from_vec(got.theta.clone());
+            assert!(got.settled, "seed {seed}: the active set did not settle");
+            let scale = t_best.abs().max().max(1.0);
+            assert!(
+                (&t_got - &t_best).abs().max() < 1e-6 * scale,
+                "seed {seed}: {t_got} vs the optimum {t_best}"
+            );
+            assert!(objective(&t_got) <= f_best + 1e-9 * f_best.abs().max(1.0));
+            constrained += usize::from(t_best.iter().any(|&v| v == 0.0));
+        }
+        assert!(
+            constrained >= 3,
+            "only {constrained} problems needed the constraint"
+        );
+    }
 }
