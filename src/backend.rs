@@ -50,6 +50,54 @@ impl Backend {
     }
 }
 
+/// The float type a process simulates in (`springtime eval --precision`).
+///
+/// Burn fixes a device's float type when the first tensor is made on it, for the whole
+/// process: so f64 is chosen once, before anything else runs (a `springtime eval` of its own),
+/// and training always runs in f32.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Precision {
+    /// The backends' default.
+    #[default]
+    F32,
+    /// Double precision on the CPU backends (`flex`, `ndarray`): a rollout's own rounding far
+    /// below f32's, for long chaotic horizons.
+    F64,
+}
+
+impl Precision {
+    /// Makes `F64` the float type of the CPU backends' devices in this process; fails once a
+    /// tensor exists on them.
+    pub fn apply(self) -> anyhow::Result<()> {
+        if self == Precision::F64 {
+            #[allow(deprecated)]
+            for mut device in [Device::flex(), Device::ndarray()] {
+                device
+                    .configure(burn::tensor::FloatDType::F64)
+                    .map_err(|e| {
+                        anyhow::anyhow!(
+                            "precision f64: {e:?} (the device already holds f32 tensors in this \
+                             process; evaluate in a process of its own, `springtime eval RUN \
+                             --precision f64`)"
+                        )
+                    })?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The float type tensors made on `device` get: `"f64"` or `"f32"` (any other type is
+    /// reported as its name).
+    pub fn of(device: &Device) -> String {
+        match device.settings().float_dtype {
+            burn::tensor::FloatDType::F64 => "f64".into(),
+            burn::tensor::FloatDType::F32 => "f32".into(),
+            other => format!("{other:?}").to_lowercase(),
+        }
+    }
+}
+
 /// What `device` is, for reports: `cpu (flex)`, `cpu (ndarray)`, or for a CubeCL device the
 /// runtime and the adapter's own name (e.g. `cubecl wgpu: NVIDIA H100 80GB HBM3`).
 pub fn describe(device: &Device) -> String {

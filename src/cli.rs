@@ -141,6 +141,10 @@ pub enum Command {
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+        /// Float type of the simulation: f64 on the CPU backends takes a rollout's own
+        /// rounding out of long chaotic horizons (eval.json's `precision`).
+        #[arg(long, value_enum, default_value = "f32")]
+        precision: crate::backend::Precision,
     },
     /// Draw a finished run's figures and write <run-dir>/report/report.html (self-contained).
     #[command(after_help = "Example:\n  springtime report runs/quickstart")]
@@ -756,7 +760,19 @@ pub fn run(cli: Cli) -> Result<()> {
             data,
             backend,
             set,
+            precision,
         } => {
+            if precision == crate::backend::Precision::F64 {
+                let run = train::RunDir::new(&run_dir);
+                let configured = Config::load(&run.config(), &set).map(|c| c.backend).ok();
+                if backend.or(configured) == Some(Backend::Wgpu) {
+                    bail!(
+                        "--precision f64 runs on the CPU backends; the run's backend is wgpu \
+                         (pass --backend flex)"
+                    );
+                }
+            }
+            precision.apply()?;
             let report = eval::evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
             print_eval(&report);
             Ok(())
@@ -1335,6 +1351,9 @@ fn print_eval(r: &EvalReport) {
         m.long.mean,
         m.long.std
     );
+    if r.precision != "f32" {
+        println!("(simulated in {})", r.precision);
+    }
     if let Some(u) = &r.uniform_baseline {
         println!(
             "best uniform network: k {:.4} N/m, b {:.4e} N·s/m (searched on {} training rollouts): test \

@@ -108,6 +108,44 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     let eval: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
     assert_eq!(eval["motion_rmse"]["long"]["seconds"], 0.2);
+    assert_eq!(eval["precision"], "f32");
+    // In f64 (a process of its own): the same run's figures over a short, unchaotic horizon
+    // agree with f32's to its rounding, and eval.json says which it was.
+    let short = |e: &serde_json::Value| e["motion_rmse"]["short"]["mean"].as_f64().unwrap();
+    let out = ok(&springtime(
+        &[
+            "eval",
+            "runs/tiny",
+            "--precision",
+            "f64",
+            "--set",
+            "eval.short_seconds=0.1",
+        ],
+        &dir,
+    ));
+    assert!(out.contains("(simulated in f64)"), "{out}");
+    let eval64: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(eval64["precision"], "f64");
+    let (e32, e64) = (short(&eval), short(&eval64));
+    assert!(
+        e64 != e32 && (e64 - e32).abs() < 1e-3 * e32,
+        "{e32} vs {e64}"
+    );
+    fails(
+        &springtime(
+            &[
+                "eval",
+                "runs/tiny",
+                "--precision",
+                "f64",
+                "--backend",
+                "wgpu",
+            ],
+            &dir,
+        ),
+        &["--precision f64", "wgpu"],
+    );
     // run.json names the build.
     let state: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();

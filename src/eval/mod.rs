@@ -164,8 +164,17 @@ pub struct EvalReport {
     pub test_rollouts: Vec<PathBuf>,
     /// Backend used.
     pub backend: String,
+    /// The float type the model was simulated in (`"f32"`, or `"f64"` with `springtime eval
+    /// --precision f64`).
+    #[serde(default = "default_precision")]
+    pub precision: String,
     /// Wall time of the evaluation, s.
     pub seconds: f64,
+}
+
+/// The float type of an `eval.json` written before the field existed.
+fn default_precision() -> String {
+    "f32".into()
 }
 
 /// Per-frame motion RMSE of one rollout: `(time since start, rmse)` for every simulated frame.

@@ -127,6 +127,7 @@ pub fn evaluate(
         }),
         test_rollouts: files,
         backend: config.backend.to_string(),
+        precision: crate::backend::Precision::of(device),
         seconds: start.elapsed().as_secs_f64(),
     };
     crate::io::write_json(&run.eval(), &report)?;
