@@ -513,6 +513,13 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         previous: previous.as_ref(),
         progress,
     };
+    if config.train.least_squares.enabled && config.model.kind != ModelKind::Springs {
+        progress.note(&format!(
+            "`train.least_squares` starts a spring network; `model.kind = \"{}\"` starts as \
+             it would without it",
+            config.model.kind.name()
+        ));
+    }
     let summary = match config.model.kind {
         ModelKind::Springs => {
             let model = fit
