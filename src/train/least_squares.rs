@@ -338,6 +338,7 @@ pub fn fit(
     progress: &Progress,
 ) -> Result<LeastSquaresFit> {
     let start = Instant::now();
+    let pattern = Pattern::new(&clips.topology);
     let (stencil, trials) = match config.stencil {
         Auto::Value(w) => (w, Vec::new()),
         Auto::Auto => {
@@ -347,7 +348,16 @@ pub fn fit(
             };
             let mut trials = Vec::new();
             for w in STENCILS.into_iter().filter(|&w| 2 * w <= clips.steps) {
-                let r = fit_with(&trial, clips, physics, w, init, &Progress::quiet())?.record;
+                let r = fit_with(
+                    &trial,
+                    clips,
+                    &pattern,
+                    physics,
+                    w,
+                    init,
+                    &Progress::quiet(),
+                )?
+                .record;
                 progress.note(&format!(
                     "least squares, trial: stencil ±{w} leaves a force residual of {:.4} of the \
                      target",
@@ -370,7 +380,7 @@ pub fn fit(
             (best.stencil, trials)
         }
     };
-    let mut fit = fit_with(config, clips, physics, stencil, init, progress)?;
+    let mut fit = fit_with(config, clips, &pattern, physics, stencil, init, progress)?;
     fit.record.trials = trials;
     fit.record.seconds = start.elapsed().as_secs_f64();
     Ok(fit)
@@ -389,6 +399,7 @@ pub struct StencilTrial {
 fn fit_with(
     config: &LeastSquaresConfig,
     clips: &ClipSet,
+    pattern: &Pattern,
     physics: &Physics,
     stencil: usize,
     (k_init, b_init): (f64, f64),
@@ -419,7 +430,6 @@ fn fit_with(
             _ => by_rollout.push((r, vec![j])),
         }
     }
-    let pattern = Pattern::new(topo);
     let bar = progress.bar(by_rollout.len() as u64, "least squares");
     let mut sums = pattern.empty_sums();
     let mut velocity_frames = 0;
@@ -446,7 +456,7 @@ fn fit_with(
             .map(|chunk| {
                 let mut acc = pattern.empty_sums();
                 for &j in chunk {
-                    accumulate(&mut acc, &pattern, topo, &track, physics, j, stencil);
+                    accumulate(&mut acc, pattern, topo, &track, physics, j, stencil);
                 }
                 acc
             })
@@ -460,10 +470,7 @@ fn fit_with(
     if sums.samples == 0 {
         bail!("`train.least_squares`: the training clips have no free particle to fit");
     }
-    let normal = Normal {
-        pattern: &pattern,
-        sums,
-    };
+    let normal = Normal { pattern, sums };
     let n = normal.unknowns();
     let initial: Vec<f64> = (0..n)
         .map(|i| if i % 2 == 0 { k_init } else { b_init })
