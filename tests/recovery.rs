@@ -154,6 +154,8 @@ fn least_squares_recovers_the_source_network_from_stored_velocities() {
     eprintln!("rmse_k {rmse_k:.3e}, rmse_b {rmse_b:.3e}; {record}");
     assert_eq!(record["velocity_frames"], record["frames"]);
     assert_eq!(record["unconstrained"], 0);
+    assert_eq!(record["settled"], true);
+    assert_eq!(record["converged"], true);
     assert!(
         record["residual_fitted"].as_f64().unwrap() < 1e-3,
         "{record}"

@@ -7,9 +7,9 @@
 //! three *nearest* landmarks make a field that jumps between neighbouring particles and, on an
 //! irregular mesh, sliver triples whose weights reach ±40: a folded sheet then gains strains of
 //! 100 % that are not in the data, and the target forces follow them.) A particle that coincides
-//! with a landmark copies it; one outside the landmarks' hull takes the nearest triangle's
-//! weights (a short extrapolation); if the landmarks are collinear, a particle is interpolated
-//! along the line through its two nearest landmarks.
+//! with a landmark (to the f32 rounding of stored rest positions) copies it; one outside the
+//! landmarks' hull takes the nearest triangle's weights (a short extrapolation); if the landmarks
+//! are collinear, a particle is interpolated along the line through its two nearest landmarks.
 
 /// Per-particle landmark indices and weights (rows sum to 1).
 #[derive(Debug, Clone, PartialEq)]
@@ -21,6 +21,11 @@ pub struct Resampler {
     /// The particle nearest to each landmark (ties by index).
     pub nearest_particle: Vec<usize>,
 }
+
+/// A particle this close to a landmark, as a fraction of the landmarks' bounding-box diagonal,
+/// copies it. Files store `rest_uv` in f32, whose rounding (up to 6e-8 of a coordinate) puts a
+/// grid's vertices at spacings like 1/6 m that far off the surrogate's f64 grid over them.
+const COINCIDENT: f64 = 1e-6;
 
 /// Triangles of area below this fraction of the bounding box's squared diagonal are dropped.
 const SLIVER: f64 = 1e-9;
@@ -40,7 +45,7 @@ impl Resampler {
         let mut weight = Vec::with_capacity(particles.len());
         for &p in particles {
             let near = nearest(landmarks, p, 3);
-            let (i, w) = if dist2(landmarks[near[0]], p) <= (1e-9 * scale).powi(2) {
+            let (i, w) = if dist2(landmarks[near[0]], p) <= (COINCIDENT * scale).powi(2) {
                 ([near[0], near[1], near[2]], [1.0, 0.0, 0.0])
             } else if let Some(found) = mesh.locate(p) {
                 found

@@ -476,13 +476,10 @@ impl ClipSet {
             .collect()
     }
 
-    /// Whether every particle sits on one landmark, to a barycentric weight of 1 − 1e-6 (no
-    /// interpolation between the data's vertices; a grid over a grid's vertices in other
-    /// floats).
+    /// Whether every particle sits on one landmark (no interpolation between the data's
+    /// vertices; [`Resampler::is_exact`]).
     pub fn particles_are_landmarks(&self) -> bool {
-        self.resampler
-            .as_ref()
-            .is_some_and(|r| r.weight.iter().all(|w| w[0] > 1.0 - 1e-6))
+        self.resampler.as_ref().is_some_and(Resampler::is_exact)
     }
 
     /// Particle mass `ρA/P`.

@@ -142,8 +142,11 @@ pub struct LeastSquaresRecord {
     pub iterations: usize,
     /// Relative residual of the normal equations at the end of the last solve.
     pub normal_residual: f64,
-    /// Whether the last solve reached `tolerance` and the active set settled.
+    /// Whether the last solve reached `tolerance`.
     pub converged: bool,
+    /// Whether the active set settled (no negative free value, no fixed one to release) within
+    /// its rounds; if not, the values are the last round's, non-negative but not the optimum.
+    pub settled: bool,
     /// Unknowns fixed at zero because the unconstrained solution was negative.
     pub fixed_at_zero: usize,
     /// The stencils `"auto"` tried on a sample of the frames (empty for a given stencil).
@@ -511,7 +514,8 @@ fn fit_with(
         residual_fitted,
         iterations,
         normal_residual,
-        converged: settled && normal_residual <= config.tolerance,
+        converged: normal_residual <= config.tolerance,
+        settled,
         fixed_at_zero: free.iter().filter(|f| !**f).count(),
         trials: Vec::new(),
         seconds: start.elapsed().as_secs_f64(),

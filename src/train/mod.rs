@@ -1001,6 +1001,12 @@ impl Fit<'_> {
             ));
         }
         crate::io::write_json(&self.run.least_squares(), r)?;
+        if !r.settled {
+            self.progress.note(
+                "least squares: the non-negativity's active set did not settle in its rounds; \
+                 the values are the last round's (non-negative, not the constrained optimum)",
+            );
+        }
         if !r.converged {
             self.progress.note(&format!(
                 "least squares: the solve stopped at a relative residual of {:.1e} (tolerance \
