@@ -65,6 +65,9 @@ pub struct BenchReport {
     /// The largest buffer the device allocates, bytes (`null` on the CPU): a batch's
     /// `[B, T + 1, P, 3]` positions must fit in one.
     pub max_buffer_bytes: Option<u64>,
+    /// Whether Burn's matmul and reduce kernels are autotuned (the `autotune` build feature;
+    /// the spring kernels are springtime's own either way).
+    pub autotune: bool,
     /// Clips per iteration.
     pub batch: usize,
     /// Steps per clip.
@@ -210,6 +213,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         kernel_used: if fused { "fused" } else { "tensor" },
         device: crate::backend::describe(&plain),
         max_buffer_bytes: crate::backend::max_buffer_bytes(&plain),
+        autotune: cfg!(feature = "autotune"),
         batch: b,
         steps: t,
         springs: topo.num_springs(),

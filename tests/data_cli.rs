@@ -601,6 +601,8 @@ fn the_cli_explains_itself() {
             .expect("a JSON line");
         let line: serde_json::Value = serde_json::from_str(json).unwrap();
         assert_eq!(line["kernel_used"], used, "{backend} {kernel}: {out}");
+        // The test build has no `autotune` feature, and the line says so.
+        assert_eq!(line["autotune"], cfg!(feature = "autotune"), "{out}");
     }
     for sub in [
         &["train"][..],

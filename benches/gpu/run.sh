@@ -3,7 +3,7 @@
 # the same machine and workload (32 x 32 cloth, 100 steps per clip), then flex on 2 threads.
 #
 # The GPU machine needs no Rust: build here, take the binary along.
-#   cargo build --release && mkdir -p .gpu && strip -o .gpu/springtime target/release/springtime
+#   cargo build --release --features autotune && mkdir -p .gpu && strip -o .gpu/springtime target/release/springtime
 #   cp benches/gpu/* ../shared/bench/peer_torch.py .gpu/
 #   (on the GPU machine, from the folder holding .gpu/) OUT=/some/dir bash .gpu/run.sh
 # A machine without a Vulkan loader needs libvulkan1 (Debian/Ubuntu package); NVIDIA's ICD file

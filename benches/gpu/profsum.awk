@@ -1,0 +1,8 @@
+# Sums CubeCL's per-kernel profile lines ("| 1.23ms | Name") by kernel name, in ms.
+/^\| / {
+  d = $2; n = $4
+  v = d + 0
+  if (d ~ /µs/) v /= 1000; else if (d ~ /ns/) v /= 1e6; else if (d ~ /ms/) v = v; else if (d ~ /s$/) v *= 1000
+  s[n] += v; c[n]++; tot += v; cnt++
+}
+END { printf "total %.1f ms over %d kernels\n", tot, cnt; for (k in s) printf "%10.2f ms %8d %s\n", s[k], c[k], k | "sort -rn" }
