@@ -1,6 +1,7 @@
 //! The fused spring-force kernels against the tensor-op reference: values and gradients with
 //! respect to positions, velocities, k and b, on every CPU backend and on wgpu (the CubeCL
-//! kernels; CI runs them on Mesa's software Vulkan).
+//! kernels; CI runs them on Mesa's software Vulkan). Whole rollouts on wgpu are in
+//! `wgpu_rollout.rs`.
 
 mod common;
 
@@ -17,20 +18,8 @@ struct Outcome {
     gb: Vec<f64>,
 }
 
-/// The paper's grid of a source, and the same particles as a data mesh: its cells' two
-/// triangles, hinge springs and lumped (unequal) masses.
 fn topologies(cfg: &springtime::source::SourceConfig) -> [Topology; 2] {
-    let grid = common::grid_of(cfg);
-    let mesh = Topology::mesh(
-        &grid.rest_uv,
-        &grid.triangles,
-        grid.width,
-        grid.height,
-        true,
-    )
-    .unwrap();
-    assert!(mesh.force_scale().is_some());
-    [grid, mesh]
+    common::grid_and_mesh(cfg)
 }
 
 fn run(device: &Device, kernel: Kernel, seed: u64, topo: &Topology) -> Outcome {
@@ -104,65 +93,22 @@ fn fused_rollout_loss_matches_tensor_ops() {
     compare_losses(&Device::flex(), &[(1, 1024), (1, 0), (3, 1024), (3, 0)]);
 }
 
-/// On wgpu the fused path is a rollout of fused steps (CubeCL kernels, each with its
-/// hand-written backward) inside the tensor-op losses.
-#[test]
-fn fused_steps_on_wgpu_match_tensor_ops() {
-    if let Some(device) = common::wgpu() {
-        compare_losses(&device, &[(1, 1024), (3, 1024)]);
-    }
-}
-
 /// Loss terms and their `k`, `b` gradients, fused against tensor ops on `device`, for each
 /// `(substeps, state budget in MiB)`.
 fn compare_losses(device: &Device, cases: &[(usize, usize)]) {
-    use springtime::sim::Physics;
-    use springtime::train::{ForceOn, LossWeights, loss_with_budget};
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
     for topo in topologies(&cfg) {
-        let s = topo.num_springs();
         let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
-        let k: Vec<f64> = (0..s)
-            .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
-            .collect();
-        let b: Vec<f64> = (0..s).map(|i| 4.0 + ((i as f64) * 0.91).cos()).collect();
-        let weights = LossWeights {
-            force: 1.0,
-            impulse: 10.0,
-            position: 30.0,
-            k_neg: 1.0,
-            b_neg: 1.0,
-        };
-        let device = device.clone().autodiff();
         for &(substeps, budget) in cases {
-            let batch = common::batch(&cfg, &rollouts, 150, 90, &device);
-            let physics = Physics {
-                frame_dt: rollouts[0].frame_dt,
+            let case = common::LossCase {
+                cfg: &cfg,
+                topo: &topo,
+                rollouts: &rollouts,
                 substeps,
-                mass: rollouts[0].total_mass / topo.num_particles() as f64,
-                rayleigh: cfg.rayleigh,
-                gravity: cfg.gravity,
+                budget,
             };
-            let run = |kernel: Kernel| {
-                let model = SpringNet::new(&topo, &k, &b, &device).with_kernel(kernel);
-                let terms = loss_with_budget(
-                    &model,
-                    &physics,
-                    &batch,
-                    &weights,
-                    ForceOn::Simulated,
-                    budget,
-                );
-                let values = terms.values();
-                let grads = terms.total.backward();
-                (
-                    values,
-                    to_f64(model.k.val().grad(&grads).unwrap()),
-                    to_f64(model.b.val().grad(&grads).unwrap()),
-                )
-            };
-            let (rv, rk, rb) = run(Kernel::Reference);
-            let (fv, fk, fb) = run(Kernel::Fused);
+            let (rv, rk, rb) = case.evaluate(Kernel::Reference, device);
+            let (fv, fk, fb) = case.evaluate(Kernel::Fused, device);
             // The position loss squares differences of millimetres between positions of metres, so
             // f32 rounding (the reference sums spring forces in another order) shows at 1e-5.
             for (name, r, f, tol) in [

@@ -5,7 +5,9 @@ use burn::tensor::Device;
 use rand::{SeedableRng, rngs::StdRng};
 use springtime::cloth::{GridSpec, Resampler, Topology};
 use springtime::data::{ClipBatch, Rollout, Track};
+use springtime::model::{Kernel, SpringNet, springs::to_f64};
 use springtime::source::{Layout, Scenario, SourceConfig, SpringCloth, simulate_rollout};
+use springtime::train::LossValues;
 
 /// A small source: `n × n` landmarks 0.5 m apart, stiffness stripes `levels`, b = 6.
 pub fn source(n: usize, levels: &[f64], seconds: f64) -> SourceConfig {
@@ -163,4 +165,77 @@ pub fn assert_close(name: &str, a: &[f64], b: &[f64], rel: f64) {
         worst <= rel * scale,
         "{name}: largest difference {worst:e} against a scale of {scale:e}"
     );
+}
+
+/// The paper's grid of a source, and the same particles as a data mesh: its cells' two
+/// triangles, hinge springs and lumped (unequal) masses.
+pub fn grid_and_mesh(cfg: &SourceConfig) -> [Topology; 2] {
+    let grid = grid_of(cfg);
+    let mesh = Topology::mesh(
+        &grid.rest_uv,
+        &grid.triangles,
+        grid.width,
+        grid.height,
+        true,
+    )
+    .unwrap();
+    assert!(mesh.force_scale().is_some());
+    [grid, mesh]
+}
+
+/// A training loss of the spring surrogate: 90-step clips from stored frame 150 of `rollouts`
+/// of the source `cfg`, simulated on `topo` with `substeps` and a state budget of `budget` MiB.
+pub struct LossCase<'a> {
+    pub cfg: &'a SourceConfig,
+    pub topo: &'a Topology,
+    pub rollouts: &'a [Rollout],
+    pub substeps: usize,
+    pub budget: usize,
+}
+
+impl LossCase<'_> {
+    /// The loss terms (force, impulse and position weighted in) and their gradients with
+    /// respect to `k` and `b`, on `device` (made an autodiff device here), with `kernel`. The
+    /// network's `k` and `b` are fixed smooth patterns, so every spring's gradient differs.
+    pub fn evaluate(&self, kernel: Kernel, device: &Device) -> (LossValues, Vec<f64>, Vec<f64>) {
+        use springtime::sim::Physics;
+        use springtime::train::{ForceOn, LossWeights, loss_with_budget};
+        let s = self.topo.num_springs();
+        let k: Vec<f64> = (0..s)
+            .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
+            .collect();
+        let b: Vec<f64> = (0..s).map(|i| 4.0 + ((i as f64) * 0.91).cos()).collect();
+        let weights = LossWeights {
+            force: 1.0,
+            impulse: 10.0,
+            position: 30.0,
+            k_neg: 1.0,
+            b_neg: 1.0,
+        };
+        let device = device.clone().autodiff();
+        let batch = batch(self.cfg, self.rollouts, 150, 90, &device);
+        let physics = Physics {
+            frame_dt: self.rollouts[0].frame_dt,
+            substeps: self.substeps,
+            mass: self.rollouts[0].total_mass / self.topo.num_particles() as f64,
+            rayleigh: self.cfg.rayleigh,
+            gravity: self.cfg.gravity,
+        };
+        let model = SpringNet::new(self.topo, &k, &b, &device).with_kernel(kernel);
+        let terms = loss_with_budget(
+            &model,
+            &physics,
+            &batch,
+            &weights,
+            ForceOn::Simulated,
+            self.budget,
+        );
+        let values = terms.values();
+        let grads = terms.total.backward();
+        (
+            values,
+            to_f64(model.k.val().grad(&grads).unwrap()),
+            to_f64(model.b.val().grad(&grads).unwrap()),
+        )
+    }
 }
