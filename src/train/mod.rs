@@ -480,6 +480,23 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     crate::io::write_text(&run.config(), &config.to_toml())?;
     crate::io::write_json(&run.defaults(), &resolution)?;
     let device = training_device(config)?;
+    if config.backend == crate::backend::Backend::Wgpu
+        && config.model.kind != ModelKind::Springs
+        && !cfg!(feature = "autotune")
+    {
+        progress.note(&format!(
+            "note: the {} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU a \
+             build with `--features autotune` trains it {} faster (H100; README, \"On a GPU\")",
+            match config.model.kind {
+                ModelKind::Gnn => "GNN",
+                _ => "Neural ODE",
+            },
+            match config.model.kind {
+                ModelKind::Gnn => "3.3x",
+                _ => "1.7x",
+            }
+        ));
+    }
     let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
     let topo = clips.topology.clone();
     let job = Job {
