@@ -109,18 +109,7 @@ fn compare_losses(device: &Device, cases: &[(usize, usize)]) {
             };
             let (rv, rk, rb) = case.evaluate(Kernel::Reference, device);
             let (fv, fk, fb) = case.evaluate(Kernel::Fused, device);
-            // The position loss squares differences of millimetres between positions of metres, so
-            // f32 rounding (the reference sums spring forces in another order) shows at 1e-5.
-            for (name, r, f, tol) in [
-                ("force", rv.force, fv.force, 1e-5),
-                ("impulse", rv.impulse, fv.impulse, 1e-5),
-                ("position", rv.position, fv.position, 1e-4),
-            ] {
-                assert!(
-                    r > 0.0 && (r - f).abs() <= tol * r,
-                    "substeps {substeps}: {name} loss {r} vs {f}"
-                );
-            }
+            common::assert_losses_close(&format!("substeps {substeps}"), &rv, &fv);
             assert_close(
                 &format!("substeps {substeps} budget {budget} dL/dk"),
                 &rk,

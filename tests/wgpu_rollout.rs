@@ -47,18 +47,7 @@ fn fused_steps_on_wgpu_are_as_accurate_as_tensor_ops() {
             let (_, ek, eb) = case.evaluate(Kernel::Reference, &cpu);
             let (rv, rk, rb) = case.evaluate(Kernel::Reference, &gpu);
             let (fv, fk, fb) = case.evaluate(Kernel::Fused, &gpu);
-            // The position loss squares differences of millimetres between positions of
-            // metres, so f32 rounding shows at 1e-5.
-            for (name, r, f, tol) in [
-                ("force", rv.force, fv.force, 1e-5),
-                ("impulse", rv.impulse, fv.impulse, 1e-5),
-                ("position", rv.position, fv.position, 1e-4),
-            ] {
-                assert!(
-                    r > 0.0 && (r - f).abs() <= tol * r,
-                    "substeps {substeps}: {name} loss {r} vs {f}"
-                );
-            }
+            common::assert_losses_close(&format!("substeps {substeps}"), &rv, &fv);
             for (name, exact, reference, fused) in [("dL/dk", ek, rk, fk), ("dL/db", eb, rb, fb)] {
                 let (of_reference, of_fused) =
                     (relative(&exact, &reference), relative(&exact, &fused));

@@ -874,12 +874,12 @@ impl HostWindow {
 
 /// One random window of `C + 2` GNN frames (`downsample` data frames apart) from every clip.
 pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> Vec<HostWindow> {
-    let [b, frames, p, _] = batch.positions.dims();
+    let [b, stored, p, _] = batch.positions.dims();
     let span = config.window_frames();
     // Refused by name before training starts (`ModelMeta::new`).
     assert!(
-        frames >= span,
-        "GNN windows span {span} data frames, the clips have {frames}"
+        stored >= span,
+        "GNN windows span {span} data frames, the clips have {stored}"
     );
     let pinned: Vec<f32> = batch
         .pinned
@@ -887,19 +887,37 @@ pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> V
         .into_data()
         .try_into_vec_as::<f32>()
         .expect("float tensor");
+    let starts: Vec<usize> = (0..b)
+        .map(|_| rng.random_range(0..=stored - span))
+        .collect();
+    // The windows cut on the device and read in one transfer (on a GPU one wait, not one per
+    // clip).
+    let windows = if stored == span {
+        batch.positions.clone()
+    } else {
+        Tensor::cat(
+            starts
+                .iter()
+                .enumerate()
+                .map(|(i, &start)| {
+                    batch
+                        .positions
+                        .clone()
+                        .slice([i..i + 1, start..start + span, 0..p, 0..3])
+                })
+                .collect(),
+            0,
+        )
+    };
+    let data: Vec<f32> = windows
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor");
     (0..b)
         .map(|i| {
-            let start = rng.random_range(0..=frames - span);
-            let data: Vec<f32> = batch
-                .positions
-                .clone()
-                .slice([i..i + 1, start..start + span, 0..p, 0..3])
-                .into_data()
-                .try_into_vec_as::<f32>()
-                .expect("float tensor");
             let frames = (0..=config.history + 1)
                 .map(|k| {
-                    let f = k * config.downsample;
+                    let f = i * span + k * config.downsample;
                     (0..p)
                         .map(|q| {
                             let o = (f * p + q) * 3;

@@ -183,6 +183,22 @@ pub fn grid_and_mesh(cfg: &SourceConfig) -> [Topology; 2] {
     [grid, mesh]
 }
 
+/// Asserts that the loss terms `b` equal `a`'s, which must be positive: force and impulse
+/// within 1e-5 relative, the position loss within 1e-4 (it squares differences of millimetres
+/// between positions of metres, so f32 rounding shows at 1e-5).
+pub fn assert_losses_close(name: &str, a: &LossValues, b: &LossValues) {
+    for (term, x, y, tol) in [
+        ("force", a.force, b.force, 1e-5),
+        ("impulse", a.impulse, b.impulse, 1e-5),
+        ("position", a.position, b.position, 1e-4),
+    ] {
+        assert!(
+            x > 0.0 && (x - y).abs() <= tol * x,
+            "{name}: {term} loss {x} vs {y}"
+        );
+    }
+}
+
 /// A training loss of the spring surrogate: 90-step clips from stored frame 150 of `rollouts`
 /// of the source `cfg`, simulated on `topo` with `substeps` and a state budget of `budget` MiB.
 pub struct LossCase<'a> {
