@@ -461,8 +461,9 @@ impl Gnn {
         let n = graph.num_nodes;
         let pred = self.forward(&graph, device);
         let target = Tensor::<2>::from_data(TensorData::new(target, [n, 3]), device);
-        let mask = Tensor::<2>::from_data(TensorData::new(mask.clone(), [n, 1]), device);
-        let free = mask.clone().sum().into_scalar::<f32>().max(1.0) as f64;
+        // Counted on the host: no wait for the device.
+        let free = mask.iter().sum::<f32>().max(1.0) as f64;
+        let mask = Tensor::<2>::from_data(TensorData::new(mask, [n, 1]), device);
         let d = (pred - target) * mask;
         (d.clone() * d).sum().div_scalar(3.0 * free)
     }
