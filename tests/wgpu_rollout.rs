@@ -14,8 +14,14 @@ mod common;
 use burn::tensor::{Device, FloatDType};
 use springtime::model::Kernel;
 
-/// The largest difference over the largest magnitude of `exact`.
+/// The largest difference over the largest magnitude of `exact`; every value must be finite
+/// (`f64::max` would pass a NaN over).
 fn relative(exact: &[f64], other: &[f64]) -> f64 {
+    assert_eq!(exact.len(), other.len(), "lengths");
+    assert!(
+        exact.iter().chain(other).all(|x| x.is_finite()),
+        "a gradient is not finite"
+    );
     let scale = exact.iter().fold(0.0f64, |m, x| m.max(x.abs()));
     assert!(scale > 0.0, "a comparison of zeros cannot fail");
     let worst = exact
@@ -56,9 +62,10 @@ fn fused_steps_on_wgpu_are_as_accurate_as_tensor_ops() {
                     "substeps {substeps} {name}: tensor ops {of_reference:.2e} and fused \
                      {of_fused:.2e} from f64, {apart:.2e} apart"
                 );
-                // The f64 losses are the same losses: the f32 ones are close to them.
+                // The f64 losses are the same losses: the f32 ones are close to them (measured
+                // 0.5–2.5e-5 on lavapipe and on an H100), so twice their error stays small.
                 assert!(
-                    of_reference < 1e-3,
+                    of_reference < 1e-4,
                     "substeps {substeps} {name}: {of_reference:e}"
                 );
                 assert!(

@@ -15,17 +15,20 @@ C=${CONFIG:-configs/table2_fem.toml}
 D=${DATA:-/tmp/table2_profile_data}
 here=$(dirname "$0")
 sets=(--set "data.dir=$D" --set source.train_rollouts=32 --set source.test_rollouts=1)
-[ -d "$D" ] || $S generate "$C" "${sets[@]}" 2>&1 | tail -1
+[ -d "$D" ] || "$S" generate "$C" "${sets[@]}" 2>&1 | tail -1
 log=$(mktemp -d)/profile.log
+[ -e cubecl.toml ] && { echo "cubecl.toml exists here: move it away first" >&2; exit 1; }
+trap 'rm -f cubecl.toml' EXIT
 printf '[profiling.logger]\nlevel = "basic"\nfile = "%s"\nappend = false\n' "$log" >cubecl.toml
 case $M in
   gnn) it=(--set "train.gnn.iterations=${ITERS:-6}") ;;
   springs) it=(--set "train.stiffness.iterations=${ITERS:-6}" --set train.damping.iterations=0) ;;
   *) it=(--set "train.single.iterations=${ITERS:-2}") ;;
 esac
-$S train "$C" --backend wgpu --no-eval --out "$(mktemp -d)/run" "${sets[@]}" \
+"$S" train "$C" --backend wgpu --no-eval --out "$(mktemp -d)/run" "${sets[@]}" \
   --set "model.kind=$M" "${it[@]}" >"$OUT/${M}_train.log" 2>&1
 echo "train rc $?"
-rm cubecl.toml
+rm -f cubecl.toml
 n=$(grep -c '^| ' "$log")
-tail -n $((n / 2)) "$log" | awk -f "$here/profsum.awk" | tee "$OUT/${M}_kernels.txt" | head -20
+grep '^| ' "$log" | tail -n $((n / 2)) | awk -f "$here/profsum.awk" >"$OUT/${M}_kernels.txt"
+head -20 "$OUT/${M}_kernels.txt"

@@ -154,6 +154,11 @@ pub fn wgpu() -> Option<Device> {
 /// (a comparison of zeros cannot fail).
 pub fn assert_close(name: &str, a: &[f64], b: &[f64], rel: f64) {
     assert_eq!(a.len(), b.len(), "{name}: lengths");
+    // `f64::max` passes a NaN over: refuse non-finite values first.
+    assert!(
+        a.iter().chain(b).all(|x| x.is_finite()),
+        "{name}: a value is not finite"
+    );
     let scale = a.iter().fold(0.0f64, |m, x| m.max(x.abs()));
     let worst = a
         .iter()
