@@ -190,41 +190,34 @@ fn f16_to_f32(h: u16) -> f32 {
     if negative { -magnitude } else { magnitude }
 }
 
+/// `values` as little-endian bytes, in one allocation of the final size.
+fn le_bytes<T: num_traits::ToBytes>(values: &[T]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(std::mem::size_of_val(values));
+    for v in values {
+        out.extend_from_slice(v.to_le_bytes().as_ref());
+    }
+    out
+}
+
 impl Array {
     /// An `f32` array.
     pub fn f32(shape: &[usize], values: &[f32]) -> Self {
-        Self::from_parts(
-            Dtype::F32,
-            shape,
-            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        )
+        Self::from_parts(Dtype::F32, shape, le_bytes(values))
     }
 
     /// An `f64` array.
     pub fn f64(shape: &[usize], values: &[f64]) -> Self {
-        Self::from_parts(
-            Dtype::F64,
-            shape,
-            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        )
+        Self::from_parts(Dtype::F64, shape, le_bytes(values))
     }
 
     /// An `i32` array.
     pub fn i32(shape: &[usize], values: &[i32]) -> Self {
-        Self::from_parts(
-            Dtype::I32,
-            shape,
-            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        )
+        Self::from_parts(Dtype::I32, shape, le_bytes(values))
     }
 
     /// An `i64` array.
     pub fn i64(shape: &[usize], values: &[i64]) -> Self {
-        Self::from_parts(
-            Dtype::I64,
-            shape,
-            values.iter().flat_map(|v| v.to_le_bytes()).collect(),
-        )
+        Self::from_parts(Dtype::I64, shape, le_bytes(values))
     }
 
     /// A `bool` array.
@@ -329,7 +322,8 @@ impl Array {
         }
     }
 
-    fn to_npy(&self) -> Vec<u8> {
+    /// The `.npy` header of the array: magic, version, length and the padded dictionary.
+    fn npy_header(&self) -> Vec<u8> {
         let shape = match self.shape.len() {
             0 => "()".to_string(),
             1 => format!("({},)", self.shape[0]),
@@ -352,10 +346,16 @@ impl Array {
         let unpadded = 10 + header.len() + 1;
         header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
         header.push('\n');
-        let mut out = Vec::with_capacity(10 + header.len() + self.bytes.len());
+        let mut out = Vec::with_capacity(10 + header.len());
         out.extend_from_slice(b"\x93NUMPY\x01\x00");
         out.extend_from_slice(&(header.len() as u16).to_le_bytes());
         out.extend_from_slice(header.as_bytes());
+        out
+    }
+
+    /// The whole `.npy` entry: the header, then the data.
+    fn to_npy(&self) -> Vec<u8> {
+        let mut out = self.npy_header();
         out.extend_from_slice(&self.bytes);
         out
     }
@@ -623,22 +623,26 @@ impl Npz {
     pub fn write(&self, path: &Path) -> Result<()> {
         crate::io::write_atomic(path, |file| {
             let mut zip = zip::ZipWriter::new(BufWriter::new(file));
+            // Each entry as its header and its data, written one after the other (a big
+            // array is not copied into one buffer first).
             let entries = self
                 .arrays
                 .iter()
-                .map(|(key, array)| (key, array.to_npy()))
+                .map(|(key, array)| (key, array.npy_header(), &array.bytes[..]))
                 .chain(
                     self.unreadable
                         .iter()
                         .filter(|(_, u)| !u.raw.is_empty())
-                        .map(|(key, u)| (key, u.raw.clone())),
+                        .map(|(key, u)| (key, Vec::new(), &u.raw[..])),
                 );
-            for (key, npy) in entries {
+            for (key, header, data) in entries {
+                let size = (header.len() + data.len()) as u64;
                 let options = zip::write::SimpleFileOptions::default()
                     .compression_method(zip::CompressionMethod::Stored)
-                    .large_file(npy.len() as u64 >= u32::MAX as u64);
+                    .large_file(size >= u32::MAX as u64);
                 zip.start_file(format!("{key}.npy"), options)?;
-                zip.write_all(&npy)?;
+                zip.write_all(&header)?;
+                zip.write_all(data)?;
             }
             zip.finish()?.flush()?;
             Ok(())
