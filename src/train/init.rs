@@ -320,23 +320,34 @@ impl Normal {
     }
 }
 
+/// The forces of a spring `a`–`b` of rest length `l0` on `a` at unit stiffness and at unit
+/// damping (Eq. 4): `(|d| − l₀) d̂` and `((v_b − v_a)·d̂) d̂`, `d = x_b − x_a`; `b` gets their
+/// negatives.
+pub(super) fn unit_spring_forces(
+    xa: [f64; 3],
+    xb: [f64; 3],
+    va: [f64; 3],
+    vb: [f64; 3],
+    l0: f64,
+) -> ([f64; 3], [f64; 3]) {
+    let d = [0, 1, 2].map(|c| xb[c] - xa[c]);
+    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
+    let u = d.map(|c| c / len);
+    let along = (0..3).map(|c| (vb[c] - va[c]) * u[c]).sum::<f64>();
+    (u.map(|c| (len - l0) * c), u.map(|c| along * c))
+}
+
 /// Per particle, the force of unit uniform stiffness and of unit uniform damping (Eq. 4), per
 /// unit of the mean mass (divided by the particle's relative mass, as the surrogate's).
 fn unit_columns(topo: &Topology, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[[f64; 3]; 2]]) {
     out.iter_mut().for_each(|c| *c = [[0.0; 3]; 2]);
     for (&[a, b], &l0) in topo.springs.iter().zip(&topo.rest_length) {
-        let d = [x[b][0] - x[a][0], x[b][1] - x[a][1], x[b][2] - x[a][2]];
-        let w = [v[b][0] - v[a][0], v[b][1] - v[a][1], v[b][2] - v[a][2]];
-        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
-        let u = d.map(|c| c / len);
-        let along = w[0] * u[0] + w[1] * u[1] + w[2] * u[2];
+        let (fk, fb) = unit_spring_forces(x[a], x[b], v[a], v[b], l0);
         for c in 0..3 {
-            let fk = (len - l0) * u[c];
-            let fb = along * u[c];
-            out[a][0][c] += fk;
-            out[b][0][c] -= fk;
-            out[a][1][c] += fb;
-            out[b][1][c] -= fb;
+            out[a][0][c] += fk[c];
+            out[b][0][c] -= fk[c];
+            out[a][1][c] += fb[c];
+            out[b][1][c] -= fb[c];
         }
     }
     if let Some(w) = &topo.mass_weight {

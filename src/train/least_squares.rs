@@ -572,13 +572,10 @@ fn accumulate(
         for (s, (&[a, b], &l0)) in topo.springs.iter().zip(&topo.rest_length).enumerate() {
             let (xa, xb) = (at(&track.positions, q, a), at(&track.positions, q, b));
             let (va, vb) = (at(&track.velocities, q, a), at(&track.velocities, q, b));
-            let d = [0, 1, 2].map(|c| xb[c] - xa[c]);
-            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-12);
-            let u = d.map(|c| c / len);
-            let along = (0..3).map(|c| (vb[c] - va[c]) * u[c]).sum::<f64>();
+            let (unit_k, unit_b) = super::init::unit_spring_forces(xa, xb, va, vb, l0);
             for c in 0..3 {
-                fk[s][c] += weight * (len - l0) * u[c];
-                fb[s][c] += weight * along * u[c];
+                fk[s][c] += weight * unit_k[c];
+                fb[s][c] += weight * unit_b[c];
             }
         }
         for (i, v) in v_mean.iter_mut().enumerate() {

@@ -484,17 +484,14 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         && config.model.kind != ModelKind::Springs
         && !cfg!(feature = "autotune")
     {
+        let (model, speedup) = match config.model.kind {
+            ModelKind::Gnn => ("GNN", "3.3x"),
+            _ => ("Neural ODE", "1.7x"),
+        };
         progress.note(&format!(
-            "note: the {} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU a \
-             build with `--features autotune` trains it {} faster (H100; README, \"On a GPU\")",
-            match config.model.kind {
-                ModelKind::Gnn => "GNN",
-                _ => "Neural ODE",
-            },
-            match config.model.kind {
-                ModelKind::Gnn => "3.3x",
-                _ => "1.7x",
-            }
+            "note: the {model} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU \
+             a build with `--features autotune` trains it {speedup} faster (H100; README, \"On a \
+             GPU\")"
         ));
     }
     let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
