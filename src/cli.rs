@@ -444,7 +444,8 @@ pub enum XpbdCommand {
     },
     /// The wrinkle-seed invariance of paper 001: the config's estimate with targets from
     /// SEEDS differently perturbed starts (wrinkle branches) and the fit's equilibria on a
-    /// branch of their own (from the flat start), with the FFT and the position descriptors.
+    /// branch of their own (from the flat start) or from each target's shape (--start target),
+    /// with the FFT and the position descriptors.
     /// Writes DIR/invariance.json (each parameter's coefficient of variation over the seeds)
     /// and prints the table.
     #[command(
@@ -460,6 +461,10 @@ pub enum XpbdCommand {
         /// Out-of-plane amplitude of the targets' perturbed starts, m.
         #[arg(long, default_value_t = 0.01)]
         noise: f64,
+        /// Where every fit's equilibria start: `flat` (a branch of their own) or `target` (each
+        /// target's shape, the paper's §3.4.1).
+        #[arg(long, value_enum, default_value_t = crate::xpbd::estimate::FitStart::Flat)]
+        start: crate::xpbd::estimate::FitStart,
     },
 }
 
@@ -1010,9 +1015,12 @@ fn xpbd(command: XpbdCommand, progress: &Progress) -> Result<()> {
         }
         XpbdCommand::Resim { job, estimate } => xpbd_resim(&job, &estimate, progress),
         XpbdCommand::Descriptors { job, noise } => xpbd_descriptors(&job, noise, progress),
-        XpbdCommand::Invariance { job, seeds, noise } => {
-            xpbd_invariance(&job, seeds, noise, progress)
-        }
+        XpbdCommand::Invariance {
+            job,
+            seeds,
+            noise,
+            start,
+        } => xpbd_invariance(&job, seeds, noise, start, progress),
     }
 }
 
@@ -1129,7 +1137,13 @@ fn xpbd_resim(job: &XpbdJob, estimate: &Path, progress: &Progress) -> Result<()>
 }
 
 /// `springtime xpbd invariance`: the fits over the seeds, then each descriptor's spread.
-fn xpbd_invariance(job: &XpbdJob, seeds: u64, noise: f64, progress: &Progress) -> Result<()> {
+fn xpbd_invariance(
+    job: &XpbdJob,
+    seeds: u64,
+    noise: f64,
+    start: crate::xpbd::estimate::FitStart,
+    progress: &Progress,
+) -> Result<()> {
     use crate::xpbd::{material::NAMES, study};
     let cfg = job.load()?;
     let options = study::StudyOptions {
@@ -1137,7 +1151,7 @@ fn xpbd_invariance(job: &XpbdJob, seeds: u64, noise: f64, progress: &Progress) -
         force: job.force,
         noise,
     };
-    let r = study::invariance(&cfg, &options, seeds, progress)?;
+    let r = study::invariance(&cfg, &options, seeds, start, progress)?;
     println!(
         "| descriptor | coefficient of variation over {seeds} seeds: C00, C11, C01, C22, b | mean relative error: C00, C11, C01, C22, b |"
     );

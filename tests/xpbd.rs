@@ -316,6 +316,39 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
             .fold(0.0, f64::max);
         assert_eq!(s["cv_membrane"].as_f64().unwrap(), membrane);
     }
+    assert_eq!(json["start"], "flat");
+    // From each target's own shape (the paper's protocol) every fit stays on its target's
+    // branch, so on targets from the fit's own simulator each seed recovers the truth and the
+    // spread vanishes, for either descriptor.
+    run_ok(
+        &dir,
+        &[
+            "xpbd",
+            "invariance",
+            "small.toml",
+            "--out",
+            "own",
+            "--seeds",
+            "2",
+            "--noise",
+            "0.002",
+            "--start",
+            "target",
+        ],
+    );
+    let own = read_json(&dir, "own/invariance.json");
+    assert_eq!(own["start"], "target");
+    for descriptor in ["fft", "positions"] {
+        let s = &own["summary"][descriptor];
+        for key in ["C00", "C11", "C01", "C22", "b"] {
+            let cv = s["cv"][key].as_f64().unwrap();
+            let err = s["mean_relative_error"][key].as_f64().unwrap();
+            assert!(
+                cv < 1e-4 && err < 1e-3,
+                "{descriptor} {key}: cv {cv}, error {err}"
+            );
+        }
+    }
     // Too few seeds for a spread is refused.
     let one = springtime(
         &[

@@ -152,7 +152,7 @@ pub enum Derivatives {
 }
 
 /// Where each of the fit's equilibria starts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum FitStart {
     /// The target's own shape (paper §3.4.1): the fit stays on the target's wrinkle branch.
