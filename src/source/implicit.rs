@@ -18,6 +18,7 @@ use nalgebra::{DMatrix, SymmetricEigen};
 use serde::{Deserialize, Serialize};
 
 use super::fem::{FemCloth, HessianBlock};
+use crate::cloth::band::BandMatrix;
 use crate::cloth::triangles::V3;
 
 /// Newton's stopping rule and budget (`[solver]` of the latent configs).
@@ -348,117 +349,9 @@ pub fn project_psd(matrix: &[f64], m: usize) -> Vec<f64> {
     out
 }
 
-/// A symmetric positive-definite banded matrix (its lower band), factorised in place by
-/// Cholesky. Cost `O(n · bw²)` instead of the dense `O(n³)`.
-#[derive(Debug, Clone)]
-pub struct BandMatrix {
-    n: usize,
-    bw: usize,
-    /// Row `i` holds columns `i − bw ..= i` at `i · (bw + 1) + (j + bw − i)`.
-    data: Vec<f64>,
-}
-
-impl BandMatrix {
-    /// The `n × n` zero matrix with half-bandwidth `bw`.
-    pub fn zeros(n: usize, bw: usize) -> Self {
-        Self {
-            n,
-            bw,
-            data: vec![0.0; n * (bw + 1)],
-        }
-    }
-
-    #[inline]
-    fn at(&self, i: usize, j: usize) -> usize {
-        i * (self.bw + 1) + (j + self.bw - i)
-    }
-
-    /// Adds `v` to entry `(i, j)`, `j ≤ i ≤ j + bw`.
-    pub fn add(&mut self, i: usize, j: usize, v: f64) {
-        debug_assert!(j <= i && i - j <= self.bw);
-        let k = self.at(i, j);
-        self.data[k] += v;
-    }
-
-    /// Solves `A x = b` in place (`b` becomes `x`), factorising `A` (consumed in place).
-    /// Fails when `A` is not positive definite.
-    pub fn solve(&mut self, b: &mut [f64]) -> Result<()> {
-        let (n, bw) = (self.n, self.bw);
-        for i in 0..n {
-            let lo = i.saturating_sub(bw);
-            for j in lo..=i {
-                let mut s = self.data[self.at(i, j)];
-                for k in lo.max(j.saturating_sub(bw))..j {
-                    s -= self.data[self.at(i, k)] * self.data[self.at(j, k)];
-                }
-                if i == j {
-                    if !(s > 0.0) {
-                        bail!("implicit step: the Newton system is not positive definite");
-                    }
-                    let k = self.at(i, i);
-                    self.data[k] = s.sqrt();
-                } else {
-                    let k = self.at(i, j);
-                    self.data[k] = s / self.data[self.at(j, j)];
-                }
-            }
-        }
-        for i in 0..n {
-            let mut s = b[i];
-            for k in i.saturating_sub(bw)..i {
-                s -= self.data[self.at(i, k)] * b[k];
-            }
-            b[i] = s / self.data[self.at(i, i)];
-        }
-        for i in (0..n).rev() {
-            let mut s = b[i];
-            for k in i + 1..(i + bw + 1).min(n) {
-                s -= self.data[self.at(k, i)] * b[k];
-            }
-            b[i] = s / self.data[self.at(i, i)];
-        }
-        Ok(())
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn banded_cholesky_matches_a_dense_solve() {
-        let n = 12;
-        let bw = 3;
-        let mut band = BandMatrix::zeros(n, bw);
-        let mut dense = DMatrix::<f64>::zeros(n, n);
-        for i in 0..n {
-            for j in i.saturating_sub(bw)..=i {
-                let v = if i == j {
-                    10.0 + i as f64
-                } else {
-                    ((i * 7 + j * 3) % 5) as f64 * 0.3 - 0.6
-                };
-                band.add(i, j, v);
-                dense[(i, j)] = v;
-                dense[(j, i)] = v;
-            }
-        }
-        let b: Vec<f64> = (0..n).map(|i| (i as f64).sin()).collect();
-        let mut x = b.clone();
-        band.solve(&mut x).unwrap();
-        let exact = dense
-            .cholesky()
-            .unwrap()
-            .solve(&nalgebra::DVector::from_vec(b));
-        for i in 0..n {
-            assert!(
-                (x[i] - exact[i]).abs() < 1e-12,
-                "{i}: {} vs {}",
-                x[i],
-                exact[i]
-            );
-        }
-    }
 
     #[test]
     fn psd_projection_clamps_negative_eigenvalues_only() {
