@@ -12,6 +12,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use rand::{Rng, SeedableRng, rngs::StdRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use std::sync::Arc;
@@ -643,119 +644,140 @@ impl Problem<'_> {
         let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
         let xs = self
             .targets
-            .iter()
+            .par_iter()
             .map(|t| self.equilibrium(&gamma, t))
             .collect::<Result<Vec<_>>>()?;
         self.last = Some((p.to_vec(), xs.clone()));
         Ok(xs)
     }
 
-    fn evaluate(&mut self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
+    /// One target's residual rows at `p` (its descriptor's, then its reactions') and, with
+    /// `with_jacobian`, their Jacobian rows, from its equilibrium `x`.
+    fn target_rows(
+        &self,
+        p: &[f64],
+        t: &Target,
+        x: &[V3],
+        with_jacobian: bool,
+    ) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
         let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
         let (mut r, mut j) = (Vec::new(), Vec::new());
-        let xs = self.equilibria(p)?;
-        for (&t, x) in self.targets.iter().zip(xs) {
-            let s = self.descriptor(&gamma, &x);
-            let at_gamma;
-            let target = match &t.descriptor {
-                Some(d) => d,
-                None => {
-                    at_gamma = self.descriptor(&gamma, &t.x);
-                    &at_gamma
-                }
-            };
-            let norm = t.norm;
-            r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / norm));
-            let sens = match (with_jacobian, self.cfg.fit.derivatives) {
-                (false, _) => None,
-                (true, Derivatives::Implicit) => Some(sensitivity(
-                    self.cloth,
+        let s = self.descriptor(&gamma, x);
+        let at_gamma;
+        let target = match &t.descriptor {
+            Some(d) => d,
+            None => {
+                at_gamma = self.descriptor(&gamma, &t.x);
+                &at_gamma
+            }
+        };
+        let norm = t.norm;
+        r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / norm));
+        let sens = match (with_jacobian, self.cfg.fit.derivatives) {
+            (false, _) => None,
+            (true, Derivatives::Implicit) => Some(sensitivity(
+                self.cloth,
+                &gamma,
+                &t.setup.load,
+                x,
+                &t.setup.groups,
+            )?),
+            (true, Derivatives::Forward) => {
+                // From the equilibrium itself: the values stay, the derivatives converge.
+                let solve = Solve {
+                    steps: self.cfg.fit.forward_steps,
+                    tolerance: 0.0,
+                    ..self.solve
+                };
+                let (_, sens) = self.cloth.solve_with_derivatives(
                     &gamma,
                     &t.setup.load,
-                    &x,
+                    x,
+                    &solve,
                     &t.setup.groups,
-                )?),
-                (true, Derivatives::Forward) => {
-                    // From the equilibrium itself: the values stay, the derivatives converge.
-                    let solve = Solve {
-                        steps: self.cfg.fit.forward_steps,
-                        tolerance: 0.0,
-                        ..self.solve
-                    };
-                    let (_, sens) = self.cloth.solve_with_derivatives(
-                        &gamma,
-                        &t.setup.load,
-                        &x,
-                        &solve,
-                        &t.setup.groups,
-                    )?;
-                    Some(sens)
-                }
-            };
-            if let Some(sens) = &sens {
-                // Descriptor derivatives along each dx/dγ_k, by central differences; the energy
-                // descriptor also depends on γ directly (on both sides), linearly.
-                let mut cols = Vec::new();
-                for (k, dx) in sens.dx.iter().enumerate() {
-                    let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
-                    let eps = if big > 0.0 {
-                        1e-6 * self.cfg.swatch.size / big
-                    } else {
-                        0.0
-                    };
-                    let mut col: Vec<f64> = if eps == 0.0 {
-                        vec![0.0; s.len()]
-                    } else {
-                        let shifted = |sign: f64| -> Vec<V3> {
-                            x.iter()
-                                .zip(dx)
-                                .map(|(a, d)| [0, 1, 2].map(|c| a[c] + sign * eps * d[c]))
-                                .collect()
-                        };
-                        let (up, dn) = (
-                            self.descriptor(&gamma, &shifted(1.0)),
-                            self.descriptor(&gamma, &shifted(-1.0)),
-                        );
-                        up.iter()
-                            .zip(&dn)
-                            .map(|(a, b)| (a - b) / (2.0 * eps * norm))
+                )?;
+                Some(sens)
+            }
+        };
+        if let Some(sens) = &sens {
+            // Descriptor derivatives along each dx/dγ_k, by central differences; the energy
+            // descriptor also depends on γ directly (on both sides), linearly.
+            let mut cols = Vec::new();
+            for (k, dx) in sens.dx.iter().enumerate() {
+                let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+                let eps = if big > 0.0 {
+                    1e-6 * self.cfg.swatch.size / big
+                } else {
+                    0.0
+                };
+                let mut col: Vec<f64> = if eps == 0.0 {
+                    vec![0.0; s.len()]
+                } else {
+                    let shifted = |sign: f64| -> Vec<V3> {
+                        x.iter()
+                            .zip(dx)
+                            .map(|(a, d)| [0, 1, 2].map(|c| a[c] + sign * eps * d[c]))
                             .collect()
                     };
-                    if self.cfg.fit.descriptor.depends_on_gamma() {
-                        let h = 1e-6 * p[k].abs().max(1e-300);
-                        let at = |sign: f64| {
-                            let mut q = [p[0], p[1], p[2], p[3], p[4]];
-                            q[k] += sign * h;
-                            Gamma::from_array(q)
-                        };
-                        let (up, dn) = (at(1.0), at(-1.0));
-                        let (su, sd) = (self.descriptor(&up, &x), self.descriptor(&dn, &x));
-                        let (tu, td) = (self.descriptor(&up, &t.x), self.descriptor(&dn, &t.x));
-                        for (i, c) in col.iter_mut().enumerate() {
-                            *c += ((su[i] - sd[i]) - (tu[i] - td[i])) / (2.0 * h * norm);
-                        }
-                    }
-                    cols.push(col);
-                }
-                for row in 0..s.len() {
-                    j.push((0..5).map(|k| cols[k][row]).collect());
-                }
-            }
-            for (g, group) in t.setup.groups.iter().enumerate() {
-                let react = self.cloth.reaction(&gamma, &t.setup.load, &x, group);
-                let mag = dot(react, react).sqrt();
-                let target = t.reactions[g].max(1e-300);
-                let w = self.cfg.fit.force_weight;
-                r.push(w * (mag - t.reactions[g]) / target);
-                if let Some(sens) = &sens {
-                    let unit = [0, 1, 2].map(|c| react[c] / mag.max(1e-300));
-                    j.push(
-                        (0..5)
-                            .map(|k| w * dot(unit, sens.reactions[g][k]) / target)
-                            .collect(),
+                    let (up, dn) = (
+                        self.descriptor(&gamma, &shifted(1.0)),
+                        self.descriptor(&gamma, &shifted(-1.0)),
                     );
+                    up.iter()
+                        .zip(&dn)
+                        .map(|(a, b)| (a - b) / (2.0 * eps * norm))
+                        .collect()
+                };
+                if self.cfg.fit.descriptor.depends_on_gamma() {
+                    let h = 1e-6 * p[k].abs().max(1e-300);
+                    let at = |sign: f64| {
+                        let mut q = [p[0], p[1], p[2], p[3], p[4]];
+                        q[k] += sign * h;
+                        Gamma::from_array(q)
+                    };
+                    let (up, dn) = (at(1.0), at(-1.0));
+                    let (su, sd) = (self.descriptor(&up, x), self.descriptor(&dn, x));
+                    let (tu, td) = (self.descriptor(&up, &t.x), self.descriptor(&dn, &t.x));
+                    for (i, c) in col.iter_mut().enumerate() {
+                        *c += ((su[i] - sd[i]) - (tu[i] - td[i])) / (2.0 * h * norm);
+                    }
                 }
+                cols.push(col);
             }
+            for row in 0..s.len() {
+                j.push((0..5).map(|k| cols[k][row]).collect());
+            }
+        }
+        for (g, group) in t.setup.groups.iter().enumerate() {
+            let react = self.cloth.reaction(&gamma, &t.setup.load, x, group);
+            let mag = dot(react, react).sqrt();
+            let target = t.reactions[g].max(1e-300);
+            let w = self.cfg.fit.force_weight;
+            r.push(w * (mag - t.reactions[g]) / target);
+            if let Some(sens) = &sens {
+                let unit = [0, 1, 2].map(|c| react[c] / mag.max(1e-300));
+                j.push(
+                    (0..5)
+                        .map(|k| w * dot(unit, sens.reactions[g][k]) / target)
+                        .collect(),
+                );
+            }
+        }
+        Ok((r, j))
+    }
+
+    fn evaluate(&mut self, p: &[f64], with_jacobian: bool) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
+        let xs = self.equilibria(p)?;
+        let rows = self
+            .targets
+            .par_iter()
+            .zip(&xs)
+            .map(|(&t, x)| self.target_rows(p, t, x, with_jacobian))
+            .collect::<Result<Vec<_>>>()?;
+        let (mut r, mut j) = (Vec::new(), Vec::new());
+        for (tr, tj) in rows {
+            r.extend(tr);
+            j.extend(tj);
         }
         // The Poisson penalty, as a residual: √s_ν · max(0, ν_uv − 0.5), ν_uv = C01 / C11.
         let root = self.cfg.fit.poisson_penalty.sqrt();
@@ -1013,15 +1035,21 @@ fn make_target(
 /// The job's targets: read from `targets.dir`, or generated with the true material.
 fn load_targets(cfg: &XpbdConfig, cloth: &XpbdCloth, progress: &Progress) -> Result<Vec<Target>> {
     let bar = progress.bar(cfg.scenarios.len() as u64, "targets");
-    let mut targets = Vec::new();
-    for (i, sc) in cfg.scenarios.iter().enumerate() {
-        let seed = cfg.fit.seed + i as u64;
-        targets.push(match &cfg.targets.dir {
-            Some(dir) => read_target(cfg, cloth, sc, &dir.join(format!("{}.npz", sc.name())))?,
-            None => make_target(cfg, cloth, sc, seed, progress)?,
-        });
-        bar.inc(1);
-    }
+    // Scenario `i`'s perturbation is seeded `fit.seed + i`, whichever thread solves it.
+    let targets = cfg
+        .scenarios
+        .par_iter()
+        .enumerate()
+        .map(|(i, sc)| {
+            let seed = cfg.fit.seed + i as u64;
+            let target = match &cfg.targets.dir {
+                Some(dir) => read_target(cfg, cloth, sc, &dir.join(format!("{}.npz", sc.name()))),
+                None => make_target(cfg, cloth, sc, seed, progress),
+            };
+            bar.inc(1);
+            target
+        })
+        .collect::<Result<Vec<_>>>()?;
     bar.finish();
     Ok(targets)
 }
