@@ -29,7 +29,7 @@ use super::scenario::{Scenario, Setup};
 use crate::cloth::triangles::{V3, dot};
 use crate::cloth::{Diagonal, grid_triangles};
 use crate::data::npz::{Array, Npz};
-use crate::progress::Progress;
+use crate::progress::{Bar, Progress};
 
 /// Engineering constants in the paper's CGS units (its Tables 1–3): moduli in dyn/cm, bending
 /// in erg.
@@ -605,6 +605,8 @@ struct Problem<'a> {
     /// The equilibria of the last γ evaluated: Levenberg–Marquardt asks for the Jacobian at
     /// the very γ whose residuals it has just accepted.
     last: Option<(Vec<f64>, Vec<Vec<V3>>)>,
+    /// Counts the Jacobians (the start and every accepted step) and shows the objective.
+    bar: Option<&'a Bar>,
 }
 
 impl Problem<'_> {
@@ -879,7 +881,13 @@ impl LeastSquares for Problem<'_> {
     }
 
     fn jacobian(&mut self, p: &[f64]) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
-        self.evaluate(p, true)
+        let (r, j) = self.evaluate(p, true)?;
+        let cost = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
+        if let Some(bar) = self.bar {
+            bar.inc(1);
+            bar.set_message(format!("objective {cost:.4e}"));
+        }
+        Ok((r, j))
     }
 }
 
@@ -1181,6 +1189,7 @@ pub fn resim(
         solve,
         targets: targets.iter().collect(),
         last: None,
+        bar: None,
     };
     let scenarios = problem.fits(&gamma.to_array())?;
     let report = ResimReport {
@@ -1232,12 +1241,24 @@ pub fn estimate(
             t.branch = x;
         }
     }
+    // Jacobians at most: one per start and pass, plus one per accepted step.
+    let passes = match cfg.fit.schedule {
+        Schedule::Joint => 1,
+        Schedule::BendingFirst => 2 * cfg.fit.rounds.max(1),
+    };
+    let bar = (cfg.fit.optimizer == Optimizer::Lm).then(|| {
+        progress.bar(
+            (cfg.fit.starts.max(1) * passes * (cfg.fit.max_iterations + 1)) as u64,
+            "LM",
+        )
+    });
     let problem = |subset: &dyn Fn(&Target) -> bool| Problem {
         cloth: &cloth,
         cfg,
         solve,
         targets: targets.iter().filter(|t| subset(t)).collect(),
         last: None,
+        bar: bar.as_ref(),
     };
     let p0 = initial.to_array();
     let f = cfg.fit.bounds_factor;
@@ -1342,6 +1363,9 @@ pub fn estimate(
         if best.as_ref().is_none_or(|b| objective < b.1.objective) {
             best = Some((fit, record));
         }
+    }
+    if let Some(bar) = &bar {
+        bar.finish();
     }
     let (fit, chosen) = best.expect("at least one start");
     let mut problem = all;
