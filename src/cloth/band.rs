@@ -1,5 +1,5 @@
-//! Symmetric positive-definite banded systems, solved by Cholesky in `O(n · bw²)` instead of
-//! the dense `O(n³)`. A grid cloth's vertices in row order couple only within a few rows, so
+//! Symmetric banded systems, solved by Cholesky (positive definite) or by LU with partial
+//! pivoting (indefinite) in `O(n · bw²)` instead of the dense `O(n³)`. A grid cloth's vertices in row order couple only within a few rows, so
 //! its Hessians are banded: the FEM source's Newton steps (`source::implicit`) and the XPBD
 //! equilibrium's polish and derivatives (`xpbd::equilibrium`) both solve them here.
 
@@ -17,6 +17,19 @@ pub struct BandMatrix {
 /// A [`BandMatrix`]'s Cholesky factor `L` (`A = L Lᵀ`), for any number of right-hand sides.
 #[derive(Debug, Clone)]
 pub struct BandCholesky(BandMatrix);
+
+/// A [`BandMatrix`]'s LU factorisation with partial pivoting (`P A = L U`; LINPACK's banded
+/// elimination: the row interchanges keep `L` within `bw` sub-diagonals and widen `U` to
+/// `2 bw` super-diagonals), for symmetric matrices that are not positive definite.
+#[derive(Debug, Clone)]
+pub struct BandLu {
+    n: usize,
+    bw: usize,
+    /// Row `i` holds columns `i − bw ..= i + 2 bw` at `i · (3 bw + 1) + (j + bw − i)`.
+    data: Vec<f64>,
+    /// The row swapped with row `k` at step `k`.
+    pivots: Vec<usize>,
+}
 
 impl BandMatrix {
     /// The `n × n` zero matrix with half-bandwidth `bw`.
@@ -70,6 +83,55 @@ impl BandMatrix {
         Ok(BandCholesky(self))
     }
 
+    /// Its LU factorisation with partial pivoting (the full symmetric matrix, both halves of
+    /// the band). Fails when the matrix is singular.
+    pub fn lu(&self) -> Result<BandLu> {
+        let (n, bw) = (self.n, self.bw);
+        let width = 3 * bw + 1;
+        let at = |i: usize, j: usize| i * width + (j + bw - i);
+        let mut data = vec![0.0; n * width];
+        for i in 0..n {
+            for j in i.saturating_sub(bw)..=i {
+                let v = self.data[self.at(i, j)];
+                data[at(i, j)] = v;
+                data[at(j, i)] = v;
+            }
+        }
+        let mut pivots = vec![0; n];
+        for k in 0..n {
+            let last = (k + bw).min(n - 1);
+            let p = (k..=last)
+                .max_by(|&a, &b| data[at(a, k)].abs().total_cmp(&data[at(b, k)].abs()))
+                .unwrap_or(k);
+            let pivot = data[at(p, k)];
+            if pivot == 0.0 || !pivot.is_finite() {
+                bail!("the Newton system is singular (column {k} of {n})");
+            }
+            pivots[k] = p;
+            let right = (k + 2 * bw).min(n - 1);
+            if p != k {
+                for c in k..=right {
+                    data.swap(at(k, c), at(p, c));
+                }
+            }
+            for r in k + 1..=last {
+                let l = data[at(r, k)] / pivot;
+                data[at(r, k)] = l;
+                if l != 0.0 {
+                    for c in k + 1..=right {
+                        data[at(r, c)] -= l * data[at(k, c)];
+                    }
+                }
+            }
+        }
+        Ok(BandLu {
+            n,
+            bw,
+            data,
+            pivots,
+        })
+    }
+
     /// Solves `A x = b` in place (`b` becomes `x`), consuming `A`. Fails when `A` is not
     /// positive definite.
     pub fn solve(self, b: &mut [f64]) -> Result<()> {
@@ -102,6 +164,34 @@ impl BandCholesky {
                 s -= l.data[l.at(k, i)] * b[k];
             }
             b[i] = s / l.data[l.at(i, i)];
+        }
+    }
+}
+
+impl BandLu {
+    /// Solves `A x = b` in place (`b` becomes `x`).
+    pub fn solve(&self, b: &mut [f64]) {
+        let (n, bw) = (self.n, self.bw);
+        assert_eq!(
+            b.len(),
+            n,
+            "right-hand side of length {} for order {n}",
+            b.len()
+        );
+        let width = 3 * bw + 1;
+        let at = |i: usize, j: usize| i * width + (j + bw - i);
+        for k in 0..n {
+            b.swap(k, self.pivots[k]);
+            for r in k + 1..=(k + bw).min(n.saturating_sub(1)) {
+                b[r] -= self.data[at(r, k)] * b[k];
+            }
+        }
+        for i in (0..n).rev() {
+            let mut s = b[i];
+            for c in i + 1..=(i + 2 * bw).min(n - 1) {
+                s -= self.data[at(i, c)] * b[c];
+            }
+            b[i] = s / self.data[at(i, i)];
         }
     }
 }
@@ -149,6 +239,49 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn banded_lu_solves_an_indefinite_matrix_as_a_dense_lu_does() {
+        // Negative and zero diagonal entries: Cholesky refuses it, pivoting is needed.
+        let (n, bw) = (15, 4);
+        let mut band = BandMatrix::zeros(n, bw);
+        let mut dense = DMatrix::<f64>::zeros(n, n);
+        for i in 0..n {
+            for j in i.saturating_sub(bw)..=i {
+                let v = if i == j {
+                    [2.0, -3.0, 0.0][i % 3]
+                } else {
+                    ((i * 5 + j * 11) % 7) as f64 * 0.4 - 1.1
+                };
+                band.add(i, j, v);
+                dense[(i, j)] = v;
+                dense[(j, i)] = v;
+            }
+        }
+        let lu = band.lu().unwrap();
+        assert!(band.factor().is_err());
+        let b: Vec<f64> = (0..n).map(|i| (0.3 * i as f64).cos()).collect();
+        let mut x = b.clone();
+        lu.solve(&mut x);
+        let exact = dense
+            .clone()
+            .lu()
+            .solve(&DVector::from_vec(b.clone()))
+            .unwrap();
+        let residual = &dense * DVector::from_vec(x.clone()) - DVector::from_vec(b);
+        assert!(residual.amax() < 1e-12, "residual {}", residual.amax());
+        for i in 0..n {
+            assert!(
+                (x[i] - exact[i]).abs() < 1e-10 * exact.amax(),
+                "{i}: {} vs {}",
+                x[i],
+                exact[i]
+            );
+        }
+        let mut singular = BandMatrix::zeros(3, 1);
+        singular.add(1, 1, 1.0);
+        assert!(singular.lu().unwrap_err().to_string().contains("singular"));
     }
 
     #[test]
