@@ -1,7 +1,8 @@
 //! Symmetric banded systems, solved by Cholesky (positive definite) or by LU with partial
-//! pivoting (indefinite) in `O(n · bw²)` instead of the dense `O(n³)`. A grid cloth's vertices in row order couple only within a few rows, so
-//! its Hessians are banded: the FEM source's Newton steps (`source::implicit`) and the XPBD
-//! equilibrium's polish and derivatives (`xpbd::equilibrium`) both solve them here.
+//! pivoting (indefinite) in `O(n · bw²)` instead of the dense `O(n³)`. A grid cloth's vertices
+//! in row order couple only within a few rows, so its Hessians are banded: the FEM source's
+//! Newton steps (`source::implicit`) and the XPBD equilibrium's polish and derivatives
+//! (`xpbd::equilibrium`) both solve them here.
 
 use anyhow::{Result, bail};
 
@@ -39,11 +40,6 @@ impl BandMatrix {
             bw,
             data: vec![0.0; n * (bw + 1)],
         }
-    }
-
-    /// Its order.
-    pub fn order(&self) -> usize {
-        self.n
     }
 
     #[inline]
@@ -182,7 +178,7 @@ impl BandLu {
         let at = |i: usize, j: usize| i * width + (j + bw - i);
         for k in 0..n {
             b.swap(k, self.pivots[k]);
-            for r in k + 1..=(k + bw).min(n.saturating_sub(1)) {
+            for r in k + 1..=(k + bw).min(n - 1) {
                 b[r] -= self.data[at(r, k)] * b[k];
             }
         }
