@@ -982,6 +982,11 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
                     "no divergence"
                 }
             );
+            println!(
+                "last 50 frames: {:.2} mm from the reference's last frame, moving {:.3} mm per frame",
+                r.rest_rmse_last_50 * 1e3,
+                r.rest_motion_last_50 * 1e3
+            );
             println!("eval: {}", run.join("latent_eval.json").display());
         }
         LatentCommand::Bench { run, full_frames } => {

@@ -532,7 +532,14 @@ train_frames = 30
         serde_json::from_str(&std::fs::read_to_string(run.join("latent_eval.json")).unwrap())
             .unwrap();
     assert_eq!(eval["frames"], 10);
-    for key in ["diverged", "rmse", "max_error", "pinned_max_error"] {
+    for key in [
+        "diverged",
+        "rmse",
+        "max_error",
+        "pinned_max_error",
+        "rest_rmse_last_50",
+        "rest_motion_last_50",
+    ] {
         assert!(!eval[key].is_null(), "latent_eval.json lacks {key}");
     }
     assert_eq!(eval["subspace"]["solve"]["iterations"], 5);

@@ -305,6 +305,11 @@ pub struct EvalReport {
     /// Mean RMSE of the last 50 frames against the reference's last frame (the cantilever
     /// ablation's distance to the rest state), m.
     pub rest_rmse_last_50: f64,
+    /// Mean RMS vertex displacement from one frame to the next over the last 50 frames, m per
+    /// frame: whether the rollout is still moving there. A rollout that oscillates about the
+    /// rest state shows it here; one that settled at an offset from it does not.
+    #[serde(default)]
+    pub rest_motion_last_50: f64,
     /// Kinetic energy of the rollout over the reference's, summed over the frames (the paper's
     /// limitation: below 1).
     pub kinetic_energy_ratio: f64,
@@ -351,6 +356,7 @@ struct Track {
     max_error: f64,
     pinned_max_error: f64,
     rest_rmse_last_50: f64,
+    rest_motion_last_50: f64,
     kinetic_energy_ratio: f64,
     rmse_per_frame: Vec<f64>,
 }
@@ -364,7 +370,7 @@ impl Track {
         let mut per_frame = Vec::with_capacity(rolled.len());
         let (mut ke_model, mut ke_ref) = (0.0, 0.0);
         let last = r.frames.len() - 1;
-        let mut rest = Vec::new();
+        let (mut rest, mut motion) = (Vec::new(), Vec::new());
         for (k, x) in rolled.iter().enumerate() {
             let t = start + k;
             let truth = &r.frames[t];
@@ -405,14 +411,26 @@ impl Track {
                     })
                     .sum();
                 rest.push((d / n as f64).sqrt());
+                if k > 0 {
+                    let m: f64 = (0..n)
+                        .map(|i| {
+                            (0..3)
+                                .map(|c| (x[i][c] - rolled[k - 1][i][c]).powi(2))
+                                .sum::<f64>()
+                        })
+                        .sum();
+                    motion.push((m / n as f64).sqrt());
+                }
             }
         }
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
         Self {
             diverged,
             rmse: (se_all / (rolled.len().max(1) * n) as f64).sqrt(),
             max_error,
             pinned_max_error: pinned_max,
-            rest_rmse_last_50: rest.iter().sum::<f64>() / rest.len().max(1) as f64,
+            rest_rmse_last_50: mean(&rest),
+            rest_motion_last_50: mean(&motion),
             kinetic_energy_ratio: if ke_ref > 0.0 {
                 ke_model / ke_ref
             } else {
@@ -499,6 +517,7 @@ pub fn evaluate(dir: &Path, subspace: bool, iterations: Option<usize>) -> Result
         pinned_max_error: track.pinned_max_error,
         rmse_at_300: track.rmse_per_frame.get(300).copied(),
         rest_rmse_last_50: track.rest_rmse_last_50,
+        rest_motion_last_50: track.rest_motion_last_50,
         kinetic_energy_ratio: track.kinetic_energy_ratio,
         reconstruction_rmse: (rec / (frames * n) as f64).sqrt(),
         one_step_rmse: (one_step / (frames * n) as f64).sqrt(),
@@ -648,4 +667,43 @@ pub fn bench(dir: &Path, full_frames: usize) -> Result<BenchReport> {
     };
     crate::io::write_json(&model.run.dir.join("bench.json"), &report)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A reference of two vertices at rest for 60 frames.
+    fn resting() -> Reference {
+        Reference {
+            frames: vec![vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]; 60],
+            pinned: vec![0],
+            dt: 1.0 / 30.0,
+        }
+    }
+
+    #[test]
+    fn rest_metrics_tell_an_offset_from_an_oscillation() {
+        let r = resting();
+        let shifted = |dz: f64| vec![[0.0, 0.0, dz], [1.0, 0.0, dz]];
+        // Settled 1 mm off the rest state: 1 mm away, not moving.
+        let offset: Vec<Vec<V3>> = (0..60).map(|_| shifted(1e-3)).collect();
+        let t = Track::of(&offset, &r, 0, 1.0);
+        assert!((t.rest_rmse_last_50 - 1e-3).abs() < 1e-12);
+        assert!(t.rest_motion_last_50.abs() < 1e-12);
+        // Swinging ±1 mm about it, frame by frame: as far away, but moving 2 mm a frame.
+        let swing: Vec<Vec<V3>> = (0..60)
+            .map(|k| shifted(if k % 2 == 0 { 1e-3 } else { -1e-3 }))
+            .collect();
+        let t = Track::of(&swing, &r, 0, 1.0);
+        assert!((t.rest_rmse_last_50 - 1e-3).abs() < 1e-12);
+        assert!((t.rest_motion_last_50 - 2e-3).abs() < 1e-12);
+        // Only the last 50 frames count: a swing that stopped before them leaves no motion.
+        let settled: Vec<Vec<V3>> = (0..60)
+            .map(|k| shifted(if k < 8 && k % 2 == 1 { 5e-3 } else { 0.0 }))
+            .collect();
+        let t = Track::of(&settled, &r, 0, 1.0);
+        assert!(t.rest_rmse_last_50.abs() < 1e-12);
+        assert!(t.rest_motion_last_50.abs() < 1e-12);
+    }
 }
