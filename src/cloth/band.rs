@@ -83,9 +83,8 @@ impl BandMatrix {
     /// the band). Fails when the matrix is singular.
     pub fn lu(&self) -> Result<BandLu> {
         let (n, bw) = (self.n, self.bw);
-        let width = 3 * bw + 1;
-        let at = |i: usize, j: usize| i * width + (j + bw - i);
-        let mut data = vec![0.0; n * width];
+        let at = |i: usize, j: usize| BandLu::at(bw, i, j);
+        let mut data = vec![0.0; n * (3 * bw + 1)];
         for i in 0..n {
             for j in i.saturating_sub(bw)..=i {
                 let v = self.data[self.at(i, j)];
@@ -165,6 +164,12 @@ impl BandCholesky {
 }
 
 impl BandLu {
+    /// Where entry `(i, j)` lies in `data` for half-bandwidth `bw`.
+    #[inline]
+    fn at(bw: usize, i: usize, j: usize) -> usize {
+        i * (3 * bw + 1) + (j + bw - i)
+    }
+
     /// Solves `A x = b` in place (`b` becomes `x`).
     pub fn solve(&self, b: &mut [f64]) {
         let (n, bw) = (self.n, self.bw);
@@ -174,8 +179,7 @@ impl BandLu {
             "right-hand side of length {} for order {n}",
             b.len()
         );
-        let width = 3 * bw + 1;
-        let at = |i: usize, j: usize| i * width + (j + bw - i);
+        let at = |i: usize, j: usize| Self::at(bw, i, j);
         for k in 0..n {
             b.swap(k, self.pivots[k]);
             for r in k + 1..=(k + bw).min(n - 1) {

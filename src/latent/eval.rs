@@ -403,23 +403,9 @@ impl Track {
                 }
             }
             if k + 50 >= rolled.len() {
-                let d: f64 = (0..n)
-                    .map(|i| {
-                        (0..3)
-                            .map(|c| (x[i][c] - r.frames[last][i][c]).powi(2))
-                            .sum::<f64>()
-                    })
-                    .sum();
-                rest.push((d / n as f64).sqrt());
+                rest.push(rms_distance(x, &r.frames[last]));
                 if k > 0 {
-                    let m: f64 = (0..n)
-                        .map(|i| {
-                            (0..3)
-                                .map(|c| (x[i][c] - rolled[k - 1][i][c]).powi(2))
-                                .sum::<f64>()
-                        })
-                        .sum();
-                    motion.push((m / n as f64).sqrt());
+                    motion.push(rms_distance(x, &rolled[k - 1]));
                 }
             }
         }
@@ -439,6 +425,16 @@ impl Track {
             rmse_per_frame: per_frame,
         }
     }
+}
+
+/// Root-mean-square distance between two frames of the same vertices, m.
+fn rms_distance(a: &[V3], b: &[V3]) -> f64 {
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (0..3).map(|c| (p[c] - q[c]).powi(2)).sum::<f64>())
+        .sum();
+    (sum / a.len().max(1) as f64).sqrt()
 }
 
 /// Evaluates a finished run and writes `R/latent_eval.json`; with `subspace`, the solved
