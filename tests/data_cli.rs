@@ -110,6 +110,33 @@ fn data_check_fails_naming_the_file_and_key() {
         &springtime(&["data", "check", "mixed"], &dir),
         &["z_slow.npz", "`frame_dt`", "differs"],
     );
+    // A damaged scalar (a frame step of 1e9 s, a mass in grams read as kg, gravity in cm/s²) is
+    // refused by the reader, naming the file and the key, before any later stage sees it.
+    for (key, value, name) in [
+        ("frame_dt", 1e9, "a_frame_dt.npz"),
+        ("total_mass", 5e5, "b_total_mass.npz"),
+    ] {
+        let mut npz = springtime::data::npz::Npz::read(&fixture("npz_savez.npz")).unwrap();
+        npz.insert(key, springtime::data::npz::Array::scalar(value));
+        let sub = format!("damaged_{key}");
+        std::fs::create_dir_all(dir.join(&sub)).unwrap();
+        npz.write(&dir.join(&sub).join(name)).unwrap();
+        fails(
+            &springtime(&["data", "check", &sub], &dir),
+            &[name, &format!("`{key}`"), "plausible"],
+        );
+    }
+    let mut npz = springtime::data::npz::Npz::read(&fixture("npz_savez.npz")).unwrap();
+    npz.insert(
+        "gravity",
+        springtime::data::npz::Array::f32(&[3], &[0.0, 0.0, -981.0]),
+    );
+    std::fs::create_dir_all(dir.join("damaged_gravity")).unwrap();
+    npz.write(&dir.join("damaged_gravity/g.npz")).unwrap();
+    fails(
+        &springtime(&["data", "check", "damaged_gravity"], &dir),
+        &["g.npz", "`gravity`", "plausible"],
+    );
     fails(
         &springtime(&["data", "check", "nowhere"], &dir),
         &["nowhere"],

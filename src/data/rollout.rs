@@ -92,6 +92,22 @@ pub struct Rollout {
     pub rayleigh: Option<f64>,
 }
 
+/// The plausible range `(low, high, unit)` of a rollout's scalar `key` (SI units, generous for
+/// any cloth from a 1 cm swatch at 1 MHz to a 1 km sail at one frame a second): a value outside
+/// is a unit mix-up or a damaged file, which the reader refuses naming the file and the key
+/// instead of letting a later stage fail without them.
+pub fn plausible_range(key: &str) -> (f64, f64, &'static str) {
+    match key {
+        "frame_dt" => (1e-6, 1.0, "s"),
+        "total_mass" => (1e-6, 1e4, "kg"),
+        "width" | "height" => (1e-3, 1e3, "m"),
+        _ => (f64::MIN_POSITIVE, f64::MAX, ""),
+    }
+}
+
+/// The largest plausible gravity, m/s² (ten times Jupiter's surface gravity).
+const MAX_GRAVITY: f64 = 250.0;
+
 /// The keys a rollout file may hold; any other key is ignored.
 pub const KEYS: &[&str] = &[
     "positions",
@@ -146,17 +162,24 @@ impl Rollout {
             .map(|c| [c[0] as f64, c[1] as f64])
             .collect();
         let pinned = npz.bool("pinned", &[Some(n)])?;
-        let positive = |key: &str| -> Result<f64> {
+        let plausible = |key: &str| -> Result<f64> {
             let v = npz.scalar(key)?;
             if v <= 0.0 {
                 bail!("{shown}: key `{key}` must be positive, is {v}");
             }
+            let (lo, hi, unit) = plausible_range(key);
+            if !(lo..=hi).contains(&v) {
+                bail!(
+                    "{shown}: key `{key}` is {v} {unit}, outside the plausible {lo:e}–{hi:e} {unit} \
+                     for cloth (a unit mix-up or a damaged file?)"
+                );
+            }
             Ok(v)
         };
-        let frame_dt = positive("frame_dt")?;
-        let total_mass = positive("total_mass")?;
-        let width = positive("width")?;
-        let height = positive("height")?;
+        let frame_dt = plausible("frame_dt")?;
+        let total_mass = plausible("total_mass")?;
+        let width = plausible("width")?;
+        let height = plausible("height")?;
         let tol = 1e-4 * width.max(height);
         if let Some((i, p)) = rest_uv
             .iter()
@@ -252,7 +275,15 @@ impl Rollout {
         };
         let gravity = if npz.has("gravity") {
             let (g, _) = npz.f32("gravity", &[Some(3)])?;
-            Some([g[0] as f64, g[1] as f64, g[2] as f64])
+            let g = [g[0] as f64, g[1] as f64, g[2] as f64];
+            let norm = g.iter().map(|c| c * c).sum::<f64>().sqrt();
+            if !(norm <= MAX_GRAVITY) {
+                bail!(
+                    "{shown}: key `gravity` is {g:?} m/s² ({norm} m/s² long), beyond the plausible \
+                     {MAX_GRAVITY} m/s² (a unit mix-up or a damaged file?)"
+                );
+            }
+            Some(g)
         } else {
             None
         };
