@@ -1215,7 +1215,17 @@ fn train_command(
         }
     );
     println!("run: {}", summary.run_dir.display());
-    if evaluate {
+    // A finished training is a success: without test rollouts the evaluation is skipped with a
+    // note that says how to run it, rather than failing the command.
+    let has_test = !cfg.data.split()?.test.is_empty();
+    if evaluate && !has_test {
+        progress.note(&format!(
+            "note: no test rollouts (the data's index lists none and `data.test_dir` is not \
+             set): the run is trained but not evaluated; evaluate it with `springtime eval {} \
+             --data DIR` on takes it was not trained on",
+            summary.run_dir.display()
+        ));
+    } else if evaluate {
         let report = eval::evaluate(&summary.run_dir, None, None, &[], progress)?;
         print_eval(&report);
     }
@@ -1387,6 +1397,9 @@ fn print_eval(r: &EvalReport) {
             100.0 * u.improvement_long,
             100.0 * u.improvement_short
         );
+    }
+    if let Some(v) = &r.validation {
+        println!("validation (`data.holdout`): {}", v.summary());
     }
     if let Some(i) = &r.inference {
         println!(

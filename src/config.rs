@@ -207,6 +207,9 @@ fn key_help(key: &str) -> Option<&'static str> {
         ("data", _) => "the rollouts (see `springtime data check DIR`)",
         ("data.dir", _) => "folder of .npz rollouts (with index.json, or every file trains)",
         ("data.cache_mib", _) => "memory for resampled rollouts kept between batches, MiB",
+        ("data.holdout", _) => {
+            "training rollouts held out of the fit to check the result against uniform"
+        }
         ("data.clips.steps", _) => "steps per clip",
         ("data.clips.fraction", _) => "fraction of regular clips kept (paper: 0.06)",
         ("data.clips.low_velocity_seconds", _) => {

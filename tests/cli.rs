@@ -477,6 +477,88 @@ fn a_generating_config_never_writes_beside_someone_elses_rollouts() {
 }
 
 #[test]
+fn a_plain_folder_of_takes_without_a_test_split_trains_and_says_how_to_evaluate() {
+    let dir = setup("cli-no-test");
+    ok(&springtime(&["generate", "tiny.toml"], &dir));
+    // A user's folder: takes only, no index.json, a config naming only `data.dir`.
+    let mine = dir.join("takes");
+    std::fs::create_dir_all(&mine).unwrap();
+    for i in 0..2 {
+        let name = format!("train_{i:04}.npz");
+        std::fs::copy(dir.join("data").join(&name), mine.join(&name)).unwrap();
+    }
+    std::fs::write(dir.join("mine.toml"), user_data_config("takes")).unwrap();
+    let out = springtime(&["train", "mine.toml", "--no-report"], &dir);
+    let text = ok(&out);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no test rollouts") && stderr.contains("springtime eval"),
+        "{text}\n{stderr}"
+    );
+    assert!(!dir.join("runs/tiny/eval.json").exists());
+    // The note's command evaluates it.
+    let eval = ok(&springtime(&["eval", "runs/tiny", "--data", "data"], &dir));
+    assert!(eval.contains("motion RMSE"), "{eval}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn held_out_training_takes_check_the_learned_network_against_the_best_uniform_one() {
+    let dir = setup("cli-holdout");
+    // Four training rollouts: the last one is held out of the fit.
+    let out = springtime(
+        &[
+            "train",
+            "tiny.toml",
+            "--set",
+            "data.holdout=1",
+            "--no-report",
+        ],
+        &dir,
+    );
+    let text = ok(&out);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("validation: on 1 held-out"), "{stderr}");
+    assert!(text.contains("validation (`data.holdout`)"), "{text}");
+    let v: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("runs/tiny/validation.json")).unwrap(),
+    )
+    .unwrap();
+    let rollouts = v["rollouts"].as_array().unwrap();
+    assert_eq!(rollouts.len(), 1);
+    assert!(
+        rollouts[0].as_str().unwrap().ends_with("train_0003.npz"),
+        "{v}"
+    );
+    let (trained, uniform) = (
+        v["trained"]["long"]["mean"].as_f64().unwrap(),
+        v["uniform"]["test"]["long"]["mean"].as_f64().unwrap(),
+    );
+    assert!(trained > 0.0 && uniform > 0.0, "{v}");
+    let short = 1.0
+        - v["trained"]["short"]["mean"].as_f64().unwrap()
+            / v["uniform"]["test"]["short"]["mean"].as_f64().unwrap();
+    assert_eq!(
+        v["wins"].as_bool().unwrap(),
+        short > 0.0 && 1.0 - trained / uniform > 0.0,
+        "{v}"
+    );
+    let eval: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("runs/tiny/eval.json")).unwrap())
+            .unwrap();
+    assert_eq!(eval["validation"], v);
+    // Holding out every training rollout is refused, naming the key.
+    fails(
+        &springtime(
+            &["train", "tiny.toml", "--set", "data.holdout=4", "--force"],
+            &dir,
+        ),
+        &["`data.holdout`", "leave at least one"],
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
 fn a_second_training_process_on_the_same_run_refuses() {
     let dir = setup("cli-lock");
     let run = springtime::train::RunDir::new(dir.join("runs/tiny"));

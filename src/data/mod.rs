@@ -29,6 +29,10 @@ pub struct DataConfig {
     /// Memory for resampled rollouts kept between batches, MiB; `"auto"` (default): half the
     /// memory available when the run starts ([`DataConfig::cache_bytes`]).
     pub cache_mib: Auto<usize>,
+    /// Training rollouts held out of the fit (the last ones of the training split): `train`
+    /// checks the learned network against the best uniform one on them ([`Split::validation`];
+    /// 0 = none; `"auto"`: [`auto_holdout`]).
+    pub holdout: Auto<usize>,
     /// How rollouts are cut into clips.
     pub clips: ClipConfig,
 }
@@ -39,6 +43,7 @@ impl Default for DataConfig {
             dir: PathBuf::from("data/rollouts"),
             test_dir: None,
             cache_mib: Auto::Auto,
+            holdout: Auto::Value(0),
             clips: ClipConfig::default(),
         }
     }
@@ -168,13 +173,17 @@ pub struct Split {
     pub train: Vec<PathBuf>,
     /// Test rollouts (may be empty).
     pub test: Vec<PathBuf>,
+    /// Training rollouts held out of the fit (`data.holdout`, the last of the training files),
+    /// on which `train` compares the learned network with the best uniform one.
+    pub validation: Vec<PathBuf>,
 }
 
 impl DataConfig {
     /// Resolves the train and test files: from `index.json` when present, else every `.npz` of
-    /// `dir` is a training file; `test_dir` overrides the test files.
+    /// `dir` is a training file; `test_dir` overrides the test files; the last `holdout`
+    /// training files are held out of the fit as validation files.
     pub fn split(&self) -> Result<Split> {
-        let (train, mut test) = match Index::read(&self.dir)? {
+        let (mut train, mut test): (Vec<PathBuf>, Vec<PathBuf>) = match Index::read(&self.dir)? {
             Some(index) => (
                 index.train.iter().map(|f| self.dir.join(f)).collect(),
                 index.test.iter().map(|f| self.dir.join(f)).collect(),
@@ -193,8 +202,28 @@ impl DataConfig {
                 );
             }
         }
-        Ok(Split { train, test })
+        let holdout = self.holdout.value().unwrap_or(auto_holdout(train.len()));
+        if holdout > 0 && holdout >= train.len() {
+            bail!(
+                "`data.holdout` = {holdout} holds out every training rollout of {} ({} in all): \
+                 leave at least one to train on",
+                self.dir.display(),
+                train.len()
+            );
+        }
+        let validation = train.split_off(train.len() - holdout);
+        Ok(Split {
+            train,
+            test,
+            validation,
+        })
     }
+}
+
+/// `data.holdout = "auto"`: a fifth of `train` training rollouts (rounded down) where there
+/// are at least five, else none (a smaller set needs every take to fit).
+pub fn auto_holdout(train: usize) -> usize {
+    if train >= 5 { train / 5 } else { 0 }
 }
 
 /// Every `.npz` file of `dir`, sorted.

@@ -157,6 +157,10 @@ pub struct EvalReport {
     /// The best uniform surrogate beside the trained one (`eval.uniform_baseline`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub uniform_baseline: Option<uniform::UniformBaseline>,
+    /// `train`'s check of the learned network against the best uniform one on training
+    /// rollouts held out of the fit (`data.holdout`; the run's `validation.json`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<crate::train::guard::Validation>,
     /// What the model's steps cost during this evaluation.
     #[serde(default)]
     pub inference: Option<Inference>,

@@ -118,6 +118,7 @@ pub fn evaluate(
         rmse_b,
         stiffness_map_corr,
         uniform_baseline,
+        validation: train::guard::Validation::read(&run.dir)?,
         motion_rmse: motion,
         inference: Some(eval::Inference {
             us_per_step: curves.us_per_step(),

@@ -183,6 +183,9 @@ pub fn build(
             r["unknowns"]
         ));
     }
+    if let Some(v) = train::guard::Validation::read(&run.dir)? {
+        notes.push(format!("validation (`data.holdout`): {}", v.summary()));
+    }
     let (k, b) = (model.k_values(), model.b_values());
     let mut inputs = Inputs {
         name: config.name.clone(),

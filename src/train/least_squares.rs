@@ -53,6 +53,15 @@ pub struct LeastSquaresConfig {
     /// Weight of the pull towards the initial uniform `k`, `b`, relative to the mean diagonal
     /// of the normal equations (per parameter kind).
     pub prior: f64,
+    /// Weight of the spatial prior, relative to the mean diagonal of the normal equations (per
+    /// parameter kind): `½ λ Σ (θ_s − θ_r)²` over every pair of springs of one family that share
+    /// a particle, so that a spring the data hardly constrains takes its neighbours' value
+    /// instead of the uniform start's or zero (0 = none).
+    pub smoothness: f64,
+    /// The training clips whose frames are fitted: `all`, or `low_velocity` (the last seconds
+    /// of each rollout, where a camera-rate target is least noisy: the paper's stiffness pass
+    /// uses them) or `regular`.
+    pub clips: super::ClipPool,
     /// Conjugate-gradient iterations per solve, at most.
     pub max_iterations: usize,
     /// Relative residual of the normal equations at which the solve stops.
@@ -67,6 +76,8 @@ impl Default for LeastSquaresConfig {
             stencil: Auto::Auto,
             frames: 4096,
             prior: 1e-9,
+            smoothness: 0.0,
+            clips: super::ClipPool::All,
             max_iterations: 20_000,
             tolerance: 1e-10,
         }
@@ -102,6 +113,12 @@ impl LeastSquaresConfig {
             bail!(
                 "`train.least_squares.prior` must be a positive number, is {}",
                 self.prior
+            );
+        }
+        if !(self.smoothness >= 0.0 && self.smoothness.is_finite()) {
+            bail!(
+                "`train.least_squares.smoothness` must be a non-negative number, is {}",
+                self.smoothness
             );
         }
         if self.max_iterations == 0 {
@@ -303,6 +320,31 @@ impl Normal<'_> {
             .collect()
     }
 
+    /// The sums with the graph Laplacian of the spatial prior added: `λ_k`, `λ_b` times
+    /// `Σ (θ_s − θ_r)²/2` over the pairs of springs of one family that share a particle (every
+    /// such pair already has its block in the pattern).
+    fn with_smoothness(&self, topo: &Topology, lambda_k: f64, lambda_b: f64) -> Sums {
+        let (row_start, col) = (&self.pattern.row_start, &self.pattern.col);
+        let mut sums = self.sums.clone();
+        for s in 0..self.unknowns() / 2 {
+            let own = row_start[s]
+                + col[row_start[s]..row_start[s + 1]]
+                    .binary_search(&s)
+                    .expect("own block");
+            for q in row_start[s]..row_start[s + 1] {
+                let r = col[q];
+                if r == s || topo.family[r] != topo.family[s] {
+                    continue;
+                }
+                sums.blocks[q][0] -= lambda_k;
+                sums.blocks[q][3] -= lambda_b;
+                sums.blocks[own][0] += lambda_k;
+                sums.blocks[own][3] += lambda_b;
+            }
+        }
+        sums
+    }
+
     /// `|y − J θ|² = yᵀy − 2 θᵀg + θᵀAθ`, relative to `yᵀy`, as an RMS ratio.
     fn relative_residual(&self, theta: &[f64]) -> f64 {
         let mut a_theta = vec![0.0; theta.len()];
@@ -421,7 +463,18 @@ fn fit_with(
     }
     // Every centre frame whose stencil lies inside a training clip, once.
     let mut centres = BTreeSet::new();
-    for clip in clips.all_clips() {
+    let pool = match config.clips {
+        super::ClipPool::All => clips.all_clips(),
+        super::ClipPool::LowVelocity => clips.low_velocity.clone(),
+        super::ClipPool::Regular => clips.regular.clone(),
+    };
+    if pool.is_empty() {
+        bail!(
+            "`train.least_squares.clips = {:?}`: the training data has no such clips",
+            config.clips
+        );
+    }
+    for clip in pool {
         centres.extend((clip.offset + w..=clip.offset + t - w).map(|j| (clip.rollout, j)));
     }
     let stride = centres.len().div_ceil(config.frames).max(1);
@@ -497,7 +550,23 @@ fn fit_with(
         .flat_map(|m| [m[0], m[3]])
         .filter(|&d| d == 0.0)
         .count();
-    let solution = solve_nonnegative(&normal, &shift, &initial, config);
+    // The spatial prior joins the normal equations the solve sees (the residuals above and
+    // below stay those of the data alone).
+    let smoothed;
+    let solved = if config.smoothness > 0.0 {
+        smoothed = Normal {
+            pattern,
+            sums: normal.with_smoothness(
+                topo,
+                config.smoothness * mean_k,
+                config.smoothness * mean_b,
+            ),
+        };
+        &smoothed
+    } else {
+        &normal
+    };
+    let solution = solve_nonnegative(solved, &shift, &initial, config);
     let (theta, free) = (solution.theta, solution.free);
     let (iterations, normal_residual, settled) =
         (solution.iterations, solution.residual, solution.settled);
@@ -898,6 +967,59 @@ mod tests {
         }
         assert!((normal.sums.yy - y.dot(&y)).abs() < 1e-9 * y.dot(&y));
         assert_eq!(normal.sums.rows, y.len());
+    }
+
+    /// The spatial prior: a spring that no sample constrains takes its neighbours' value (here
+    /// every other spring's data says `k` = 10, `b` = 1), where without it the pull towards the
+    /// start (here 0) holds it there.
+    #[test]
+    fn a_spring_no_clip_stretches_takes_its_neighbours_value_under_the_spatial_prior() {
+        let points: Vec<[f64; 2]> = (0..3)
+            .flat_map(|j| (0..3).map(move |i| [i as f64 * 0.5, j as f64 * 0.5 + 0.01 * i as f64]))
+            .collect();
+        let topo = Topology::of_points(&points, 1.0, 1.01, true).expect("a mesh");
+        let pattern = Pattern::new(&topo);
+        let mut sums = pattern.empty_sums();
+        let lonely = 0;
+        for s in (0..topo.num_springs()).filter(|&s| s != lonely) {
+            let row = &pattern.col[pattern.row_start[s]..pattern.row_start[s + 1]];
+            let own = pattern.row_start[s] + row.binary_search(&s).unwrap();
+            sums.blocks[own] = [1.0, 0.0, 0.0, 1.0];
+            sums.rhs[2 * s] = 10.0;
+            sums.rhs[2 * s + 1] = 1.0;
+        }
+        let n = 2 * topo.num_springs();
+        let normal = Normal {
+            pattern: &pattern,
+            sums,
+        };
+        let config = LeastSquaresConfig {
+            tolerance: 1e-12,
+            ..LeastSquaresConfig::default()
+        };
+        let start = vec![0.0; n];
+        let shift = vec![1e-9; n];
+        let plain = solve_nonnegative(&normal, &shift, &start, &config).theta;
+        assert!(plain[2 * lonely].abs() < 1e-6, "k = {}", plain[2 * lonely]);
+        let smooth = Normal {
+            pattern: &pattern,
+            sums: normal.with_smoothness(&topo, 0.1, 0.1),
+        };
+        let theta = solve_nonnegative(&smooth, &shift, &start, &config).theta;
+        assert!(
+            (theta[2 * lonely] - 10.0).abs() < 1e-3 && (theta[2 * lonely + 1] - 1.0).abs() < 1e-4,
+            "the lonely spring: k = {}, b = {}",
+            theta[2 * lonely],
+            theta[2 * lonely + 1]
+        );
+        // The constrained springs keep what their data says (their neighbours agree with it).
+        for s in 1..topo.num_springs() {
+            assert!(
+                (theta[2 * s] - 10.0).abs() < 1e-3,
+                "spring {s}: k = {}",
+                theta[2 * s]
+            );
+        }
     }
 
     /// Against every active set of the six unknowns (the non-negative optimum is the feasible

@@ -3,6 +3,8 @@
 //! The stiffness pass trains `k` with `b` frozen on low-velocity clips; the damping pass
 //! trains `b` with `k` frozen on regular clips. `mode = "single"` trains both at once.
 
+pub mod compliance;
+pub mod guard;
 pub mod init;
 pub mod least_squares;
 pub mod losses;
@@ -27,7 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::{Resampler, SpringLayout, Topology};
 use crate::config::Config;
-use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, SpringTruth};
+use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, Split, SpringTruth};
 use crate::model::neural_ode::OdeScales;
 use crate::model::{Gnn, GnnConfig, ModelKind, NeuralOde, SpringNet, gnn};
 use crate::progress::Progress;
@@ -147,6 +149,14 @@ pub struct TrainConfig {
     /// paper). For a force-level fit (`force_on = "target"`), whose values least squares
     /// shrinks; the substeps are raised as the scaled network needs.
     pub scale_search: bool,
+    /// After training a spring network, search the best uniform network on free rollouts of
+    /// training data first, then how much of the learned map to blend into it (ours; the
+    /// uniform network is a candidate, so the kept one is never worse on those rollouts;
+    /// replaces `scale_search`, whose candidates are the blend's `α = 1`).
+    pub blend_search: bool,
+    /// Start a spring network from the strain-compliance map (ours; replaces the
+    /// least-squares start).
+    pub compliance: compliance::ComplianceConfig,
     /// Start a spring network from the per-spring least-squares fit of the data's forces
     /// (ours; off: the paper's uniform start).
     pub least_squares: least_squares::LeastSquaresConfig,
@@ -172,6 +182,8 @@ impl Default for TrainConfig {
             state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
             project_stable: true,
             scale_search: false,
+            blend_search: false,
+            compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             stiffness: PassConfig {
                 lr: 2.0,
@@ -254,6 +266,19 @@ impl TrainConfig {
         }
         if !(self.adam_epsilon > 0.0) {
             bail!("`train.adam_epsilon` must be positive");
+        }
+        if self.compliance.enabled && self.least_squares.enabled && !self.blend_search {
+            bail!(
+                "`train.compliance.enabled` and `train.least_squares.enabled` both choose the \
+                 start of the spring network; keep one, or turn on `train.blend_search`, which \
+                 blends each map into the uniform network and keeps the better"
+            );
+        }
+        if self.scale_search && self.blend_search {
+            bail!(
+                "`train.scale_search` and `train.blend_search` are both on: the blend search's \
+                 candidates include the scale search's (α = 1); keep one"
+            );
         }
         self.least_squares.validate()
     }
@@ -459,7 +484,11 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     }
     let clips = Arc::new(clips);
     let requested = config;
-    let train_files = config.data.split()?.train;
+    let Split {
+        train: train_files,
+        validation: validation_files,
+        ..
+    } = config.data.split()?;
     let search_device = config.backend.device()?;
     let (resolved, resolution) = init::resolve(
         config,
@@ -540,6 +569,78 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                 .initial_springs(&resolution)?
                 .with_kernel(config.model.kernel);
             let (summary, mut model) = fit.run(model)?;
+            let mut final_physics = physics;
+            if config.train.blend_search {
+                // The maps to blend: the trained network, and with both starts on the
+                // compliance map too; the one whose blend moves closest to the training
+                // rollouts is kept.
+                let mut maps = vec![("trained", model.clone())];
+                if config.train.compliance.enabled && config.train.least_squares.enabled {
+                    maps.push(("compliance", fit.compliance_springs(&resolution)?));
+                }
+                let mut found = Vec::new();
+                for (name, map) in &maps {
+                    let (net, p, mut record) = scale::blend_search(
+                        map,
+                        (resolution.k_init, resolution.b_init),
+                        &topo,
+                        &physics,
+                        &train_files,
+                        config.eval.batch,
+                        &search_device,
+                        progress,
+                    )?;
+                    record.map = name.to_string();
+                    if maps.len() > 1 {
+                        progress.note(&format!(
+                            "blend search of the {name} map: {:.0} % kept, mean motion RMSE \
+                             {:.4e} m",
+                            100.0 * record.alpha,
+                            record.after
+                        ));
+                    }
+                    found.push((net, p, record));
+                }
+                let (blended, blended_physics, record) = found
+                    .into_iter()
+                    .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
+                    .expect("one map at least");
+                progress.note(&format!(
+                    "blend search: the best uniform network on {} training rollouts is k {:.4} \
+                     N/m, b {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3}, \
+                     b × {:.3} at {} substep(s) per frame: mean motion RMSE {} (as trained) -> \
+                     {:.4e} m",
+                    record.rollouts,
+                    record.uniform.0,
+                    record.uniform.1,
+                    record.uniform.2,
+                    100.0 * record.alpha,
+                    record.map,
+                    record.k_factor,
+                    record.b_factor,
+                    record.substeps,
+                    record
+                        .before
+                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
+                    record.after
+                ));
+                if record.alpha == 0.0 {
+                    progress.note(
+                        "WARNING: blend search: no share of the learned map moves closer to the \
+                         training rollouts than the best uniform network; the run keeps that \
+                         uniform network",
+                    );
+                }
+                if blended_physics.substeps != physics.substeps {
+                    let mut updated = config.clone();
+                    updated.sim.substeps = crate::config::Auto::Value(blended_physics.substeps);
+                    crate::io::write_text(&run.config(), &updated.to_toml())?;
+                }
+                crate::io::write_json(&run.dir.join("blend.json"), &record)?;
+                RunDir::save_module(&blended, &run.model())?;
+                model = blended;
+                final_physics = blended_physics;
+            }
             if config.train.scale_search {
                 let (scaled, scaled_physics, record) = scale::search(
                     &model,
@@ -570,8 +671,24 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                 crate::io::write_json(&run.dir.join("scale.json"), &record)?;
                 RunDir::save_module(&scaled, &run.model())?;
                 model = scaled;
+                final_physics = scaled_physics;
             }
             run::write_springs(&run.springs(), &topo, &model, physics.mass)?;
+            if !validation_files.is_empty() {
+                let v = guard::validate(
+                    &model,
+                    &topo,
+                    &final_physics,
+                    (config.model.k_init.or(50.0), config.model.b_init.or(0.0)),
+                    &train_files,
+                    &validation_files,
+                    &config.eval,
+                    &search_device,
+                    progress,
+                )?;
+                progress.note(&format!("validation: {}", v.summary()));
+                crate::io::write_json(&guard::Validation::path(&run.dir), &v)?;
+            }
             summary
         }
         ModelKind::NeuralOde => fit.run(meta.neural_ode(config, &device))?.0,
@@ -976,12 +1093,33 @@ impl Fit<'_> {
     /// per-spring least-squares fit of the data's forces, projected into the stable region;
     /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
     /// this network, so the fit is skipped there.
+    /// The strain-compliance network ([`compliance`]) with a uniform `b_init`.
+    fn compliance_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
+        let (topo, device) = (self.job.topology, self.job.device);
+        let (k0, b0) = (resolution.k_init, resolution.b_init);
+        let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
+        let strains = compliance::rms_strains(self.clips)?;
+        let k = compliance::stiffness(topo, &strains, k0);
+        let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
+        self.progress.note(&format!(
+            "compliance map: k from the springs' RMS strains over the training frames, \
+             {lo:.4}–{k0:.4} N/m; b uniform {b0:.4e} N·s/m"
+        ));
+        let b = vec![b0; topo.num_springs()];
+        Ok(SpringNet::new(topo, &k, &b, device)
+            .with_curvature(&kappa)
+            .with_kernel(self.job.config.model.kernel))
+    }
+
     fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
         let (job, config) = (self.job, &self.job.config.train.least_squares);
         let (topo, device) = (job.topology, job.device);
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![job.config.model.curvature_init_for(k0); topo.curvature.len()];
         let checkpointed = self.previous.is_some_and(|s| s.checkpoint > 0);
+        if job.config.train.compliance.enabled && !config.enabled && !checkpointed {
+            return self.compliance_springs(resolution);
+        }
         if !config.enabled || checkpointed {
             return Ok(SpringNet::uniform(topo, k0, b0, device).with_curvature(&kappa));
         }

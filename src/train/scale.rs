@@ -10,6 +10,15 @@
 //! training rollouts (at the fewest substeps that keep it stable), and the pair with the lowest
 //! mean motion RMSE is kept. Ranks — and so the stiffness map's Spearman correlation — do not
 //! change.
+//!
+//! The blend search (`train.blend_search`) anchors the same search at the best uniform network
+//! (PhysTwin's order: the global parameters by a zero-order search first, the spatial detail
+//! after): every candidate is `k_s = f_k ((1 − α) k̄ + α k_s)`, `b_s = f_b ((1 − α) b̄ + α b_s)`
+//! with `k̄`, `b̄` the learned network's means, so `α = 0` is a uniform network and `α = 1` the
+//! scale search's. It searches `f_k`, `f_b` at `α = 0` (the best uniform network on the training
+//! rollouts), then how much of the learned map to blend in, then the factors again around the
+//! best. The learned map can only be kept where it moves closer to the training rollouts than
+//! the best uniform network does; ranks (for `α > 0`) stay the learned ones.
 
 use std::path::PathBuf;
 
@@ -54,6 +63,189 @@ pub struct ScaleSearch {
     pub candidates: Vec<(f64, f64, usize, f64)>,
     /// Training rollouts simulated per candidate.
     pub rollouts: usize,
+}
+
+/// `blend.json`: what the blend search tried and kept.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BlendSearch {
+    /// Which map was blended: `trained` (the trained network's), or `compliance`.
+    pub map: String,
+    /// The share of the learned map kept (0: uniform).
+    pub alpha: f64,
+    /// The factor of the blended `k`.
+    pub k_factor: f64,
+    /// The factor of the blended `b`.
+    pub b_factor: f64,
+    /// The learned network's mean `k`, N/m (`k̄`).
+    pub k_mean: f64,
+    /// The learned network's mean `b`, N·s/m (`b̄`).
+    pub b_mean: f64,
+    /// Substeps per frame of the kept network (the run's config is updated to them).
+    pub substeps: usize,
+    /// The best uniform network on the search's rollouts: `(k, b, mean motion RMSE)`.
+    pub uniform: (f64, f64, f64),
+    /// Mean motion RMSE of the learned network as trained (`α = 1`, factors 1), m; `None` when
+    /// it diverged.
+    pub before: Option<f64>,
+    /// Mean motion RMSE of the kept network, m.
+    pub after: f64,
+    /// `(α, k factor, b factor, substeps, mean motion RMSE)` of every stable candidate.
+    pub candidates: Vec<(f64, f64, f64, usize, f64)>,
+    /// Training rollouts simulated per candidate.
+    pub rollouts: usize,
+}
+
+/// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
+const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
+/// The ends' stiffness factors `2^(i/2)` and damping factors `2^i` around their starts.
+const WIDE_K_STEPS: std::ops::RangeInclusive<i32> = -6..=10;
+const WIDE_B_STEPS: std::ops::RangeInclusive<i32> = -6..=4;
+/// The shares between: factors around the geometric mean of the ends'.
+const NARROW_K_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
+const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
+/// Candidates the search considers (some twice, simulated once).
+const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2);
+
+/// Searches the best uniform network around `model`'s means on `train_files`, then the share of
+/// `model`'s map blended into it and the factors around the best; returns the kept network, the
+/// physics it runs at (substeps possibly raised) and the record.
+#[allow(clippy::too_many_arguments)]
+pub fn blend_search(
+    model: &SpringNet,
+    (k_init, b_init): (f64, f64),
+    topology: &Topology,
+    physics: &Physics,
+    train_files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+    progress: &Progress,
+) -> Result<(SpringNet, Physics, BlendSearch)> {
+    let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
+    let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let k_mean = mean(&k);
+    if !(k_mean > 0.0) {
+        bail!("the blend search needs a network with some stiffness; every learned k is 0");
+    }
+    // A network without damping blends towards a tenth of a mean spring's critical damping.
+    let b_mean = match mean(&b) {
+        m if m > 0.0 => m,
+        _ => 0.1 * (2.0 * k_mean * physics.mass).sqrt(),
+    };
+    let blended = |alpha: f64, fk: f64, fb: f64| {
+        let mix = |v: &[f64], m: f64, f: f64| -> Vec<f64> {
+            v.iter()
+                .map(|x| f * ((1.0 - alpha) * m + alpha * x))
+                .collect()
+        };
+        let kappa: Vec<f64> = kappa.iter().map(|x| x * fk).collect();
+        SpringNet::new(topology, &mix(&k, k_mean, fk), &mix(&b, b_mean, fb), device)
+            .with_kernel(model.graph.kernel)
+            .with_curvature(&kappa)
+    };
+    type Candidate = (f64, f64, f64, usize, f64);
+    let mut tried: Vec<((f64, f64, f64), Scored)> = Vec::new();
+    let mut score = |alpha: f64, fk: f64, fb: f64| -> Scored {
+        if let Some(&(_, known)) = tried.iter().find(|t| t.0 == (alpha, fk, fb)) {
+            return known;
+        }
+        let net = blended(alpha, fk, fb);
+        let found = stable_substeps(topology, physics, &net).and_then(|n| {
+            let p = Physics {
+                substeps: n,
+                ..*physics
+            };
+            network_rollout_rmse(&net, topology, &p, &files, batch, device).map(|r| (n, r))
+        });
+        tried.push(((alpha, fk, fb), found));
+        found
+    };
+    let bar = progress.bar(BLEND_CANDIDATES as u64, "blend search");
+    let before = score(1.0, 1.0, 1.0).map(|(_, r)| r);
+    // One share's search: a row of stiffness factors, a row of damping factors at the best,
+    // then the stiffness a quarter octave either side; returns the share's best.
+    let mut row_search = |alpha: f64,
+                          (fk0, fb0): (f64, f64),
+                          k_steps: std::ops::RangeInclusive<i32>,
+                          b_steps: std::ops::RangeInclusive<i32>|
+     -> Option<Candidate> {
+        let mut best: Option<Candidate> = None;
+        let mut consider = |fk: f64, fb: f64, best: &mut Option<Candidate>| {
+            if let Some((n, r)) = score(alpha, fk, fb)
+                && best.is_none_or(|b| r < b.4)
+            {
+                *best = Some((alpha, fk, fb, n, r));
+            }
+            bar.inc(1);
+        };
+        for i in k_steps {
+            consider(fk0 * 2f64.powf(i as f64 / 2.0), fb0, &mut best);
+        }
+        let fk = best.map_or(fk0, |b| b.1);
+        for i in b_steps {
+            consider(fk, fb0 * 2f64.powi(i), &mut best);
+        }
+        let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
+        for f in [-0.25, 0.25] {
+            consider(fk * 2f64.powf(f), fb, &mut best);
+        }
+        best
+    };
+    // Both ends first: the uniform network (α = 0) and the learned map (α = 1), each from a
+    // wide search; the shares between from the geometric mean of the ends' factors.
+    // The uniform end starts from the run's initial uniform network (derived from the data);
+    // the learned end from the uniform end's factors, since a fit's values are shrunk.
+    let start = (
+        k_init / k_mean,
+        if b_init > 0.0 { b_init / b_mean } else { 1.0 },
+    );
+    let Some(uniform) = row_search(0.0, start, WIDE_K_STEPS, WIDE_B_STEPS) else {
+        bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
+    };
+    let mut rows = vec![uniform];
+    let learned = row_search(1.0, (uniform.1, uniform.2), WIDE_K_STEPS, WIDE_B_STEPS);
+    let far = learned.unwrap_or(uniform);
+    rows.extend(learned);
+    for alpha in ALPHAS {
+        let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
+        let centre = (at(uniform.1, far.1), at(uniform.2, far.2));
+        rows.extend(row_search(alpha, centre, NARROW_K_STEPS, NARROW_B_STEPS));
+    }
+    let best = rows
+        .iter()
+        .copied()
+        .min_by(|a, b| a.4.total_cmp(&b.4))
+        .expect("the uniform network is a candidate");
+    bar.finish();
+    let (alpha, fk, fb, substeps, after) = best;
+    let mut candidates: Vec<Candidate> = tried
+        .into_iter()
+        .filter_map(|((a, fk, fb), found)| found.map(|(n, r)| (a, fk, fb, n, r)))
+        .collect();
+    candidates.sort_by(|x, y| {
+        x.0.total_cmp(&y.0)
+            .then(x.1.total_cmp(&y.1))
+            .then(x.2.total_cmp(&y.2))
+    });
+    let record = BlendSearch {
+        map: "trained".into(),
+        alpha,
+        k_factor: fk,
+        b_factor: fb,
+        k_mean,
+        b_mean,
+        substeps,
+        uniform: (uniform.1 * k_mean, uniform.2 * b_mean, uniform.4),
+        before,
+        after,
+        candidates,
+        rollouts: files.len(),
+    };
+    let physics = Physics {
+        substeps,
+        ..*physics
+    };
+    Ok((blended(alpha, fk, fb), physics, record))
 }
 
 /// The fewest substeps from `physics.substeps` up that start `model` at
