@@ -1,0 +1,246 @@
+#!/usr/bin/env python3
+"""The cross-simulator bench: springtime's recipe for other simulators' data on takes from
+simulators nobody on the team wrote.
+
+One command generates (once) takes from every simulator of the bench, trains
+`configs/thirdparty_mesh.toml` (the README's one recipe for other simulators' data) on each
+set's training takes, evaluates it on the held-out test takes beside the best uniform network
+(`eval.uniform_baseline`), and prints the table: motion RMSE of the trained surrogate and of the
+best uniform network at the short horizon (0.8 s) and over the whole take, the gain, the
+Spearman correlation of the learned structural `k` with the source's stiffness map, the
+surrogate's substeps and the training's wall time.
+
+    python3 benches/foreign/run.py                      # every simulator, soft and stiff
+    python3 benches/foreign/run.py --sims mujoco,warp --materials soft --quick
+    python3 benches/foreign/run.py --set train.scale_search=false --tag noscale
+
+Each simulator runs in a virtual environment of its own, made on first use under
+`--venvs` (default `~/.cache/springtime-foreign`) from PyPI with the pinned packages below;
+the data goes to `--out`/data/<sim>-<material>/ (generated once, reused while its
+`source.json` records the same arguments), the runs to `--out`/runs/<tag>/<sim>-<material>/,
+the table to `--out`/bench-<tag>.md and `.json`. Needs the springtime binary (`cargo build
+--release`; `--springtime PATH` to use another). Standard library only.
+"""
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent.parent
+
+# Each simulator: its generator, the packages of its environment, and the generator's arguments
+# per material (besides OUT and the split sizes). The four external generators share one
+# command line: OUT --train N --test M --seconds S --material soft|stiff --seed X.
+SIMS = {
+    "blender": {
+        "script": HERE / "blender_cloth.py",
+        "packages": ["bpy==5.0.1", "numpy"],
+        "springtime": True,
+    },
+    "warp": {
+        "script": HERE / "warp_cloth.py",
+        "packages": ["warp-lang==1.7.2", "numpy"],
+    },
+    "newton": {
+        "script": HERE / "newton_cloth.py",
+        "packages": ["newton==1.8.0", "numpy"],
+        # VBD at 25 x 25 costs ~2 min per stiff 4-s take on two cores: a coarser sheet.
+        "extra": ["--res", "17"],
+    },
+    "mujoco": {
+        "script": HERE / "mujoco_cloth.py",
+        "packages": ["mujoco==4.0.0", "numpy"],
+    },
+    # The team's own independent NumPy simulator (tests/thirdparty/tpcloth.py): a jittered
+    # irregular mesh, neo-Hookean membrane, RK4; not a tool users have, kept as the reference.
+    "tpcloth": {
+        "script": ROOT / "tests" / "thirdparty" / "tpcloth.py",
+        "packages": ["numpy"],
+        "args": {
+            "soft": ["--res", "17", "--size", "2", "--young", "66", "266", "666", "--fps", "50",
+                     "--pin-radius", "0.2"],
+            "stiff": ["--res", "17", "--size", "2", "--young", "330", "1330", "3330", "--fps",
+                      "50", "--pin-radius", "0.2"],
+        },
+    },
+}
+
+
+def die(msg):
+    print(f"error: {msg}", file=sys.stderr)
+    sys.exit(1)
+
+
+def venv_python(venvs: Path, sim: str) -> Path:
+    """The simulator's environment, made on first use."""
+    spec = SIMS[sim]
+    env = venvs / f"venv-{sim}"
+    py = env / "bin" / "python"
+    stamp = env / "springtime-packages.txt"
+    want = "\n".join(spec["packages"])
+    if py.exists() and stamp.exists() and stamp.read_text().strip() == want:
+        return py
+    print(f"[{sim}] making {env} with {' '.join(spec['packages'])}", flush=True)
+    shutil.rmtree(env, ignore_errors=True)
+    subprocess.run([sys.executable, "-m", "venv", str(env)], check=True)
+    subprocess.run([str(py), "-m", "pip", "install", "-q", *spec["packages"]], check=True)
+    stamp.write_text(want)
+    return py
+
+
+def generator_args(sim, material, a):
+    spec = SIMS[sim]
+    if sim == "tpcloth":
+        return ["--rollouts", str(a.train), "--test", str(a.test), "--seconds", str(a.seconds),
+                "--seed", str(a.seed), *spec["args"][material]]
+    args = ["--train", str(a.train), "--test", str(a.test), "--seconds", str(a.seconds),
+            "--material", material, "--seed", str(a.seed), *spec.get("extra", [])]
+    if spec.get("springtime"):
+        args += ["--springtime", str(a.springtime)]
+    return args
+
+
+def generate(sim, material, a) -> Path:
+    out = a.out / "data" / f"{sim}-{material}"
+    args = generator_args(sim, material, a)
+    record = out / "bench-args.json"
+    if record.exists() and json.loads(record.read_text()) == args and (out / "test").is_dir():
+        return out
+    py = venv_python(a.venvs, sim)
+    if out.exists():
+        shutil.rmtree(out)
+    print(f"[{sim}-{material}] generating: {SIMS[sim]['script'].name} {' '.join(args)}", flush=True)
+    t0 = time.time()
+    subprocess.run([str(py), str(SIMS[sim]["script"]), str(out), *args], check=True)
+    record.write_text(json.dumps(args))
+    print(f"[{sim}-{material}] generated in {time.time() - t0:.0f} s", flush=True)
+    return out
+
+
+def train(sim, material, data: Path, a):
+    run = a.out / "runs" / a.tag / f"{sim}-{material}"
+    cmd = [str(a.springtime), "train", str(a.config), "--out", str(run), "--force",
+           "--set", f"data.dir={data / 'train'}", "--set", f"data.test_dir={data / 'test'}",
+           "--set", "eval.uniform_baseline=true"]
+    for s in a.set:
+        cmd += ["--set", s]
+    print(f"[{sim}-{material}] {' '.join(cmd)}", flush=True)
+    t0 = time.time()
+    log = a.out / "runs" / a.tag / f"{sim}-{material}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as fh:
+        done = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT)
+    wall = time.time() - t0
+    row = {"data": f"{sim}-{material}", "wall_s": wall, "log": str(log), "run": str(run)}
+    if done.returncode != 0:
+        tail = log.read_text().strip().splitlines()[-3:]
+        row["error"] = " / ".join(tail)
+        return row
+    ev = json.loads((run / "eval.json").read_text())
+    u = ev["uniform_baseline"]
+    source = json.loads((data / "source.json").read_text()) if (data / "source.json").exists() else {}
+    row.update({
+        "short_s": ev["motion_rmse"]["short"]["seconds"],
+        "long_s": ev["motion_rmse"]["long"]["seconds"],
+        "trained_short": ev["motion_rmse"]["short"]["mean"],
+        "trained_long": ev["motion_rmse"]["long"]["mean"],
+        "uniform_short": u["test"]["short"]["mean"],
+        "uniform_long": u["test"]["long"]["mean"],
+        "uniform_k": u["k"],
+        "gain_short": u["improvement_short"],
+        "gain_long": u["improvement_long"],
+        "spearman": ev.get("stiffness_map_corr"),
+        "test_takes": len(ev["test_rollouts"]),
+        "substeps": substeps_of(run),
+        "validation_wins": (ev.get("validation") or {}).get("wins"),
+        "source": {k: source.get(k) for k in ("simulator", "version", "material") if k in source},
+    })
+    return row
+
+
+def substeps_of(run: Path):
+    for line in (run / "config.toml").read_text().splitlines():
+        if line.strip().startswith("substeps"):
+            return line.split("=", 1)[1].strip()
+    return None
+
+
+def table(rows, a):
+    head = ("| data | trained: short / whole take (m) | best uniform (m) | gain short / long | "
+            "Spearman | substeps | wall |\n|---|---|---|---|---|---|---|\n")
+    lines = []
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | {r['wall_s']:.0f} s |")
+            continue
+        sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
+        lines.append(
+            f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
+            f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "
+            f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {sp} | "
+            f"{r['substeps']} | {r['wall_s']:.0f} s |")
+    return head + "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--sims", default=",".join(SIMS), help="comma-separated, of: " + ", ".join(SIMS))
+    ap.add_argument("--materials", default="soft,stiff")
+    ap.add_argument("--out", type=Path, default=ROOT / "data" / "foreign")
+    ap.add_argument("--venvs", type=Path, default=Path.home() / ".cache" / "springtime-foreign")
+    ap.add_argument("--springtime", type=Path, default=ROOT / "target" / "release" / "springtime")
+    ap.add_argument("--config", type=Path, default=ROOT / "configs" / "thirdparty_mesh.toml")
+    ap.add_argument("--set", action="append", default=[], help="passed to `springtime train --set`")
+    ap.add_argument("--tag", default="recipe", help="names the runs' folder and the table")
+    ap.add_argument("--train", type=int, default=12, help="training takes per set")
+    ap.add_argument("--test", type=int, default=4, help="test takes per set")
+    ap.add_argument("--seconds", type=float, default=3.0, help="length of a take")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--quick", action="store_true", help="6 + 2 takes of 2 s (a smoke test)")
+    ap.add_argument("--generate-only", action="store_true")
+    a = ap.parse_args()
+    if a.quick:
+        a.train, a.test, a.seconds = 6, 2, 2.0
+    sims = [s for s in a.sims.split(",") if s]
+    for s in sims:
+        if s not in SIMS:
+            die(f"--sims: unknown simulator {s!r} (known: {', '.join(SIMS)})")
+    materials = [m for m in a.materials.split(",") if m]
+    for m in materials:
+        if m not in ("soft", "stiff"):
+            die(f"--materials: unknown material {m!r} (soft, stiff)")
+    if not a.generate_only and not a.springtime.exists():
+        die(f"no springtime binary at {a.springtime}: run `cargo build --release` or pass --springtime")
+    a.springtime = a.springtime.resolve()
+    a.out = a.out.resolve()
+    rows = []
+    for sim in sims:
+        for material in materials:
+            try:
+                data = generate(sim, material, a)
+            except subprocess.CalledProcessError as e:
+                rows.append({"data": f"{sim}-{material}", "wall_s": 0.0,
+                             "error": f"generation failed ({e})"})
+                continue
+            if not a.generate_only:
+                rows.append(train(sim, material, data, a))
+                print(table(rows[-1:], a), flush=True)
+    if a.generate_only:
+        return
+    text = table(rows, a)
+    print(text)
+    (a.out / f"bench-{a.tag}.md").write_text(text)
+    (a.out / f"bench-{a.tag}.json").write_text(json.dumps(rows, indent=1))
+    print(f"table: {a.out / f'bench-{a.tag}.md'}")
+
+
+if __name__ == "__main__":
+    main()
