@@ -7,7 +7,7 @@
 //! differences of positions, noisy where a stiff spring's strain is small, so least squares
 //! leaves the stiffest springs least determined (and biased low), while the strains themselves
 //! are measured directly. Each spring's `k` is its family's median RMS strain over every frame
-//! of the training clips divided by its own (ratios kept within [`MAX_RATIO`] either way),
+//! of the training clips divided by its own (ratios kept within 100× either way),
 //! scaled so that the stiffest spring has the run's initial uniform `k` (stable at the run's
 //! substeps); `b` starts uniform. The map's ranks are the point; its
 //! size and how much of it to keep are found by free rollouts (`train.blend_search`).

@@ -4,12 +4,13 @@
 RK4, area-lumped masses, edge dashpots and air drag, an irregular jittered mesh, pinned anchors,
 100 fps frames without velocities, extra metadata keys). On its rollouts the shipped recipe
 `configs/thirdparty_mesh.toml` (the surrogate on the data's own mesh) must learn the stiffness
-map and beat the best uniform network, where the paper's grid over the same landmarks cannot.
-
-Measured with the recipe's least-squares start (2 cores): data mesh Spearman 0.63, +23.7 % over
-the best uniform network at 3 s and +29.8 % at 0.8 s; 13 x 13 grid Spearman -0.19, -54 % and
--97 % (with the Adam force fit the recipe had before: 0.60, +24.5 %, +29.7 %; -0.16, -84 %,
--118 %); the thresholds below leave room for another NumPy's rounding of a chaotic cloth.
+map and beat the best uniform network, and do better than the paper's grid over the same
+landmarks. Measured with the recipe of the cross-simulator round (least squares and the
+strain-compliance map, blended into the best uniform network; 2 cores): data mesh Spearman 0.64,
++27.6 % over the best uniform network at 3 s and +35.6 % at 0.8 s; 13 x 13 grid Spearman 0.35,
++7.5 % and +30.4 %, test RMSE 0.315 m against the mesh's 0.249 m (with the least-squares start
+and scale search before it: mesh 0.63, +23.7 %, +29.8 %; grid -0.19, -54 %, -97 %). The
+thresholds leave room for another NumPy's rounding of a chaotic cloth.
 """
 
 import json
@@ -50,7 +51,7 @@ def train(data, out, extra=()):
     return json.loads((Path(run.path) / "eval.json").read_text())
 
 
-def test_the_data_mesh_learns_another_simulators_map_where_a_grid_cannot(data, tmp_path):
+def test_the_data_mesh_learns_another_simulators_map_better_than_a_grid(data, tmp_path):
     mesh = train(data, tmp_path / "mesh")
     gain = mesh["uniform_baseline"]
     assert mesh["stiffness_map_corr"] > 0.4, mesh["stiffness_map_corr"]
@@ -60,5 +61,7 @@ def test_the_data_mesh_learns_another_simulators_map_where_a_grid_cannot(data, t
     grid = train(
         data, tmp_path / "grid", ["cloth.layout=grid", "cloth.nx=13", "cloth.ny=13"]
     )
-    assert grid["stiffness_map_corr"] < 0.3, grid["stiffness_map_corr"]
+    # A grid's particles are interpolated between the data's vertices: it ranks the map less
+    # well and moves further from the data than the data's own mesh.
+    assert grid["stiffness_map_corr"] < mesh["stiffness_map_corr"], (grid, mesh)
     assert grid["motion_rmse"]["long"]["mean"] > mesh["motion_rmse"]["long"]["mean"]
