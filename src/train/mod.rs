@@ -631,13 +631,14 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                          uniform network",
                     );
                 }
-                if blended_physics.substeps != physics.substeps {
-                    let mut updated = config.clone();
-                    updated.sim.substeps = crate::config::Auto::Value(blended_physics.substeps);
-                    crate::io::write_text(&run.config(), &updated.to_toml())?;
-                }
-                crate::io::write_json(&run.dir.join("blend.json"), &record)?;
-                RunDir::save_module(&blended, &run.model())?;
+                keep_searched(
+                    &run,
+                    config,
+                    &blended,
+                    &blended_physics,
+                    "blend.json",
+                    &record,
+                )?;
                 model = blended;
                 final_physics = blended_physics;
             }
@@ -663,13 +664,14 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                         .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
                     record.after
                 ));
-                if scaled_physics.substeps != physics.substeps {
-                    let mut updated = config.clone();
-                    updated.sim.substeps = crate::config::Auto::Value(scaled_physics.substeps);
-                    crate::io::write_text(&run.config(), &updated.to_toml())?;
-                }
-                crate::io::write_json(&run.dir.join("scale.json"), &record)?;
-                RunDir::save_module(&scaled, &run.model())?;
+                keep_searched(
+                    &run,
+                    config,
+                    &scaled,
+                    &scaled_physics,
+                    "scale.json",
+                    &record,
+                )?;
                 model = scaled;
                 final_physics = scaled_physics;
             }
@@ -698,6 +700,25 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     state.status = Status::Finished;
     run.write_state(&state)?;
     Ok(summary)
+}
+
+/// Keeps a network a search after training found: its substeps into the run's `config.toml`
+/// (when they differ from the config's), its record as `file`, the network as the run's model.
+fn keep_searched(
+    run: &RunDir,
+    config: &Config,
+    net: &SpringNet,
+    physics: &Physics,
+    file: &str,
+    record: &impl Serialize,
+) -> Result<()> {
+    if config.sim.substeps.value() != Some(physics.substeps) {
+        let mut updated = config.clone();
+        updated.sim.substeps = crate::config::Auto::Value(physics.substeps);
+        crate::io::write_text(&run.config(), &updated.to_toml())?;
+    }
+    crate::io::write_json(&run.dir.join(file), record)?;
+    RunDir::save_module(net, &run.model())
 }
 
 /// A trained model of any family.

@@ -15,10 +15,13 @@
 //! (PhysTwin's order: the global parameters by a zero-order search first, the spatial detail
 //! after): every candidate is `k_s = f_k ((1 − α) k̄ + α k_s)`, `b_s = f_b ((1 − α) b̄ + α b_s)`
 //! with `k̄`, `b̄` the learned network's means, so `α = 0` is a uniform network and `α = 1` the
-//! scale search's. It searches `f_k`, `f_b` at `α = 0` (the best uniform network on the training
-//! rollouts), then how much of the learned map to blend in, then the factors again around the
-//! best. The learned map can only be kept where it moves closer to the training rollouts than
-//! the best uniform network does; ranks (for `α > 0`) stay the learned ones.
+//! scale search's. Each share gets a row of stiffness factors, a row of damping factors at the
+//! best and a quarter octave either side: the ends `α = 0` (from the run's initial uniform
+//! network: the best uniform network on the training rollouts) and `α = 1` (from the uniform
+//! end's factors, since a fit's values are shrunk and a map with soft springs in series is softer
+//! than its mean) from wide rows, the shares between from narrow rows about the geometric mean of
+//! the ends' factors. The learned map is kept only where it moves closer to the training
+//! rollouts than the best uniform network does; ranks (for `α > 0`) stay the learned ones.
 
 use std::path::PathBuf;
 
@@ -150,13 +153,7 @@ pub fn blend_search(
             return known;
         }
         let net = blended(alpha, fk, fb);
-        let found = stable_substeps(topology, physics, &net).and_then(|n| {
-            let p = Physics {
-                substeps: n,
-                ..*physics
-            };
-            network_rollout_rmse(&net, topology, &p, &files, batch, device).map(|r| (n, r))
-        });
+        let found = score_network(&net, topology, physics, &files, batch, device);
         tried.push(((alpha, fk, fb), found));
         found
     };
@@ -248,6 +245,25 @@ pub fn blend_search(
     Ok((blended(alpha, fk, fb), physics, record))
 }
 
+/// A candidate's fewest stable substeps ([`stable_substeps`]) and its mean motion RMSE on
+/// `files` there; `None` when no substeps within the cap keep it stable or a rollout diverged.
+fn score_network(
+    net: &SpringNet,
+    topology: &Topology,
+    physics: &Physics,
+    files: &[PathBuf],
+    batch: usize,
+    device: &Device,
+) -> Scored {
+    stable_substeps(topology, physics, net).and_then(|n| {
+        let p = Physics {
+            substeps: n,
+            ..*physics
+        };
+        network_rollout_rmse(net, topology, &p, files, batch, device).map(|r| (n, r))
+    })
+}
+
 /// The fewest substeps from `physics.substeps` up that start `model` at
 /// `dt²ω² + 2·dt·γ ≤ 1`, or `None` beyond [`MAX_SUBSTEP_FACTOR`] times the run's.
 fn stable_substeps(topology: &Topology, physics: &Physics, model: &SpringNet) -> Option<usize> {
@@ -285,14 +301,7 @@ pub fn search(
         if let Some(&(_, _, known)) = tried.iter().find(|t| t.0 == fk && t.1 == fb) {
             return known;
         }
-        let net = scaled(fk, fb);
-        let found = stable_substeps(topology, physics, &net).and_then(|n| {
-            let p = Physics {
-                substeps: n,
-                ..*physics
-            };
-            network_rollout_rmse(&net, topology, &p, &files, batch, device).map(|r| (n, r))
-        });
+        let found = score_network(&scaled(fk, fb), topology, physics, &files, batch, device);
         tried.push((fk, fb, found));
         found
     };
