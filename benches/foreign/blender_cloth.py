@@ -53,10 +53,8 @@ and stops, without springtime).
 """
 
 import argparse
-import json
 import math
 import os
-import platform
 import shutil
 import subprocess
 import sys
@@ -67,8 +65,10 @@ try:
 except ImportError:
     sys.exit("blender_cloth.py needs numpy (and bpy): run it with the venv's python, see its docstring")
 
-GRAVITY = 9.81
-DENSITY = 0.3  # kg/m^2
+from foreign_common import (DENSITY, GRAVITY, PIN_MOTION, PinPath, add_common_args, check_common_args,
+                            frame_count, grid_uv, host_facts, pick_pins, prepare_out, stiffness_regions,
+                            take_plan, write_source)
+
 BLENDER_DEFAULT_MASS = 0.3  # kg per vertex: the material values below are quoted for this mass
 # Weights of the stiffness vertex group: soft base 0, stripes 1, top band 0.5.
 W_STRIPE = 1.0
@@ -98,74 +98,8 @@ def stiffness_weights(u, v, width, height):
     """Weight of the stiffness vertex group at rest coordinates (u, v): 0 on the soft base,
     W_STRIPE on two vertical stripes, W_BAND on a band along the top edge (the larger where
     they cross)."""
-    stripe = (np.abs(u - 0.3 * width) < 0.08 * width) | (np.abs(u - 0.7 * width) < 0.08 * width)
-    band = v > 0.85 * height
+    stripe, band = stiffness_regions(u, v, width, height)
     return np.maximum(np.where(stripe, W_STRIPE, 0.0), np.where(band, W_BAND, 0.0))
-
-
-def smootherstep(x):
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
-
-
-def rotation(r):
-    """Rotation matrix of rotation vector r (Rodrigues)."""
-    th = float(np.linalg.norm(r))
-    if th < 1e-12:
-        return np.eye(3)
-    k = r / th
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(th) * kx + (1.0 - math.cos(th)) * (kx @ kx)
-
-
-class PinPath:
-    """Smooth random motion of the pinned vertices: a common translation, a rotation about the
-    pins' centroid and a contraction towards it (pins never move apart beyond their rest
-    distances, so the sheet between them is not torn), each a sum of sinusoids of periods
-    0.5-2 s, played through a quintic time warp that starts and stops at rest at t_half; held
-    afterwards."""
-
-    def __init__(self, rng, rest, size, t_half):
-        self.rest = rest  # [P, 3]
-        self.c = rest.mean(axis=0)
-        self.t_half = t_half
-        k = 3
-        self.tp = rng.uniform(0.5, 2.0, size=(k,))
-        self.tph = rng.uniform(0, 2 * np.pi, size=(k,))
-        # |T| per axis <= 2 * k * 0.05 size = 0.3 size
-        self.ta = rng.uniform(-0.05, 0.05, size=(k, 3)) * size
-        self.rp = rng.uniform(0.5, 2.0, size=(k,))
-        self.rph = rng.uniform(0, 2 * np.pi, size=(k,))
-        self.ra = rng.uniform(-0.08, 0.08, size=(k, 3))
-        self.sp = rng.uniform(0.5, 2.0)
-        self.sa = rng.uniform(0.0, 0.35)
-
-    def _at_tau(self, tau):
-        w = 2 * np.pi / self.tp
-        tr = ((np.sin(w * tau + self.tph) - np.sin(self.tph))[:, None] * self.ta).sum(axis=0)
-        w = 2 * np.pi / self.rp
-        rv = ((np.sin(w * tau + self.rph) - np.sin(self.rph))[:, None] * self.ra).sum(axis=0)
-        s = 1.0 - self.sa * 0.5 * (1.0 - math.cos(2 * np.pi * tau / self.sp))
-        return self.c + tr + (s * (self.rest - self.c)) @ rotation(rv).T
-
-    def position(self, t):
-        tau = self.t_half * smootherstep(t / self.t_half) if self.t_half > 0 else 0.0
-        return self._at_tau(tau)
-
-
-def boundary_vertices(res):
-    return [j * res + i for j in range(res) for i in range(res) if i in (0, res - 1) or j in (0, res - 1)]
-
-
-def pick_pins(rng, res, size, uv):
-    bnd = np.array(boundary_vertices(res))
-    count = int(rng.integers(2, 5))
-    for _ in range(1000):
-        pick = rng.choice(bnd, size=count, replace=False)
-        d = np.linalg.norm(uv[pick][:, None] - uv[pick][None], axis=-1)
-        if d[np.triu_indices(count, 1)].min() >= 0.25 * size:
-            return np.sort(pick)
-    return np.sort(pick)
 
 
 def scaled_settings(mat, vertex_mass):
@@ -364,11 +298,10 @@ def run_take(bpy, args, mat, seed, folder):
     settings record)."""
     rng = np.random.default_rng(seed)
     res, size = args.res, args.size
-    cell = size / (res - 1)
     n = res * res
-    uv = np.array([[(k % res) * cell, (k // res) * cell] for k in range(n)])
+    uv = grid_uv(res, size)
     pins = pick_pins(rng, res, size, uv)
-    frames = int(round(args.seconds * args.fps)) + 1
+    frames = frame_count(args)
     rest = np.column_stack([uv[:, 0] - size / 2, uv[:, 1] - size / 2, np.zeros(n)])
     path = PinPath(rng, rest[pins], size, 0.5 * args.seconds)
     ob, cloth, weights, record = build_scene(bpy, args, mat, pins, path, frames)
@@ -447,44 +380,19 @@ def add_truth(npz_path, weights, record, info):
     return data
 
 
-def prepare_out(out):
-    if os.path.exists(out):
-        if not os.path.isdir(out):
-            sys.exit(f"{out} exists and is not a directory")
-        entries = os.listdir(out)
-        if entries and "source.json" not in entries:
-            sys.exit(f"{out} is not empty and holds no source.json of an earlier run; refusing to write there")
-        for name in ("train", "test", "obj"):
-            shutil.rmtree(os.path.join(out, name), ignore_errors=True)
-        if "source.json" in entries:
-            os.remove(os.path.join(out, "source.json"))
-    for name in ("train", "test", "obj"):
-        os.makedirs(os.path.join(out, name), exist_ok=True)
-    # mark the folder as ours at once, so that a rerun after a failure may overwrite it
-    with open(os.path.join(out, "source.json"), "w") as fh:
-        json.dump(dict(complete=False, script=os.path.basename(__file__)), fh)
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out", help="output folder (new, empty, or an earlier output of this script)")
-    ap.add_argument("--train", type=int, default=16, help="training takes (default 16)")
-    ap.add_argument("--test", type=int, default=4, help="test takes, other seeds (default 4)")
-    ap.add_argument("--seconds", type=float, default=4.0, help="length of a take, s (default 4)")
-    ap.add_argument("--fps", type=int, default=24, help="frames per second (default 24)")
-    ap.add_argument("--res", type=int, default=25, help="vertices per side (default 25)")
-    ap.add_argument("--size", type=float, default=3.0, help="side of the sheet, m (default 3)")
-    ap.add_argument("--material", choices=sorted(MATERIALS), default="soft")
-    ap.add_argument("--seed", type=int, default=0)
+    add_common_args(ap, MATERIALS, fps_type=int, fps_default=24, size_default=3.0, helps=dict(
+        out="output folder (new, empty, or an earlier output of this script)",
+        train="training takes (default 16)", test="test takes, other seeds (default 4)",
+        seconds="length of a take, s (default 4)", fps="frames per second (default 24)",
+        res="vertices per side (default 25)", size="side of the sheet, m (default 3)"))
     ap.add_argument("--springtime", metavar="PATH", help="the springtime binary")
     ap.add_argument("--keep-obj", action="store_true", help="keep the OBJ sequences under OUT/obj")
     ap.add_argument("--obj-only", action="store_true",
                     help="write the OBJ sequences only (no import, no springtime needed)")
     args = ap.parse_args()
-    if not 1 <= args.fps <= 240:
-        ap.error("--fps must lie in 1-240")
-    if args.res < 3 or args.size <= 0 or args.seconds <= 0:
-        ap.error("need --res >= 3, --size > 0, --seconds > 0")
+    check_common_args(ap, args, 1, 240)
     if args.train < 0 or args.test < 0 or args.train + args.test == 0:
         ap.error("need --train >= 0, --test >= 0 and at least one take")
     springtime = None if args.obj_only else find_springtime(args.springtime)
@@ -492,35 +400,32 @@ def main():
         import bpy
     except ImportError as exc:
         sys.exit(f"cannot import bpy ({exc}): run this with a Python that has `pip install bpy`")
-    prepare_out(args.out)
+    prepare_out(args.out, __file__, ("train", "test", "obj"))
 
     mat = MATERIALS[args.material]
-    frames = int(round(args.seconds * args.fps)) + 1
+    frames = frame_count(args)
     n = args.res * args.res
     vertex_mass = DENSITY * args.size**2 / n
     total_mass = vertex_mass * n
     rayleigh = None
     start = time.time()
     takes, record, import_cmd = [], None, None
-    for split, count, tag in (("train", args.train, 0), ("test", args.test, 1)):
-        for i in range(count):
-            # train and test draw from disjoint seed streams
-            seed = int(np.random.SeedSequence([args.seed, tag, i]).generate_state(1)[0])
-            name = f"take_{i:03d}"
-            folder = os.path.join(args.out, "obj", split, name)
-            t0 = time.time()
-            info, weights, record = run_take(bpy, args, mat, seed, folder)
-            rayleigh = record["air_damping"] * 0.01 * math.sqrt(1000.0)
-            if not args.obj_only:
-                import_cmd = import_take(springtime, folder, os.path.join(args.out, split), args,
-                                         total_mass, info["pins"], rayleigh)
-                add_truth(os.path.join(args.out, split, f"{name}.npz"), weights, record, info)
-                if not args.keep_obj:
-                    shutil.rmtree(folder)
-            info.update(split=split, index=i, name=name, seconds=round(time.time() - t0, 3))
-            takes.append(info)
-            print(f"{split}/{name}: {len(info['pins'])} pins, {info['seconds']:.1f} s "
-                  f"(bake {info['sim_s']:.1f} s, export {info['export_s']:.1f} s)", flush=True)
+    for split, i, seed in take_plan(args):
+        name = f"take_{i:03d}"
+        folder = os.path.join(args.out, "obj", split, name)
+        t0 = time.time()
+        info, weights, record = run_take(bpy, args, mat, seed, folder)
+        rayleigh = record["air_damping"] * 0.01 * math.sqrt(1000.0)
+        if not args.obj_only:
+            import_cmd = import_take(springtime, folder, os.path.join(args.out, split), args,
+                                     total_mass, info["pins"], rayleigh)
+            add_truth(os.path.join(args.out, split, f"{name}.npz"), weights, record, info)
+            if not args.keep_obj:
+                shutil.rmtree(folder)
+        info.update(split=split, index=i, name=name, seconds=round(time.time() - t0, 3))
+        takes.append(info)
+        print(f"{split}/{name}: {len(info['pins'])} pins, {info['seconds']:.1f} s "
+              f"(bake {info['sim_s']:.1f} s, export {info['export_s']:.1f} s)", flush=True)
     if not args.obj_only and not args.keep_obj:
         shutil.rmtree(os.path.join(args.out, "obj"), ignore_errors=True)
     wall = time.time() - start
@@ -532,8 +437,7 @@ def main():
                     "frames written by bpy.ops.wm.obj_export, converted by springtime import obj",
         package="bpy",
         version=bpy.app.version_string,
-        numpy=np.__version__,
-        python=platform.python_version(),
+        **host_facts(device=None),
         material=args.material,
         material_values_at_vertex_mass_0_3=mat,
         cloth_settings=record,
@@ -557,9 +461,7 @@ def main():
             map_ratio_stripe=(s["tension"] + W_STRIPE * (s["tension_max"] - s["tension"])) / s["tension"],
             map_ratio_band=(s["tension"] + W_BAND * (s["tension_max"] - s["tension"])) / s["tension"],
             pins="2-4 boundary vertices >= 0.25 size apart, weight 1 in vertex_group_mass (fully pinned), "
-                 "each hooked to an empty keyed every frame: rigid translation (<=0.3 size/axis) + rotation + "
-                 "contraction (<=35%) about their centroid, sums of 3 sinusoids (periods 0.5-2 s) through a "
-                 "quintic time warp over the first half, then held",
+                 f"each hooked to an empty keyed every frame: {PIN_MOTION}",
             start="flat, at rest, horizontal (Blender x-y plane; file x-z plane), falls under gravity; "
                   "no collisions, no self-collision",
             obj_export="bpy.ops.wm.obj_export per frame: export_uv, no normals/materials, apply_modifiers, "
@@ -570,15 +472,8 @@ def main():
         seconds=args.seconds,
         frames=frames,
         quality_steps_per_frame=mat["quality"],
-        seed=args.seed,
-        seed_rule="take seed = SeedSequence([seed, 0 for train / 1 for test, index]).generate_state(1)[0]",
-        import_command_example=import_cmd,
-        takes=takes,
-        wall_time_s=round(wall, 3),
     )
-    with open(os.path.join(args.out, "source.json"), "w") as fh:
-        json.dump(source, fh, indent=2)
-    print(f"wrote {len(takes)} takes to {args.out} in {wall:.1f} s")
+    write_source(args.out, source, args, takes, wall, import_command_example=import_cmd)
 
 
 if __name__ == "__main__":

@@ -52,20 +52,15 @@ OUT must be empty or new, or hold an earlier output of this script (its source.j
 then overwritten.
 """
 
-import argparse
-import json
 import math
-import os
-import platform
-import shutil
-import sys
 import time
 
 import numpy as np
 
-GRAVITY = 9.81
-DENSITY = 0.3  # kg/m^2
-MAP_RATIO = 8.0  # stiff regions / soft base
+from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, choose_pins,
+                            frame_count, host_facts, rollout, setup, stiffness_map, take_facts, write_source,
+                            write_takes)
+
 PIN_MASS_FACTOR = 1.0e6  # driven vertices: inert inside MuJoCo's implicit step
 THICKNESS = 1.0e-3  # m; membrane stiffness = young * thickness, bending ~ young * thickness^3
 
@@ -85,77 +80,11 @@ MATERIALS = {
 }
 
 
-def stiffness_map(u, v, width, height):
-    """Map value (1 = soft base, MAP_RATIO = stiff) at rest coordinates (u, v)."""
-    stripe = (np.abs(u - 0.3 * width) < 0.08 * width) | (np.abs(u - 0.7 * width) < 0.08 * width)
-    band = v > 0.85 * height
-    return np.where(stripe | band, MAP_RATIO, 1.0)
-
-
-def smootherstep(x):
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
-
-
-def rotation(r):
-    """Rotation matrix of rotation vector r (Rodrigues)."""
-    th = float(np.linalg.norm(r))
-    if th < 1e-12:
-        return np.eye(3)
-    k = r / th
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(th) * kx + (1.0 - math.cos(th)) * (kx @ kx)
-
-
-class PinPath:
-    """Smooth random motion of the pinned vertices: a common translation, a rotation about the
-    pins' centroid and a contraction towards it (pins never move apart beyond their rest
-    distances, so the sheet between them is not torn), each a sum of sinusoids of periods
-    0.5-2 s, played through a quintic time warp that starts and stops at rest at t_half; held
-    afterwards."""
-
-    def __init__(self, rng, rest, size, t_half):
-        self.rest = rest  # [P, 3]
-        self.c = rest.mean(axis=0)
-        self.t_half = t_half
-        k = 3
-        self.tp = rng.uniform(0.5, 2.0, size=(k,))
-        self.tph = rng.uniform(0, 2 * np.pi, size=(k,))
-        # |T| per axis <= 2 * k * 0.05 size = 0.3 size
-        self.ta = rng.uniform(-0.05, 0.05, size=(k, 3)) * size
-        self.rp = rng.uniform(0.5, 2.0, size=(k,))
-        self.rph = rng.uniform(0, 2 * np.pi, size=(k,))
-        self.ra = rng.uniform(-0.08, 0.08, size=(k, 3))
-        self.sp = rng.uniform(0.5, 2.0)
-        self.sa = rng.uniform(0.0, 0.35)
-
-    def _at_tau(self, tau):
-        w = 2 * np.pi / self.tp
-        tr = ((np.sin(w * tau + self.tph) - np.sin(self.tph))[:, None] * self.ta).sum(axis=0)
-        w = 2 * np.pi / self.rp
-        rv = ((np.sin(w * tau + self.rph) - np.sin(self.rph))[:, None] * self.ra).sum(axis=0)
-        s = 1.0 - self.sa * 0.5 * (1.0 - math.cos(2 * np.pi * tau / self.sp))
-        return self.c + tr + (s * (self.rest - self.c)) @ rotation(rv).T
-
-    def position(self, t):
-        tau = self.t_half * smootherstep(t / self.t_half) if self.t_half > 0 else 0.0
-        return self._at_tau(tau)
-
-    def velocity(self, t, h=1e-5):
-        return (self.position(t + h) - self.position(t - h)) / (2 * h)
-
-
 def pick_pins(rng, uv, size):
     """2-4 distinct boundary vertices at least 0.25 size apart."""
     eps = 1e-6 * size
     bnd = np.flatnonzero((uv[:, 0] < eps) | (uv[:, 1] < eps) | (uv[:, 0] > size - eps) | (uv[:, 1] > size - eps))
-    count = int(rng.integers(2, 5))
-    for _ in range(1000):
-        pick = rng.choice(bnd, size=count, replace=False)
-        d = np.linalg.norm(uv[pick][:, None] - uv[pick][None], axis=-1)
-        if d[np.triu_indices(count, 1)].min() >= 0.25 * size:
-            return np.sort(pick)
-    return np.sort(pick)
+    return choose_pins(rng, bnd, uv, size)
 
 
 def integrator_name(mujoco):
@@ -273,7 +202,7 @@ def _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p):
     k_before = model.flex_stiffness.copy()
     mujoco.mj_setConst(model, data)  # constants that depend on the masses
     assert np.array_equal(model.flex_stiffness, k_before), "mj_setConst rewrote flex_stiffness"
-    frames = int(round(args.seconds * args.fps)) + 1
+    frames = frame_count(args)
     frame_dt = 1.0 / args.fps
     steps, dt = facts["steps"], facts["timestep"]
     out = np.empty((frames, n, 3), dtype=np.float32)
@@ -301,20 +230,10 @@ def _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p):
         out[f] = data.flexvert_xpos[vadr:vadr + n]
         if not np.isfinite(out[f]).all():
             raise RuntimeError(f"take with seed {seed} blew up at frame {f} (non-finite positions); lower the timestep")
-    pinned = np.zeros(n, dtype=bool)
-    pinned[pins] = True
     ke = mat_ke(args) * facts["smap"]
-    take = dict(
-        positions=out,
-        rest_uv=uv.astype(np.float32),
-        pinned=pinned,
-        frame_dt=np.float64(frame_dt),
-        total_mass=np.float64(facts["total_mass"]),
-        width=np.float64(size),
-        height=np.float64(size),
-        gravity=np.array([0.0, 0.0, -GRAVITY]),
-        triangles=facts["tris"],
-        tri_stiffness=ke.astype(np.float32),
+    take = rollout(out, uv, pins, frame_dt, facts["total_mass"], size, [0.0, 0.0, -GRAVITY], facts["tris"],
+                   ke.astype(np.float32))
+    take.update(
         tri_map=facts["smap"].astype(np.float32),
         pin_indices=pins.astype(np.int32),
         seed=np.int64(seed),
@@ -327,58 +246,15 @@ def mat_ke(args):
     return MATERIALS[args.material]["young"] * THICKNESS
 
 
-def prepare_out(out):
-    if os.path.exists(out):
-        if not os.path.isdir(out):
-            sys.exit(f"{out} exists and is not a directory")
-        entries = os.listdir(out)
-        if entries and "source.json" not in entries:
-            sys.exit(f"{out} is not empty and holds no source.json of an earlier run; refusing to write there")
-        for name in ("train", "test"):
-            shutil.rmtree(os.path.join(out, name), ignore_errors=True)
-        if "source.json" in entries:
-            os.remove(os.path.join(out, "source.json"))
-    os.makedirs(os.path.join(out, "train"), exist_ok=True)
-    os.makedirs(os.path.join(out, "test"), exist_ok=True)
-    # mark the folder as ours at once, so that a rerun after a failure may overwrite it
-    with open(os.path.join(out, "source.json"), "w") as fh:
-        json.dump(dict(complete=False, script=os.path.basename(__file__)), fh)
-
-
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out")
-    ap.add_argument("--train", type=int, default=16)
-    ap.add_argument("--test", type=int, default=4)
-    ap.add_argument("--seconds", type=float, default=4.0)
-    ap.add_argument("--fps", type=float, default=50.0)
-    ap.add_argument("--res", type=int, default=25)
-    ap.add_argument("--size", type=float, default=2.0)
-    ap.add_argument("--material", choices=sorted(MATERIALS), default="soft")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-    if not 10 <= args.fps <= 1000:
-        ap.error("--fps must lie in 10-1000")
-    if args.res < 3 or args.size <= 0 or args.seconds <= 0 or args.train < 0 or args.test < 0:
-        ap.error("need --res >= 3, --size > 0, --seconds > 0, --train/--test >= 0")
-    prepare_out(args.out)
+    args = setup(__doc__, __file__, MATERIALS, 10, 1000, counts=True)
 
     import mujoco
 
     mat = MATERIALS[args.material]
     start = time.time()
     model, facts = build(mujoco, args, mat)
-    takes = []
-    for split, count, tag in (("train", args.train, 0), ("test", args.test, 1)):
-        for i in range(count):
-            # train and test draw from disjoint seed streams
-            seed = int(np.random.SeedSequence([args.seed, tag, i]).generate_state(1)[0])
-            t0 = time.time()
-            take = run_take(mujoco, model, facts, args, seed)
-            np.savez(os.path.join(args.out, split, f"take_{i:03d}.npz"), **take)
-            takes.append(dict(split=split, index=i, seed=seed, pins=take["pin_indices"].tolist(),
-                              seconds=round(time.time() - t0, 3)))
-            print(f"{split}/take_{i:03d}: {len(take['pin_indices'])} pins, {time.time() - t0:.2f} s", flush=True)
+    takes, _ = write_takes(args, lambda seed: (run_take(mujoco, model, facts, args, seed), None), digits=2)
     wall = time.time() - start
     ke = mat_ke(args)
     source = dict(
@@ -386,9 +262,7 @@ def main():
         simulator="MuJoCo flexcomp grid (dim 2, dof full), built-in 2-D flex elasticity, mj_step",
         package="mujoco",
         version=mujoco.__version__,
-        numpy=np.__version__,
-        python=platform.python_version(),
-        device="cpu",
+        **host_facts(),
         material=args.material,
         parameters=dict(
             res=args.res, size_m=args.size, density_kg_m2=DENSITY,
@@ -397,26 +271,20 @@ def main():
             young_base_Pa=mat["young"], poisson=mat["poisson"], thickness_m=THICKNESS,
             membrane_stiffness_base_N_m=ke, elasticity_damping_s=mat["damping"], elastic2d="both",
             edge_stiffness=0.0, edge_damping=0.0, edge_equality=False,
-            stiffness_map="the 21 flex_stiffness slots of every element (stretch metric; the damping is folded into it) x8 where |u-0.3W|<0.08W or |u-0.7W|<0.08W (stripes) or v>0.85H (top band), at triangle centroids; bending uniform",
+            stiffness_map="the 21 flex_stiffness slots of every element (stretch metric; the damping is folded into it) "
+                          f"x8 where {MAP_REGIONS}; bending uniform",
             map_ratio=MAP_RATIO,
             tri_stiffness="young * thickness * map, N/m",
-            pins="2-4 boundary vertices >= 0.25 size apart (ordinary flex vertices: slide-joint qpos and qvel overwritten with the path before every mj_step); rigid translation (<=0.3 size/axis) + rotation + contraction (<=35%) about their centroid, sums of 3 sinusoids (periods 0.5-2 s) through a quintic time warp over the first half, then held",
+            pins="2-4 boundary vertices >= 0.25 size apart (ordinary flex vertices: slide-joint qpos and qvel "
+                 f"overwritten with the path before every mj_step); {PIN_MOTION}",
             start="flat, at rest, horizontal (x-y plane, z up), falls under gravity; no ground, contacts disabled",
         ),
         integrator=integrator_name(mujoco),
         timestep_s=facts["timestep"],
         steps_per_frame=facts["steps"],
-        fps=args.fps,
-        seconds=args.seconds,
-        frames=int(round(args.seconds * args.fps)) + 1,
-        seed=args.seed,
-        seed_rule="take seed = SeedSequence([seed, 0 for train / 1 for test, index]).generate_state(1)[0]",
-        takes=takes,
-        wall_time_s=round(wall, 3),
+        **take_facts(args),
     )
-    with open(os.path.join(args.out, "source.json"), "w") as fh:
-        json.dump(source, fh, indent=2)
-    print(f"wrote {len(takes)} takes to {args.out} in {wall:.1f} s")
+    write_source(args.out, source, args, takes, wall)
 
 
 if __name__ == "__main__":

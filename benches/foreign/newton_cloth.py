@@ -41,20 +41,15 @@ OUT must be empty or new, or hold an earlier output of this script (its source.j
 then overwritten.
 """
 
-import argparse
-import json
 import math
-import os
-import platform
-import shutil
-import sys
 import time
 
 import numpy as np
 
-GRAVITY = 9.81
-DENSITY = 0.3  # kg/m^2
-MAP_RATIO = 8.0  # stiff regions / soft base
+from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, drive_pins,
+                            frame_count, grid_cloth_parameters, grid_uv, host_facts, map_tri_materials,
+                            pick_pins, pin_particles, rollout, setup, take_facts, tri_material_keys,
+                            write_source, write_takes)
 
 # Per material: base membrane stiffness ke (N/m: the Lame mu times thickness), area stiffness
 # ka = lambda as a multiple of ke, damping kd = beta * ke (the map scales all three), bending
@@ -67,81 +62,6 @@ MATERIALS = {
     "soft": dict(tri_ke=120.0, ka_over_ke=1.0, beta=1.0e-3, edge_ke=0.01, edge_kd=0.0, substeps_at_50fps=10, iterations=10),
     "stiff": dict(tri_ke=5000.0, ka_over_ke=1.0, beta=1.0e-3, edge_ke=0.01, edge_kd=0.0, substeps_at_50fps=20, iterations=20),
 }
-
-
-def stiffness_map(u, v, width, height):
-    """Map value (1 = soft base, MAP_RATIO = stiff) at rest coordinates (u, v)."""
-    stripe = (np.abs(u - 0.3 * width) < 0.08 * width) | (np.abs(u - 0.7 * width) < 0.08 * width)
-    band = v > 0.85 * height
-    return np.where(stripe | band, MAP_RATIO, 1.0)
-
-
-def smootherstep(x):
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * x * (x * (6.0 * x - 15.0) + 10.0)
-
-
-def rotation(r):
-    """Rotation matrix of rotation vector r (Rodrigues)."""
-    th = float(np.linalg.norm(r))
-    if th < 1e-12:
-        return np.eye(3)
-    k = r / th
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(th) * kx + (1.0 - math.cos(th)) * (kx @ kx)
-
-
-class PinPath:
-    """Smooth random motion of the pinned vertices: a common translation, a rotation about the
-    pins' centroid and a contraction towards it (pins never move apart beyond their rest
-    distances, so the sheet between them is not torn), each a sum of sinusoids of periods
-    0.5-2 s, played through a quintic time warp that starts and stops at rest at t_half; held
-    afterwards."""
-
-    def __init__(self, rng, rest, size, t_half):
-        self.rest = rest  # [P, 3]
-        self.c = rest.mean(axis=0)
-        self.t_half = t_half
-        k = 3
-        self.tp = rng.uniform(0.5, 2.0, size=(k,))
-        self.tph = rng.uniform(0, 2 * np.pi, size=(k,))
-        # |T| per axis <= 2 * k * 0.05 size = 0.3 size
-        self.ta = rng.uniform(-0.05, 0.05, size=(k, 3)) * size
-        self.rp = rng.uniform(0.5, 2.0, size=(k,))
-        self.rph = rng.uniform(0, 2 * np.pi, size=(k,))
-        self.ra = rng.uniform(-0.08, 0.08, size=(k, 3))
-        self.sp = rng.uniform(0.5, 2.0)
-        self.sa = rng.uniform(0.0, 0.35)
-
-    def _at_tau(self, tau):
-        w = 2 * np.pi / self.tp
-        tr = ((np.sin(w * tau + self.tph) - np.sin(self.tph))[:, None] * self.ta).sum(axis=0)
-        w = 2 * np.pi / self.rp
-        rv = ((np.sin(w * tau + self.rph) - np.sin(self.rph))[:, None] * self.ra).sum(axis=0)
-        s = 1.0 - self.sa * 0.5 * (1.0 - math.cos(2 * np.pi * tau / self.sp))
-        return self.c + tr + (s * (self.rest - self.c)) @ rotation(rv).T
-
-    def position(self, t):
-        tau = self.t_half * smootherstep(t / self.t_half) if self.t_half > 0 else 0.0
-        return self._at_tau(tau)
-
-    def velocity(self, t, h=1e-5):
-        return (self.position(t + h) - self.position(t - h)) / (2 * h)
-
-
-def boundary_vertices(res):
-    return [j * res + i for j in range(res) for i in range(res) if i in (0, res - 1) or j in (0, res - 1)]
-
-
-def pick_pins(rng, res, size, uv):
-    bnd = np.array(boundary_vertices(res))
-    count = int(rng.integers(2, 5))
-    for _ in range(1000):
-        pick = rng.choice(bnd, size=count, replace=False)
-        d = np.linalg.norm(uv[pick][:, None] - uv[pick][None], axis=-1)
-        if d[np.triu_indices(count, 1)].min() >= 0.25 * size:
-            return np.sort(pick)
-    return np.sort(pick)
 
 
 def run_take(wp, newton, args, mat, seed):
@@ -159,20 +79,14 @@ def run_take(wp, newton, args, mat, seed):
         tri_ke=ke, tri_ka=ke * mat["ka_over_ke"], tri_kd=ke * mat["beta"],
         edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
     )
-    uv = np.array([[(i % res) * cell, (i // res) * cell] for i in range(n)], dtype=np.float64)
+    uv = grid_uv(res, size)
     pins = pick_pins(rng, res, size, uv)
-    for i in pins:
-        builder.particle_mass[i] = 0.0
-        builder.particle_flags[i] = int(builder.particle_flags[i]) & ~int(newton.ParticleFlags.ACTIVE)
+    pin_particles(builder, pins, newton.ParticleFlags.ACTIVE)
     builder.color(include_bending=True)
     model = builder.finalize(device="cpu")
     tris = model.tri_indices.numpy().astype(np.int32)
-    cen = uv[tris].mean(axis=1)
-    smap = stiffness_map(cen[:, 0], cen[:, 1], size, size)
     mats = model.tri_materials.numpy()
-    mats[:, 0] = ke * smap
-    mats[:, 1] = ke * mat["ka_over_ke"] * smap
-    mats[:, 2] = ke * mat["beta"] * smap
+    smap = map_tri_materials(mats, uv, tris, size, ke, mat["ka_over_ke"], mat["beta"])
     model.tri_materials.assign(mats)  # in place: the solver reads this array at every step
     assert np.allclose(model.tri_materials.numpy()[:, 0], ke * smap)
     solver = newton.solvers.SolverVBD(model, iterations=mat["iterations"])
@@ -180,7 +94,7 @@ def run_take(wp, newton, args, mat, seed):
 
     q0 = model.particle_q.numpy().astype(np.float64)
     assert np.allclose(q0[:, :2] + size / 2, uv, atol=1e-5) and np.allclose(q0[:, 2], 0.0)
-    frames = int(round(args.seconds * args.fps)) + 1
+    frames = frame_count(args)
     frame_dt = 1.0 / args.fps
     substeps = max(1, int(math.ceil(mat["substeps_at_50fps"] * 50.0 / args.fps)))
     dt = frame_dt / substeps
@@ -192,75 +106,21 @@ def run_take(wp, newton, args, mat, seed):
     for f in range(1, frames):
         for k in range(substeps):
             t1 = (f - 1) * frame_dt + (k + 1) * dt
-            q, qd = s0.particle_q.numpy(), s0.particle_qd.numpy()  # CPU arrays: zero-copy views
-            q[pins] = path.position(t1)
-            qd[pins] = path.velocity(t1)
+            drive_pins(s0, pins, path, t1)  # CPU arrays: zero-copy views
             s0.clear_forces()
             solver.step(s0, s1, control, None, dt)
             s0, s1 = s1, s0
-            q, qd = s0.particle_q.numpy(), s0.particle_qd.numpy()
-            q[pins] = path.position(t1)
-            qd[pins] = path.velocity(t1)
+            drive_pins(s0, pins, path, t1)
         out[f] = s0.particle_q.numpy()
     if not np.isfinite(out).all():
         raise RuntimeError(f"take with seed {seed} blew up (non-finite positions)")
-    pinned = np.zeros(n, dtype=bool)
-    pinned[pins] = True
-    take = dict(
-        positions=out,
-        rest_uv=uv.astype(np.float32),
-        pinned=pinned,
-        frame_dt=np.float64(frame_dt),
-        total_mass=np.float64(particle_mass * n),
-        width=np.float64(size),
-        height=np.float64(size),
-        gravity=np.array([0.0, 0.0, -GRAVITY]),
-        triangles=tris,
-        tri_stiffness=mats[:, 0].astype(np.float32),
-        tri_ka=mats[:, 1].astype(np.float32),
-        tri_kd=mats[:, 2].astype(np.float32),
-        edge_ke=np.float64(mat["edge_ke"]),
-        pin_indices=pins.astype(np.int32),
-        seed=np.int64(seed),
-    )
+    take = rollout(out, uv, pins, frame_dt, particle_mass * n, size, [0.0, 0.0, -GRAVITY], tris,
+                   mats[:, 0].astype(np.float32), **tri_material_keys(mats, mat["edge_ke"], pins, seed))
     return take, dict(substeps=substeps, dt=dt, particle_mass=particle_mass)
 
 
-def prepare_out(out):
-    if os.path.exists(out):
-        if not os.path.isdir(out):
-            sys.exit(f"{out} exists and is not a directory")
-        entries = os.listdir(out)
-        if entries and "source.json" not in entries:
-            sys.exit(f"{out} is not empty and holds no source.json of an earlier run; refusing to write there")
-        for name in ("train", "test"):
-            shutil.rmtree(os.path.join(out, name), ignore_errors=True)
-        if "source.json" in entries:
-            os.remove(os.path.join(out, "source.json"))
-    os.makedirs(os.path.join(out, "train"), exist_ok=True)
-    os.makedirs(os.path.join(out, "test"), exist_ok=True)
-    # mark the folder as ours at once, so that a rerun after a failure may overwrite it
-    with open(os.path.join(out, "source.json"), "w") as fh:
-        json.dump(dict(complete=False, script=os.path.basename(__file__)), fh)
-
-
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("out")
-    ap.add_argument("--train", type=int, default=16)
-    ap.add_argument("--test", type=int, default=4)
-    ap.add_argument("--seconds", type=float, default=4.0)
-    ap.add_argument("--fps", type=float, default=50.0)
-    ap.add_argument("--res", type=int, default=25)
-    ap.add_argument("--size", type=float, default=2.0)
-    ap.add_argument("--material", choices=sorted(MATERIALS), default="soft")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-    if not 24 <= args.fps <= 100:
-        ap.error("--fps must lie in 24-100")
-    if args.res < 3 or args.size <= 0 or args.seconds <= 0:
-        ap.error("need --res >= 3, --size > 0, --seconds > 0")
-    prepare_out(args.out)
+    args = setup(__doc__, __file__, MATERIALS, 24, 100)
 
     import warp as wp
 
@@ -270,18 +130,7 @@ def main():
 
     mat = MATERIALS[args.material]
     start = time.time()
-    takes = []
-    info = None
-    for split, count, tag in (("train", args.train, 0), ("test", args.test, 1)):
-        for i in range(count):
-            # train and test draw from disjoint seed streams
-            seed = int(np.random.SeedSequence([args.seed, tag, i]).generate_state(1)[0])
-            t0 = time.time()
-            take, info = run_take(wp, newton, args, mat, seed)
-            np.savez(os.path.join(args.out, split, f"take_{i:03d}.npz"), **take)
-            takes.append(dict(split=split, index=i, seed=seed, pins=take["pin_indices"].tolist(),
-                              seconds=round(time.time() - t0, 3)))
-            print(f"{split}/take_{i:03d}: {len(take['pin_indices'])} pins, {time.time() - t0:.1f} s", flush=True)
+    takes, info = write_takes(args, lambda seed: run_take(wp, newton, args, mat, seed))
     wall = time.time() - start
     source = dict(
         complete=True,
@@ -289,36 +138,22 @@ def main():
         package="newton",
         version=newton.__version__,
         warp_lang=wp.__version__,
-        numpy=np.__version__,
-        python=platform.python_version(),
-        device="cpu",
+        **host_facts(),
         material=args.material,
         parameters=dict(
-            res=args.res, size_m=args.size, density_kg_m2=DENSITY,
-            particle_mass_kg=info["particle_mass"] if info else DENSITY * args.size**2 / args.res**2,
-            total_mass_kg=DENSITY * args.size**2, gravity_m_s2=[0.0, 0.0, -GRAVITY],
-            tri_ke_base_N_m=mat["tri_ke"], tri_ka_base=mat["tri_ke"] * mat["ka_over_ke"],
-            tri_kd_base=mat["tri_ke"] * mat["beta"], tri_drag=0.0, tri_lift=0.0,
-            edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
-            stiffness_map="tri_ke, tri_ka, tri_kd x8 where |u-0.3W|<0.08W or |u-0.7W|<0.08W (stripes) or v>0.85H (top band), at triangle centroids",
+            **grid_cloth_parameters(args, mat, info["particle_mass"] if info else DENSITY * args.size**2 / args.res**2,
+                                    [0.0, 0.0, -GRAVITY], mat["beta"]),
+            stiffness_map=f"tri_ke, tri_ka, tri_kd x8 where {MAP_REGIONS}",
             map_ratio=MAP_RATIO,
-            pins="2-4 boundary vertices >= 0.25 size apart, mass 0, inactive, set to the path at each substep end; rigid translation (<=0.3 size/axis) + rotation + contraction (<=35%) about their centroid, sums of 3 sinusoids (periods 0.5-2 s) through a quintic time warp over the first half, then held",
+            pins=f"2-4 boundary vertices >= 0.25 size apart, mass 0, inactive, set to the path at each substep end; {PIN_MOTION}",
             start="flat, at rest, horizontal (x-y plane, z-up), falls under gravity; no ground, no collisions, no self contact",
         ),
-        fps=args.fps,
-        seconds=args.seconds,
-        frames=int(round(args.seconds * args.fps)) + 1,
+        **take_facts(args),
         substeps_per_frame=info["substeps"] if info else None,
         substep_dt_s=info["dt"] if info else None,
         vbd_iterations=mat["iterations"],
-        seed=args.seed,
-        seed_rule="take seed = SeedSequence([seed, 0 for train / 1 for test, index]).generate_state(1)[0]",
-        takes=takes,
-        wall_time_s=round(wall, 3),
     )
-    with open(os.path.join(args.out, "source.json"), "w") as fh:
-        json.dump(source, fh, indent=2)
-    print(f"wrote {len(takes)} takes to {args.out} in {wall:.1f} s")
+    write_source(args.out, source, args, takes, wall)
 
 
 if __name__ == "__main__":
