@@ -41,9 +41,45 @@ pub enum Command {
     Generate {
         /// Config file.
         config: PathBuf,
+        /// Write only share i of n (rollout j of the fixed order belongs to shard j mod n); the
+        /// shard that completes the set writes index.json. The union of the shards is the
+        /// unsharded generation, byte for byte.
+        #[arg(long, value_name = "i/n")]
+        shard: Option<crate::source::Shard>,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
+    },
+    /// Run a sweep plan's jobs by index (any engine that hands out indices: a shell loop, a
+    /// Slurm array, a Kubernetes Indexed Job, Ray) and gather their figures into one table.
+    #[command(
+        group(clap::ArgGroup::new("what").required(true).args(["list", "index", "gather"])),
+        after_help = "A plan (TOML):\n  base = \"configs/quickstart.toml\"   # beside the plan, or from the working directory\n  \
+                      [axes]                              # the product, the last axis fastest\n  \
+                      \"train.seed\" = [0, 1, 2, 3]\n  \
+                      \"model.k_init\" = [40.0, 60.0]\n\n\
+                      Examples:\n  springtime sweep plan.toml --list\n  \
+                      springtime sweep plan.toml --index 3 --out runs/plan\n  \
+                      springtime sweep plan.toml --index 0-7 --out runs/plan\n  \
+                      springtime sweep plan.toml --gather --out runs/plan"
+    )]
+    Sweep {
+        /// The plan file.
+        plan: PathBuf,
+        /// Print the jobs: index, folder name and overrides, one per line.
+        #[arg(long)]
+        list: bool,
+        /// Run these jobs into OUT/<I>-<slug>/ (one index, or a list like 0,3,5-7): a finished
+        /// job is skipped, an interrupted one resumed.
+        #[arg(long, value_name = "I")]
+        index: Option<String>,
+        /// Read every job under OUT and write OUT/sweep.csv, sweep.md and sweep.png, listing
+        /// missing and failed jobs.
+        #[arg(long)]
+        gather: bool,
+        /// Output folder (default runs/<plan name>).
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Print a configuration as TOML: every key with its default (--defaults), or a config
     /// file resolved (defaults filled in, --set applied).
@@ -674,7 +710,14 @@ impl ImportArgs {
 pub fn run(cli: Cli) -> Result<()> {
     let progress = Progress::auto();
     match cli.command {
-        Command::Generate { config, set } => generate(&config, &set, &progress),
+        Command::Generate { config, shard, set } => generate(&config, shard, &set, &progress),
+        Command::Sweep {
+            plan,
+            list,
+            index,
+            gather,
+            out,
+        } => sweep(&plan, list, index.as_deref(), gather, out, &progress),
         Command::Config {
             config,
             defaults: _,
@@ -1333,7 +1376,12 @@ fn export(
     Ok(())
 }
 
-fn generate(config: &Path, set: &[String], progress: &Progress) -> Result<()> {
+fn generate(
+    config: &Path,
+    shard: Option<crate::source::Shard>,
+    set: &[String],
+    progress: &Progress,
+) -> Result<()> {
     let cfg = Config::load(config, set)?;
     let Some(source) = &cfg.source else {
         bail!(
@@ -1342,20 +1390,152 @@ fn generate(config: &Path, set: &[String], progress: &Progress) -> Result<()> {
         );
     };
     let start = Instant::now();
-    let total = (source.train_rollouts + source.test_rollouts) as u64;
-    let bar = progress.bar(total, "generate");
-    let index = crate::source::generate(source, &cfg.data.clips, &cfg.data.dir, |n| {
+    let shard = shard.unwrap_or(crate::source::Shard::WHOLE);
+    let total = source.train_rollouts + source.test_rollouts;
+    let owned = (0..total).filter(|&j| shard.owns(j)).count();
+    let bar = progress.bar(owned as u64, "generate");
+    let g = crate::source::generate(source, &cfg.data.clips, &cfg.data.dir, shard, |n| {
         bar.set_position(n as u64)
     })?;
     bar.finish();
-    println!(
-        "wrote {} train and {} test rollouts to {} in {:.1} s",
-        index.train.len(),
-        index.test.len(),
-        cfg.data.dir.display(),
-        start.elapsed().as_secs_f64()
-    );
+    let seconds = start.elapsed().as_secs_f64();
+    match &g.index {
+        Some(index) if shard == crate::source::Shard::WHOLE => println!(
+            "wrote {} train and {} test rollouts to {} in {seconds:.1} s",
+            index.train.len(),
+            index.test.len(),
+            cfg.data.dir.display(),
+        ),
+        Some(_) => println!(
+            "shard {}/{}: {} of {} rollouts in {} in {seconds:.1} s; the set is complete and \
+             index.json written",
+            shard.index,
+            shard.count,
+            g.owned,
+            g.total,
+            cfg.data.dir.display()
+        ),
+        None => println!(
+            "shard {}/{}: {} of {} rollouts in {} in {seconds:.1} s; {} rollouts of other shards \
+             are missing, so index.json waits for them (the shard that completes the set writes \
+             it; `springtime generate` without --shard completes a set and writes it too)",
+            shard.index,
+            shard.count,
+            g.owned,
+            g.total,
+            cfg.data.dir.display(),
+            g.missing
+        ),
+    }
     Ok(())
+}
+
+/// `springtime sweep`.
+fn sweep(
+    plan: &Path,
+    list: bool,
+    index: Option<&str>,
+    gather: bool,
+    out: Option<PathBuf>,
+    progress: &Progress,
+) -> Result<()> {
+    use crate::sweep::{self, JobStatus, Outcome, Plan};
+    let plan = Plan::load(plan)?;
+    let out = out.unwrap_or_else(|| sweep::default_out(&plan));
+    if list {
+        for job in plan.jobs()? {
+            println!(
+                "{}\t{}\t{}",
+                job.index,
+                job.dir_name,
+                job.overrides.join(" ")
+            );
+        }
+        return Ok(());
+    }
+    if let Some(spec) = index {
+        let indices = parse_indices(spec, plan.len())?;
+        let mut failed = Vec::new();
+        for i in indices {
+            match sweep::run_index(&plan, i, &out, progress) {
+                Ok(Outcome::Skipped(dir)) => {
+                    println!("job {i}: already finished in {}", dir.display())
+                }
+                Ok(Outcome::Finished(r)) => println!(
+                    "job {i}: finished in {:.1} s{}",
+                    r.seconds,
+                    if r.resumed { " (resumed)" } else { "" }
+                ),
+                Err(e) => {
+                    eprintln!("error: {e:#}");
+                    failed.push(i);
+                }
+            }
+        }
+        if !failed.is_empty() {
+            bail!(
+                "{} job(s) failed: {}",
+                failed.len(),
+                failed
+                    .iter()
+                    .map(|i| i.to_string())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            );
+        }
+        return Ok(());
+    }
+    debug_assert!(gather);
+    let g = sweep::gather(&plan, &out)?;
+    let count = |s| g.table.indices(s);
+    let listed = |ids: Vec<usize>| {
+        ids.iter()
+            .map(|i| i.to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    println!(
+        "{} jobs: {} finished, {} failed, {} unfinished, {} missing",
+        plan.len(),
+        count(JobStatus::Finished).len(),
+        count(JobStatus::Failed).len(),
+        count(JobStatus::Unfinished).len(),
+        count(JobStatus::Missing).len()
+    );
+    for status in [JobStatus::Failed, JobStatus::Unfinished, JobStatus::Missing] {
+        let ids = count(status);
+        if !ids.is_empty() {
+            println!("{}: {}", status.name(), listed(ids));
+        }
+    }
+    for f in &g.files {
+        println!("wrote {}", f.display());
+    }
+    Ok(())
+}
+
+/// `--index`: `I`, or a comma list of indices and ranges `A-B` (inclusive), all below `n`.
+fn parse_indices(spec: &str, n: usize) -> Result<Vec<usize>> {
+    let mut out = Vec::new();
+    for part in spec.split(',').map(str::trim) {
+        let parse = |s: &str| -> Result<usize> {
+            s.trim()
+                .parse()
+                .map_err(|_| anyhow::anyhow!("--index {spec:?}: {s:?} is not an index"))
+        };
+        let (a, b) = match part.split_once('-') {
+            Some((a, b)) => (parse(a)?, parse(b)?),
+            None => (parse(part)?, parse(part)?),
+        };
+        if a > b || b >= n {
+            bail!(
+                "--index {spec:?}: {part} is not within the plan's {n} jobs (0 to {})",
+                n.saturating_sub(1)
+            );
+        }
+        out.extend(a..=b);
+    }
+    Ok(out)
 }
 
 fn print_eval(r: &EvalReport) {

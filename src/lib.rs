@@ -32,6 +32,7 @@ pub mod progress;
 pub mod report;
 pub mod sim;
 pub mod source;
+pub mod sweep;
 pub mod train;
 pub mod xpbd;
 
@@ -67,6 +68,15 @@ pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
     if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
         return Ok(());
     }
+    // Jobs of a sweep may share one data folder: one of them generates it while the others wait
+    // for it, then find its index.
+    let _lock = match &config.source {
+        Some(_) => Some(source::GenerationLock::wait(dir, progress)?),
+        None => None,
+    };
+    if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
+        return Ok(());
+    }
     let has_files = dir.is_dir() && data::npz_files(dir).is_ok();
     match (&config.source, has_files) {
         (_, true) if config.source.is_none() => Ok(()),
@@ -77,7 +87,7 @@ pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
                 dir.display()
             ));
             let bar = progress.bar(total, "generate");
-            source::generate(source, &config.data.clips, dir, |n| {
+            source::generate(source, &config.data.clips, dir, source::Shard::WHOLE, |n| {
                 bar.set_position(n as u64)
             })?;
             bar.finish();

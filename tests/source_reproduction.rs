@@ -18,7 +18,8 @@ fn ground_truth_parameters_reproduce_the_source() {
         steps: springtime::config::Auto::Value(200),
         ..ClipConfig::default()
     };
-    springtime::source::generate(&cfg, &clips, &dir, |_| {}).unwrap();
+    springtime::source::generate(&cfg, &clips, &dir, springtime::source::Shard::WHOLE, |_| {})
+        .unwrap();
     let data = DataConfig {
         dir: dir.to_path_buf(),
         clips: clips.clone(),

@@ -451,17 +451,113 @@ fn refuse_foreign_rollouts(dir: &Path, jobs: &[(String, bool, u64)]) -> Result<(
     Ok(())
 }
 
-/// Generates the train and test rollouts of `cfg` into `dir` with an `index.json`.
+/// A share of a generation: rollout `j` of the fixed order (train files, then test files)
+/// belongs to shard `j mod count`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shard {
+    /// This shard, from 0.
+    pub index: usize,
+    /// Number of shards.
+    pub count: usize,
+}
+
+impl Shard {
+    /// The whole generation in one process.
+    pub const WHOLE: Shard = Shard { index: 0, count: 1 };
+
+    /// Whether rollout `j` of the fixed order is this shard's.
+    pub fn owns(self, j: usize) -> bool {
+        j % self.count == self.index
+    }
+}
+
+impl std::str::FromStr for Shard {
+    type Err = anyhow::Error;
+
+    /// `i/n`, with `0 ≤ i < n`.
+    fn from_str(s: &str) -> Result<Self> {
+        let parsed = s
+            .split_once('/')
+            .and_then(|(i, n)| Some((i.trim().parse().ok()?, n.trim().parse().ok()?)));
+        match parsed {
+            Some((index, count)) if index < count => Ok(Self { index, count }),
+            _ => bail!("--shard {s:?}: expected i/n with 0 <= i < n, e.g. 0/4"),
+        }
+    }
+}
+
+/// What [`generate`] did.
+#[derive(Debug, Clone)]
+pub struct Generation {
+    /// The written `index.json`, once every rollout of every shard exists.
+    pub index: Option<Index>,
+    /// Train and test rollouts in the whole generation.
+    pub total: usize,
+    /// Rollouts that are this shard's.
+    pub owned: usize,
+    /// Rollouts (of any shard) still missing, after this shard's.
+    pub missing: usize,
+}
+
+/// An exclusive hold on generating into a data folder (`.<dir>.generate.lock` beside it), so
+/// that processes sharing the folder (a sweep's jobs) generate it once. Released on drop or
+/// when the process ends.
+pub struct GenerationLock {
+    _file: std::fs::File,
+}
+
+impl GenerationLock {
+    /// Takes the lock of `dir`, waiting (with a note) while another process holds it.
+    pub fn wait(dir: &Path, progress: &crate::progress::Progress) -> Result<Self> {
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "data".into());
+        let parent = dir
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("cannot create {}", parent.display()))?;
+        let path = parent.join(format!(".{name}.generate.lock"));
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .with_context(|| format!("cannot open the generation lock {}", path.display()))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                progress.note(&format!(
+                    "another process is generating {}: waiting for it",
+                    dir.display()
+                ));
+                file.lock()
+                    .with_context(|| format!("cannot lock {}", path.display()))?;
+            }
+            Err(std::fs::TryLockError::Error(e)) => {
+                return Err(e).with_context(|| format!("cannot lock {}", path.display()));
+            }
+        }
+        Ok(Self { _file: file })
+    }
+}
+
+/// Generates the train and test rollouts of `cfg` into `dir` with an `index.json`: all of them,
+/// or with `shard` one share (`springtime generate --shard i/n`).
 ///
-/// Files that already exist are kept (an interrupted generation resumes); the index is written
-/// last, so a directory with an index is complete. `progress` is called with the number of
-/// finished rollouts.
+/// Files that already exist are kept (an interrupted generation resumes, and shards fill one
+/// folder); the index is written last, once every rollout exists, so a directory with an index
+/// is complete, and the union of the shards is byte for byte the unsharded generation.
+/// `progress` is called with the number of finished rollouts of this shard.
 pub fn generate(
     cfg: &SourceConfig,
     clips: &ClipConfig,
     dir: &Path,
+    shard: Shard,
     progress: impl Fn(usize) + Sync,
-) -> Result<Index> {
+) -> Result<Generation> {
     cfg.validate()?;
     let sim = build(cfg);
     sim.stability(cfg.dt)
@@ -476,6 +572,13 @@ pub fn generate(
         .collect();
     refuse_foreign_rollouts(dir, &jobs)?;
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let all = jobs;
+    let jobs: Vec<&(String, bool, u64)> = all
+        .iter()
+        .enumerate()
+        .filter(|(j, _)| shard.owns(*j))
+        .map(|(_, job)| job)
+        .collect();
     let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
@@ -490,7 +593,7 @@ pub fn generate(
                     if i >= jobs.len() || error.lock().expect("lock").is_some() {
                         break;
                     }
-                    let (name, train, id) = &jobs[i];
+                    let (name, train, id) = jobs[i];
                     let path = dir.join(name);
                     if !path.exists() {
                         let result = (|| -> Result<()> {
@@ -537,10 +640,19 @@ pub fn generate(
     if let Some(e) = error.into_inner().expect("lock") {
         return Err(e);
     }
+    let missing = all.iter().filter(|j| !dir.join(&j.0).exists()).count();
+    if missing > 0 {
+        return Ok(Generation {
+            index: None,
+            total: all.len(),
+            owned: jobs.len(),
+            missing,
+        });
+    }
     let index = Index {
         format: INDEX_FORMAT.to_string(),
-        train: jobs.iter().filter(|j| j.1).map(|j| j.0.clone()).collect(),
-        test: jobs.iter().filter(|j| !j.1).map(|j| j.0.clone()).collect(),
+        train: all.iter().filter(|j| j.1).map(|j| j.0.clone()).collect(),
+        test: all.iter().filter(|j| !j.1).map(|j| j.0.clone()).collect(),
         generator: serde_json::json!({
             "source": cfg,
             "clips": clips,
@@ -549,5 +661,10 @@ pub fn generate(
         }),
     };
     crate::io::write_json(&Index::path(dir), &index)?;
-    Ok(index)
+    Ok(Generation {
+        index: Some(index),
+        total: all.len(),
+        owned: jobs.len(),
+        missing: 0,
+    })
 }
