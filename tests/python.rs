@@ -57,7 +57,7 @@ fn python_bindings_install_and_pass_their_tests() {
     }
     let python = venv.join("bin/python");
     run(
-        "pip install ./python pytest mujoco",
+        "pip install ./python pytest mujoco ray",
         Command::new(&python)
             .args([
                 "-m",
@@ -71,6 +71,9 @@ fn python_bindings_install_and_pass_their_tests() {
             // The cross-simulator case (tests/python/test_foreign.py): MuJoCo's flex cloth, the
             // bench's lightest simulator (a 6 MB wheel).
             .arg("mujoco==4.0.0")
+            // `springtime.sweep` on a local Ray cluster (tests/python/test_sweep.py); the
+            // package's optional `ray` extra, pinned here.
+            .arg("ray==2.60.0")
             .current_dir(root),
     );
     run(

@@ -391,6 +391,85 @@ fn evaluate(py: Python<'_>, run: PathBuf, data: Option<PathBuf>) -> PyResult<Bou
     py.import("json")?.call_method1("loads", (json,))
 }
 
+/// A JSON value as the Python object `json.loads` makes of it.
+fn json_to_py<'py>(py: Python<'py>, value: &serde_json::Value) -> PyResult<Bound<'py, PyAny>> {
+    let text = serde_json::to_string(value).map_err(|e| runtime(e.into()))?;
+    py.import("json")?.call_method1("loads", (text,))
+}
+
+fn load_plan(plan: &std::path::Path) -> PyResult<springtime::sweep::Plan> {
+    springtime::sweep::Plan::load(plan).map_err(runtime)
+}
+
+/// A sweep plan's jobs in index order (as `springtime sweep PLAN --list`): a list of dicts with
+/// `index`, `dir` (the folder name under the output) and `overrides`.
+#[pyfunction]
+fn sweep_list(py: Python<'_>, plan: PathBuf) -> PyResult<Bound<'_, PyAny>> {
+    let plan = load_plan(&plan)?;
+    let jobs = plan.jobs().map_err(runtime)?;
+    let rows: Vec<serde_json::Value> = jobs
+        .iter()
+        .map(|j| serde_json::json!({"index": j.index, "dir": j.dir_name, "overrides": j.overrides}))
+        .collect();
+    json_to_py(py, &serde_json::Value::Array(rows))
+}
+
+/// The output folder a plan uses when none is given: `runs/<plan name>`.
+#[pyfunction]
+fn sweep_default_out(plan: PathBuf) -> PyResult<PathBuf> {
+    Ok(springtime::sweep::default_out(&load_plan(&plan)?))
+}
+
+/// Runs job `index` of a sweep plan into `out/<index>-<slug>/` (as `springtime sweep PLAN
+/// --index I --out OUT`): skips a finished job, resumes an interrupted one. Returns a dict:
+/// `index`, `status` (`skipped` or `finished`), `dir`, and for a run job `seconds` and
+/// `resumed`. A failed job raises `RuntimeError` (its `sweep_job.json` records the error).
+#[pyfunction]
+#[pyo3(signature = (plan, index, out=None))]
+fn sweep_index(
+    py: Python<'_>,
+    plan: PathBuf,
+    index: usize,
+    out: Option<PathBuf>,
+) -> PyResult<Bound<'_, PyAny>> {
+    use springtime::sweep::{self, Outcome};
+    let plan = load_plan(&plan)?;
+    let out = out.unwrap_or_else(|| sweep::default_out(&plan));
+    let progress = Progress::auto();
+    let outcome = py
+        .detach(|| sweep::run_index(&plan, index, &out, &progress))
+        .map_err(runtime)?;
+    let value = match outcome {
+        Outcome::Skipped(dir) => {
+            serde_json::json!({"index": index, "status": "skipped", "dir": dir})
+        }
+        Outcome::Finished(r) => serde_json::json!({
+            "index": index,
+            "status": "finished",
+            "dir": out.join(plan.job(index).map_err(runtime)?.dir_name),
+            "seconds": r.seconds,
+            "resumed": r.resumed,
+            "host": r.host,
+        }),
+    };
+    json_to_py(py, &value)
+}
+
+/// Gathers a sweep (as `springtime sweep PLAN --gather --out OUT`): writes `sweep.csv`,
+/// `sweep.md` and `sweep.png` and returns the table's rows as dicts keyed by its columns
+/// (`index`, one per axis, `status`, `rmse_k`, `rmse_b`, `motion_rmse_short`,
+/// `motion_rmse_long`, …).
+#[pyfunction]
+#[pyo3(signature = (plan, out=None))]
+fn sweep_gather(py: Python<'_>, plan: PathBuf, out: Option<PathBuf>) -> PyResult<Bound<'_, PyAny>> {
+    let plan = load_plan(&plan)?;
+    let out = out.unwrap_or_else(|| springtime::sweep::default_out(&plan));
+    let gathered = py
+        .detach(|| springtime::sweep::gather(&plan, &out))
+        .map_err(runtime)?;
+    json_to_py(py, &gathered.table.to_json())
+}
+
 /// The springtime version and the git commit the extension was built from.
 #[pyfunction]
 fn version() -> String {
@@ -398,10 +477,16 @@ fn version() -> String {
     format!("{} ({})", b.version, b.commit)
 }
 
-/// Learn simulatable mass-spring cloth from motion: `load_run`, `train`, `evaluate`.
+/// The native part of the `springtime` package (re-exported by `springtime/__init__.py`):
+/// `load_run`, `train`, `evaluate`, and the sweep contract (`sweep_list`, `sweep_index`,
+/// `sweep_gather`) that `springtime.sweep` drives on Ray.
 #[pymodule]
-#[pyo3(name = "springtime")]
+#[pyo3(name = "_springtime")]
 fn springtime_py(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(sweep_list, m)?)?;
+    m.add_function(wrap_pyfunction!(sweep_default_out, m)?)?;
+    m.add_function(wrap_pyfunction!(sweep_index, m)?)?;
+    m.add_function(wrap_pyfunction!(sweep_gather, m)?)?;
     m.add_class::<Run>()?;
     m.add_function(wrap_pyfunction!(load_run, m)?)?;
     m.add_function(wrap_pyfunction!(train_config, m)?)?;
