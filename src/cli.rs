@@ -349,16 +349,23 @@ pub enum Command {
         #[arg(long, default_value_t = 32)]
         n: usize,
     },
-    /// Simulate a trained surrogate from the first frame of a rollout file.
+    /// Simulate a trained surrogate from the first frame of a rollout file, or (--rest) from its
+    /// rest state with the pins held.
     #[command(
-        after_help = "Example:\n  springtime simulate runs/quickstart --init data/quickstart/test_0000.npz --seconds 2 --out sim.npz"
+        after_help = "Examples:\n  springtime simulate runs/quickstart --init data/quickstart/test_0000.npz --seconds 2 --out sim.npz\n  \
+                      springtime simulate runs/quickstart --rest --seconds 2 --out rest.npz"
     )]
     Simulate {
         /// Run directory.
         run_dir: PathBuf,
-        /// Rollout file giving the initial state and the pinned particles' path.
+        /// Rollout file giving the initial state and the pinned particles' path (with --rest:
+        /// only which particles are pinned; default the run's first test rollout).
+        #[arg(long, required_unless_present = "rest")]
+        init: Option<PathBuf>,
+        /// Start from the surrogate's rest state at zero velocity with the pinned particles held
+        /// where they are: the start of `export --format web`'s page (`springtime.reset()`).
         #[arg(long)]
-        init: PathBuf,
+        rest: bool,
         /// Seconds to simulate.
         #[arg(long)]
         seconds: f64,
@@ -887,13 +894,24 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Simulate {
             run_dir,
             init,
+            rest,
             seconds,
             out,
             backend,
             force,
             set,
         } => simulate(
-            &run_dir, &init, seconds, &out, backend, force, &set, &progress,
+            &run_dir,
+            SimulateJob {
+                init: init.as_deref(),
+                rest,
+                seconds,
+                out: &out,
+                force,
+            },
+            backend,
+            &set,
+            &progress,
         ),
     }
 }
@@ -1355,6 +1373,20 @@ fn export(
     progress: &Progress,
 ) -> Result<()> {
     let s = crate::export::export_run(run_dir, options, progress)?;
+    if options.format == crate::export::Format::Web {
+        println!(
+            "wrote {} files to {}: open {} in a browser (offline; the pins of {})",
+            s.files.len(),
+            options.out.display(),
+            options.out.join("index.html").display(),
+            s.rollout
+                .as_ref()
+                .map_or("no rollout: none pinned".into(), |r| r
+                    .display()
+                    .to_string())
+        );
+        return Ok(());
+    }
     if let Some(note) = &s.note {
         eprintln!("note: no rollout exported: {note}; pass --init <rollout.npz>");
     }
@@ -1592,33 +1624,63 @@ fn print_eval(r: &EvalReport) {
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What `springtime simulate` does: where it starts, for how long, into which file.
+struct SimulateJob<'a> {
+    /// The rollout file (`--init`).
+    init: Option<&'a Path>,
+    /// `--rest`.
+    rest: bool,
+    /// `--seconds`.
+    seconds: f64,
+    /// `--out`.
+    out: &'a Path,
+    /// `--force`.
+    force: bool,
+}
+
 fn simulate(
     run_dir: &Path,
-    init: &Path,
-    seconds: f64,
-    out: &Path,
+    job: SimulateJob,
     backend: Option<Backend>,
-    force: bool,
     set: &[String],
     progress: &Progress,
 ) -> Result<()> {
+    let SimulateJob {
+        init,
+        rest,
+        seconds,
+        out,
+        force,
+    } = job;
     crate::io::refuse_overwrite(out, force)?;
     if !(seconds > 0.0 && seconds.is_finite()) {
         bail!("--seconds must be positive, is {seconds}");
     }
     let run = train::Run::open(run_dir, set, backend)?;
     let (model, topo, config) = (run.springs()?, &run.topology, &run.config);
-    let rollout = Rollout::load(init)?;
-    let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
-    let track = Track::new(&rollout, &res);
-    let first = rollout.first_usable_frame();
-    let physics = run.physics(rollout.frame_dt);
+    let (track, first, physics) = if rest {
+        let rest = crate::export::rest_start(&run, init, None)?;
+        let mut track = Track::at_rest(&topo.rest_positions());
+        for &i in &rest.pinned {
+            track.pinned[i] = true;
+        }
+        (track, 0, rest.physics)
+    } else {
+        let init = init.expect("clap requires --init without --rest");
+        let rollout = Rollout::load(init)?;
+        let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
+        let first = rollout.first_usable_frame();
+        (
+            Track::new(&rollout, &res),
+            first,
+            run.physics(rollout.frame_dt),
+        )
+    };
     physics
         .stability_of(topo, model)
         .check("the trained surrogate", config.sim.allow_unstable)?;
     let p = topo.num_particles();
-    let frames = (seconds / rollout.frame_dt).round() as usize;
+    let frames = (seconds / physics.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");
     let keep: Vec<usize> = (0..=frames).collect();
     let sim = eval::simulate_track(

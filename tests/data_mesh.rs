@@ -4,7 +4,7 @@
 
 mod common;
 
-use rand::{Rng, SeedableRng, rngs::StdRng};
+use rand::{SeedableRng, rngs::StdRng};
 use springtime::cloth::Topology;
 use springtime::config::Config;
 use springtime::data::Rollout;
@@ -12,33 +12,13 @@ use springtime::progress::Progress;
 use springtime::source::{Scenario, SpringCloth, simulate_rollout};
 use springtime::train::{TrainOptions, train};
 
-/// `n × n` points over a `(n − 1)·0.5 m` square, interior points jittered by up to a quarter of
-/// the spacing (the border stays straight, as a cut sheet's does).
-fn jittered_points(n: usize, seed: u64) -> Vec<[f64; 2]> {
-    let mut rng = StdRng::seed_from_u64(seed);
-    let h = 0.5;
-    let mut uv = Vec::new();
-    for r in 0..n {
-        for c in 0..n {
-            let inner = |i: usize| i > 0 && i < n - 1;
-            let (mut u, mut v) = (c as f64 * h, r as f64 * h);
-            if inner(r) && inner(c) {
-                u += rng.random_range(-0.25..0.25) * h;
-                v += rng.random_range(-0.25..0.25) * h;
-            }
-            uv.push([u, v]);
-        }
-    }
-    uv
-}
-
 #[test]
 fn a_data_mesh_surrogate_recovers_the_stiffness_of_an_irregular_spring_cloth() {
     let dir = common::temp_dir("data_mesh");
     let n = 8;
     let cfg = common::source(n, &[20.0, 80.0], 1.0);
     let size = 0.5 * (n - 1) as f64;
-    let uv = jittered_points(n, 7);
+    let uv = common::jittered_points(n, 7);
     // The truth: springs on the Delaunay mesh of the points (edges and hinges), soft on the
     // left half and stiff on the right, as `layout = "data"` will rebuild them from the points.
     let topology = Topology::of_points(&uv, size, size, true).unwrap();
@@ -137,7 +117,7 @@ fn a_data_mesh_surrogate_with_the_true_springs_follows_its_lumped_mass_source() 
     let n = 7;
     let cfg = common::source(n, &[20.0, 80.0], 0.5);
     let size = 0.5 * (n - 1) as f64;
-    let topology = Topology::of_points(&jittered_points(n, 3), size, size, true).unwrap();
+    let topology = Topology::of_points(&common::jittered_points(n, 3), size, size, true).unwrap();
     let w = topology.mass_weight.clone().unwrap();
     let spread = w.iter().fold(0.0f64, |m, w| m.max((w - 1.0).abs()));
     assert!(spread > 0.3, "lumped masses should differ: {spread}");

@@ -630,6 +630,10 @@ fn small_surrogate() -> SurrogateJson {
         dt: Some(1e-3),
         curvature: Vec::new(),
         curvature_k: Vec::new(),
+        frame_dt: None,
+        substeps: None,
+        mass: None,
+        stability: None,
     }
 }
 

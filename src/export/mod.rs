@@ -17,6 +17,7 @@
 //! y-up. Existing files are never overwritten without `--force`.
 
 pub mod gltf;
+pub mod web;
 
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -51,13 +52,16 @@ pub enum Format {
     Glb,
     /// Point cache (`rollout.pc2`) plus the rest mesh as OBJ.
     Pc2,
+    /// A folder that opens offline in a browser (`index.html`) and simulates the surrogate live:
+    /// a JavaScript step reading `surrogate.json`, drawn with three.js (see `web/README.md`).
+    Web,
 }
 
 impl Format {
     /// Extension of the rest mesh file, without the dot.
     pub fn extension(self) -> &'static str {
         match self {
-            Format::Obj | Format::Pc2 => "obj",
+            Format::Obj | Format::Pc2 | Format::Web => "obj",
             Format::Ply | Format::PlyAscii => "ply",
             Format::Gltf => "gltf",
             Format::Glb => "glb",
@@ -227,12 +231,35 @@ pub struct SurrogateJson {
     /// Stiffness `κ` per curvature element, N/m.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub curvature_k: Vec<f32>,
+    /// Time between frames, s: `substeps` steps of `dt` make one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_dt: Option<f64>,
+    /// Integration steps per frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub substeps: Option<usize>,
+    /// The integrator's particle mass `m` (Rayleigh damping per unit mass is `rayleigh / m`),
+    /// kg.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mass: Option<f64>,
+    /// The explicit step's stability estimate at `dt` (without contact).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stability: Option<StabilityJson>,
+}
+
+/// `surrogate.json`'s `stability`: the step is stable while `number < limit`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StabilityJson {
+    /// `dt²ω² + 2·dt·γ` of the stiffest mode.
+    pub number: f64,
+    /// 4: the explicit step's limit.
+    pub limit: f64,
 }
 
 impl SurrogateJson {
-    /// The spring network `model` of `run`, with the particles `pinned` and integration step
-    /// `dt`.
-    pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], dt: Option<f64>) -> Self {
+    /// The spring network `model` of `run`, with the particles `pinned`, stepped by `physics`
+    /// (its frame time, substeps, mass and stability) when known.
+    pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], physics: Option<&Physics>) -> Self {
         let (topo, config) = (&run.topology, &run.config);
         Self {
             format: if topo.curvature.is_empty() {
@@ -256,9 +283,16 @@ impl SurrogateJson {
             pinned: pinned.to_vec(),
             rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
             gravity: config.sim.gravity.or(crate::sim::GRAVITY),
-            dt,
+            dt: physics.map(Physics::sim_dt),
             curvature: topo.curvature.clone(),
             curvature_k: model.curvature_values().iter().map(|&x| x as f32).collect(),
+            frame_dt: physics.map(|p| p.frame_dt),
+            substeps: physics.map(|p| p.substeps),
+            mass: physics.map(|p| p.mass),
+            stability: physics.map(|p| StabilityJson {
+                number: p.stability_of(topo, model).number(),
+                limit: 4.0,
+            }),
         }
     }
 
@@ -416,6 +450,10 @@ impl SurrogateJson {
             dt,
             curvature,
             curvature_k,
+            frame_dt,
+            substeps,
+            mass,
+            stability,
         } = self;
         fn j<T: Serialize>(v: &T) -> Result<String> {
             Ok(serde_json::to_string(v)?)
@@ -442,6 +480,18 @@ impl SurrogateJson {
         if !curvature.is_empty() {
             fields.push(("curvature", j(curvature)?));
             fields.push(("curvature_k", j(curvature_k)?));
+        }
+        if let Some(v) = frame_dt {
+            fields.push(("frame_dt", j(v)?));
+        }
+        if let Some(v) = substeps {
+            fields.push(("substeps", j(v)?));
+        }
+        if let Some(v) = mass {
+            fields.push(("mass", j(v)?));
+        }
+        if let Some(v) = stability {
+            fields.push(("stability", j(v)?));
         }
         let body: Vec<String> = fields
             .iter()
@@ -564,6 +614,9 @@ pub fn export_run(
     let run = Run::open(run_dir, &[], options.backend)?;
     let model = run.springs()?;
     let ex = Export::new(run_dir, options, &run, model);
+    if options.format == Format::Web {
+        return ex.web();
+    }
     let (plan, note) = ex.plan()?;
     ex.check_fresh(plan.as_ref())?;
     let out = &options.out;
@@ -599,7 +652,7 @@ pub fn export_run(
         gltf::write(&ex.paths.mesh, &mesh, options.format == Format::Glb)?;
         files.push(ex.paths.mesh.clone());
     }
-    ex.write_surrogate(&sequence.pinned, plan.as_ref().map(|p| p.physics.sim_dt()))?;
+    ex.write_surrogate(&sequence.pinned, plan.as_ref().map(|p| &p.physics))?;
     files.push(ex.paths.json.clone());
     files.push(ex.paths.npz.clone());
     Ok(ExportSummary {
@@ -651,25 +704,14 @@ impl<'a> Export<'a> {
     /// The rollout the sequence starts from: `--init`, else the run's first test rollout
     /// (`None` with the reason when there is none, or with a scene).
     fn start(&self) -> Result<(Option<Rollout>, Option<String>)> {
-        let (init, note) = match (&self.options.init, &self.options.scene) {
-            (_, Some(_)) => (None, None),
-            (Some(p), None) => (Some(p.clone()), None),
-            (None, None) => {
-                let mut data = self.run.config.data.clone();
-                if let Some(d) = &self.options.data {
-                    data.test_dir = Some(d.clone());
-                }
-                match data.split() {
-                    Ok(s) if !s.test.is_empty() => (Some(s.test[0].clone()), None),
-                    Ok(_) => (
-                        None,
-                        Some("the run's data lists no test rollouts".to_string()),
-                    ),
-                    Err(e) => (None, Some(format!("{e:#}"))),
-                }
-            }
-        };
-        Ok((init.as_deref().map(Rollout::load).transpose()?, note))
+        if self.options.scene.is_some() {
+            return Ok((None, None));
+        }
+        starting_rollout(
+            self.run,
+            self.options.init.as_deref(),
+            self.options.data.as_deref(),
+        )
     }
 
     /// What to simulate: the drape scene, or the starting rollout; checked for stability.
@@ -861,12 +903,14 @@ impl<'a> Export<'a> {
     }
 
     /// `surrogate.json` and `surrogate.npz`: the springs, masses, rest state and constants.
-    fn write_surrogate(&self, pinned: &[usize], dt: Option<f64>) -> Result<()> {
+    /// Returns the text of `surrogate.json`.
+    fn write_surrogate(&self, pinned: &[usize], physics: Option<&Physics>) -> Result<String> {
         let topo = &self.run.topology;
-        let json = SurrogateJson::of(self.run, self.model, pinned, dt);
+        let json = SurrogateJson::of(self.run, self.model, pinned, physics);
         let (rayleigh, gravity) = (json.rayleigh, json.gravity);
         let p = topo.num_particles();
-        crate::io::write_text(&self.paths.json, &json.to_text()?)?;
+        let text = json.to_text()?;
+        crate::io::write_text(&self.paths.json, &text)?;
         let mut npz = crate::train::run::springs_npz(topo, self.model, self.run.particle_mass());
         npz.insert("mass", Array::f64(&[p], &json.masses));
         npz.insert("rest_positions", Array::f32(&[p, 3], &self.rest));
@@ -877,8 +921,109 @@ impl<'a> Export<'a> {
         npz.insert("pinned", Array::bool(&[p], &pin_mask));
         npz.insert("rayleigh", Array::scalar(rayleigh));
         npz.insert("gravity", Array::f64(&[3], &gravity));
-        npz.write(&self.paths.npz)
+        npz.write(&self.paths.npz)?;
+        Ok(text)
     }
+
+    /// `--format web`: the page, and the surrogate with the pins and physics of the rest start
+    /// ([`rest_start`]), which `springtime simulate --rest` simulates too.
+    fn web(&self) -> Result<ExportSummary> {
+        let options = self.options;
+        if options.scene.is_some() {
+            bail!(
+                "--scene is not for --format web: the page has its own scenes (a sphere and a \
+                 table to drop the cloth on)"
+            );
+        }
+        let start = rest_start(self.run, options.init.as_deref(), options.data.as_deref())?;
+        start
+            .physics
+            .stability_of(&self.run.topology, self.model)
+            .check("the trained surrogate", self.run.config.sim.allow_unstable)?;
+        let mut files = vec![self.paths.json.clone(), self.paths.npz.clone()];
+        files.extend(web::files(&options.out));
+        if let Some(first) = files.iter().find(|p| p.exists())
+            && !options.force
+        {
+            bail!("{} exists; pass --force to overwrite", first.display());
+        }
+        std::fs::create_dir_all(&options.out)
+            .with_context(|| format!("cannot create {}", options.out.display()))?;
+        let text = self.write_surrogate(&start.pinned, Some(&start.physics))?;
+        web::write(&options.out, &text)?;
+        Ok(ExportSummary {
+            files,
+            rollout: start.from,
+            frames: 0,
+            fps: 0.0,
+            note: start.note,
+        })
+    }
+}
+
+/// The rollout an export or a simulation starts from: `init`, else the first test rollout of
+/// the run's data (or of `data`); `None` with the reason when there is none.
+fn starting_rollout(
+    run: &Run,
+    init: Option<&Path>,
+    data: Option<&Path>,
+) -> Result<(Option<Rollout>, Option<String>)> {
+    let (init, note) = match init {
+        Some(p) => (Some(p.to_path_buf()), None),
+        None => {
+            let mut config = run.config.data.clone();
+            if let Some(d) = data {
+                config.test_dir = Some(d.to_path_buf());
+            }
+            match config.split() {
+                Ok(s) if !s.test.is_empty() => (Some(s.test[0].clone()), None),
+                Ok(_) => (
+                    None,
+                    Some("the run's data lists no test rollouts".to_string()),
+                ),
+                Err(e) => (None, Some(format!("{e:#}"))),
+            }
+        }
+    };
+    Ok((init.as_deref().map(Rollout::load).transpose()?, note))
+}
+
+/// The rest start of the web page and of `springtime simulate --rest`: the surrogate's rest
+/// sheet at zero velocity, with the particles pinned in the starting rollout (see
+/// [`starting_rollout`]; none without one) held where they are, stepped at that rollout's frame
+/// time (else the run's).
+#[derive(Debug, Clone)]
+pub struct RestStart {
+    /// Pinned particles, ascending.
+    pub pinned: Vec<usize>,
+    /// The surrogate's physics at the start's frame time.
+    pub physics: Physics,
+    /// The rollout the pins come from.
+    pub from: Option<PathBuf>,
+    /// Why there is no rollout, when there is none.
+    pub note: Option<String>,
+}
+
+/// See [`RestStart`].
+pub fn rest_start(run: &Run, init: Option<&Path>, data: Option<&Path>) -> Result<RestStart> {
+    let (rollout, note) = starting_rollout(run, init, data)?;
+    let topo = &run.topology;
+    let pinned = match &rollout {
+        Some(r) => Track::new(r, &Resampler::new(&r.rest_uv, &topo.rest_uv))
+            .pinned
+            .iter()
+            .enumerate()
+            .filter_map(|(i, &p)| p.then_some(i))
+            .collect(),
+        None => Vec::new(),
+    };
+    let frame_dt = rollout.as_ref().map_or(run.meta.frame_dt, |r| r.frame_dt);
+    Ok(RestStart {
+        pinned,
+        physics: run.physics(frame_dt),
+        from: rollout.map(|r| r.path),
+        note,
+    })
 }
 
 /// Counts the vertices and faces of an OBJ or PLY (ASCII or binary) file (for checks).
@@ -937,6 +1082,10 @@ mod tests {
             dt: None,
             curvature: Vec::new(),
             curvature_k: Vec::new(),
+            frame_dt: None,
+            substeps: None,
+            mass: None,
+            stability: None,
         };
         let text = j.to_text().unwrap();
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();

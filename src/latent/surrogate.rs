@@ -40,8 +40,8 @@ impl SpringSheet {
     pub fn open(path: &Path) -> Result<Self> {
         let surrogate = if path.is_dir() {
             let run = Run::open(path, &[], Some(crate::backend::Backend::Flex))?;
-            let dt = run.physics(run.meta.frame_dt).sim_dt();
-            SurrogateJson::of(&run, run.springs()?, &[], Some(dt))
+            let physics = run.physics(run.meta.frame_dt);
+            SurrogateJson::of(&run, run.springs()?, &[], Some(&physics))
         } else {
             SurrogateJson::read(path)?
         };

@@ -2,7 +2,7 @@
 #![allow(dead_code)]
 
 use burn::tensor::Device;
-use rand::{SeedableRng, rngs::StdRng};
+use rand::{Rng, SeedableRng, rngs::StdRng};
 use springtime::cloth::{GridSpec, Resampler, Topology};
 use springtime::data::{ClipBatch, Rollout, Track};
 use springtime::model::{Kernel, SpringNet, springs::to_f64};
@@ -259,4 +259,24 @@ impl LossCase<'_> {
             to_f64(model.b.val().grad(&grads).unwrap()),
         )
     }
+}
+
+/// `n × n` points over a `(n − 1)·0.5 m` square, interior points jittered by up to a quarter of
+/// the spacing (the border stays straight, as a cut sheet's does).
+pub fn jittered_points(n: usize, seed: u64) -> Vec<[f64; 2]> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let h = 0.5;
+    let mut uv = Vec::new();
+    for r in 0..n {
+        for c in 0..n {
+            let inner = |i: usize| i > 0 && i < n - 1;
+            let (mut u, mut v) = (c as f64 * h, r as f64 * h);
+            if inner(r) && inner(c) {
+                u += rng.random_range(-0.25..0.25) * h;
+                v += rng.random_range(-0.25..0.25) * h;
+            }
+            uv.push([u, v]);
+        }
+    }
+    uv
 }
