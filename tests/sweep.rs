@@ -309,3 +309,24 @@ fn shards_together_are_the_unsharded_generation_byte_for_byte() {
         &["--shard", "i/n"],
     );
 }
+
+#[test]
+fn the_shipped_plans_expand_into_loadable_configs() {
+    let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("configs/sweeps");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "toml") {
+            continue;
+        }
+        let plan = springtime::sweep::Plan::load(&path).unwrap();
+        let jobs = plan.jobs().unwrap();
+        assert!(!jobs.is_empty(), "{}", path.display());
+        for job in &jobs {
+            plan.config(job)
+                .unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        }
+        seen += 1;
+    }
+    assert!(seen >= 2, "configs/sweeps/ holds the example plans");
+}

@@ -201,7 +201,9 @@ pub struct Row {
     pub motion_rmse_short: Option<f64>,
     /// Motion RMSE over the long horizon, m.
     pub motion_rmse_long: Option<f64>,
-    /// Gain over the best uniform network over the long horizon (`eval.uniform_baseline`).
+    /// Gain over the best uniform network over the short horizon (`eval.uniform_baseline`).
+    pub uniform_gain_short: Option<f64>,
+    /// Gain over the best uniform network over the long horizon.
     pub uniform_gain_long: Option<f64>,
     /// Spearman correlation of the learned map with the source's, where known.
     pub spearman: Option<f64>,
@@ -243,6 +245,7 @@ impl Table {
                 "rmse_b",
                 "motion_rmse_short",
                 "motion_rmse_long",
+                "uniform_gain_short",
                 "uniform_gain_long",
                 "spearman",
                 "seconds",
@@ -266,6 +269,7 @@ impl Table {
             num(row.rmse_b),
             num(row.motion_rmse_short),
             num(row.motion_rmse_long),
+            num(row.uniform_gain_short),
             num(row.uniform_gain_long),
             num(row.spearman),
             num(row.seconds),
@@ -321,6 +325,7 @@ pub fn collect(plan: &Plan, out: &Path) -> Result<Table> {
             rmse_b: None,
             motion_rmse_short: None,
             motion_rmse_long: None,
+            uniform_gain_short: None,
             uniform_gain_long: None,
             spearman: None,
             seconds: None,
@@ -341,7 +346,8 @@ pub fn collect(plan: &Plan, out: &Path) -> Result<Table> {
                 row.rmse_b = e.rmse_b;
                 row.motion_rmse_short = Some(e.motion_rmse.short.mean);
                 row.motion_rmse_long = Some(e.motion_rmse.long.mean);
-                row.uniform_gain_long = e.uniform_baseline.map(|u| u.improvement_long);
+                row.uniform_gain_short = e.uniform_baseline.as_ref().map(|u| u.improvement_short);
+                row.uniform_gain_long = e.uniform_baseline.as_ref().map(|u| u.improvement_long);
                 row.spearman = e.stiffness_map_corr;
             }
         }
