@@ -989,9 +989,9 @@ fn starting_rollout(
 }
 
 /// The rest start of the web page and of `springtime simulate --rest`: the surrogate's rest
-/// sheet at zero velocity, with the particles pinned in the starting rollout (see
-/// [`starting_rollout`]; none without one) held where they are, stepped at that rollout's frame
-/// time (else the run's).
+/// sheet at zero velocity, with the particles pinned in the starting rollout (`--init`, else the
+/// run's first test rollout; none without one) held where they are, stepped at that rollout's
+/// frame time (else the run's).
 #[derive(Debug, Clone)]
 pub struct RestStart {
     /// Pinned particles, ascending.
