@@ -11,9 +11,8 @@
 
 use std::path::{Path, PathBuf};
 
+use crate::source::{perturbation, perturbed};
 use anyhow::{Result, bail};
-use rand::{Rng, SeedableRng, rngs::StdRng};
-use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::{ErrorMap, Inputs, curve_between, free_rollout, log_window};
@@ -70,21 +69,6 @@ pub fn levels(given: &[f64]) -> Result<Vec<f64>> {
     out.sort_by(f64::total_cmp);
     out.dedup();
     Ok(out)
-}
-
-/// The standard-normal draw `n_s` per spring of a seed.
-pub fn perturbation(springs: usize, seed: u64) -> Vec<f64> {
-    let mut rng = StdRng::seed_from_u64(seed);
-    (0..springs).map(|_| rng.sample(StandardNormal)).collect()
-}
-
-/// `values[s] · (1 + level · noise[s])`.
-pub fn perturbed(values: &[f64], noise: &[f64], level: f64) -> Vec<f64> {
-    values
-        .iter()
-        .zip(noise)
-        .map(|(v, n)| v * (1.0 + level * n))
-        .collect()
 }
 
 /// Simulates the reference network and its perturbations on every test rollout.

@@ -406,9 +406,24 @@ pub fn build(cfg: &SourceConfig) -> Box<dyn ClothSim> {
     build_perturbed(cfg, 0.0, 0)
 }
 
+/// The standard-normal draw `n_s` per spring of a seed.
+pub fn perturbation(springs: usize, seed: u64) -> Vec<f64> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    (0..springs).map(|_| rng.sample(StandardNormal)).collect()
+}
+
+/// `values[s] · (1 + level · noise[s])`.
+pub fn perturbed(values: &[f64], noise: &[f64], level: f64) -> Vec<f64> {
+    values
+        .iter()
+        .zip(noise)
+        .map(|(v, n)| v * (1.0 + level * n))
+        .collect()
+}
+
 /// Builds the simulator of a source config with its material perturbed: every triangle's
 /// Young's modulus (FEM) or spring's stiffness (mass-spring) times `1 + level · n`, `n` standard
-/// normal from `seed` (the chaos floor's draw, [`crate::diagnose::chaos::perturbation`]).
+/// normal from `seed` ([`perturbation`], the chaos floor's draw too).
 /// `level = 0` is the source itself.
 pub fn build_perturbed(cfg: &SourceConfig, level: f64, seed: u64) -> Box<dyn ClothSim> {
     let scale: Vec<f64> = if level == 0.0 {
@@ -416,8 +431,8 @@ pub fn build_perturbed(cfg: &SourceConfig, level: f64, seed: u64) -> Box<dyn Clo
     } else {
         // More draws than a grid has triangles or springs (structural, shear and bending:
         // under 6 per vertex); each element takes its own, whatever the count.
-        let noise = crate::diagnose::chaos::perturbation(6 * cfg.nx * cfg.ny, seed);
-        crate::diagnose::chaos::perturbed(&vec![1.0; noise.len()], &noise, level)
+        let noise = perturbation(6 * cfg.nx * cfg.ny, seed);
+        perturbed(&vec![1.0; noise.len()], &noise, level)
     };
     match cfg.kind {
         SourceKind::MassSpring => Box::new(SpringCloth::from_config_scaled(cfg, &scale)),
