@@ -30,6 +30,7 @@ pub mod latent;
 pub mod model;
 pub mod progress;
 pub mod report;
+pub mod settings;
 pub mod sim;
 pub mod source;
 pub mod sweep;

@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use super::rollout::{MeshTruth, Rollout};
 use crate::cloth::{Resampler, Topology};
-use crate::config::Auto;
+use crate::settings::Auto;
 
 /// How rollouts are cut into clips: part of the `[data]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::config::Auto;
+use crate::settings::Auto;
 
 /// The `[data]` section: where rollouts are and how they are cut.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -113,7 +113,7 @@ impl Scene {
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("cannot read scene {}", path.display()))?;
-        let file: SceneFile = crate::config::parse_toml(&text, overrides)
+        let file: SceneFile = crate::settings::parse_toml(&text, overrides)
             .with_context(|| format!("in scene {}", path.display()))?;
         let config = file.scene;
         config

@@ -74,7 +74,7 @@ impl FoldConfig {
 
     /// Parses fold config text and applies `overrides`.
     pub fn parse(text: &str, overrides: &[String]) -> Result<Self> {
-        let config: FoldConfig = crate::config::parse_toml(text, overrides)?;
+        let config: FoldConfig = crate::settings::parse_toml(text, overrides)?;
         config.validate()?;
         Ok(config)
     }

@@ -164,9 +164,11 @@ impl SpringSheet {
         let s = &self.surrogate;
         let dt = s.dt.expect("checked on opening");
         let sim = SimConfig {
-            substeps: crate::config::Auto::Value(((frame_dt / dt) - 1e-9).ceil().max(1.0) as usize),
-            rayleigh: crate::config::Auto::Value(s.rayleigh),
-            gravity: crate::config::Auto::Value(s.gravity),
+            substeps: crate::settings::Auto::Value(
+                ((frame_dt / dt) - 1e-9).ceil().max(1.0) as usize
+            ),
+            rayleigh: crate::settings::Auto::Value(s.rayleigh),
+            gravity: crate::settings::Auto::Value(s.gravity),
             allow_unstable: false,
         };
         Physics::new(&sim, frame_dt, s.masses[0])

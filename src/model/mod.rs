@@ -13,7 +13,7 @@ pub use springs::{Kernel, SpringGraph, SpringNet, spring_forces};
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::config::Auto;
+use crate::settings::Auto;
 use kernels::StepParams;
 
 /// The model families: the paper's surrogate and its two baselines.

@@ -33,7 +33,7 @@ use parry3d_f64::query::PointQuery;
 use parry3d_f64::shape::{SharedShape, TriMesh, TriMeshFlags};
 use serde::{Deserialize, Serialize};
 
-use crate::config::Auto;
+use crate::settings::Auto;
 
 use super::Stability;
 

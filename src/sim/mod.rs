@@ -10,9 +10,9 @@ pub use stability::{Stability, curvature_bound};
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::config::Auto;
 use crate::model::ForceModel;
 use crate::model::kernels::StepParams;
+use crate::settings::Auto;
 
 /// Standard gravity, m/s², along −z.
 pub const GRAVITY: [f64; 3] = [0.0, 0.0, -9.81];

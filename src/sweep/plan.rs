@@ -339,12 +339,7 @@ impl Plan {
             .parse()
             .map_err(|e: toml::de::Error| anyhow::anyhow!("{}: {e}", self.base.display()))?;
         for s in &self.set {
-            let (k, v) = s.split_once('=').expect("checked at parse");
-            if let Ok(mut t) = format!("v = {}", v.trim()).parse::<toml::Table>()
-                && let Some(v) = t.remove("v")
-            {
-                set_path(&mut table, k.trim(), v);
-            }
+            crate::settings::apply_override(&mut table, s)?;
         }
         Ok(table)
     }
@@ -379,21 +374,6 @@ fn lookup<'a>(table: &'a toml::Table, key: &str) -> Option<&'a toml::Value> {
         value = value.as_table()?.get(p)?;
     }
     Some(value)
-}
-
-fn set_path(table: &mut toml::Table, key: &str, value: toml::Value) {
-    let parts: Vec<&str> = key.split('.').collect();
-    let mut node = table;
-    for p in &parts[..parts.len() - 1] {
-        let entry = node
-            .entry(p.to_string())
-            .or_insert_with(|| toml::Value::Table(toml::Table::new()));
-        let toml::Value::Table(t) = entry else {
-            return;
-        };
-        node = t;
-    }
-    node.insert(parts[parts.len() - 1].to_string(), value);
 }
 
 fn last_segment(key: &str) -> &str {

@@ -16,8 +16,9 @@ use anyhow::{Result, bail};
 use serde::Serialize;
 
 use crate::cloth::Topology;
-use crate::config::{Auto, Config};
+use crate::config::Config;
 use crate::data::{ClipRef, ClipSet};
+use crate::settings::Auto;
 use crate::sim::{GRAVITY, Stability};
 
 /// The stability number `dt²ω² + 2·dt·γ` that `sim.substeps = "auto"` keeps the initial

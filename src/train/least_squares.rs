@@ -32,9 +32,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::cloth::Topology;
-use crate::config::Auto;
 use crate::data::ClipSet;
 use crate::progress::Progress;
+use crate::settings::Auto;
 use crate::sim::Physics;
 
 /// The `[train.least_squares]` section.

@@ -714,7 +714,7 @@ fn keep_searched(
 ) -> Result<()> {
     if config.sim.substeps.value() != Some(physics.substeps) {
         let mut updated = config.clone();
-        updated.sim.substeps = crate::config::Auto::Value(physics.substeps);
+        updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
         crate::io::write_text(&run.config(), &updated.to_toml())?;
     }
     crate::io::write_json(&run.dir.join(file), record)?;

@@ -336,7 +336,7 @@ fn default_name() -> String {
 impl XpbdConfig {
     /// Reads a config with `key=value` overrides; errors name the file and the key.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let cfg: Self = crate::config::read_toml(path, overrides)?;
+        let cfg: Self = crate::settings::read_toml(path, overrides)?;
         cfg.validate()
             .with_context(|| format!("{} is not a valid xpbd config", path.display()))?;
         Ok(cfg)
