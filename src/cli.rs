@@ -1246,7 +1246,7 @@ fn data_check(dir: &Path, config: Option<&Path>, set: &[String]) -> Result<()> {
         Some(path) => Config::load(path, set)?,
         None => Config::parse("", set)?,
     };
-    print!("{}", crate::data::check_dir(dir, &cfg)?.render());
+    print!("{}", crate::check::check_dir(dir, &cfg)?.render());
     Ok(())
 }
 

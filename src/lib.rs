@@ -14,6 +14,7 @@
 
 pub mod backend;
 pub mod bench;
+pub mod check;
 pub mod cli;
 pub mod cloth;
 pub mod compare;

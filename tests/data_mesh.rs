@@ -247,7 +247,7 @@ fn a_landmark_outside_the_mesh_is_refused_naming_the_file() {
     // `data check` refuses such a set too.
     let err = format!(
         "{:#}",
-        springtime::data::check_dir(&dir.join("mixed"), &config).unwrap_err()
+        springtime::check::check_dir(&dir.join("mixed"), &config).unwrap_err()
     );
     assert!(
         err.contains("b.npz") && err.contains("`triangles` differs"),

@@ -1,12 +1,10 @@
 //! Data: the rollout `.npz` format, the `index.json` beside it, and clip datasets.
 
-pub mod check;
 pub mod clips;
 pub mod npz;
 pub mod rollout;
 pub mod strain;
 
-pub use check::{DatasetReport, check_dir};
 pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, Track};
 pub use rollout::{MeshTruth, Rollout, Segment, SpringTruth};
 

@@ -7,11 +7,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Result, bail};
 
-use super::clips::{ClipSet, SetInfo, check_same, check_same_landmarks, check_same_mesh};
-use super::npz::Npz;
-use super::rollout::{KEYS, Rollout};
-use super::strain::{StrainStats, StrainSummary};
-use super::{DataConfig, Index, IndexFile};
+use crate::data::clips::{ClipSet, SetInfo, check_same, check_same_landmarks, check_same_mesh};
+use crate::data::npz::Npz;
+use crate::data::rollout::{KEYS, Rollout};
+use crate::data::strain::{StrainStats, StrainSummary};
+use crate::data::{DataConfig, Index, IndexFile};
 use crate::config::Config;
 use crate::sim::Stability;
 
