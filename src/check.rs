@@ -7,12 +7,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Result, bail};
 
+use crate::config::Config;
 use crate::data::clips::{ClipSet, SetInfo, check_same, check_same_landmarks, check_same_mesh};
 use crate::data::npz::Npz;
 use crate::data::rollout::{KEYS, Rollout};
 use crate::data::strain::{StrainStats, StrainSummary};
 use crate::data::{DataConfig, Index, IndexFile};
-use crate::config::Config;
 use crate::sim::Stability;
 
 /// Smallest and largest of a count over the files of a set.

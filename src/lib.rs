@@ -25,6 +25,7 @@ pub mod drape;
 pub mod eval;
 pub mod export;
 pub mod fold;
+pub mod formats;
 pub mod import;
 pub mod io;
 pub mod latent;

@@ -10,7 +10,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 
-use super::obj::ObjMesh;
+use super::obj::{ObjMesh, rest_shape};
 use super::{ImportOptions, ImportSummary, Motion, rest_rectangle, write_rollout};
 
 /// The signature at the start of a `.pc2` file.
@@ -118,7 +118,7 @@ pub fn import_cache(cache: &Path, rest: &Path, options: &ImportOptions) -> Resul
             pc.points
         );
     }
-    let rect = rest_rectangle(&mesh.rest_shape()?, options.size)?;
+    let rect = rest_rectangle(&rest_shape(&mesh)?, options.size)?;
     let rest_from = if mesh.uvs.is_empty() {
         format!("the flat rest mesh {}", rest.display())
     } else {

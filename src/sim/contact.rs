@@ -374,7 +374,7 @@ fn closed_mesh(path: &Path, scale: f64) -> Result<TriMesh> {
     if !ext_ok {
         bail!("{} is not an .obj file", path.display());
     }
-    let obj = crate::import::obj::ObjMesh::read(path)?;
+    let obj = crate::formats::obj::ObjMesh::read(path)?;
     let mut triangles: Vec<[u32; 3]> = Vec::new();
     for face in &obj.faces {
         let c: Vec<u32> = face.corners.iter().map(|c| c.vertex as u32).collect();
