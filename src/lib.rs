@@ -74,7 +74,7 @@ pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
     // Jobs of a sweep may share one data folder: one of them generates it while the others wait
     // for it, then find its index.
     let _lock = match &config.source {
-        Some(_) => Some(source::GenerationLock::wait(dir, progress)?),
+        Some(_) => Some(source::generation_lock(dir, progress)?),
         None => None,
     };
     if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {

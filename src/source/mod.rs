@@ -514,49 +514,22 @@ pub struct Generation {
     pub missing: usize,
 }
 
-/// An exclusive hold on generating into a data folder (`.<dir>.generate.lock` beside it), so
-/// that processes sharing the folder (a sweep's jobs) generate it once. Released on drop or
-/// when the process ends.
-pub struct GenerationLock {
-    _file: std::fs::File,
-}
-
-impl GenerationLock {
-    /// Takes the lock of `dir`, waiting (with a note) while another process holds it.
-    pub fn wait(dir: &Path, progress: &crate::progress::Progress) -> Result<Self> {
-        let name = dir
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "data".into());
-        let parent = dir
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        std::fs::create_dir_all(parent)
-            .with_context(|| format!("cannot create {}", parent.display()))?;
-        let path = parent.join(format!(".{name}.generate.lock"));
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&path)
-            .with_context(|| format!("cannot open the generation lock {}", path.display()))?;
-        match file.try_lock() {
-            Ok(()) => {}
-            Err(std::fs::TryLockError::WouldBlock) => {
-                progress.note(&format!(
-                    "another process is generating {}: waiting for it",
-                    dir.display()
-                ));
-                file.lock()
-                    .with_context(|| format!("cannot lock {}", path.display()))?;
-            }
-            Err(std::fs::TryLockError::Error(e)) => {
-                return Err(e).with_context(|| format!("cannot lock {}", path.display()));
-            }
-        }
-        Ok(Self { _file: file })
+/// Takes the exclusive hold on generating into the data folder `dir` (`.<dir>.generate.lock`
+/// beside it), waiting with a note while another process holds it, so that processes sharing
+/// the folder (a sweep's jobs) generate it once. Released on drop or when the process ends.
+pub fn generation_lock(
+    dir: &Path,
+    progress: &crate::progress::Progress,
+) -> Result<crate::io::FileLock> {
+    let path = crate::io::lock_path_beside(dir, "generate.lock", "data");
+    if let Some(lock) = crate::io::FileLock::try_take(&path)? {
+        return Ok(lock);
     }
+    progress.note(&format!(
+        "another process is generating {}: waiting for it",
+        dir.display()
+    ));
+    crate::io::FileLock::wait(&path)
 }
 
 /// Generates the train and test rollouts of `cfg` into `dir` with an `index.json`: all of them,

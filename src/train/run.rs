@@ -147,12 +147,8 @@ fn write_metrics<W: Write>(to: W, rows: &[MetricsRow], header: bool) -> Result<(
 }
 
 /// An exclusive hold on a run directory for one training process: an OS file lock on
-/// `.<name>.lock` beside the directory (the directory itself may be cleared and recreated
-/// under it). The operating system releases it when the process ends, however it ends.
-#[derive(Debug)]
-pub struct RunLock {
-    _file: std::fs::File,
-}
+/// `.<name>.lock` beside the directory (see [`crate::io::FileLock`]).
+pub type RunLock = crate::io::FileLock;
 
 impl RunDir {
     /// A run directory at `dir` (not created yet).
@@ -162,44 +158,21 @@ impl RunDir {
 
     /// The lock file guarding the directory: `.<name>.lock` in its parent.
     pub fn lock_path(&self) -> PathBuf {
-        let name = self
-            .dir
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "run".into());
-        let parent = self
-            .dir
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        parent.join(format!(".{name}.lock"))
+        crate::io::lock_path_beside(&self.dir, "lock", "run")
     }
 
     /// Takes the directory for this process, or fails when another process holds it (two
     /// `train` processes on one run would interleave their writes).
     pub fn lock(&self) -> Result<RunLock> {
         let path = self.lock_path();
-        if let Some(parent) = path.parent() {
-            std::fs::create_dir_all(parent)
-                .with_context(|| format!("cannot create {}", parent.display()))?;
-        }
-        let file = std::fs::OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&path)
-            .with_context(|| format!("cannot open the run lock {}", path.display()))?;
-        match file.try_lock() {
-            Ok(()) => Ok(RunLock { _file: file }),
-            Err(std::fs::TryLockError::WouldBlock) => bail!(
+        match RunLock::try_take(&path)? {
+            Some(lock) => Ok(lock),
+            None => bail!(
                 "another springtime process is training in {} (it holds {}); wait for it to \
                  end or train into another --out",
                 self.dir.display(),
                 path.display()
             ),
-            Err(std::fs::TryLockError::Error(e)) => {
-                Err(e).with_context(|| format!("cannot lock {}", path.display()))
-            }
         }
     }
 
