@@ -7,37 +7,10 @@ use common::{fails, ok, springtime};
 use springtime::data::Rollout;
 use springtime::data::npz::{Array, Npz};
 
-const TINY: &str = r#"
-name = "tiny"
-[cloth]
-nx = 6
-ny = 6
-[data]
-dir = "data"
-[data.clips]
-steps = 50
-[source]
-nx = 6
-ny = 6
-width = 2.5
-height = 2.5
-seconds = 0.3
-train_rollouts = 4
-test_rollouts = 1
-[train]
-checkpoint_every = 5
-[train.stiffness]
-iterations = 10
-batch = 4
-[train.damping]
-iterations = 5
-batch = 4
-"#;
-
 /// The tiny config without its source, reading user data from `data_dir`.
 fn user_data_config(data_dir: &str) -> String {
-    let head = TINY.split("[source]").next().unwrap();
-    let tail = TINY.split("[train]").nth(1).unwrap();
+    let head = common::TINY.split("[source]").next().unwrap();
+    let tail = common::TINY.split("[train]").nth(1).unwrap();
     format!(
         "{}[train]{tail}",
         head.replace("dir = \"data\"", &format!("dir = \"{data_dir}\""))
@@ -46,7 +19,7 @@ fn user_data_config(data_dir: &str) -> String {
 
 fn setup(name: &str) -> common::TestDir {
     let dir = common::temp_dir(name);
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), common::TINY).unwrap();
     dir
 }
 
@@ -243,7 +216,7 @@ fn bad_configs_name_the_key() {
     let dir = setup("cli-config");
     std::fs::write(
         dir.join("typo.toml"),
-        TINY.replace("[train]\n", "[train]\nlearning_rate = 1.0\n"),
+        common::TINY.replace("[train]\n", "[train]\nlearning_rate = 1.0\n"),
     )
     .unwrap();
     fails(
@@ -252,7 +225,7 @@ fn bad_configs_name_the_key() {
     );
     std::fs::write(
         dir.join("type.toml"),
-        TINY.replace("steps = 50", "steps = \"fifty\""),
+        common::TINY.replace("steps = 50", "steps = \"fifty\""),
     )
     .unwrap();
     fails(
@@ -619,23 +592,7 @@ fn a_run_killed_with_sigkill_resumes_to_the_uninterrupted_result() {
         .spawn()
         .unwrap();
     let state = dir.join("runs/killed/run.json");
-    loop {
-        let checkpoint = std::fs::read_to_string(&state)
-            .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .and_then(|v| v["checkpoint"].as_u64())
-            .unwrap_or(0);
-        if checkpoint >= 5 {
-            break;
-        }
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "the run ended before its first checkpoint"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-    child.kill().unwrap();
-    child.wait().unwrap();
+    common::kill_after_checkpoint(&mut child, &state, 5);
     let killed: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
     assert_eq!(killed["status"], "running", "killed mid-run: {killed}");

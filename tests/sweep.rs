@@ -9,38 +9,11 @@ use std::process::{Command, Stdio};
 use common::{fails, ok, springtime};
 use springtime::data::npz::Npz;
 
-const TINY: &str = r#"
-name = "tiny"
-[cloth]
-nx = 6
-ny = 6
-[data]
-dir = "data"
-[data.clips]
-steps = 50
-[source]
-nx = 6
-ny = 6
-width = 2.5
-height = 2.5
-seconds = 0.3
-train_rollouts = 4
-test_rollouts = 1
-[train]
-checkpoint_every = 5
-[train.stiffness]
-iterations = 10
-batch = 4
-[train.damping]
-iterations = 5
-batch = 4
-"#;
-
 /// A scratch folder with `tiny.toml` and `plan.toml` (three values of `model.k_init` after a
 /// `set` of its own, `extra` appended).
 fn setup(name: &str, extra: &str) -> common::TestDir {
     let dir = common::temp_dir(name);
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), common::TINY).unwrap();
     std::fs::write(
         dir.join("plan.toml"),
         format!(
@@ -178,7 +151,7 @@ fn two_processes_give_the_files_of_one_and_gather_lists_the_missing() {
 #[test]
 fn a_failed_job_is_recorded_and_the_others_run() {
     let dir = common::temp_dir("sweep-failed");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), common::TINY).unwrap();
     std::fs::write(
         dir.join("plan.toml"),
         "base = \"tiny.toml\"\n[axes]\n\"model.k_init\" = [-1.0, 50.0]\n",
@@ -215,23 +188,7 @@ fn a_killed_job_resumes_to_the_uninterrupted_figures() {
         &dir,
     );
     let state = dir.join("killed/0-k_init-40.0/run.json");
-    loop {
-        let checkpoint = std::fs::read_to_string(&state)
-            .ok()
-            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
-            .and_then(|v| v["checkpoint"].as_u64())
-            .unwrap_or(0);
-        if checkpoint >= 5 {
-            break;
-        }
-        assert!(
-            child.try_wait().unwrap().is_none(),
-            "the job ended before its first checkpoint"
-        );
-        std::thread::sleep(std::time::Duration::from_millis(2));
-    }
-    child.kill().unwrap();
-    child.wait().unwrap();
+    common::kill_after_checkpoint(&mut child, &state, 5);
     let g = ok(&springtime(
         &["sweep", "plan.toml", "--gather", "--out", "killed"],
         &dir,
@@ -255,7 +212,7 @@ fn a_killed_job_resumes_to_the_uninterrupted_figures() {
 #[test]
 fn shards_together_are_the_unsharded_generation_byte_for_byte() {
     let dir = common::temp_dir("sweep-shards");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), common::TINY).unwrap();
     let set_dir = |d: &str| format!("data.dir=\"{d}\"");
     ok(&springtime(
         &["generate", "tiny.toml", "--set", &set_dir("whole")],

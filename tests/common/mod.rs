@@ -280,3 +280,54 @@ pub fn jittered_points(n: usize, seed: u64) -> Vec<[f64; 2]> {
     }
     uv
 }
+
+/// A tiny training job: a 6 × 6 cloth, four 0.3 s rollouts to train on and one to test, a few
+/// Adam steps per pass, checkpoints every 5 iterations (data in `data/`).
+pub const TINY: &str = r#"
+name = "tiny"
+[cloth]
+nx = 6
+ny = 6
+[data]
+dir = "data"
+[data.clips]
+steps = 50
+[source]
+nx = 6
+ny = 6
+width = 2.5
+height = 2.5
+seconds = 0.3
+train_rollouts = 4
+test_rollouts = 1
+[train]
+checkpoint_every = 5
+[train.stiffness]
+iterations = 10
+batch = 4
+[train.damping]
+iterations = 5
+batch = 4
+"#;
+
+/// SIGKILLs `child` (no chance to clean up) once the run whose `run.json` is `state` has a
+/// checkpoint at iteration `at` or later on disk; panics if the child ends first.
+pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path::Path, at: u64) {
+    loop {
+        let checkpoint = std::fs::read_to_string(state)
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v["checkpoint"].as_u64())
+            .unwrap_or(0);
+        if checkpoint >= at {
+            break;
+        }
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run ended before its checkpoint {at}"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
