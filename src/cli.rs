@@ -22,7 +22,7 @@ use crate::train::{self, TrainOptions};
 #[command(
     name = "springtime",
     version,
-    long_version = concat!(env!("CARGO_PKG_VERSION"), " (commit ", env!("SPRINGTIME_GIT_COMMIT"), ")"),
+    long_version = long_version(),
     about
 )]
 pub struct Cli {
@@ -1877,4 +1877,13 @@ fn fold(
         out.join("fold.json").display()
     );
     Ok(())
+}
+
+/// `--version`: the version and the git commit of the build.
+fn long_version() -> &'static str {
+    static TEXT: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    TEXT.get_or_init(|| {
+        let build = crate::BuildInfo::current();
+        format!("{} (commit {})", build.version, build.commit)
+    })
 }

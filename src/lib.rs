@@ -1,104 +1,33 @@
 //! springtime: learn simulatable mass-spring cloth models with per-spring stiffness and damping
 //! from observed motion (Chen et al. 2025, "Mass-Spring Net" / SpringTime).
 //!
-//! The pipeline, in the order of the paper: [`source`] generates rollouts, [`data`] reads them
-//! and cuts clips, [`cloth`] builds the surrogate grid and resamples landmarks to it, [`model`]
-//! holds the per-spring parameters and the spring forces, [`sim`] rolls the surrogate out,
-//! [`train`] fits it with the force-and-impulse loss, and [`eval`] measures it; [`report`]
-//! draws a run's figures and [`export`] writes it for other tools. [`xpbd`] holds the static
-//! parameter estimation of the second seed paper, [`latent`] the latent-space dynamics of the
-//! third. See `ARCHITECTURE.md`.
+//! This crate is the application: the command line ([`cli`]), the run report ([`report`]),
+//! import and export of other tools' files ([`import`], [`export`]) and the studies built on the
+//! library — [`compare`], [`diagnose`], [`fold`], [`drape`], [`bench`](mod@bench). The method itself lives
+//! in `springtime-core` and is re-exported here module by module ([`source`], [`data`],
+//! [`cloth`], [`model`], [`sim`], [`train`], [`eval`], …), so `springtime::train::train` is the
+//! same function as `springtime_core::train::train`. [`xpbd`] holds the static parameter
+//! estimation of the second seed paper, [`latent`] the latent-space dynamics of the third. See
+//! `ARCHITECTURE.md`.
 #![warn(missing_docs)]
-// `!(x >= 0.0)` is deliberate: it rejects NaN along with negative values.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-pub mod backend;
 pub mod bench;
 pub mod check;
 pub mod cli;
-pub mod cloth;
 pub mod compare;
-pub mod config;
-pub mod data;
 pub mod diagnose;
 pub mod drape;
-pub mod eval;
 pub mod export;
 pub mod fold;
-pub mod formats;
 pub mod import;
-pub mod io;
-pub mod latent;
-pub mod model;
-pub mod progress;
 pub mod report;
-pub mod settings;
-pub mod sim;
-pub mod source;
 pub mod sweep;
-pub mod train;
-pub mod xpbd;
 
-use anyhow::{Result, bail};
-use serde::Serialize;
-
-/// The springtime build: crate version and the git commit it was built from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub struct BuildInfo {
-    /// `CARGO_PKG_VERSION`.
-    pub version: &'static str,
-    /// `git rev-parse HEAD` at build time, or `unknown` outside a checkout.
-    pub commit: &'static str,
-}
-
-impl BuildInfo {
-    /// This binary's build.
-    pub fn current() -> Self {
-        Self {
-            version: env!("CARGO_PKG_VERSION"),
-            commit: env!("SPRINGTIME_GIT_COMMIT"),
-        }
-    }
-}
-
-use config::Config;
-use progress::Progress;
-
-/// Makes sure `config.data.dir` holds rollouts: generates them from `config.source` when the
-/// directory has no `index.json` and no `.npz` files.
-pub fn ensure_data(config: &Config, progress: &Progress) -> Result<()> {
-    let dir = &config.data.dir;
-    if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
-        return Ok(());
-    }
-    // Jobs of a sweep may share one data folder: one of them generates it while the others wait
-    // for it, then find its index.
-    let _lock = match &config.source {
-        Some(_) => Some(source::generation_lock(dir, progress)?),
-        None => None,
-    };
-    if matches!(data::Index::probe(dir)?, data::IndexFile::Springtime(_)) {
-        return Ok(());
-    }
-    let has_files = dir.is_dir() && data::npz_files(dir).is_ok();
-    match (&config.source, has_files) {
-        (_, true) if config.source.is_none() => Ok(()),
-        (Some(source), _) => {
-            let total = (source.train_rollouts + source.test_rollouts) as u64;
-            progress.note(&format!(
-                "generating {total} rollouts into {}",
-                dir.display()
-            ));
-            let bar = progress.bar(total, "generate");
-            source::generate(source, &config.data.clips, dir, source::Shard::WHOLE, |n| {
-                bar.set_position(n as u64)
-            })?;
-            bar.finish();
-            Ok(())
-        }
-        (None, _) => bail!(
-            "{} holds no rollouts and the config has no [source] section to generate them",
-            dir.display()
-        ),
-    }
-}
+pub use springtime_core::{
+    BuildInfo, backend, cloth, config, data, ensure_data, eval, formats, io, model, progress,
+    settings, sim, source, train,
+};
+/// Latent-space dynamics (paper 002): the `springtime-latent` crate.
+pub use springtime_latent as latent;
+/// Static cloth parameters from drapes (paper 001): the `springtime-xpbd` crate.
+pub use springtime_xpbd as xpbd;

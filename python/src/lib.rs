@@ -437,7 +437,7 @@ fn sweep_index(
     let out = out.unwrap_or_else(|| sweep::default_out(&plan));
     let progress = Progress::auto();
     let outcome = py
-        .detach(|| sweep::run_index(&plan, index, &out, &progress))
+        .detach(|| sweep::run_index(&plan, index, &out, &progress, None))
         .map_err(runtime)?;
     let value = match outcome {
         Outcome::Skipped(dir) => {
@@ -455,8 +455,8 @@ fn sweep_index(
     json_to_py(py, &value)
 }
 
-/// Gathers a sweep (as `springtime sweep PLAN --gather --out OUT`): writes `sweep.csv`,
-/// `sweep.md` and `sweep.png` and returns the table's rows as dicts keyed by its columns
+/// Gathers a sweep (as `springtime sweep PLAN --gather --out OUT`, less the figure): writes
+/// `sweep.csv` and `sweep.md` (`sweep.png` is drawn by the command line's gather) and returns the table's rows as dicts keyed by its columns
 /// (`index`, one per axis, `status`, `rmse_k`, `rmse_b`, `motion_rmse_short`,
 /// `motion_rmse_long`, …).
 #[pyfunction]

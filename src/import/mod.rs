@@ -122,7 +122,7 @@ pub struct ImportSummary {
 /// Whether triangle `t` has no area in the rest rectangle (of area `area`): such a mesh is not
 /// stored (rollout loading refuses it), the points alone are.
 fn degenerate(rest_uv: &[[f64; 2]], t: &[usize; 3], area: f64) -> bool {
-    (0.5 * crate::cloth::resample::twice_area(rest_uv, *t)).abs() <= 1e-12 * area
+    (0.5 * crate::cloth::twice_area(rest_uv, *t)).abs() <= 1e-12 * area
 }
 
 /// Derives the rest rectangle (see [`RestShape`]); `size` overrides the scale per axis.

@@ -15,8 +15,8 @@
 //! note in the report when the run's data is not available; `--data DIR` points at test
 //! rollouts elsewhere.
 
-pub mod anim;
-pub mod plot;
+pub use springtime_plot as plot;
+pub use springtime_plot::anim;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;

@@ -11,8 +11,9 @@ or from a shell, on any node of the cluster:
 Every task calls the same contract as `springtime sweep PLAN --index I --out OUT`, so a job's
 figures do not depend on which engine or machine ran it: a finished job is skipped, a job whose
 worker was lost is retried by Ray and resumes from its last checkpoint. The results are gathered
-as `springtime sweep PLAN --gather` does (`OUT/sweep.csv`, `sweep.md`, `sweep.png`) and returned
-as the table's rows.
+as `springtime sweep PLAN --gather` does (`OUT/sweep.csv`, `sweep.md`) and returned as the
+table's rows; the figure `sweep.png` and report pages (`report = true`) are the command line's
+(`springtime sweep PLAN --gather`, `springtime report DIR`), which the Python package leaves out.
 
 Paths: the plan, the output folder, the base config and the data folders are read from the
 driver's working directory; on a cluster of several machines they must be on a filesystem every

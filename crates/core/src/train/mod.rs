@@ -1,0 +1,1661 @@
+//! Training (paper §3.3): dual-pass curriculum with Adam, checkpoints and resume.
+//!
+//! The stiffness pass trains `k` with `b` frozen on low-velocity clips; the damping pass
+//! trains `b` with `k` frozen on regular clips. `mode = "single"` trains both at once.
+
+pub mod compliance;
+pub mod guard;
+pub mod init;
+pub mod least_squares;
+pub mod losses;
+pub mod run;
+pub mod scale;
+pub mod surrogate;
+
+pub use losses::{
+    ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget, motion_loss,
+};
+pub use run::{MetricsRow, ModelMeta, Run, RunDir, RunState, Status};
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Result, anyhow, bail};
+use burn::module::{Module, Param, ParamId};
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor};
+use rand::{Rng, SeedableRng, rngs::StdRng};
+use serde::{Deserialize, Serialize};
+
+use crate::cloth::{Resampler, SpringLayout, Topology};
+use crate::config::Config;
+use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, Split, SpringTruth};
+use crate::model::neural_ode::OdeScales;
+use crate::model::{Gnn, GnnConfig, ModelKind, NeuralOde, SpringNet, gnn};
+use crate::progress::Progress;
+use crate::sim::Physics;
+
+/// Which clips a pass draws from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClipPool {
+    /// Clips of the last second of each rollout (App. A).
+    LowVelocity,
+    /// The regular clips.
+    Regular,
+    /// Both.
+    All,
+}
+
+/// One pass of the curriculum.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PassConfig {
+    /// Adam iterations.
+    pub iterations: usize,
+    /// Clips per iteration.
+    pub batch: usize,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// The learning rate at the pass's last iteration as a fraction of `lr`, reached by a
+    /// geometric decay; 1 keeps it constant (the paper).
+    pub lr_decay: f64,
+    /// The fraction of the pass's iterations at the constant `lr` before the decay starts.
+    pub lr_hold: f64,
+    /// A learning rate of its own for the damping `b` of a spring surrogate in a pass that
+    /// trains `k` and `b` together (`single`; ours, App. C.2's single pass has one): `b` then
+    /// steps with `lr_b`, `k` with `lr`, under the same schedule. `None`: one rate for both.
+    pub lr_b: Option<f64>,
+    /// Loss weights.
+    pub weights: LossWeights,
+    /// Where the clips come from.
+    pub clips: ClipPool,
+}
+
+impl PassConfig {
+    /// The learning rate of the pass's `i`-th iteration (from 0): `lr` for the first
+    /// `lr_hold` of the pass, then decayed geometrically to `lr · lr_decay` at the last one.
+    pub fn lr_at(&self, i: usize) -> f64 {
+        self.lr * self.schedule(i)
+    }
+
+    /// The learning rate of `b` at iteration `i` ([`Self::lr_b`] under the same schedule).
+    pub fn lr_b_at(&self, i: usize) -> Option<f64> {
+        self.lr_b.map(|lr_b| lr_b * self.schedule(i))
+    }
+
+    /// The schedule's factor at iteration `i`: 1 while held, then down to `lr_decay`.
+    fn schedule(&self, i: usize) -> f64 {
+        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
+        let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
+        self.lr_decay.powf(decayed)
+    }
+}
+
+impl Default for PassConfig {
+    fn default() -> Self {
+        Self {
+            iterations: 128,
+            batch: 32,
+            lr: 1.0,
+            lr_decay: 1.0,
+            lr_hold: 0.0,
+            lr_b: None,
+            weights: LossWeights::default(),
+            clips: ClipPool::Regular,
+        }
+    }
+}
+
+/// Dual pass (the paper) or a single pass.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// Stiffness pass, then damping pass.
+    #[default]
+    Dual,
+    /// `k` and `b` together (`train.single`).
+    Single,
+    /// `k` and `b` together (`train.single`, best with its own `lr_b`), then the damping pass
+    /// (`train.damping`) for `b` alone (ours).
+    SingleThenDamping,
+}
+
+/// The `[train]` section.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Curriculum.
+    pub mode: Mode,
+    /// Where the simulated forces are evaluated.
+    pub force_on: ForceOn,
+    /// Adam's ε (Burn's default 1e-5 is too large for these gradients).
+    pub adam_epsilon: f64,
+    /// Iterations between checkpoints.
+    pub checkpoint_every: usize,
+    /// Seed of the clip order.
+    pub seed: u64,
+    /// Recompute activations in the backward pass instead of storing them (tensor-op path).
+    pub gradient_checkpointing: bool,
+    /// Memory the fused rollout may keep for its backward pass, MiB; beyond it, states are
+    /// checkpointed every ⌈√T⌉ frames and recomputed.
+    pub state_budget_mib: usize,
+    /// Project `k` and `b` back into the explicit step's stable region (and to non-negative
+    /// values) after every Adam step (springs); off: the paper's unconstrained steps, which may
+    /// diverge.
+    pub project_stable: bool,
+    /// After training a spring network, search one factor for every `k` and one for every `b`
+    /// over free rollouts of training data, keeping the network's shape (ours; off: the
+    /// paper). For a force-level fit (`force_on = "target"`), whose values least squares
+    /// shrinks; the substeps are raised as the scaled network needs.
+    pub scale_search: bool,
+    /// After training a spring network, search the best uniform network on free rollouts of
+    /// training data first, then how much of the learned map to blend into it (ours; the
+    /// uniform network is a candidate, so the kept one is never worse on those rollouts;
+    /// replaces `scale_search`, whose candidates are the blend's `α = 1`).
+    pub blend_search: bool,
+    /// Start a spring network from the strain-compliance map (ours; replaces the
+    /// least-squares start).
+    pub compliance: compliance::ComplianceConfig,
+    /// Start a spring network from the per-spring least-squares fit of the data's forces
+    /// (ours; off: the paper's uniform start).
+    pub least_squares: least_squares::LeastSquaresConfig,
+    /// The stiffness pass.
+    pub stiffness: PassConfig,
+    /// The damping pass.
+    pub damping: PassConfig,
+    /// The single pass (also the Neural ODE's only pass).
+    pub single: PassConfig,
+    /// The GNN's one-step training.
+    pub gnn: PassConfig,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            mode: Mode::Dual,
+            force_on: ForceOn::Simulated,
+            adam_epsilon: 1e-8,
+            checkpoint_every: 16,
+            seed: 0,
+            gradient_checkpointing: false,
+            state_budget_mib: losses::DEFAULT_STATE_BUDGET_MIB,
+            project_stable: true,
+            scale_search: false,
+            blend_search: false,
+            compliance: compliance::ComplianceConfig::default(),
+            least_squares: least_squares::LeastSquaresConfig::default(),
+            stiffness: PassConfig {
+                lr: 2.0,
+                clips: ClipPool::LowVelocity,
+                ..PassConfig::default()
+            },
+            damping: PassConfig {
+                lr: 0.1,
+                ..PassConfig::default()
+            },
+            single: PassConfig {
+                iterations: 256,
+                clips: ClipPool::All,
+                ..PassConfig::default()
+            },
+            gnn: PassConfig {
+                iterations: 2000,
+                batch: 8,
+                lr: 1e-4,
+                clips: ClipPool::All,
+                ..PassConfig::default()
+            },
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Checks ranges; errors name the key.
+    pub fn validate(&self) -> Result<()> {
+        for (name, p) in [
+            ("stiffness", &self.stiffness),
+            ("damping", &self.damping),
+            ("single", &self.single),
+            ("gnn", &self.gnn),
+        ] {
+            if p.batch == 0 {
+                bail!("`train.{name}.batch` must be at least 1");
+            }
+            if !(p.lr >= 0.0 && p.lr.is_finite()) {
+                bail!(
+                    "`train.{name}.lr` must be a non-negative number, is {}",
+                    p.lr
+                );
+            }
+            if !(p.lr_decay > 0.0 && p.lr_decay <= 1.0) {
+                bail!(
+                    "`train.{name}.lr_decay` must be in (0, 1], is {}",
+                    p.lr_decay
+                );
+            }
+            if !(0.0..1.0).contains(&p.lr_hold) {
+                bail!("`train.{name}.lr_hold` must be in [0, 1), is {}", p.lr_hold);
+            }
+            if let Some(lr_b) = p.lr_b {
+                if !(lr_b >= 0.0 && lr_b.is_finite()) {
+                    bail!("`train.{name}.lr_b` must be a non-negative number, is {lr_b}");
+                }
+                if name != "single" {
+                    bail!(
+                        "`train.{name}.lr_b` is for the single pass, which trains k and b \
+                         together; the {name} pass trains one of them at `train.{name}.lr`"
+                    );
+                }
+            }
+            let w = &p.weights;
+            for (key, v) in [
+                ("force", w.force),
+                ("impulse", w.impulse),
+                ("position", w.position),
+                ("k_neg", w.k_neg),
+                ("b_neg", w.b_neg),
+            ] {
+                if !(v >= 0.0 && v.is_finite()) {
+                    bail!("`train.{name}.weights.{key}` must be non-negative, is {v}");
+                }
+            }
+        }
+        if self.checkpoint_every == 0 {
+            bail!("`train.checkpoint_every` must be at least 1");
+        }
+        if !(self.adam_epsilon > 0.0) {
+            bail!("`train.adam_epsilon` must be positive");
+        }
+        if self.compliance.enabled && self.least_squares.enabled && !self.blend_search {
+            bail!(
+                "`train.compliance.enabled` and `train.least_squares.enabled` both choose the \
+                 start of the spring network; keep one, or turn on `train.blend_search`, which \
+                 blends each map into the uniform network and keeps the better"
+            );
+        }
+        if self.scale_search && self.blend_search {
+            bail!(
+                "`train.scale_search` and `train.blend_search` are both on: the blend search's \
+                 candidates include the scale search's (α = 1); keep one"
+            );
+        }
+        self.least_squares.validate()
+    }
+
+    /// The passes to run for a model family. Spring networks follow `mode`; the Neural ODE
+    /// trains in one pass (`train.single`), the GNN in its own (`train.gnn`).
+    pub fn passes(&self, kind: ModelKind) -> Vec<Pass<'_>> {
+        let pass = |name, config, train_k, train_b| Pass {
+            name,
+            config,
+            train_k,
+            train_b,
+        };
+        match (kind, self.mode) {
+            (ModelKind::Springs, Mode::Dual) => vec![
+                pass("stiffness", &self.stiffness, true, false),
+                pass("damping", &self.damping, false, true),
+            ],
+            (ModelKind::Springs, Mode::Single) | (ModelKind::NeuralOde, _) => {
+                vec![pass("single", &self.single, true, true)]
+            }
+            (ModelKind::Springs, Mode::SingleThenDamping) => vec![
+                pass("single", &self.single, true, true),
+                pass("damping", &self.damping, false, true),
+            ],
+            (ModelKind::Gnn, _) => vec![pass("gnn", &self.gnn, true, true)],
+        }
+    }
+}
+
+/// One training pass of a model family (see [`TrainConfig::passes`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Pass<'a> {
+    /// Its name in `metrics.csv` (`stiffness`, `damping`, `single`, `gnn`).
+    pub name: &'static str,
+    /// Its iterations, learning rate and loss weights.
+    pub config: &'a PassConfig,
+    /// Whether the springs' `k` are trained in it (always for the baselines' parameters).
+    pub train_k: bool,
+    /// Whether the springs' `b` are trained in it.
+    pub train_b: bool,
+}
+
+/// Command-line choices of a training job.
+#[derive(Debug, Clone, Default)]
+pub struct TrainOptions {
+    /// Run directory (default `runs/<name>`).
+    pub out: Option<PathBuf>,
+    /// Continue from the last checkpoint.
+    pub resume: bool,
+    /// Overwrite an existing run.
+    pub force: bool,
+}
+
+/// What a finished training job reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainSummary {
+    /// Run directory.
+    pub run_dir: PathBuf,
+    /// Iterations done.
+    pub iterations: usize,
+    /// Wall time, s.
+    pub wall_seconds: f64,
+    /// Peak resident memory, MiB.
+    pub peak_rss_mib: f64,
+    /// Final losses.
+    pub last: LossValues,
+    /// Final RMSE of `k` (when the data has ground-truth springs).
+    pub rmse_k: Option<f64>,
+    /// Final RMSE of `b`.
+    pub rmse_b: Option<f64>,
+}
+
+/// Ground-truth `k` and `b` per surrogate spring.
+pub type Truth = (Vec<f64>, Vec<f64>);
+
+/// Ground-truth `k`, `b` per surrogate spring, when the source's springs are the surrogate's.
+pub fn matching_truth(
+    truth: &SpringTruth,
+    topology: &Topology,
+    resampler: &Resampler,
+) -> Option<(Vec<f64>, Vec<f64>)> {
+    if !resampler.is_exact() || truth.springs.len() != topology.num_springs() {
+        return None;
+    }
+    // Landmark index → particle index (the resampler is a permutation here).
+    let mut to_particle = vec![usize::MAX; resampler.num_particles()];
+    for (p, idx) in resampler.index.iter().enumerate() {
+        if idx[0] >= to_particle.len() {
+            return None;
+        }
+        to_particle[idx[0]] = p;
+    }
+    let mut by_ends = std::collections::HashMap::new();
+    for (s, &[a, b]) in truth.springs.iter().enumerate() {
+        let (a, b) = (*to_particle.get(a)?, *to_particle.get(b)?);
+        by_ends.insert((a.min(b), a.max(b)), s);
+    }
+    let mut k = Vec::with_capacity(topology.num_springs());
+    let mut b = Vec::with_capacity(topology.num_springs());
+    for &[pa, pb] in &topology.springs {
+        let s = *by_ends.get(&(pa.min(pb), pa.max(pb)))?;
+        k.push(truth.k[s]);
+        b.push(truth.b[s]);
+    }
+    Some((k, b))
+}
+
+/// Root-mean-square difference (Eq. 13).
+pub fn rmse(a: &[f64], b: &[f64]) -> f64 {
+    (a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>() / a.len().max(1) as f64).sqrt()
+}
+
+/// The surrogate topology of a config for the data that `first` (a rollout of the set)
+/// belongs to: the config's grid over its rest rectangle, or its own mesh (`cloth.layout =
+/// "data"`: the file's `triangles`, else the Delaunay triangulation of its `rest_uv`).
+pub fn topology(config: &Config, first: &Rollout) -> Result<Topology> {
+    let cloth = &config.cloth;
+    match cloth.layout {
+        SpringLayout::Grid => Ok(Topology::grid(cloth, first.width, first.height)),
+        SpringLayout::Data => {
+            let (uv, w, h, hinges) = (
+                &first.rest_uv,
+                first.width,
+                first.height,
+                cloth.bending_stride > 0,
+            );
+            match &first.mesh {
+                Some(m) => Topology::mesh(uv, &m.triangles, w, h, hinges),
+                None => Topology::of_points(uv, w, h, hinges),
+            }
+            .map_err(|e| anyhow!("{}: cloth.layout = \"data\": {e}", first.path.display()))
+        }
+    }
+}
+
+/// The training device of a config.
+pub fn training_device(config: &Config) -> Result<Device> {
+    let device = config.backend.device()?.autodiff();
+    // Fresh parameters (the baselines' layers) are drawn from the device's generator.
+    device.seed(config.train.seed);
+    Ok(if config.train.gradient_checkpointing {
+        device.gradient_checkpointing()
+    } else {
+        device
+    })
+}
+
+/// Opens the training clips of `config` (generating the data first when it is missing and the
+/// config has a source).
+pub fn open_training_clips(
+    config: &Config,
+    progress: &Progress,
+) -> Result<(ClipSet, Option<Truth>)> {
+    crate::ensure_data(config, progress)?;
+    let split = config.data.split()?;
+    let bar = progress.bar(split.train.len() as u64, "load");
+    let set = ClipSet::open(
+        &split.train,
+        &config.data.clips,
+        |first| topology(config, first),
+        config.data.cache_bytes(),
+        |n| bar.set_position(n as u64),
+    )?;
+    bar.finish();
+    // Ground truth, if the first rollout carries springs that match the surrogate's.
+    let first = Rollout::load(&split.train[0])?;
+    let resampler = Resampler::new(&first.rest_uv, &set.topology.rest_uv);
+    let truth = first
+        .springs
+        .as_ref()
+        .and_then(|t| matching_truth(t, &set.topology, &resampler));
+    Ok((set, truth))
+}
+
+/// Runs the training job of `config`: the model family of `config.model.kind` on the clips
+/// of `config.data`.
+pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Result<TrainSummary> {
+    let run = RunDir::new(config.run_dir(options.out.as_deref()));
+    let _lock = run.lock()?;
+    let previous = if options.resume { run.state()? } else { None };
+    if options.resume {
+        match &previous {
+            None => bail!("--resume: {} holds no run to resume", run.dir.display()),
+            Some(s) if s.status == Status::Finished => {
+                bail!(
+                    "--resume: the run in {} is already finished (pass --force to train it again)",
+                    run.dir.display()
+                )
+            }
+            _ => {}
+        }
+    } else {
+        run.check_fresh(options.force)?;
+    }
+    let (clips, truth) = open_training_clips(config, progress)?;
+    if config.train.force_on == ForceOn::Frames && clips.steps < 3 {
+        bail!(
+            "`train.force_on = \"frames\"` differences positions over clips of at least 3 \
+             steps; `data.clips.steps` is {}",
+            clips.steps
+        );
+    }
+    let clips = Arc::new(clips);
+    let requested = config;
+    let Split {
+        train: train_files,
+        validation: validation_files,
+        ..
+    } = config.data.split()?;
+    let search_device = config.backend.device()?;
+    let (resolved, resolution) = init::resolve(
+        config,
+        &clips,
+        Some(&init::SearchContext {
+            files: &train_files,
+            device: &search_device,
+        }),
+    )?;
+    let config = &resolved;
+    for line in resolution.lines() {
+        progress.note(&format!("from the data: {line}"));
+    }
+    if !options.resume {
+        run.create_fresh()?;
+    }
+    crate::io::write_text(&run.requested_config(), &requested.to_toml())?;
+    crate::io::write_text(&run.config(), &config.to_toml())?;
+    crate::io::write_json(&run.defaults(), &resolution)?;
+    let device = training_device(config)?;
+    if config.backend == crate::backend::Backend::Wgpu
+        && config.model.kind != ModelKind::Springs
+        && !cfg!(feature = "autotune")
+    {
+        let (model, speedup) = match config.model.kind {
+            ModelKind::Gnn => ("GNN", "3.3x"),
+            _ => ("Neural ODE", "1.7x"),
+        };
+        progress.note(&format!(
+            "note: the {model} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU \
+             a build with `--features autotune` trains it {speedup} faster (H100; README, \"On a \
+             GPU\")"
+        ));
+    }
+    let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
+    let topo = clips.topology.clone();
+    let job = Job {
+        config,
+        physics,
+        topology: &topo,
+        truth: truth.as_ref(),
+        device: &device,
+        curvature_lr_factor: config.model.curvature_init_for(resolution.k_init) / resolution.k_init,
+    };
+    // The model's constants: new ones, or those of the run being resumed.
+    let meta = match (&previous, ModelMeta::read(&run.meta())) {
+        (Some(_), Ok(meta)) => {
+            if meta.kind != config.model.kind {
+                bail!(
+                    "--resume: {} holds a `{}` run, the config asks for `{}`",
+                    run.dir.display(),
+                    meta.kind.name(),
+                    config.model.kind.name()
+                );
+            }
+            meta
+        }
+        _ => ModelMeta::new(config, &clips, &physics, progress)?,
+    };
+    crate::io::write_json(&run.meta(), &meta)?;
+    let fit = Fit {
+        run: &run,
+        job: &job,
+        clips: &clips,
+        previous: previous.as_ref(),
+        progress,
+    };
+    if config.train.least_squares.enabled && config.model.kind != ModelKind::Springs {
+        progress.note(&format!(
+            "`train.least_squares` starts a spring network; `model.kind = \"{}\"` starts as \
+             it would without it",
+            config.model.kind.name()
+        ));
+    }
+    let summary = match config.model.kind {
+        ModelKind::Springs => {
+            let model = fit
+                .initial_springs(&resolution)?
+                .with_kernel(config.model.kernel);
+            let (summary, mut model) = fit.run(model)?;
+            let mut final_physics = physics;
+            if config.train.blend_search {
+                // The maps to blend: the trained network, and with both starts on the
+                // compliance map too; the one whose blend moves closest to the training
+                // rollouts is kept.
+                let mut maps = vec![("trained", model.clone())];
+                if config.train.compliance.enabled && config.train.least_squares.enabled {
+                    maps.push(("compliance", fit.compliance_springs(&resolution)?));
+                }
+                let mut found = Vec::new();
+                for (name, map) in &maps {
+                    let (net, p, mut record) = scale::blend_search(
+                        map,
+                        (resolution.k_init, resolution.b_init),
+                        &topo,
+                        &physics,
+                        &train_files,
+                        config.eval.batch,
+                        &search_device,
+                        progress,
+                    )?;
+                    record.map = name.to_string();
+                    if maps.len() > 1 {
+                        progress.note(&format!(
+                            "blend search of the {name} map: {:.0} % kept, mean motion RMSE \
+                             {:.4e} m",
+                            100.0 * record.alpha,
+                            record.after
+                        ));
+                    }
+                    found.push((net, p, record));
+                }
+                let (blended, blended_physics, record) = found
+                    .into_iter()
+                    .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
+                    .expect("one map at least");
+                progress.note(&format!(
+                    "blend search: the best uniform network on {} training rollouts is k {:.4} \
+                     N/m, b {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3}, \
+                     b × {:.3} at {} substep(s) per frame: mean motion RMSE {} (as trained) -> \
+                     {:.4e} m",
+                    record.rollouts,
+                    record.uniform.0,
+                    record.uniform.1,
+                    record.uniform.2,
+                    100.0 * record.alpha,
+                    record.map,
+                    record.k_factor,
+                    record.b_factor,
+                    record.substeps,
+                    record
+                        .before
+                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
+                    record.after
+                ));
+                if record.alpha == 0.0 {
+                    progress.note(
+                        "WARNING: blend search: no share of the learned map moves closer to the \
+                         training rollouts than the best uniform network; the run keeps that \
+                         uniform network",
+                    );
+                }
+                keep_searched(
+                    &run,
+                    config,
+                    &blended,
+                    &blended_physics,
+                    "blend.json",
+                    &record,
+                )?;
+                model = blended;
+                final_physics = blended_physics;
+            }
+            if config.train.scale_search {
+                let (scaled, scaled_physics, record) = scale::search(
+                    &model,
+                    &topo,
+                    &physics,
+                    &train_files,
+                    config.eval.batch,
+                    &search_device,
+                    progress,
+                )?;
+                progress.note(&format!(
+                    "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion \
+                     RMSE on {} training rollouts {} -> {:.4e} m",
+                    record.k_factor,
+                    record.b_factor,
+                    record.substeps,
+                    record.rollouts,
+                    record
+                        .before
+                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
+                    record.after
+                ));
+                keep_searched(
+                    &run,
+                    config,
+                    &scaled,
+                    &scaled_physics,
+                    "scale.json",
+                    &record,
+                )?;
+                model = scaled;
+                final_physics = scaled_physics;
+            }
+            run::write_springs(&run.springs(), &topo, &model, physics.mass)?;
+            if !validation_files.is_empty() {
+                let v = guard::validate(
+                    &model,
+                    &topo,
+                    &final_physics,
+                    (config.model.k_init.or(50.0), config.model.b_init.or(0.0)),
+                    &train_files,
+                    &validation_files,
+                    &config.eval,
+                    &search_device,
+                    progress,
+                )?;
+                progress.note(&format!("validation: {}", v.summary()));
+                crate::io::write_json(&guard::Validation::path(&run.dir), &v)?;
+            }
+            summary
+        }
+        ModelKind::NeuralOde => fit.run(meta.neural_ode(config, &device))?.0,
+        ModelKind::Gnn => fit.run(meta.gnn(config, &device)?)?.0,
+    };
+    let mut state = run.state()?.expect("written by the fit");
+    state.status = Status::Finished;
+    run.write_state(&state)?;
+    Ok(summary)
+}
+
+/// Keeps a network a search after training found: its substeps into the run's `config.toml`
+/// (when they differ from the config's), its record as `file`, the network as the run's model.
+fn keep_searched(
+    run: &RunDir,
+    config: &Config,
+    net: &SpringNet,
+    physics: &Physics,
+    file: &str,
+    record: &impl Serialize,
+) -> Result<()> {
+    if config.sim.substeps.value() != Some(physics.substeps) {
+        let mut updated = config.clone();
+        updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
+        crate::io::write_text(&run.config(), &updated.to_toml())?;
+    }
+    crate::io::write_json(&run.dir.join(file), record)?;
+    RunDir::save_module(net, &run.model())
+}
+
+/// A trained model of any family.
+#[derive(Debug)]
+// One value per opened run, never stored in bulk: boxing the spring network would only add an
+// indirection to every use.
+#[allow(clippy::large_enum_variant)]
+pub enum Trained {
+    /// The spring network.
+    Springs(SpringNet),
+    /// The Neural ODE.
+    NeuralOde(NeuralOde),
+    /// The GNN.
+    Gnn(Gnn),
+}
+
+/// What a loss needs besides the model and the batch.
+pub struct Job<'a> {
+    /// The job's configuration.
+    pub config: &'a Config,
+    /// Constants of the integrator.
+    pub physics: Physics,
+    /// The particles' grid.
+    pub topology: &'a Topology,
+    /// Ground-truth `k`, `b` per spring, when known.
+    pub truth: Option<&'a Truth>,
+    /// The training device.
+    pub device: &'a Device,
+    /// The curvature elements' learning rate as a fraction of the pass's: `κ_init / k_init`.
+    pub curvature_lr_factor: f64,
+}
+
+/// A model family the clip-training loop can fit.
+pub trait Trainable: Module + Sized {
+    /// The loss on a batch of clips at global iteration `iteration` (0-based).
+    fn batch_loss(
+        &self,
+        job: &Job,
+        batch: &ClipBatch,
+        pass: &PassConfig,
+        iteration: usize,
+    ) -> LossTerms;
+
+    /// Readies the model for a pass that trains `k` and/or `b` (spring networks); returns the
+    /// parameters the optimizer updates, `k`'s before `b`'s (`None`: all of them).
+    fn begin_pass(self, _train_k: bool, _train_b: bool) -> (Self, Option<Vec<ParamId>>) {
+        (self, None)
+    }
+
+    /// A parameter the pass steps at its own learning rate, `factor × lr` (spring networks: the
+    /// curvature stiffness in a pass that trains `k`), after [`Trainable::begin_pass`].
+    fn own_rate(&self, _job: &Job, _train_k: bool) -> Option<(ParamId, f64)> {
+        None
+    }
+
+    /// RMSE of `k` and `b` against the ground truth, when the model has springs and it is known.
+    fn parameter_rmse(&self, _truth: Option<&Truth>) -> Option<(f64, f64)> {
+        None
+    }
+
+    /// Refuses to start when the model would blow up the integrator (spring networks).
+    fn check_start(&self, _job: &Job) -> Result<()> {
+        Ok(())
+    }
+
+    /// What to say when the loss stops being finite.
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the surrogate's rollout diverged".into()
+    }
+
+    /// The stored frames of each clip that the loss reads, when it reads one window of each
+    /// clip rather than all of it (the GNN): the batch then holds a random window of that many
+    /// frames of each clip, cut on the host, so only the window is uploaded.
+    fn clip_window(&self, _job: &Job) -> Option<usize> {
+        None
+    }
+
+    /// Whether the gradients are finite (spring networks check `k` and `b`; others trust them).
+    fn gradients_finite(&self, _grads: &GradientsParams) -> bool {
+        true
+    }
+
+    /// Projects the trained parameters back into the explicit step's stable region after an
+    /// optimizer step (spring networks: `0 ≤ k, b ≤ cap`; a negative `k` or `b` grows
+    /// exponentially, whatever the step); returns how many values were clamped.
+    fn project_stable(self, _job: &Job, _train_k: bool, _train_b: bool) -> (Self, usize) {
+        (self, 0)
+    }
+}
+
+/// Training keeps `dt²ω² + 2·dt·γ` at or below this (the limit is 4): a step that would leave
+/// the region is projected back by clamping the trained `k` (or `b`) from above.
+pub const TRAIN_STABILITY_LIMIT: f64 = 3.6;
+
+impl Trainable for SpringNet {
+    fn batch_loss(&self, job: &Job, batch: &ClipBatch, pass: &PassConfig, _: usize) -> LossTerms {
+        loss_with_budget(
+            self,
+            &job.physics,
+            batch,
+            &pass.weights,
+            job.config.train.force_on,
+            job.config.train.state_budget_mib,
+        )
+    }
+
+    fn begin_pass(mut self, train_k: bool, train_b: bool) -> (Self, Option<Vec<ParamId>>) {
+        self.k = self.k.clone().set_require_grad(train_k);
+        self.b = self.b.clone().set_require_grad(train_b);
+        if let Some(c) = &mut self.curvature {
+            c.kappa = c.kappa.clone().set_require_grad(train_k);
+        }
+        let ids = [(train_k, self.k.id), (train_b, self.b.id)]
+            .into_iter()
+            .filter_map(|(t, id)| t.then_some(id))
+            .collect();
+        (self, Some(ids))
+    }
+
+    /// The curvature stiffness steps at the rate that moves it by the same fraction of its size
+    /// as `k` (Adam's steps are about `lr` whatever the gradient's scale): `lr · κ_init /
+    /// k_init`, from the run's initial values (so a resumed run steps as an uninterrupted one).
+    fn own_rate(&self, job: &Job, train_k: bool) -> Option<(ParamId, f64)> {
+        let c = self.curvature.as_ref().filter(|_| train_k)?;
+        Some((c.kappa.id, job.curvature_lr_factor))
+    }
+
+    fn parameter_rmse(&self, truth: Option<&Truth>) -> Option<(f64, f64)> {
+        truth.map(|(k, b)| (rmse(&self.k_values(), k), rmse(&self.b_values(), b)))
+    }
+
+    fn check_start(&self, job: &Job) -> Result<()> {
+        job.physics.stability_of(job.topology, self).check(
+            "the surrogate at its initial k and b",
+            job.config.sim.allow_unstable,
+        )
+    }
+
+    fn divergence_hint(&self, job: &Job) -> String {
+        format!(
+            "the rollout likely diverged: {}",
+            job.physics.stability_of(job.topology, self).describe()
+        )
+    }
+
+    fn gradients_finite(&self, grads: &GradientsParams) -> bool {
+        let kappa = self.curvature.as_ref().map(|c| c.kappa.id);
+        [Some(self.k.id), Some(self.b.id), kappa]
+            .into_iter()
+            .flatten()
+            .all(|id| {
+                grads.get::<1>(id).is_none_or(|g| {
+                    crate::model::springs::to_f64(g)
+                        .iter()
+                        .all(|x| x.is_finite())
+                })
+            })
+    }
+
+    /// `ω²` grows with every `k_s` and `γ` with every `b_s` (sums of positive semi-definite
+    /// terms), so clamping the trained values to the cap of a uniform network that uses the
+    /// remaining budget keeps the whole network inside the guard's region; the untrained
+    /// parameter keeps its share, and with both trained the budget is split as they use it now.
+    fn project_stable(mut self, job: &Job, train_k: bool, train_b: bool) -> (Self, usize) {
+        let topo = job.topology;
+        let (dt, m, c) = (job.physics.sim_dt(), job.physics.mass, job.physics.rayleigh);
+        let (k, b) = (self.k_values(), self.b_values());
+        let st = job.physics.stability_of(topo, &self);
+        let k_part = dt * dt * st.omega2;
+        let b_part = 2.0 * dt * (st.gamma - c / m);
+        let budget = TRAIN_STABILITY_LIMIT - 2.0 * dt * c / m;
+        let negative = |v: &[f64], trained: bool| trained && v.iter().any(|&x| x < 0.0);
+        let kappa = self.curvature_values();
+        if k_part + b_part <= budget
+            && !negative(&k, train_k)
+            && !negative(&b, train_b)
+            && !negative(&kappa, train_k)
+        {
+            return (self, 0);
+        }
+        let (k_budget, b_budget) = match (train_k, train_b) {
+            (true, false) => (budget - b_part, b_part),
+            (false, true) => (k_part, budget - k_part),
+            _ => {
+                let share = k_part / (k_part + b_part).max(f64::MIN_POSITIVE);
+                (budget * share, budget * (1.0 - share))
+            }
+        };
+        let (k_budget, b_budget) = (k_budget.max(0.0), b_budget.max(0.0));
+        let unit = topo.max_eigenvalue(&vec![1.0; topo.num_springs()]);
+        let mut clamped = 0;
+        let mut clamp = |param: Param<Tensor<1>>, cap: f64| {
+            let values = crate::model::springs::to_f64(param.val());
+            clamped += values.iter().filter(|&&v| v > cap || v < 0.0).count();
+            param.map(|t| Tensor::from_inner(t.inner().clamp(0.0, cap as f32)).require_grad())
+        };
+        if train_k {
+            // With curvature elements the springs get nine tenths of the stiffness budget and
+            // the elements the rest, bounded as `Stability::with_curvature` bounds them (an
+            // element adds 8 κ to its middle particle's row of the stiffness matrix and 4 κ to
+            // each end's), so the sum stays within the budget.
+            let spring_share = if self.curvature.is_some() { 0.9 } else { 1.0 };
+            self.k = clamp(self.k, spring_share * k_budget * m / (dt * dt * unit));
+            if let Some(c) = self.curvature.as_mut() {
+                let ones = vec![1.0; topo.curvature.len()];
+                let unit_c =
+                    crate::sim::curvature_bound(&topo.curvature, &ones, topo.num_particles());
+                c.kappa = clamp(
+                    c.kappa.clone(),
+                    (1.0 - spring_share) * k_budget * m / (dt * dt * unit_c),
+                );
+            }
+        }
+        if train_b {
+            self.b = clamp(self.b, b_budget * m / (2.0 * dt * unit));
+        }
+        (self, clamped)
+    }
+}
+
+impl Trainable for NeuralOde {
+    fn batch_loss(&self, job: &Job, batch: &ClipBatch, pass: &PassConfig, _: usize) -> LossTerms {
+        motion_loss(
+            self,
+            &job.physics,
+            batch,
+            &pass.weights,
+            job.config.train.force_on,
+        )
+    }
+
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the Neural ODE's rollout diverged (its learned forces blew up); lower \
+         `train.single.lr`"
+            .into()
+    }
+}
+
+impl Trainable for Gnn {
+    fn batch_loss(
+        &self,
+        job: &Job,
+        batch: &ClipBatch,
+        _: &PassConfig,
+        iteration: usize,
+    ) -> LossTerms {
+        let mut rng = StdRng::seed_from_u64(
+            job.config.train.seed ^ (iteration as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15),
+        );
+        let host = gnn_windows(batch, &job.config.model.gnn, &mut rng);
+        let windows: Vec<gnn::Window> = host.iter().map(|w| w.view()).collect();
+        let value = self.loss(&windows, &mut rng, job.device);
+        let zero = || Tensor::<1>::zeros([1], job.device);
+        LossTerms {
+            total: value.clone(),
+            force: zero(),
+            impulse: zero(),
+            position: zero(),
+            k_neg: zero(),
+            b_neg: zero(),
+        }
+    }
+
+    fn divergence_hint(&self, _job: &Job) -> String {
+        "the GNN's one-step loss is not finite; lower `train.gnn.lr`".into()
+    }
+
+    fn clip_window(&self, job: &Job) -> Option<usize> {
+        Some(job.config.model.gnn.window_frames())
+    }
+}
+
+/// One training window of the GNN on the host: `C + 2` GNN frames of one clip.
+pub struct HostWindow {
+    frames: Vec<Vec<[f32; 3]>>,
+    pinned: Vec<bool>,
+}
+
+impl HostWindow {
+    /// The window as the GNN reads it.
+    pub fn view(&self) -> gnn::Window<'_> {
+        gnn::Window {
+            frames: self.frames.iter().map(|f| f.as_slice()).collect(),
+            pinned: &self.pinned,
+        }
+    }
+}
+
+/// One random window of `C + 2` GNN frames (`downsample` data frames apart) from every clip.
+pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> Vec<HostWindow> {
+    let [b, stored, p, _] = batch.positions.dims();
+    let span = config.window_frames();
+    // Refused by name before training starts (`ModelMeta::new`).
+    assert!(
+        stored >= span,
+        "GNN windows span {span} data frames, the clips have {stored}"
+    );
+    let pinned: Vec<f32> = batch
+        .pinned
+        .clone()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor");
+    let starts: Vec<usize> = (0..b)
+        .map(|_| rng.random_range(0..=stored - span))
+        .collect();
+    // The windows cut on the device and read in one transfer (on a GPU one wait, not one per
+    // clip).
+    let windows = if stored == span {
+        batch.positions.clone()
+    } else {
+        Tensor::cat(
+            starts
+                .iter()
+                .enumerate()
+                .map(|(i, &start)| {
+                    batch
+                        .positions
+                        .clone()
+                        .slice([i..i + 1, start..start + span, 0..p, 0..3])
+                })
+                .collect(),
+            0,
+        )
+    };
+    let data: Vec<f32> = windows
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .expect("float tensor");
+    (0..b)
+        .map(|i| {
+            let frames = (0..=config.history + 1)
+                .map(|k| {
+                    let f = i * span + k * config.downsample;
+                    (0..p)
+                        .map(|q| {
+                            let o = (f * p + q) * 3;
+                            [data[o], data[o + 1], data[o + 2]]
+                        })
+                        .collect()
+                })
+                .collect();
+            HostWindow {
+                frames,
+                pinned: pinned[i * p..(i + 1) * p]
+                    .iter()
+                    .map(|&v| v > 0.5)
+                    .collect(),
+            }
+        })
+        .collect()
+}
+
+/// A least-squares fit leaving more than this relative force residual gets a warning.
+const UNRELIABLE_RESIDUAL: f64 = 0.9;
+
+/// The training loop shared by every model family: passes of Adam over clip batches, metrics,
+/// checkpoints, resume and a clear stop on a non-finite loss.
+struct Fit<'a> {
+    run: &'a RunDir,
+    job: &'a Job<'a>,
+    clips: &'a Arc<ClipSet>,
+    previous: Option<&'a RunState>,
+    progress: &'a Progress,
+}
+
+impl Fit<'_> {
+    /// The model of the last checkpoint of an interrupted run and the iteration to go on from
+    /// (the metrics after it dropped), or the fresh model and 0.
+    fn resume<M: Trainable>(&self, model: M) -> Result<(M, usize)> {
+        let run = self.run;
+        let mut out = (model, 0);
+        if let Some(state) = self.previous
+            && state.checkpoint > 0
+        {
+            let path = run.checkpoint(state.checkpoint);
+            let record = burn::store::ModuleRecord::load(&path)
+                .map_err(|e| anyhow::anyhow!("cannot read checkpoint {}: {e}", path.display()))?;
+            out.0 = out
+                .0
+                .try_load_record(record)
+                .map_err(|e| anyhow::anyhow!("checkpoint does not fit this config: {e}"))?;
+            out.1 = state.checkpoint;
+        }
+        if self.previous.is_some() {
+            run.truncate_metrics(out.1)?;
+        }
+        Ok(out)
+    }
+
+    /// The spring network training starts from (with its curvature elements at their initial
+    /// `κ`): the uniform `k_init`, `b_init`, or with `train.least_squares.enabled` the
+    /// per-spring least-squares fit of the data's forces, projected into the stable region;
+    /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
+    /// this network, so the fit is skipped there.
+    /// The strain-compliance network ([`compliance`]) with a uniform `b_init`.
+    fn compliance_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
+        let (topo, device) = (self.job.topology, self.job.device);
+        let (k0, b0) = (resolution.k_init, resolution.b_init);
+        let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
+        let strains = compliance::rms_strains(self.clips)?;
+        let k = compliance::stiffness(topo, &strains, k0);
+        let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
+        self.progress.note(&format!(
+            "compliance map: k from the springs' RMS strains over the training frames, \
+             {lo:.4}–{k0:.4} N/m; b uniform {b0:.4e} N·s/m"
+        ));
+        let b = vec![b0; topo.num_springs()];
+        Ok(SpringNet::new(topo, &k, &b, device)
+            .with_curvature(&kappa)
+            .with_kernel(self.job.config.model.kernel))
+    }
+
+    fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
+        let (job, config) = (self.job, &self.job.config.train.least_squares);
+        let (topo, device) = (job.topology, job.device);
+        let (k0, b0) = (resolution.k_init, resolution.b_init);
+        let kappa = vec![job.config.model.curvature_init_for(k0); topo.curvature.len()];
+        let checkpointed = self.previous.is_some_and(|s| s.checkpoint > 0);
+        if job.config.train.compliance.enabled && !config.enabled && !checkpointed {
+            return self.compliance_springs(resolution);
+        }
+        if !config.enabled || checkpointed {
+            return Ok(SpringNet::uniform(topo, k0, b0, device).with_curvature(&kappa));
+        }
+        if !job.topology.curvature.is_empty() {
+            self.progress.note(
+                "least squares fits the springs only: the curvature elements start at their \
+                 initial κ, whose forces the fit does not see",
+            );
+        }
+        if !self.clips.particles_are_landmarks() {
+            self.progress.note(
+                "least squares: the particles are interpolated between the data's landmarks, \
+                 whose averaged accelerations no spring attached to one produces; the fit is \
+                 reliable on the data's own vertices (`cloth.layout = \"data\"`, or a grid of \
+                 the data's grid)",
+            );
+        }
+        let fit = least_squares::fit(config, self.clips, &job.physics, (k0, b0), self.progress)?;
+        let r = &fit.record;
+        let mut line = format!(
+            "least squares: stencil ±{} over {} frames ({} samples): force residual {:.3} of \
+             the target (uniform start {:.3}); {} CG iterations; {} of {} unknowns fixed at 0, \
+             {} unconstrained",
+            r.stencil,
+            r.frames,
+            r.samples,
+            r.residual_fitted,
+            r.residual_initial,
+            r.iterations,
+            r.fixed_at_zero,
+            r.unknowns,
+            r.unconstrained
+        );
+        if let Some((k, b)) = job.truth {
+            line += &format!(
+                "; rmse_k {:.3e}, rmse_b {:.3e}",
+                rmse(&fit.k, k),
+                rmse(&fit.b, b)
+            );
+        }
+        self.progress.note(&line);
+        if r.residual_fitted > UNRELIABLE_RESIDUAL {
+            self.progress.note(&format!(
+                "least squares: the springs explain only {:.1} % of the data's force (mean \
+                 square); the rest is noise of the differenced target or forces springs do not \
+                 make, and least squares shrinks values fitted to noisy strains \
+                 (`train.scale_search = true` rescales the network)",
+                100.0 * (1.0 - r.residual_fitted.powi(2))
+            ));
+        }
+        crate::io::write_json(&self.run.least_squares(), r)?;
+        if !r.settled {
+            self.progress.note(
+                "least squares: the non-negativity's active set did not settle in its rounds; \
+                 the values are the last round's (non-negative, not the constrained optimum)",
+            );
+        }
+        if !r.converged {
+            self.progress.note(&format!(
+                "least squares: the solve stopped at a relative residual of {:.1e} (tolerance \
+                 {:.0e}) after {} conjugate-gradient iterations; raise \
+                 `train.least_squares.max_iterations` or `prior`",
+                r.normal_residual, config.tolerance, r.iterations
+            ));
+        }
+        let (model, clamped) = SpringNet::new(topo, &fit.k, &fit.b, device)
+            .with_curvature(&kappa)
+            .project_stable(job, true, true);
+        if clamped > 0 {
+            self.progress.note(&format!(
+                "least squares: {clamped} spring values clamped into the stable region \
+                 (dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT})"
+            ));
+        }
+        Ok(model)
+    }
+
+    /// Says what training did besides plain Adam steps: skipped steps, clips left out of a
+    /// gradient, springs clamped into the stable region.
+    fn note_interventions(&self, skipped: usize, dropped_clips: usize, clamped: usize) {
+        if skipped > 0 {
+            self.progress.note(&format!(
+                "{skipped} step(s) skipped: the loss was finite but its gradient was not"
+            ));
+        }
+        if dropped_clips > 0 {
+            self.progress.note(&format!(
+                "{dropped_clips} clip(s) left out of their step's gradient: their adjoint was not \
+                 finite or over {}× the batch's median (a buckling clip; shorter \
+                 `data.clips.steps` leave out fewer)",
+                crate::model::kernels::rollout::CHUNK_OUTLIER_RATIO
+            ));
+        }
+        if clamped > 0 {
+            self.progress.note(&format!(
+                "the stability limit was active: {clamped} spring values clamped so that \
+                 dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT} (see the `clamped` column of metrics.csv)"
+            ));
+        }
+    }
+
+    fn run<M: Trainable>(&self, mut model: M) -> Result<(TrainSummary, M)> {
+        let (run, job, config) = (self.run, self.job, self.job.config);
+        let clips = self.clips;
+        let (resumed, mut start_iteration) = self.resume(model)?;
+        model = resumed;
+        model.check_start(job)?;
+        let passes = config.train.passes(config.model.kind);
+        let total: usize = passes.iter().map(|p| p.config.iterations).sum();
+        let started = Instant::now();
+        let prior_wall = self.previous.map_or(0.0, |s| s.wall_seconds);
+        let mut state = RunState {
+            status: Status::Running,
+            iteration: start_iteration,
+            checkpoint: start_iteration,
+            backend: config.backend.to_string(),
+            wall_seconds: prior_wall,
+            peak_rss_mib: 0.0,
+            error: None,
+        };
+        run.write_state(&state)?;
+        let bar = self.progress.bar(total as u64, "train");
+        bar.set_position(start_iteration as u64);
+        let mut last = LossValues::default();
+        let mut rmse_now = model.parameter_rmse(job.truth);
+        let mut global = 0;
+        let mut pending = Vec::new();
+        let mut clamped_total = 0usize;
+        let mut skipped = 0usize;
+        let mut dropped_clips = 0usize;
+        for (pass_index, stage) in passes.into_iter().enumerate() {
+            let Pass {
+                name,
+                config: pass,
+                train_k,
+                train_b,
+            } = stage;
+            let pass_start = global;
+            global += pass.iterations;
+            if start_iteration >= global {
+                continue;
+            }
+            let pool: Vec<ClipRef> = pool_of(clips, pass.clips, name, self.progress)?;
+            let mut sampler = Sampler::new(
+                pool.len(),
+                config.train.seed ^ ((pass_index as u64 + 1) * 0x5851_F42D),
+            );
+            // Skip what was done before a resume, keeping the clip order reproducible.
+            for _ in pass_start..start_iteration.max(pass_start) {
+                sampler.next(pass.batch);
+            }
+            let mut optim = AdamConfig::new()
+                .with_epsilon(config.train.adam_epsilon as f32)
+                .init();
+            if start_iteration > pass_start && run.optimizer(start_iteration).exists() {
+                optim = optim
+                    .load(run.optimizer(start_iteration))
+                    .map_err(|e| anyhow::anyhow!("cannot read optimizer state: {e}"))?;
+            }
+            let (prepared, trained) = model.begin_pass(train_k, train_b);
+            model = prepared;
+            let own_rate = model.own_rate(job, train_k);
+            // A model that reads one window of each clip gets only that window, drawn per
+            // iteration (so a resumed run draws the same ones); a window longer than the clips
+            // is left to the model to refuse by name.
+            let window = model
+                .clip_window(job)
+                .filter(|&frames| (2..=clips.steps + 1).contains(&frames));
+            let window_steps = window.map_or(clips.steps, |frames| frames - 1);
+            let next_refs = |sampler: &mut Sampler, it: usize| -> Vec<ClipRef> {
+                let mut rng = StdRng::seed_from_u64(
+                    config.train.seed ^ (it as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
+                );
+                sampler
+                    .next(pass.batch)
+                    .into_iter()
+                    .map(|i| {
+                        let mut clip = pool[i];
+                        if let Some(frames) = window {
+                            let shift = rng.random_range(0..=clips.steps + 1 - frames);
+                            clip.offset += shift;
+                            clip.start += shift;
+                        }
+                        clip
+                    })
+                    .collect()
+            };
+            // The next batch is read and assembled on another thread while this one trains.
+            let prefetch = |refs: Vec<ClipRef>| {
+                let clips = Arc::clone(clips);
+                std::thread::spawn(move || clips.host_batch_of(&refs, window_steps))
+            };
+            let mut upcoming = None;
+            for it in start_iteration.max(pass_start)..global {
+                let host = match upcoming.take() {
+                    Some(handle) => join_batch(handle)?,
+                    None => clips.host_batch_of(&next_refs(&mut sampler, it), window_steps)?,
+                };
+                if it + 1 < global {
+                    upcoming = Some(prefetch(next_refs(&mut sampler, it + 1)));
+                }
+                let batch = host.to_device(job.device)?;
+                let terms = model.batch_loss(job, &batch, pass, it);
+                let values = terms.values();
+                if !values.total.is_finite() {
+                    let message = format!(
+                        "training stopped: the loss became {} at iteration {} ({name} pass; force \
+                         {:.4e}, impulse {:.4e}). {}. The last good model is checkpoint {} in {}; \
+                         lower `train.{name}.lr`, use more `sim.substeps`, or resume from the \
+                         checkpoint",
+                        values.total,
+                        it + 1,
+                        values.force,
+                        values.impulse,
+                        model.divergence_hint(job),
+                        state.checkpoint,
+                        run.dir.display(),
+                    );
+                    run.append_metrics(&pending)?;
+                    state.status = Status::Failed;
+                    state.error = Some(message.clone());
+                    run.write_state(&state)?;
+                    bar.abandon();
+                    bail!(message);
+                }
+                let mut grads = terms.total.backward();
+                let lr = pass.lr_at(it - pass_start);
+                let own_step = own_rate.map(|(id, factor)| {
+                    (
+                        lr * factor,
+                        GradientsParams::from_params(&mut grads, &model, &[id]),
+                    )
+                });
+                // One Adam step per learning rate: with `lr_b`, k's and b's gradients step
+                // separately (Adam's moments are per parameter, so this is Adam with two rates).
+                let steps: Vec<(f64, GradientsParams)> =
+                    match (&trained, pass.lr_b_at(it - pass_start)) {
+                        (Some(ids), Some(lr_b)) if ids.len() == 2 => vec![
+                            (
+                                lr,
+                                GradientsParams::from_params(&mut grads, &model, &ids[..1]),
+                            ),
+                            (
+                                lr_b,
+                                GradientsParams::from_params(&mut grads, &model, &ids[1..]),
+                            ),
+                        ],
+                        (Some(ids), _) => {
+                            vec![(lr, GradientsParams::from_params(&mut grads, &model, ids))]
+                        }
+                        (None, _) => vec![(lr, GradientsParams::from_grads(grads, &model))],
+                    };
+                let steps: Vec<(f64, GradientsParams)> =
+                    steps.into_iter().chain(own_step).collect();
+                dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
+                if steps.iter().all(|(_, g)| model.gradients_finite(g)) {
+                    for (lr, grads) in steps {
+                        model = optim.step(lr, model, grads);
+                    }
+                } else {
+                    skipped += 1; // a finite loss with a non-finite gradient: no step
+                }
+                let clamped = if config.train.project_stable {
+                    let (projected, clamped) = model.project_stable(job, train_k, train_b);
+                    model = projected;
+                    clamped
+                } else {
+                    0
+                };
+                clamped_total += clamped;
+                last = values;
+                if job.truth.is_some() {
+                    rmse_now = model.parameter_rmse(job.truth);
+                }
+                let elapsed = prior_wall + started.elapsed().as_secs_f64();
+                pending.push(MetricsRow {
+                    iteration: it + 1,
+                    pass: name.to_string(),
+                    loss: values.total,
+                    force: values.force,
+                    impulse: values.impulse,
+                    position: values.position,
+                    k_neg: values.k_neg,
+                    b_neg: values.b_neg,
+                    rmse_k: rmse_now.map(|r| r.0),
+                    rmse_b: rmse_now.map(|r| r.1),
+                    seconds: elapsed,
+                    clamped,
+                });
+                bar.set_message(match rmse_now {
+                    Some((k, b)) => format!(
+                        "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
+                        values.total
+                    ),
+                    None => format!("{name} loss {:.3e}", values.total),
+                });
+                bar.inc(1);
+                state.iteration = it + 1;
+                if (it + 1) % config.train.checkpoint_every == 0 || it + 1 == global {
+                    run.append_metrics(&pending)?;
+                    pending.clear();
+                    RunDir::save_module(&model, &run.checkpoint(it + 1))?;
+                    let optim_path = run.optimizer(it + 1);
+                    crate::io::write_atomic_with_path(&optim_path, |tmp| {
+                        optim
+                            .save(tmp)
+                            .map_err(|e| anyhow::anyhow!("cannot save optimizer state: {e}"))
+                    })?;
+                    let old = state.checkpoint;
+                    state.checkpoint = it + 1;
+                    state.wall_seconds = elapsed;
+                    state.peak_rss_mib = run::peak_rss_mib();
+                    run.write_state(&state)?;
+                    if old > 0 && old != state.checkpoint {
+                        let _ = std::fs::remove_file(run.optimizer(old));
+                    }
+                }
+            }
+            start_iteration = global;
+        }
+        bar.finish();
+        self.note_interventions(skipped, dropped_clips, clamped_total);
+        run.append_metrics(&pending)?;
+        let model = model.valid();
+        RunDir::save_module(&model, &run.model())?;
+        state.wall_seconds = prior_wall + started.elapsed().as_secs_f64();
+        state.peak_rss_mib = run::peak_rss_mib();
+        run.write_state(&state)?;
+        let summary = TrainSummary {
+            run_dir: run.dir.clone(),
+            iterations: total,
+            wall_seconds: state.wall_seconds,
+            peak_rss_mib: state.peak_rss_mib,
+            last,
+            rmse_k: rmse_now.map(|r| r.0),
+            rmse_b: rmse_now.map(|r| r.1),
+        };
+        Ok((summary, model))
+    }
+}
+
+/// The batch a prefetch thread assembled.
+fn join_batch(handle: std::thread::JoinHandle<Result<HostBatch>>) -> Result<HostBatch> {
+    handle
+        .join()
+        .map_err(|_| anyhow::anyhow!("the batch-loading thread panicked"))?
+}
+
+fn pool_of(
+    clips: &ClipSet,
+    pool: ClipPool,
+    name: &str,
+    progress: &Progress,
+) -> Result<Vec<ClipRef>> {
+    let chosen = match pool {
+        ClipPool::LowVelocity => clips.low_velocity.clone(),
+        ClipPool::Regular => clips.regular.clone(),
+        ClipPool::All => clips.all_clips(),
+    };
+    if !chosen.is_empty() {
+        return Ok(chosen);
+    }
+    let all: Vec<ClipRef> = clips.all_clips();
+    if all.is_empty() {
+        bail!("the {name} pass has no clips");
+    }
+    progress.note(&format!(
+        "warning: the {name} pass asks for {pool:?} clips and the data has none; using every clip"
+    ));
+    Ok(all)
+}
+
+impl ModelMeta {
+    /// The constants of a new model of `config.model.kind` for the clips of a training set:
+    /// the Neural ODE's scales, the GNN's normalisation (from up to 64 clips).
+    pub fn new(
+        config: &Config,
+        clips: &ClipSet,
+        physics: &Physics,
+        progress: &Progress,
+    ) -> Result<Self> {
+        let topo = &clips.topology;
+        let (width, height) = (clips.info.width, clips.info.height);
+        let kind = config.model.kind;
+        let particles = topo.num_particles();
+        let mut meta = ModelMeta {
+            kind,
+            particles,
+            width,
+            height,
+            particle_mass: physics.mass,
+            frame_dt: physics.frame_dt,
+            parameters: 0,
+            ode_scales: None,
+            gnn_stats: None,
+        };
+        match kind {
+            ModelKind::Springs => meta.parameters = 2 * topo.num_springs(),
+            ModelKind::NeuralOde => {
+                meta.ode_scales =
+                    Some(OdeScales::new(width, height, physics.mass, physics.gravity));
+                meta.parameters = config.model.neural_ode.parameter_count(particles);
+            }
+            ModelKind::Gnn => {
+                let cfg = &config.model.gnn;
+                let span = cfg.window_frames();
+                if clips.steps + 1 < span {
+                    bail!(
+                        "the GNN trains on windows of {span} data frames ({} velocities of frames \
+                         `model.gnn.downsample` = {} apart, and the next frame), but the clips \
+                         have {} frames: raise `data.clips.steps` to at least {} or lower \
+                         `model.gnn.history` / `model.gnn.downsample`",
+                        cfg.history,
+                        cfg.downsample,
+                        clips.steps + 1,
+                        span - 1
+                    );
+                }
+                let pool: Vec<ClipRef> = clips.all_clips();
+                let mut sampler = Sampler::new(pool.len(), config.train.seed ^ 0x0005_7A75);
+                let refs: Vec<ClipRef> = sampler.next(64).into_iter().map(|i| pool[i]).collect();
+                progress.note(&format!("GNN: normalisation from {} clips", refs.len()));
+                let plain = config.backend.device()?;
+                let batch = clips.batch(&refs, &plain)?;
+                let mut rng = StdRng::seed_from_u64(config.train.seed);
+                let host = gnn_windows(&batch, cfg, &mut rng);
+                let windows: Vec<gnn::Window> = host.iter().map(|w| w.view()).collect();
+                meta.gnn_stats = Some(gnn::statistics(&windows, cfg, topo.spacing()));
+                meta.parameters = cfg.parameter_count();
+            }
+        }
+        Ok(meta)
+    }
+
+    /// A new Neural ODE with these constants.
+    pub fn neural_ode(&self, config: &Config, device: &Device) -> NeuralOde {
+        NeuralOde::new(
+            &config.model.neural_ode,
+            self.particles,
+            self.ode_scales.expect("a Neural ODE run has scales"),
+            device,
+        )
+    }
+
+    /// A new GNN with these constants.
+    pub fn gnn(&self, config: &Config, device: &Device) -> Result<Gnn> {
+        let stats = self
+            .gnn_stats
+            .ok_or_else(|| anyhow::anyhow!("model.json of a GNN run has no `gnn_stats`"))?;
+        Ok(Gnn::new(&config.model.gnn, stats, device))
+    }
+}
+
+#[cfg(test)]
+mod schedule_tests {
+    use super::{Mode, PassConfig, TrainConfig};
+    use crate::model::ModelKind;
+
+    #[test]
+    fn each_mode_runs_its_passes_in_order() {
+        let names = |mode: Mode| -> Vec<(&str, bool, bool)> {
+            let c = TrainConfig {
+                mode,
+                ..TrainConfig::default()
+            };
+            c.passes(ModelKind::Springs)
+                .iter()
+                .map(|p| (p.name, p.train_k, p.train_b))
+                .collect()
+        };
+        assert_eq!(
+            names(Mode::Dual),
+            [("stiffness", true, false), ("damping", false, true)]
+        );
+        assert_eq!(names(Mode::Single), [("single", true, true)]);
+        assert_eq!(
+            names(Mode::SingleThenDamping),
+            [("single", true, true), ("damping", false, true)]
+        );
+    }
+
+    #[test]
+    fn the_learning_rate_decays_geometrically_from_lr_to_lr_times_decay() {
+        let pass = PassConfig {
+            iterations: 5,
+            lr: 2.0,
+            lr_decay: 0.01,
+            ..PassConfig::default()
+        };
+        assert_eq!(pass.lr_at(0), 2.0);
+        assert!((pass.lr_at(4) - 0.02).abs() < 1e-12);
+        assert!(
+            (pass.lr_at(2) - 0.2).abs() < 1e-12,
+            "the middle is the geometric mean"
+        );
+        let constant = PassConfig::default();
+        assert_eq!(constant.lr_at(0), constant.lr_at(127));
+        let held = PassConfig {
+            iterations: 11,
+            lr_hold: 0.5,
+            ..pass
+        };
+        assert_eq!(held.lr_at(5), 2.0, "held for the first half");
+        assert_eq!(held.lr_b_at(5), None);
+        let two = PassConfig {
+            lr_b: Some(0.2),
+            ..held.clone()
+        };
+        assert_eq!(two.lr_b_at(5), Some(0.2));
+        assert!(
+            (two.lr_b_at(10).unwrap() - 0.002).abs() < 1e-12,
+            "b under the same schedule"
+        );
+        assert!((held.lr_at(10) - 0.02).abs() < 1e-12);
+        assert!(held.lr_at(8) < held.lr_at(7));
+    }
+}

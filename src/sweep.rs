@@ -1,0 +1,121 @@
+//! `springtime sweep`: the library's sweep contract ([`springtime_core::sweep`]) with what the
+//! command adds — each job's report page where the plan asks for one (`report = true`) and the
+//! gathered figure `sweep.png`.
+
+use std::path::Path;
+
+use anyhow::Result;
+
+use crate::progress::Progress;
+use crate::report::plot::{Series, draw_curves, png_figure};
+pub use springtime_core::sweep::*;
+
+/// [`springtime_core::sweep::run_index`] with the run's report page drawn when the plan asks.
+pub fn run_index(plan: &Plan, index: usize, out: &Path, progress: &Progress) -> Result<Outcome> {
+    let report = |dir: &Path, progress: &Progress| {
+        crate::report::build(dir, &crate::report::ReportOptions::default(), progress).map(|_| ())
+    };
+    springtime_core::sweep::run_index(plan, index, out, progress, Some(&report))
+}
+
+/// [`springtime_core::sweep::gather`] (`sweep.csv`, `sweep.md`) and the figure `sweep.png`.
+pub fn gather(plan: &Plan, out: &Path) -> Result<Gathered> {
+    let mut gathered = springtime_core::sweep::gather(plan, out)?;
+    let png = out.join("sweep.png");
+    figure(&png, plan, &gathered.table)?;
+    gathered.files.push(png);
+    Ok(gathered)
+}
+
+/// One panel per axis: the metric against the axis' values (mean, min and max over the other
+/// axes' jobs that finished).
+fn figure(path: &Path, plan: &Plan, table: &Table) -> Result<()> {
+    let long = table.rows.iter().any(|r| r.motion_rmse_long.is_some());
+    let (metric, label) = if long {
+        (
+            (|r: &Row| r.motion_rmse_long) as fn(&Row) -> Option<f64>,
+            "motion RMSE, long horizon (m)",
+        )
+    } else {
+        (
+            (|r: &Row| r.rmse_k) as fn(&Row) -> Option<f64>,
+            "rmse_k (N/m)",
+        )
+    };
+    let panels = plan.axes.len().max(1);
+    png_figure(path, 480 * panels as u32, 360, |root| {
+        let areas = root.split_evenly((1, panels));
+        if plan.axes.is_empty() {
+            let points: Vec<(f64, f64)> = table
+                .rows
+                .iter()
+                .filter_map(|r| metric(r).map(|m| (r.index as f64, m)))
+                .collect();
+            return draw_curves(
+                &areas[0],
+                &plan.name,
+                "job",
+                label,
+                &[Series::new(label, points)],
+                false,
+                &[],
+            );
+        }
+        for (a, (axis, area)) in plan.axes.iter().zip(&areas).enumerate() {
+            let numeric = axis.values.iter().all(|v| v.is_integer() || v.is_float());
+            let x_of = |i: usize| -> f64 {
+                if numeric {
+                    axis.values[i]
+                        .as_float()
+                        .or(axis.values[i].as_integer().map(|n| n as f64))
+                        .unwrap_or(i as f64)
+                } else {
+                    i as f64
+                }
+            };
+            let mut mean = Vec::new();
+            let mut lo = Vec::new();
+            let mut hi = Vec::new();
+            for (i, value) in axis.values.iter().enumerate() {
+                let m: Vec<f64> = table
+                    .rows
+                    .iter()
+                    .filter(|r| &r.values[a] == value)
+                    .filter_map(metric)
+                    .collect();
+                if m.is_empty() {
+                    continue;
+                }
+                let x = x_of(i);
+                mean.push((x, m.iter().sum::<f64>() / m.len() as f64));
+                lo.push((x, m.iter().copied().fold(f64::INFINITY, f64::min)));
+                hi.push((x, m.iter().copied().fold(f64::NEG_INFINITY, f64::max)));
+            }
+            let x_label = if numeric {
+                axis.key.clone()
+            } else {
+                let names: Vec<String> = axis
+                    .values
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| format!("{i} = {}", value_text(v)))
+                    .collect();
+                format!("{} ({})", axis.key, names.join(", "))
+            };
+            draw_curves(
+                area,
+                &format!("{} against {}", plan.name, axis.key),
+                &x_label,
+                label,
+                &[
+                    Series::new("mean", mean).with_width(2),
+                    Series::new("min", lo),
+                    Series::new("max", hi),
+                ],
+                false,
+                &[],
+            )?;
+        }
+        Ok(())
+    })
+}
