@@ -11,7 +11,7 @@ use clap::{Parser, Subcommand};
 
 use crate::backend::Backend;
 use crate::cloth::Resampler;
-use crate::config::Config;
+use crate::config::{Config, Job};
 use crate::data::{Rollout, Segment, SpringTruth, Track};
 use crate::eval::{self, EvalReport};
 use crate::progress::Progress;
@@ -81,17 +81,20 @@ pub enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Print a configuration as TOML: every key with its default (--defaults), or a config
-    /// file resolved (defaults filled in, --set applied).
+    /// Print a configuration as TOML: every key of a job's schema with its default (--defaults
+    /// [KIND]), or a training config file resolved (defaults filled in, --set applied).
     #[command(after_help = "Examples:\n  springtime config --defaults > my.toml\n  \
+                            springtime config --defaults fold\n  \
                             springtime config configs/quickstart.toml --set sim.substeps=2")]
     Config {
         /// Config file to resolve.
         #[arg(required_unless_present = "defaults", conflicts_with = "defaults")]
         config: Option<PathBuf>,
-        /// Print every key with its default value, with comments.
-        #[arg(long)]
-        defaults: bool,
+        /// Print every key of a job's schema with its default (keys without one hold an
+        /// example value): `train` (the default; with comments), `fold`, `xpbd`, `latent`,
+        /// `scene`.
+        #[arg(long, value_name = "KIND", num_args = 0..=1, default_missing_value = "train")]
+        defaults: Option<JobKind>,
         /// Override a config value: section.key=value (repeatable).
         #[arg(long = "set", value_name = "KEY=VALUE")]
         set: Vec<String>,
@@ -727,9 +730,9 @@ pub fn run(cli: Cli) -> Result<()> {
         } => sweep(&plan, list, index.as_deref(), gather, out, &progress),
         Command::Config {
             config,
-            defaults: _,
+            defaults,
             set,
-        } => print_config(config.as_deref(), &set),
+        } => print_config(config.as_deref(), defaults, &set),
         Command::Completions { shell } => {
             let mut command = <Cli as clap::CommandFactory>::command();
             clap_complete::generate(shell, &mut command, "springtime", &mut std::io::stdout());
@@ -828,7 +831,7 @@ pub fn run(cli: Cli) -> Result<()> {
                 }
             }
             precision.apply()?;
-            let report = eval::evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
+            let report = crate::run::evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
             print_eval(&report);
             Ok(())
         }
@@ -916,12 +919,40 @@ pub fn run(cli: Cli) -> Result<()> {
     }
 }
 
-/// `springtime config`: a config file resolved, or every default.
-fn print_config(config: Option<&Path>, set: &[String]) -> Result<()> {
-    match config {
-        Some(path) => print!("{}", Config::load(path, set)?.to_toml()),
-        None if set.is_empty() => print!("{}", Config::defaults_toml()),
-        None => print!("{}", Config::parse("", set)?.to_toml()),
+/// The config schemas of springtime's jobs (`config --defaults KIND`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum JobKind {
+    /// `train`, `eval`, `compare`, `sweep` jobs: [`Config`].
+    Train,
+    /// `fold`: [`crate::fold::FoldConfig`].
+    Fold,
+    /// `xpbd estimate|generate|resim`: [`crate::xpbd::estimate::XpbdConfig`].
+    Xpbd,
+    /// `latent train`: [`crate::latent::LatentConfig`].
+    Latent,
+    /// `drape --scene`: [`crate::drape::scene::SceneFile`].
+    Scene,
+}
+
+impl JobKind {
+    /// Every key of the schema with its default, as TOML that parses back.
+    pub fn defaults_toml(self) -> String {
+        match self {
+            Self::Train => Config::defaults_toml(),
+            Self::Fold => crate::fold::FoldConfig::defaults_toml(),
+            Self::Xpbd => crate::xpbd::estimate::XpbdConfig::defaults_toml(),
+            Self::Latent => crate::latent::LatentConfig::defaults_toml(),
+            Self::Scene => crate::drape::scene::SceneFile::defaults_toml(),
+        }
+    }
+}
+
+/// `springtime config`: a config file resolved, or every default of a schema.
+fn print_config(config: Option<&Path>, defaults: Option<JobKind>, set: &[String]) -> Result<()> {
+    match (config, defaults) {
+        (Some(path), _) => print!("{}", Config::load(path, set)?.to_toml()),
+        (None, Some(kind)) if set.is_empty() => print!("{}", kind.defaults_toml()),
+        (None, _) => print!("{}", Config::parse("", set)?.to_toml()),
     }
     Ok(())
 }
@@ -1287,7 +1318,7 @@ fn train_command(
             summary.run_dir.display()
         ));
     } else if evaluate {
-        let report = eval::evaluate(&summary.run_dir, None, None, &[], progress)?;
+        let report = crate::run::evaluate(&summary.run_dir, None, None, &[], progress)?;
         print_eval(&report);
     }
     if with_report && cfg.model.kind == crate::model::ModelKind::Springs {
@@ -1656,7 +1687,7 @@ fn simulate(
     if !(seconds > 0.0 && seconds.is_finite()) {
         bail!("--seconds must be positive, is {seconds}");
     }
-    let run = train::Run::open(run_dir, set, backend)?;
+    let run = crate::run::Run::open(run_dir, set, backend)?;
     let (model, topo, config) = (run.springs()?, &run.topology, &run.config);
     let (track, first, physics) = if rest {
         let rest = crate::export::rest_start(&run, init, None)?;

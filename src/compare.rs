@@ -5,6 +5,7 @@
 //! grid, physics, evaluation) is shared. Runs go to `<out>/springs`, `<out>/gnn` and
 //! `<out>/neural_ode`; finished runs trained with the same config are reused.
 
+use crate::settings::Job;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
@@ -14,11 +15,11 @@ use serde::{Deserialize, Serialize};
 use crate::backend::Backend;
 use crate::cloth::SpringLayout;
 use crate::config::Config;
-use crate::eval::{self, EvalReport};
+use crate::eval::EvalReport;
 use crate::model::ModelKind;
 use crate::progress::Progress;
-use crate::report::plot::{Series, curves_png};
 use crate::train::{self, ModelMeta, RunDir, Status, TrainOptions};
+use springtime_plot::{Series, curves_png};
 
 /// Command-line choices of a comparison.
 #[derive(Debug, Clone, Default)]
@@ -191,7 +192,7 @@ fn compare_one(cfg: &Config, run_dir: &Path, force: bool, progress: &Progress) -
     };
     let eval = match previous_eval {
         Some(e) => e,
-        None => eval::evaluate(run_dir, None, Some(cfg.backend), &[], progress)?,
+        None => crate::run::evaluate(run_dir, None, Some(cfg.backend), &[], progress)?,
     };
     let state = run
         .state()?

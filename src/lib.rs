@@ -24,10 +24,12 @@ pub mod report;
 pub mod sweep;
 
 pub use springtime_core::{
-    BuildInfo, backend, cloth, config, data, ensure_data, eval, formats, io, model, progress,
+    BuildInfo, backend, cloth, config, data, ensure_data, eval, formats, io, model, progress, run,
     settings, sim, source, train,
 };
 /// Latent-space dynamics (paper 002): the `springtime-latent` crate.
 pub use springtime_latent as latent;
+/// Figure primitives: the `springtime-plot` crate.
+pub use springtime_plot as plot;
 /// Static cloth parameters from drapes (paper 001): the `springtime-xpbd` crate.
 pub use springtime_xpbd as xpbd;

@@ -7,8 +7,8 @@ use std::path::Path;
 use anyhow::Result;
 
 use crate::progress::Progress;
-use crate::report::plot::{Series, draw_curves, png_figure};
 pub use springtime_core::sweep::*;
+use springtime_plot::{Series, draw_curves, png_figure};
 
 /// [`springtime_core::sweep::run_index`] with the run's report page drawn when the plan asks.
 pub fn run_index(plan: &Plan, index: usize, out: &Path, progress: &Progress) -> Result<Outcome> {

@@ -2,6 +2,7 @@
 
 mod common;
 
+use springtime::settings::Job;
 use std::path::{Path, PathBuf};
 
 use common::{fails, ok, springtime};

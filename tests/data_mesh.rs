@@ -9,6 +9,7 @@ use springtime::cloth::Topology;
 use springtime::config::Config;
 use springtime::data::Rollout;
 use springtime::progress::Progress;
+use springtime::settings::Job;
 use springtime::source::{Scenario, SpringCloth, simulate_rollout};
 use springtime::train::{TrainOptions, train};
 
@@ -98,7 +99,7 @@ fn a_data_mesh_surrogate_recovers_the_stiffness_of_an_irregular_spring_cloth() {
     assert!(grid.rmse_k.is_none());
 
     // The run opens again with its mesh: eval on the test split reproduces the trained figures.
-    let opened = springtime::train::Run::open(&dir.join("runs").join("data"), &[], None).unwrap();
+    let opened = springtime::run::Run::open(&dir.join("runs").join("data"), &[], None).unwrap();
     assert_eq!(opened.topology.grid, None);
     assert_eq!(opened.topology.num_springs(), truth.topology.num_springs());
     assert_eq!(opened.topology.springs, truth.topology.springs);

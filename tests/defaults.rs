@@ -6,6 +6,7 @@ mod common;
 use springtime::config::{Auto, Config};
 use springtime::data::ClipSet;
 use springtime::progress::Progress;
+use springtime::settings::Job;
 use springtime::source::Layout;
 use springtime::train::init::{UniformFit, resolve};
 use springtime::train::{TrainOptions, train};

@@ -4,6 +4,7 @@
 mod common;
 
 use common::{fails, ok, springtime};
+use springtime::settings::Job;
 
 use burn::tensor::Device;
 use springtime::cloth::Resampler;

@@ -3,6 +3,7 @@
 //! archive) and TOML configs. None may panic, and every rollout error names the file.
 //! Deterministic (seeded), so a failure reproduces.
 
+use springtime::settings::Job;
 use std::io::{Read, Write};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};

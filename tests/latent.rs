@@ -18,6 +18,7 @@ use springtime::latent::train::{TrainOptions, perturb, train};
 use springtime::latent::{LatentConfig, integrator::LossKind};
 use springtime::model::springs::spring_forces_reference;
 use springtime::progress::Progress;
+use springtime::settings::Job;
 use springtime::source::implicit::{ImplicitEuler, NewtonConfig};
 
 /// A 5 × 6 sheet of the paper's cloth, 0.2 m × 0.25 m.

@@ -4,6 +4,7 @@ mod common;
 
 use springtime::config::Config;
 use springtime::progress::Progress;
+use springtime::settings::Job;
 use springtime::train::{TrainOptions, train};
 
 #[test]

@@ -508,7 +508,7 @@ fn report_and_export_refuse_unfinished_or_missing_runs() {
 #[test]
 fn plotting_primitives_write_pngs_of_their_size() {
     use springtime::cloth::SpringFamily;
-    use springtime::report::plot;
+    use springtime::plot;
     let dir = common::temp_dir("plot-primitives");
     let topo = Topology::grid(
         &GridSpec {

@@ -3,7 +3,7 @@
 simulators nobody on the team wrote.
 
 One command generates (once) takes from every simulator of the bench, trains
-`configs/thirdparty_mesh.toml` (the README's one recipe for other simulators' data) on each
+`configs/thirdparty_mesh.toml` (the book's one recipe for other simulators' data) on each
 set's training takes, evaluates it on the held-out test takes beside the best uniform network
 (`eval.uniform_baseline`), and prints the table: motion RMSE of the trained surrogate and of the
 best uniform network at the short horizon (0.8 s) and over the whole take, the gain, the

@@ -5,6 +5,7 @@
 //! raised as `RuntimeError` (`ValueError` for arrays of the wrong shape) with springtime's
 //! message, which names the file, key or field.
 
+use springtime::settings::Job;
 use std::path::PathBuf;
 
 use numpy::{PyArray1, PyArrayDyn, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
@@ -56,7 +57,7 @@ fn f32_out<'py>(
 #[pyclass(name = "Run", module = "springtime", unsendable)]
 struct Run {
     path: PathBuf,
-    loaded: train::Run,
+    loaded: springtime::run::Run,
 }
 
 impl Run {
@@ -347,7 +348,7 @@ impl Run {
 #[pyo3(signature = (path, backend=None))]
 fn load_run(path: PathBuf, backend: Option<String>) -> PyResult<Run> {
     let overrides: Vec<String> = backend.iter().map(|b| format!("backend={b}")).collect();
-    let loaded = train::Run::open(&path, &overrides, None).map_err(runtime)?;
+    let loaded = springtime::run::Run::open(&path, &overrides, None).map_err(runtime)?;
     Ok(Run { path, loaded })
 }
 
@@ -372,7 +373,7 @@ fn train_config(
         .map_err(runtime)?;
     if evaluate {
         let run_dir = summary.run_dir.clone();
-        py.detach(|| springtime::eval::evaluate(&run_dir, None, None, &[], &progress))
+        py.detach(|| springtime::run::evaluate(&run_dir, None, None, &[], &progress))
             .map_err(runtime)?;
     }
     load_run(summary.run_dir, None)
@@ -385,7 +386,7 @@ fn train_config(
 fn evaluate(py: Python<'_>, run: PathBuf, data: Option<PathBuf>) -> PyResult<Bound<'_, PyAny>> {
     let progress = Progress::auto();
     let report = py
-        .detach(|| springtime::eval::evaluate(&run, data.as_deref(), None, &[], &progress))
+        .detach(|| springtime::run::evaluate(&run, data.as_deref(), None, &[], &progress))
         .map_err(runtime)?;
     let json = serde_json::to_string(&report).map_err(|e| runtime(e.into()))?;
     py.import("json")?.call_method1("loads", (json,))

@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 use super::{ErrorMap, Inputs, curve_between, free_rollout, log_window};
 use crate::eval::{self, Curve};
 use crate::progress::Progress;
-use crate::report::plot::{self, Series};
+use springtime_plot::{self as plot, Series};
 
 /// One perturbation level's drift from the reference.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use super::{Inputs, curve_between, free_rollout, log_window};
 use crate::eval::{self, Curve, MotionRmse};
 use crate::progress::Progress;
-use crate::report::plot::{self, Series};
+use springtime_plot::{self as plot, Series};
 
 /// One test rollout's error.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

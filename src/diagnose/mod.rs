@@ -8,7 +8,7 @@
 //! | `error_map.json`, `error_map.png` | the run's free rollouts: per-rollout RMSE and the per-particle time-averaged error ([`error_map`]) |
 //! | `diagnose.md` | the headline numbers, also printed |
 //!
-//! The run is opened as every command opens it ([`train::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
+//! The run is opened as every command opens it ([`crate::run::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
 
 pub mod chaos;
 pub mod error_map;
@@ -27,9 +27,10 @@ use crate::data::Rollout;
 use crate::eval::{self, FreeRollout, TestTrack};
 use crate::model::SpringNet;
 use crate::progress::Progress;
-use crate::report::{self, plot};
+use crate::report;
 use crate::sim::Physics;
 use crate::train::{self, Truth};
+use springtime_plot as plot;
 
 pub use chaos::ChaosFloor;
 pub use error_map::ErrorMap;
@@ -204,10 +205,10 @@ fn check_fresh(dir: &Path, force: bool) -> Result<()> {
 
 /// Opens a finished spring run and its test rollouts.
 pub fn open(run_dir: &Path, options: &DiagnoseOptions, progress: &Progress) -> Result<Inputs> {
-    let run = train::Run::open(run_dir, &[], options.backend)?;
+    let run = crate::run::Run::open(run_dir, &[], options.backend)?;
     let model = run.springs()?.clone();
     let mass = run.particle_mass();
-    let train::Run {
+    let crate::run::Run {
         config,
         device,
         topology,

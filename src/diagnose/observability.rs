@@ -20,7 +20,7 @@ use crate::cloth::{SpringFamily, Topology};
 use crate::data::{ClipRef, ClipSet};
 use crate::eval::spearman;
 use crate::progress::Progress;
-use crate::report::plot::{self, MapRow};
+use springtime_plot::{self as plot, MapRow};
 
 /// Running sums of the Fisher diagonal over frames.
 #[derive(Debug, Clone, PartialEq)]

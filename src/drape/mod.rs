@@ -37,9 +37,10 @@ use crate::data::Track;
 use crate::eval;
 use crate::model::ForceModel;
 use crate::progress::Progress;
+use crate::run::Run;
 use crate::sim::{Contact, ContactAt, ContactParams, Physics};
 use crate::source::{ClothSim, SourceConfig, SourceKind};
-use crate::train::{Run, Trained};
+use crate::train::Trained;
 
 type V3 = [f64; 3];
 
@@ -1186,8 +1187,8 @@ fn figure(
     recs: &[&Recording],
     models: &BTreeMap<String, ModelResult>,
 ) -> Result<()> {
-    use crate::report::anim::{Layer, View, draw_cloth};
-    use crate::report::plot::{self, Series};
+    use springtime_plot::anim::{Layer, View, draw_cloth};
+    use springtime_plot::{self as plot, Series};
     let view = View::default();
     let ends: Vec<&[f32]> = recs
         .iter()

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
+use crate::settings::Job;
 use crate::sim::contact::{Collider, ColliderConfig};
 use crate::sim::{Contact, ContactConfig, ContactParams};
 
@@ -15,6 +16,15 @@ use crate::sim::{Contact, ContactConfig, ContactParams};
 pub struct SceneFile {
     /// The scene.
     pub scene: SceneConfig,
+}
+
+impl Job for SceneFile {
+    const KIND: &'static str = "scene";
+    const EXAMPLE: &'static str = "[scene]\n";
+
+    fn validate(&self) -> Result<()> {
+        self.scene.validate()
+    }
 }
 
 /// The `[scene]` section.
@@ -111,14 +121,7 @@ impl Scene {
     /// Reads a scene file (with `--set`-style `overrides`) and builds its colliders; errors name
     /// the file and the key, or the mesh file.
     pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read scene {}", path.display()))?;
-        let file: SceneFile = crate::settings::parse_toml(&text, overrides)
-            .with_context(|| format!("in scene {}", path.display()))?;
-        let config = file.scene;
-        config
-            .validate()
-            .with_context(|| format!("in scene {}", path.display()))?;
+        let config = SceneFile::load(path, overrides)?.scene;
         let base = path.parent().unwrap_or(Path::new("."));
         let colliders = config
             .colliders
@@ -126,7 +129,7 @@ impl Scene {
             .enumerate()
             .map(|(i, c)| c.build(base, &format!("scene.colliders[{i}]")))
             .collect::<Result<Vec<_>>>()
-            .with_context(|| format!("in scene {}", path.display()))?;
+            .with_context(|| format!("in config {}", path.display()))?;
         let name = path
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
@@ -154,7 +157,7 @@ impl Scene {
     /// `scene.centre`, at `z = release_height`.
     pub fn release(&self, rest_uv: &[[f64; 2]], width: f64, height: f64) -> Vec<[f64; 3]> {
         let [cx, cy] = self.config.centre;
-        crate::fold::scenario::flat(rest_uv, width, height)
+        crate::cloth::flat(rest_uv, width, height)
             .into_iter()
             .map(|p| [p[0] + cx, p[1] + cy, self.config.release_height])
             .collect()

@@ -33,9 +33,9 @@ use crate::eval;
 use crate::import::pc2::PointCache;
 use crate::model::SpringNet;
 use crate::progress::Progress;
+use crate::run::Run;
+pub use crate::run::surrogate::{FORMAT, FORMAT_CURVATURE, StabilityJson, SurrogateJson};
 use crate::sim::Physics;
-use crate::train::Run;
-pub use crate::train::surrogate::{FORMAT, FORMAT_CURVATURE, StabilityJson, SurrogateJson};
 
 /// Export file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]

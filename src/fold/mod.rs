@@ -18,7 +18,7 @@ use anyhow::{Context, Result, bail};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::config::Config;
+use crate::config::{Config, Job};
 use crate::model::ModelKind;
 use crate::progress::Progress;
 use crate::source::{ClothSim, FemCloth, Layout, SourceConfig, SourceKind, SpringCloth};
@@ -63,24 +63,17 @@ impl Default for FoldParams {
     }
 }
 
-impl FoldConfig {
-    /// Reads a fold config and applies `--set` overrides (`fold.pin_radius=0.2`,
-    /// `surrogate.train.stiffness.iterations=64`, …).
-    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read config {}", path.display()))?;
-        Self::parse(&text, overrides).with_context(|| format!("in config {}", path.display()))
-    }
-
-    /// Parses fold config text and applies `overrides`.
-    pub fn parse(text: &str, overrides: &[String]) -> Result<Self> {
-        let config: FoldConfig = crate::settings::parse_toml(text, overrides)?;
-        config.validate()?;
-        Ok(config)
-    }
+impl Job for FoldConfig {
+    const KIND: &'static str = "fold";
+    /// The surrogate's training job needs an FEM source of one material on a grid whose
+    /// vertices the fine reference holds (16 × 16 inside the default 61 × 61, as in
+    /// `configs/fold.toml`): every other key has a default.
+    const EXAMPLE: &'static str = "[surrogate.cloth]\nnx = 16\nny = 16\n\n\
+                                   [surrogate.source]\nkind = \"fem\"\nlayout = \"uniform\"\n\
+                                   nx = 16\nny = 16\n";
 
     /// Checks what the test needs; errors name the key.
-    pub fn validate(&self) -> Result<()> {
+    fn validate(&self) -> Result<()> {
         self.surrogate
             .validate()
             .map_err(|e| anyhow::anyhow!("in [surrogate]: {e}"))?;
@@ -123,7 +116,9 @@ impl FoldConfig {
         }
         self.fold.settle.validate()
     }
+}
 
+impl FoldConfig {
     fn source(&self) -> &SourceConfig {
         self.surrogate.source.as_ref().expect("validated")
     }
@@ -289,7 +284,7 @@ fn settle_case(
     let start = Instant::now();
     let eq = scenario::settle(
         setup.sim.as_ref(),
-        scenario::flat(rest, side, side),
+        crate::cloth::flat(rest, side, side),
         &pinned,
         dt,
         &cfg.fold.settle,
@@ -332,7 +327,7 @@ fn settle_case(
 /// The spring surrogate of a finished run as a host cloth (the same Eq. 4 forces as the
 /// surrogate's simulator), damped for settling.
 fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
-    let run = crate::train::Run::open(run_dir, &[], Some(crate::backend::Backend::Flex))?;
+    let run = crate::run::Run::open(run_dir, &[], Some(crate::backend::Backend::Flex))?;
     let model = run.springs()?;
     let mass = run.particle_mass();
     let Some([n, _]) = run.topology.grid else {
@@ -701,7 +696,7 @@ fn write_csv(path: &Path, results: &[CaseResult]) -> Result<()> {
 /// Fig. 2 (b–e) as side views: each case's profile across the fold (the free-corner
 /// diagonal) for every system.
 fn figure(path: &Path, results: &[CaseResult], coarse: usize, fine: usize) -> Result<()> {
-    use crate::report::plot::{self, Series};
+    use springtime_plot::{self as plot, Series};
     let (w, h) = (1400, 620);
     plot::png_figure(path, w, h, |root| {
         let panels = root.split_evenly((1, 2));

@@ -70,14 +70,6 @@ pub fn corner_pins(rest_uv: &[[f64; 2]], nx: usize, corners: &Corners, radius: f
         .collect()
 }
 
-/// The flat sheet at rest in the horizontal plane, centred at the origin.
-pub fn flat(rest_uv: &[[f64; 2]], width: f64, height: f64) -> Vec<[f64; 3]> {
-    rest_uv
-        .iter()
-        .map(|p| [p[0] - 0.5 * width, p[1] - 0.5 * height, 0.0])
-        .collect()
-}
-
 /// How an equilibrium is found: damped dynamics until the fastest free vertex is slower than
 /// `tolerance` for `hold` seconds, or `max_seconds` have passed (the `[fold.settle]` section).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -323,7 +315,15 @@ mod tests {
             let (corners, _) = FoldCase::Misaligned.corners(n, n, Diagonal::Main).unwrap();
             let pins = corner_pins(fem.rest_uv(), n, &corners, 0.1);
             let dt = settle_dt(&fem, &cfg);
-            settle(&fem, flat(fem.rest_uv(), 1.0, 1.0), &pins, dt, &cfg, |_| {}).unwrap()
+            settle(
+                &fem,
+                crate::cloth::flat(fem.rest_uv(), 1.0, 1.0),
+                &pins,
+                dt,
+                &cfg,
+                |_| {},
+            )
+            .unwrap()
         };
         let (slow, fast) = (settle_with(3.0), settle_with(12.0));
         for eq in [&slow, &fast] {
@@ -346,7 +346,7 @@ mod tests {
         let pins = corner_pins(fem.rest_uv(), n, &corners, 0.1);
         let early = settle(
             &fem,
-            flat(fem.rest_uv(), 1.0, 1.0),
+            crate::cloth::flat(fem.rest_uv(), 1.0, 1.0),
             &pins,
             1e-3,
             &cfg,

@@ -15,8 +15,8 @@
 //! note in the report when the run's data is not available; `--data DIR` points at test
 //! rollouts elsewhere.
 
-pub use springtime_plot as plot;
-pub use springtime_plot::anim;
+use springtime_plot as plot;
+use springtime_plot::anim;
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -33,8 +33,9 @@ use crate::data::{MeshTruth, Rollout, Track};
 use crate::eval::{self, Curve, EvalReport};
 use crate::model::SpringNet;
 use crate::progress::Progress;
+use crate::run::Run;
 use crate::sim::Physics;
-use crate::train::{self, MetricsRow, Run, RunState};
+use crate::train::{self, MetricsRow, RunState};
 
 use anim::{Layer, View};
 use plot::{Area, Series};

@@ -1,4 +1,4 @@
-"""Learning from another simulator's data, end to end (README "Data from another simulator").
+"""Learning from another simulator's data, end to end (the book, "Data from another simulator").
 
 `tests/thirdparty/tpcloth.py` is an independent NumPy cloth simulator (neo-Hookean membrane,
 RK4, area-lumped masses, edge dashpots and air drag, an irregular jittered mesh, pinned anchors,

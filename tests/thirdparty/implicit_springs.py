@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""implicit_springs: the distillation's time-stepping floor (README "Distilling a springtime surrogate").
+"""implicit_springs: the distillation's time-stepping floor (the book, "Distilling a springtime surrogate").
 
 Steps the spring surrogate of a distilled latent run (RUN/surrogate.json) by full-space implicit
 Euler at the run's frame rate - the same incremental potential as the latent loss, without the

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
@@ -15,7 +15,7 @@ use crate::sim::SimConfig;
 use crate::source::SourceConfig;
 use crate::train::TrainConfig;
 
-pub use crate::settings::{Auto, parse_toml, read_toml};
+pub use crate::settings::{Auto, Job, parse_toml};
 
 /// A whole job: data, surrogate, training and evaluation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -60,24 +60,11 @@ impl Default for Config {
     }
 }
 
-impl Config {
-    /// Reads a config file and applies `overrides` (`section.key=value`, the value in TOML
-    /// syntax or a bare string).
-    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("cannot read config {}", path.display()))?;
-        Self::parse(&text, overrides).with_context(|| format!("in config {}", path.display()))
-    }
-
-    /// Parses config text and applies `overrides`.
-    pub fn parse(text: &str, overrides: &[String]) -> Result<Self> {
-        let config: Config = parse_toml(text, overrides)?;
-        config.validate()?;
-        Ok(config)
-    }
+impl Job for Config {
+    const KIND: &'static str = "train";
 
     /// Checks ranges; errors name the key.
-    pub fn validate(&self) -> Result<()> {
+    fn validate(&self) -> Result<()> {
         if self.name.is_empty() || self.name.contains('/') {
             bail!("`name` must be a non-empty file name, is {:?}", self.name);
         }
@@ -126,24 +113,19 @@ impl Config {
         Ok(())
     }
 
-    /// The run directory: `out` when given, else `runs_dir/name`.
-    pub fn run_dir(&self, out: Option<&Path>) -> PathBuf {
-        out.map_or_else(|| self.runs_dir.join(&self.name), Path::to_path_buf)
-    }
-
-    /// The config as TOML text.
-    pub fn to_toml(&self) -> String {
-        toml::to_string_pretty(self).expect("config serializes")
+    /// The defaults, with the `[source]` section (absent by default) at its defaults too.
+    fn template() -> Self {
+        Config {
+            source: Some(crate::source::SourceConfig::default()),
+            ..Config::default()
+        }
     }
 
     /// Every key with its default, as TOML that parses back to the defaults, with a comment
     /// above the keys and sections that have one (`springtime config --defaults`). The
     /// `[source]` section, absent by default, is shown with its defaults too.
-    pub fn defaults_toml() -> String {
-        let config = Config {
-            source: Some(crate::source::SourceConfig::default()),
-            ..Config::default()
-        };
+    fn defaults_toml() -> String {
+        let config = Self::template();
         let mut out = String::from(
             "# springtime configuration: every key with its default (`springtime config --defaults`).\n\
              # A job's TOML needs only the keys it changes; unknown keys are errors.\n\
@@ -178,7 +160,19 @@ impl Config {
     }
 }
 
-/// One line about a config key or section, where there is something to say (the README's
+impl Config {
+    /// The run directory: `out` when given, else `runs_dir/name`.
+    pub fn run_dir(&self, out: Option<&Path>) -> PathBuf {
+        out.map_or_else(|| self.runs_dir.join(&self.name), Path::to_path_buf)
+    }
+
+    /// The config as TOML text.
+    pub fn to_toml(&self) -> String {
+        toml::to_string_pretty(self).expect("config serializes")
+    }
+}
+
+/// One line about a config key or section, where there is something to say (the book's
 /// configuration table has the rest).
 fn key_help(key: &str) -> Option<&'static str> {
     // A pass's keys are the same in every pass.
@@ -335,7 +329,7 @@ mod tests {
         out
     }
 
-    /// The keys a cell of the README's configuration table names: `a.b.c`, `d` → `a.b.c`,
+    /// The keys a cell of the book's configuration table names: `a.b.c`, `d` → `a.b.c`,
     /// `a.b.d` (a bare name shares the first key's section); `a.{x,y}.c` → `a.x.c`, `a.y.c`;
     /// `a.*.c` stays a pattern.
     fn readme_keys(cell: &str) -> Vec<String> {
@@ -364,7 +358,7 @@ mod tests {
         keys
     }
 
-    /// Whether README key `pattern` (`*` = one name) covers `key` or the table `key` lies in.
+    /// Whether table key `pattern` (`*` = one name) covers `key` or the table `key` lies in.
     fn covers(pattern: &str, key: &str) -> bool {
         let (p, k): (Vec<&str>, Vec<&str>) =
             (pattern.split('.').collect(), key.split('.').collect());
@@ -387,18 +381,20 @@ mod tests {
         }
     }
 
-    /// The README's configuration table cannot drift from the code: every key
+    /// The book's configuration table (`docs/src/reference/configuration.md`) cannot drift from the code: every key
     /// `config --defaults` prints has a row, every row names real keys, and where a row lists
     /// one default per key, the defaults are the code's.
     #[test]
-    fn readme_configuration_table_matches_the_defaults() {
-        let readme =
-            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../README.md"))
-                .unwrap();
+    fn the_books_configuration_table_matches_the_defaults() {
+        let readme = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../../docs/src/reference/configuration.md"
+        ))
+        .unwrap();
         let table = readme
             .split("\n## Configuration\n")
             .nth(1)
-            .expect("README has a Configuration section");
+            .expect("the book's configuration page has a Configuration section");
         let rows: Vec<(Vec<String>, String)> = table
             .lines()
             .skip_while(|l| !l.starts_with("| section.key"))
@@ -414,7 +410,7 @@ mod tests {
             .collect();
         assert!(
             rows.len() > 30,
-            "only {} rows read from the README's table",
+            "only {} rows read from the book's table",
             rows.len()
         );
         let leaves = default_leaves();
@@ -429,7 +425,7 @@ mod tests {
             .collect();
         assert!(
             missing.is_empty(),
-            "keys of `springtime config --defaults` without a row in the README's configuration \
+            "keys of `springtime config --defaults` without a row in the book's configuration \
              table: {missing:?}"
         );
         let mut checked = 0;
@@ -439,7 +435,7 @@ mod tests {
                     // Keys without a default (absent from `config --defaults`).
                     ["data.test_dir", "train.single.lr_b"].contains(&p.as_str())
                         || leaves.iter().any(|(k, _)| covers(p, k)),
-                    "the README's configuration table names `{p}`, which is not a config key"
+                    "the book's configuration table names `{p}`, which is not a config key"
                 );
             }
             // One default per key (values may hold commas only inside brackets).
@@ -455,13 +451,12 @@ mod tests {
                 continue;
             }
             for (key, want) in keys.iter().zip(&values) {
-                let (_, have) = leaves
-                    .iter()
-                    .find(|(k, _)| k == key)
-                    .unwrap_or_else(|| panic!("README row `{key}`: not a key with a value"));
+                let (_, have) = leaves.iter().find(|(k, _)| k == key).unwrap_or_else(|| {
+                    panic!("configuration table row `{key}`: not a key with a value")
+                });
                 assert!(
                     same_value(have, want),
-                    "README says `{key}` defaults to {want}, the code to {have}"
+                    "the configuration table says `{key}` defaults to {want}, the code to {have}"
                 );
                 checked += 1;
             }

@@ -19,6 +19,7 @@ pub mod formats;
 pub mod io;
 pub mod model;
 pub mod progress;
+pub mod run;
 pub mod settings;
 pub mod sim;
 pub mod source;

@@ -5,6 +5,7 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// A setting springtime derives from the data unless the config gives it: `"auto"` (the
@@ -63,11 +64,54 @@ impl<'de, T: Deserialize<'de>> Deserialize<'de> for Auto<T> {
     }
 }
 
-/// Reads the TOML file `path` into `T` through [`parse_toml`]; errors name the file and the key.
-pub fn read_toml<T: serde::de::DeserializeOwned>(path: &Path, overrides: &[String]) -> Result<T> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read config {}", path.display()))?;
-    parse_toml(&text, overrides).with_context(|| format!("in config {}", path.display()))
+/// A job's config file: one TOML schema (unknown keys refused), `--set section.key=value`
+/// overrides, validation whose errors name the key, and the template `springtime config
+/// --defaults KIND` prints. Every config of springtime is read through it: the training job
+/// (`Config`, `train`), `fold`, `xpbd`, `latent` and drape scenes (`scene`).
+pub trait Job: Serialize + DeserializeOwned {
+    /// The schema's name in `springtime config --defaults KIND`.
+    const KIND: &'static str;
+    /// TOML for the keys that have no default (empty when every key has one): the template
+    /// is this with every other key at its default.
+    const EXAMPLE: &'static str = "";
+
+    /// Checks ranges and combinations; errors name the key.
+    fn validate(&self) -> Result<()>;
+
+    /// Parses TOML text, applies `overrides`, then validates.
+    fn parse(text: &str, overrides: &[String]) -> Result<Self> {
+        let job: Self = parse_toml(text, overrides)?;
+        job.validate()?;
+        Ok(job)
+    }
+
+    /// Reads the file `path` with `overrides`; errors name the file and the key.
+    fn load(path: &Path, overrides: &[String]) -> Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("cannot read config {}", path.display()))?;
+        Self::parse(&text, overrides).with_context(|| format!("in config {}", path.display()))
+    }
+
+    /// Every key at its default; keys without one hold [`Job::EXAMPLE`]'s values.
+    fn template() -> Self {
+        parse_toml(Self::EXAMPLE, &[]).expect("a schema's example parses")
+    }
+
+    /// [`Job::template`] as TOML text that parses back to it.
+    fn defaults_toml() -> String {
+        let body = toml::to_string_pretty(&Self::template()).expect("a config serializes");
+        let mut head = format!(
+            "# springtime {} configuration: every key with its default \
+             (`springtime config --defaults {}`).\n\
+             # A job's TOML needs only the keys it changes; unknown keys are errors.\n",
+            Self::KIND,
+            Self::KIND
+        );
+        if !Self::EXAMPLE.is_empty() {
+            head += "# Keys without a default hold an example value.\n";
+        }
+        head + "\n" + &body
+    }
 }
 
 /// Parses TOML text into `T` after applying `overrides` (`section.key=value`); errors name the

@@ -7,6 +7,7 @@
 //! prescribed paths come from the reference. A frame's positions are the decoded latent plus
 //! the pinned vertices' prescribed mean.
 
+use springtime_core::settings::Job;
 use std::path::Path;
 use std::time::Instant;
 

@@ -4,6 +4,7 @@
 //! asks of it: the reference motion of a scene, the incremental potential the latent loss
 //! minimises, and the time of one full-space frame for the benchmark.
 
+use springtime_core::settings::Job;
 use std::path::Path;
 use std::time::Instant;
 

@@ -31,13 +31,12 @@ pub mod subspace;
 pub mod surrogate;
 pub mod train;
 
-use std::path::Path;
-
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 pub use scenario::{ClothConfig, ScenarioConfig};
 use springtime_core::backend::Backend;
+use springtime_core::settings::Job;
 use springtime_core::source::implicit::NewtonConfig;
 
 /// A latent-dynamics job (`configs/latent_cloth.toml`).
@@ -74,17 +73,11 @@ fn default_name() -> String {
     "latent".into()
 }
 
-impl LatentConfig {
-    /// Reads a config with `key=value` overrides; errors name the file and the key.
-    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let cfg: Self = springtime_core::settings::read_toml(path, overrides)?;
-        cfg.validate()
-            .with_context(|| format!("{} is not a valid latent config", path.display()))?;
-        Ok(cfg)
-    }
+impl Job for LatentConfig {
+    const KIND: &'static str = "latent";
 
     /// Checks ranges; errors name the key.
-    pub fn validate(&self) -> Result<()> {
+    fn validate(&self) -> Result<()> {
         self.cloth.validate()?;
         self.scenario.validate()?;
         self.solver.validate()?;

@@ -21,9 +21,9 @@ use springtime_core::cloth::{Diagonal, Topology, grid_triangles};
 use springtime_core::data::{Rollout, Segment, SpringTruth};
 use springtime_core::model::SpringNet;
 use springtime_core::progress::Progress;
+use springtime_core::run::Run;
+use springtime_core::run::surrogate::SurrogateJson;
 use springtime_core::sim::{Physics, SimConfig, State, step_frame};
-use springtime_core::train::Run;
-use springtime_core::train::surrogate::SurrogateJson;
 
 /// A spring surrogate to distill.
 #[derive(Debug, Clone)]

@@ -30,6 +30,7 @@ use springtime_core::cloth::triangles::{V3, dot};
 use springtime_core::cloth::{Diagonal, grid_triangles};
 use springtime_core::data::npz::{Array, Npz};
 use springtime_core::progress::{Bar, Progress};
+use springtime_core::settings::Job;
 
 /// Engineering constants in the paper's CGS units (its Tables 1–3): moduli in dyn/cm, bending
 /// in erg.
@@ -335,14 +336,6 @@ fn default_name() -> String {
 }
 
 impl XpbdConfig {
-    /// Reads a config with `key=value` overrides; errors name the file and the key.
-    pub fn load(path: &Path, overrides: &[String]) -> Result<Self> {
-        let cfg: Self = springtime_core::settings::read_toml(path, overrides)?;
-        cfg.validate()
-            .with_context(|| format!("{} is not a valid xpbd config", path.display()))?;
-        Ok(cfg)
-    }
-
     /// The materials of the job (the truth where given, the initial guess): what the solve's
     /// step must be stable for.
     pub fn materials(&self) -> Vec<Gamma> {
@@ -352,7 +345,17 @@ impl XpbdConfig {
             .map(|e| e.gamma())
             .collect()
     }
+}
 
+impl Job for XpbdConfig {
+    const KIND: &'static str = "xpbd";
+    /// The targets' material (γ_cotton of the paper's Table 1), the initial guess
+    /// (γ_initial,c) and one loading: every other key has a default.
+    const EXAMPLE: &'static str = "[truth]\ne_u = 1.0e5\ne_v = 2.8e5\nmu = 4.0e4\nnu = 0.4\nb = 50.0\n\n\
+                                   [initial]\ne_u = 2.0e5\ne_v = 1.8e5\nmu = 5.0e4\nnu = 0.3\nb = 10.0\n\n\
+                                   [[scenarios]]\nkind = \"frame_shear\"\nangle_deg = 10.0\n";
+
+    /// Checks ranges; errors name the key.
     fn validate(&self) -> Result<()> {
         let s = &self.swatch;
         if s.n < 3 || !(s.size > 0.0) || !(s.density > 0.0) {

@@ -13,7 +13,7 @@
 //! two vertices opposite each interior edge (the "hinge" pair; when `bending_stride > 0`). No
 //! landmark is interpolated, so a per-spring stiffness sits where the data's forces act: on
 //! an irregular mesh a grid's particles are averages of several vertices, whose accelerations
-//! no spring attached to the particle produces (README "Data from another simulator").
+//! no spring attached to the particle produces (the book, "Data from another simulator").
 
 use serde::{Deserialize, Serialize};
 

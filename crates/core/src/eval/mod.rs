@@ -1,12 +1,9 @@
 //! Evaluation (paper §4.2): parameter RMSE (Eq. 13) and motion RMSE over test rollouts
 //! (Eq. 14).
 
-mod run;
 pub mod uniform;
 
-pub use run::evaluate;
-
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Result, bail};
@@ -19,6 +16,7 @@ use crate::data::{Rollout, Track};
 use crate::model::{ForceModel, Gnn};
 use crate::progress::Progress;
 use crate::sim::{self, Physics, State};
+use uniform::UniformBaseline;
 
 /// The `[eval]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -160,7 +158,7 @@ pub struct EvalReport {
     /// `train`'s check of the learned network against the best uniform one on training
     /// rollouts held out of the fit (`data.holdout`; the run's `validation.json`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub validation: Option<crate::train::guard::Validation>,
+    pub validation: Option<Validation>,
     /// What the model's steps cost during this evaluation.
     #[serde(default)]
     pub inference: Option<Inference>,
@@ -795,6 +793,62 @@ pub struct FreeRollout {
     pub positions: Vec<f32>,
     /// Velocities of the kept frames, `[K, P, 3]`.
     pub velocities: Vec<f32>,
+}
+
+/// `validation.json`: the learned network and the best uniform one on held-out training
+/// rollouts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Validation {
+    /// The held-out training rollouts.
+    pub rollouts: Vec<PathBuf>,
+    /// The learned network's motion RMSE on them.
+    pub trained: MotionRmse,
+    /// The best uniform network (searched on the fitted training rollouts) and its motion RMSE
+    /// on the held-out ones (`uniform.test`), with the learned network's improvement on it.
+    pub uniform: UniformBaseline,
+    /// Whether the learned network beats the uniform one at both horizons.
+    pub wins: bool,
+}
+
+impl Validation {
+    /// The file in a run directory.
+    pub fn path(run_dir: &Path) -> PathBuf {
+        run_dir.join("validation.json")
+    }
+
+    /// Reads a run's `validation.json`, `None` when the run has none.
+    pub fn read(run_dir: &Path) -> Result<Option<Self>> {
+        let path = Self::path(run_dir);
+        if !path.exists() {
+            return Ok(None);
+        }
+        crate::io::read_json(&path).map(Some)
+    }
+
+    /// One line for a log or a report.
+    pub fn summary(&self) -> String {
+        let u = &self.uniform;
+        let verdict = if self.wins {
+            "the learned network beats it"
+        } else {
+            "WARNING: the learned network does NOT beat the best uniform network; a uniform \
+             cloth with these k and b moves closer to the data"
+        };
+        format!(
+            "on {} held-out training rollouts: learned {:.4e} / {:.4e} m (short / long horizon), \
+             best uniform (k {:.4} N/m, b {:.4e} N·s/m) {:.4e} / {:.4e} m: {:+.1} % / {:+.1} %; \
+             {verdict}",
+            self.rollouts.len(),
+            self.trained.short.mean,
+            self.trained.long.mean,
+            u.k,
+            u.b,
+            u.test.short.mean,
+            u.test.long.mean,
+            100.0 * u.improvement_short,
+            100.0 * u.improvement_long,
+        )
+    }
 }
 
 #[cfg(test)]

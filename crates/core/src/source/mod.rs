@@ -86,7 +86,7 @@ pub struct SourceConfig {
     pub test_rollouts: usize,
     /// Radius of an anchor neighbourhood in the rest rectangle, m (0 pins single landmarks).
     pub anchor_radius: f64,
-    /// Store velocities beside positions (exact target forces; see README).
+    /// Store velocities beside positions (exact target forces; see the book's rollout format page).
     pub save_velocities: bool,
     /// What is stored of training rollouts.
     pub storage: Storage,

@@ -140,7 +140,7 @@ pub fn run_index(
             train::train(&config, &options, progress)?;
         }
         if !config.data.split()?.test.is_empty() {
-            crate::eval::evaluate(&dir, None, None, &[], progress)?;
+            crate::run::evaluate(&dir, None, None, &[], progress)?;
         }
         if plan.report && config.model.kind == crate::model::ModelKind::Springs {
             match reporter {

@@ -2,6 +2,7 @@
 //! fixed order. The plan and a job's index decide everything the job does, so any machine that
 //! runs index `I` runs the same job.
 
+use crate::settings::Job as _;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 

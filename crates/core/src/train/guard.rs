@@ -7,74 +7,19 @@
 //! say; `train` writes it to `validation.json`, says loudly in the log when the learned network
 //! does not win at both horizons, and `eval.json` and the report carry it.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::Result;
 use burn::tensor::Device;
-use serde::{Deserialize, Serialize};
 
 use crate::cloth::Topology;
-use crate::eval::uniform::{self, UniformBaseline};
-use crate::eval::{self, EvalConfig, MotionRmse};
+use crate::eval::uniform::{self};
+use crate::eval::{self, EvalConfig};
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::sim::Physics;
 
-/// `validation.json`: the learned network and the best uniform one on held-out training
-/// rollouts.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Validation {
-    /// The held-out training rollouts.
-    pub rollouts: Vec<PathBuf>,
-    /// The learned network's motion RMSE on them.
-    pub trained: MotionRmse,
-    /// The best uniform network (searched on the fitted training rollouts) and its motion RMSE
-    /// on the held-out ones (`uniform.test`), with the learned network's improvement on it.
-    pub uniform: UniformBaseline,
-    /// Whether the learned network beats the uniform one at both horizons.
-    pub wins: bool,
-}
-
-impl Validation {
-    /// The file in a run directory.
-    pub fn path(run_dir: &Path) -> PathBuf {
-        run_dir.join("validation.json")
-    }
-
-    /// Reads a run's `validation.json`, `None` when the run has none.
-    pub fn read(run_dir: &Path) -> Result<Option<Self>> {
-        let path = Self::path(run_dir);
-        if !path.exists() {
-            return Ok(None);
-        }
-        crate::io::read_json(&path).map(Some)
-    }
-
-    /// One line for a log or a report.
-    pub fn summary(&self) -> String {
-        let u = &self.uniform;
-        let verdict = if self.wins {
-            "the learned network beats it"
-        } else {
-            "WARNING: the learned network does NOT beat the best uniform network; a uniform \
-             cloth with these k and b moves closer to the data"
-        };
-        format!(
-            "on {} held-out training rollouts: learned {:.4e} / {:.4e} m (short / long horizon), \
-             best uniform (k {:.4} N/m, b {:.4e} N·s/m) {:.4e} / {:.4e} m: {:+.1} % / {:+.1} %; \
-             {verdict}",
-            self.rollouts.len(),
-            self.trained.short.mean,
-            self.trained.long.mean,
-            u.k,
-            u.b,
-            u.test.short.mean,
-            u.test.long.mean,
-            100.0 * u.improvement_short,
-            100.0 * u.improvement_long,
-        )
-    }
-}
+pub use crate::eval::Validation;
 
 /// Compares `model` (at `physics`) with the best uniform network around `(k0, b0)`, searched on
 /// `train_files`, on the held-out `validation_files`.

@@ -10,12 +10,11 @@ pub mod least_squares;
 pub mod losses;
 pub mod run;
 pub mod scale;
-pub mod surrogate;
 
 pub use losses::{
     ForceOn, LossTerms, LossValues, LossWeights, loss, loss_with_budget, motion_loss,
 };
-pub use run::{MetricsRow, ModelMeta, Run, RunDir, RunState, Status};
+pub use run::{MetricsRow, ModelMeta, RunDir, RunState, Status};
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -520,7 +519,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         };
         progress.note(&format!(
             "note: the {model} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU \
-             a build with `--features autotune` trains it {speedup} faster (H100; README, \"On a \
+             a build with `--features autotune` trains it {speedup} faster (H100; the book, \"On a \
              GPU\")"
         ));
     }

@@ -1,7 +1,7 @@
 //! The learned network's overall scale, searched over free rollouts (ours; `train.scale_search`).
 //!
 //! A fit of the forces on the data's own states (`train.force_on = "target"`, teacher forcing) ranks
-//! the springs by stiffness where a rollout loss cannot (third-party data: see README "Data from
+//! the springs by stiffness where a rollout loss cannot (third-party data: see the book (docs/), "Data from
 //! another simulator"), but its values are attenuated: the regressors — spring strains measured
 //! from positions that no spring network explains exactly — are noisy, and least squares shrinks
 //! their coefficients towards zero. A network with the right shape and too small a size then

@@ -21,7 +21,7 @@ pub fn evaluate(
     progress: &Progress,
 ) -> Result<EvalReport> {
     let start = Instant::now();
-    let mut loaded = train::Run::open(run_dir, set, backend)?;
+    let mut loaded = super::Run::open(run_dir, set, backend)?;
     if let Some(d) = data {
         loaded.config.data.test_dir = Some(d.to_path_buf());
     }
@@ -118,7 +118,7 @@ pub fn evaluate(
         rmse_b,
         stiffness_map_corr,
         uniform_baseline,
-        validation: train::guard::Validation::read(&run.dir)?,
+        validation: eval::Validation::read(&run.dir)?,
         motion_rmse: motion,
         inference: Some(eval::Inference {
             us_per_step: curves.us_per_step(),

@@ -8,8 +8,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::SpringFamily;
 use crate::model::SpringNet;
+use crate::run::Run;
 use crate::sim::Physics;
-use crate::train::Run;
 
 /// The `format` tag of [`SurrogateJson`].
 pub const FORMAT: &str = "springtime-surrogate/1";
