@@ -51,7 +51,10 @@ pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
 }
 
 /// Writes through a temporary path that Burn's own writers fill, then renames it into place.
-pub fn write_atomic_with_path(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+pub(crate) fn write_atomic_with_path(
+    path: &Path,
+    write: impl FnOnce(&Path) -> Result<()>,
+) -> Result<()> {
     let tmp = temp_beside(path)?;
     write(tmp.path()).with_context(|| format!("cannot write {}", path.display()))?;
     persist(tmp, path)

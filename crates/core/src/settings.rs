@@ -135,7 +135,7 @@ pub fn parse_toml<T: serde::de::DeserializeOwned>(text: &str, overrides: &[Strin
 }
 
 /// Sets `section.key=value` in a TOML table, creating sections as needed.
-pub fn apply_override(table: &mut toml::Table, assignment: &str) -> Result<()> {
+pub(crate) fn apply_override(table: &mut toml::Table, assignment: &str) -> Result<()> {
     let Some((key, value)) = assignment.split_once('=') else {
         bail!("--set {assignment:?}: expected section.key=value");
     };

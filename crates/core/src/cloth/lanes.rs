@@ -39,7 +39,7 @@ macro_rules! each3 {
 pub(crate) use each3;
 
 /// Lanes of a [`Lanes`].
-pub const LANES: usize = 8;
+pub(crate) const LANES: usize = 8;
 
 /// A real number type: `f64` or eight `f64` lanes.
 pub trait Real:

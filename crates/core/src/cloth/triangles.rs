@@ -37,7 +37,7 @@ pub fn scale<R: Real>(a: [R; 3], s: R) -> [R; 3] {
 
 /// `a` where `mask` holds, else `b`, per coordinate.
 #[inline(always)]
-pub fn select3<R: Real>(mask: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
+pub(crate) fn select3<R: Real>(mask: R::Mask, a: [R; 3], b: [R; 3]) -> [R; 3] {
     each3!(|c| R::select(mask, a[c], b[c]))
 }
 

@@ -106,7 +106,7 @@ impl ClipConfig {
 }
 
 /// 64-bit FNV-1a of a string: a stable per-rollout seed.
-pub fn fnv1a(s: &str) -> u64 {
+pub(crate) fn fnv1a(s: &str) -> u64 {
     s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
         (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
     })

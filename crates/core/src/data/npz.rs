@@ -354,6 +354,7 @@ impl Array {
     }
 
     /// The whole `.npy` entry: the header, then the data.
+    #[cfg(test)]
     fn to_npy(&self) -> Vec<u8> {
         let mut out = self.npy_header();
         out.extend_from_slice(&self.bytes);
@@ -813,12 +814,6 @@ fn unravel(shape: &[usize], mut flat: usize) -> String {
         flat /= n;
     }
     format!(" (index {idx:?})")
-}
-
-/// Writes `bytes` to `w`; used by tests that build malformed files.
-#[doc(hidden)]
-pub fn npy_bytes(array: &Array) -> Vec<u8> {
-    array.to_npy()
 }
 
 #[cfg(test)]

@@ -96,7 +96,7 @@ pub struct Rollout {
 /// any cloth from a 1 cm swatch at 1 MHz to a 1 km sail at one frame a second): a value outside
 /// is a unit mix-up or a damaged file, which the reader refuses naming the file and the key
 /// instead of letting a later stage fail without them.
-pub fn plausible_range(key: &str) -> (f64, f64, &'static str) {
+pub(crate) fn plausible_range(key: &str) -> (f64, f64, &'static str) {
     match key {
         "frame_dt" => (1e-6, 1.0, "s"),
         "total_mass" => (1e-6, 1e4, "kg"),

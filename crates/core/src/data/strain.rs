@@ -197,13 +197,13 @@ impl StrainStats {
 }
 
 /// Below this 95th percentile of `|strain|` the cloth counts as barely stretching.
-pub const BARELY_STRETCHES: f64 = 0.005;
+pub(crate) const BARELY_STRETCHES: f64 = 0.005;
 
 /// Above this strain an edge is more than twice its rest length.
 pub const OVERSTRETCHED: f64 = 1.0;
 
 /// Above this share of overstretched edge samples the data is flagged.
-pub const OVERSTRETCHED_SHARE: f64 = 1e-3;
+pub(crate) const OVERSTRETCHED_SHARE: f64 = 1e-3;
 
 impl StrainSummary {
     /// What the distribution means for training, one warning a line (none when it is ordinary).

@@ -364,7 +364,7 @@ pub fn motion_curves(
 /// [`motion_curves`] for the GNN: each test rollout starts from its first `C + 1` GNN frames
 /// (every `downsample`-th data frame) and is rolled out autoregressively, pinned particles
 /// following the data; the curve holds the error of every predicted GNN frame.
-pub fn gnn_motion_curves(
+pub(crate) fn gnn_motion_curves(
     model: &Gnn,
     downsample: usize,
     topology: &Topology,
@@ -538,7 +538,7 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
 /// index: the value of the mesh triangle that contains the midpoint (the nearest triangle
 /// centroid when none does, e.g. on the boundary in floating point). `None` when the mesh
 /// carries no stiffness map.
-pub fn map_at_structural_springs(
+pub(crate) fn map_at_structural_springs(
     topology: &Topology,
     rest_uv: &[[f64; 2]],
     mesh: &MeshTruth,

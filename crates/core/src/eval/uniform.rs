@@ -27,7 +27,7 @@ const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
 
 /// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `files` (`None` when it
 /// is unstable at `physics`' step or a rollout diverges).
-pub fn rollout_rmse(
+pub(crate) fn rollout_rmse(
     topology: &Topology,
     physics: &Physics,
     k: f64,
@@ -42,7 +42,7 @@ pub fn rollout_rmse(
 
 /// Mean motion RMSE of free rollouts of the spring network `model` on `files` (`None` when it is
 /// unstable at `physics`' step or a rollout diverges).
-pub fn network_rollout_rmse(
+pub(crate) fn network_rollout_rmse(
     model: &SpringNet,
     topology: &Topology,
     physics: &Physics,

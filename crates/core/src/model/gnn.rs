@@ -364,7 +364,7 @@ fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
 }
 
 /// Every unordered pair of points closer than `r`, by a uniform grid of cell size `r`.
-pub fn radius_pairs(points: &[[f32; 3]], r: f32) -> Vec<(usize, usize)> {
+pub(crate) fn radius_pairs(points: &[[f32; 3]], r: f32) -> Vec<(usize, usize)> {
     let cell = |p: [f32; 3]| p.map(|c| (c / r).floor() as i64);
     let mut grid: HashMap<[i64; 3], Vec<usize>> = HashMap::new();
     for (i, &p) in points.iter().enumerate() {

@@ -333,7 +333,7 @@ impl ImplicitEuler {
 
 /// The nearest positive semi-definite matrix (negative eigenvalues set to zero) of a symmetric
 /// `m × m` row-major matrix.
-pub fn project_psd(matrix: &[f64], m: usize) -> Vec<f64> {
+pub(crate) fn project_psd(matrix: &[f64], m: usize) -> Vec<f64> {
     let eig = SymmetricEigen::new(DMatrix::from_row_slice(m, m, matrix));
     if eig.eigenvalues.iter().all(|&l| l >= 0.0) {
         return matrix.to_vec();

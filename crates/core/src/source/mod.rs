@@ -517,7 +517,7 @@ pub struct Generation {
 /// Takes the exclusive hold on generating into the data folder `dir` (`.<dir>.generate.lock`
 /// beside it), waiting with a note while another process holds it, so that processes sharing
 /// the folder (a sweep's jobs) generate it once. Released on drop or when the process ends.
-pub fn generation_lock(
+pub(crate) fn generation_lock(
     dir: &Path,
     progress: &crate::progress::Progress,
 ) -> Result<crate::io::FileLock> {

@@ -94,7 +94,7 @@ pub enum Outcome {
 
 /// What draws a finished job's report page (`report = true` in a plan): the command line
 /// passes its `report` command; without one the page is left out with a note.
-pub type Reporter<'a> = &'a dyn Fn(&Path, &Progress) -> Result<()>;
+pub(crate) type Reporter<'a> = &'a dyn Fn(&Path, &Progress) -> Result<()>;
 
 /// Runs job `index` of `plan` into `out/<index>-<slug>/`: trains it (resuming an interrupted
 /// run from its last checkpoint), evaluates it, draws its report page when the plan asks and a

@@ -31,7 +31,7 @@ pub struct ComplianceConfig {
 const MAX_RATIO: f64 = 100.0;
 
 /// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts.
-pub fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
+pub(crate) fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
     let topo = &clips.topology;
     let mut sum = vec![0.0; topo.num_springs()];
     let mut frames = 0usize;

@@ -25,7 +25,7 @@ use crate::sim::{GRAVITY, Stability};
 /// surrogate below: a quarter of the limit, so training can raise `k` several-fold.
 pub const AUTO_SUBSTEPS_TARGET: f64 = 1.0;
 /// The stability number a fitted initial guess is clamped to when the substeps are fixed.
-pub const INITIAL_CLAMP: f64 = 2.0;
+pub(crate) const INITIAL_CLAMP: f64 = 2.0;
 /// At most this many clips are sampled for the fit.
 const FIT_CLIPS: usize = 48;
 
@@ -60,7 +60,7 @@ impl UniformFit {
 /// Below this share of the target force explained, the fitted `k` is not trusted and
 /// `model.k_init = "auto"` is found by a search over free rollouts instead
 /// ([`search_stiffness`]).
-pub const FIT_TRUST: f64 = 0.3;
+pub(crate) const FIT_TRUST: f64 = 0.3;
 
 /// Training rollouts the fallback search simulates.
 const SEARCH_FILES: usize = 4;
@@ -77,7 +77,7 @@ pub struct SearchContext<'a> {
 /// The uniform stiffness whose free rollouts best follow the training files (damping `b`,
 /// Rayleigh `c`): `k = 2^i` N/m for `i = −3…13`, each at its own automatic substeps, the search
 /// stopping three candidates past the best. Returns `(k, substeps, motion RMSE)`.
-pub fn search_stiffness(
+pub(crate) fn search_stiffness(
     clips: &ClipSet,
     gravity: [f64; 3],
     b: f64,

@@ -10,7 +10,7 @@ use crate::sim::{self, Drive, Physics};
 
 /// Memory the fused rollout may keep between its forward and backward passes by default, MiB
 /// (beyond it, states are checkpointed and recomputed).
-pub const DEFAULT_STATE_BUDGET_MIB: usize = 1024;
+pub(crate) const DEFAULT_STATE_BUDGET_MIB: usize = 1024;
 
 /// Weights `λ` of the loss terms (Eq. 6).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

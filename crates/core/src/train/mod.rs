@@ -416,7 +416,7 @@ pub fn topology(config: &Config, first: &Rollout) -> Result<Topology> {
 }
 
 /// The training device of a config.
-pub fn training_device(config: &Config) -> Result<Device> {
+pub(crate) fn training_device(config: &Config) -> Result<Device> {
     let device = config.backend.device()?.autodiff();
     // Fresh parameters (the baselines' layers) are drawn from the device's generator.
     device.seed(config.train.seed);
@@ -752,7 +752,7 @@ pub struct Job<'a> {
 }
 
 /// A model family the clip-training loop can fit.
-pub trait Trainable: Module + Sized {
+pub(crate) trait Trainable: Module + Sized {
     /// The loss on a batch of clips at global iteration `iteration` (0-based).
     fn batch_loss(
         &self,
@@ -992,7 +992,7 @@ impl Trainable for Gnn {
 }
 
 /// One training window of the GNN on the host: `C + 2` GNN frames of one clip.
-pub struct HostWindow {
+pub(crate) struct HostWindow {
     frames: Vec<Vec<[f32; 3]>>,
     pinned: Vec<bool>,
 }
@@ -1008,7 +1008,11 @@ impl HostWindow {
 }
 
 /// One random window of `C + 2` GNN frames (`downsample` data frames apart) from every clip.
-pub fn gnn_windows(batch: &ClipBatch, config: &GnnConfig, rng: &mut StdRng) -> Vec<HostWindow> {
+pub(crate) fn gnn_windows(
+    batch: &ClipBatch,
+    config: &GnnConfig,
+    rng: &mut StdRng,
+) -> Vec<HostWindow> {
     let [b, stored, p, _] = batch.positions.dims();
     let span = config.window_frames();
     // Refused by name before training starts (`ModelMeta::new`).

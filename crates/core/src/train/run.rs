@@ -100,7 +100,7 @@ impl MetricsRow {
 }
 
 /// Metrics columns, in order (the header [`MetricsRow`] writes).
-pub const METRICS_HEADER: &str =
+pub(crate) const METRICS_HEADER: &str =
     "iteration,pass,loss,force,impulse,position,k_neg,b_neg,rmse_k,rmse_b,seconds,clamped";
 
 /// Reads a `metrics.csv` (columns by header name). With `lenient`, rows that do not parse (the
@@ -142,7 +142,7 @@ fn write_metrics<W: Write>(to: W, rows: &[MetricsRow], header: bool) -> Result<(
 
 /// An exclusive hold on a run directory for one training process: an OS file lock on
 /// `.<name>.lock` beside the directory (see [`crate::io::FileLock`]).
-pub type RunLock = crate::io::FileLock;
+pub(crate) type RunLock = crate::io::FileLock;
 
 impl RunDir {
     /// A run directory at `dir` (not created yet).

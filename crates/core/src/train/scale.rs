@@ -70,7 +70,7 @@ pub struct ScaleSearch {
 
 /// `blend.json`: what the blend search tried and kept.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct BlendSearch {
+pub(crate) struct BlendSearch {
     /// Which map was blended: `trained` (the trained network's), or `compliance`.
     pub map: String,
     /// The share of the learned map kept (0: uniform).
@@ -113,7 +113,7 @@ const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2);
 /// `model`'s map blended into it and the factors around the best; returns the kept network, the
 /// physics it runs at (substeps possibly raised) and the record.
 #[allow(clippy::too_many_arguments)]
-pub fn blend_search(
+pub(crate) fn blend_search(
     model: &SpringNet,
     (k_init, b_init): (f64, f64),
     topology: &Topology,

@@ -675,7 +675,7 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
 /// Gradients of [`step`]: given `gout = (∂ℓ/∂x', ∂ℓ/∂v', ∂ℓ/∂f)` stacked `[3, B, P, 3]`, writes
 /// `∂ℓ/∂x`, `∂ℓ/∂v` `[B, P, 3]` and `∂ℓ/∂k`, `∂ℓ/∂b` `[S]`.
 #[allow(clippy::too_many_arguments)]
-pub fn step_backward<T: Float + Send + Sync>(
+pub(crate) fn step_backward<T: Float + Send + Sync>(
     g: &HostGraph,
     x: &[T],
     v: &[T],

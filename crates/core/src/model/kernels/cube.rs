@@ -35,11 +35,11 @@ use super::{
 };
 
 /// Clips summed by one thread of the parameter-gradient kernel.
-pub const CLIPS_PER_THREAD: usize = 16;
+pub(crate) const CLIPS_PER_THREAD: usize = 16;
 
 /// The spring graph on one CubeCL device.
 #[derive(Debug)]
-pub struct DeviceGraph {
+pub(crate) struct DeviceGraph {
     /// Endpoints `a, b` of every spring, `[2S]` u32.
     ends: Handle,
     /// Rest lengths `[S]` f32.
@@ -57,7 +57,7 @@ pub struct DeviceGraph {
 
 /// Device copies of a host structure (a [`HostGraph`], [`Segments`]), one per CubeCL device it
 /// has run on.
-pub struct CubeCache<T>(Mutex<Vec<(CubeDevice, Arc<T>)>>);
+pub(crate) struct CubeCache<T>(Mutex<Vec<(CubeDevice, Arc<T>)>>);
 
 impl<T> CubeCache<T> {
     /// The copy on `device`, made by `upload` on first use.
@@ -222,7 +222,7 @@ fn gather_forces<F: Float>(
 
 /// The constants of a step: `h`, `h/m`, the Rayleigh `c` and the weight `m g`.
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
-pub struct StepConsts {
+pub(crate) struct StepConsts {
     h: f32,
     hm: f32,
     c: f32,
@@ -877,7 +877,7 @@ impl RolloutKernels for CubeBackend {
 
 /// A [`Segments`] CSR list on one CubeCL device.
 #[derive(Debug)]
-pub struct CubeSegments {
+pub(crate) struct CubeSegments {
     /// `[N + 1]` u32.
     offsets: Handle,
     /// `[E]` u32.

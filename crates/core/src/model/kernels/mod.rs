@@ -303,7 +303,7 @@ pub fn rollout_loss(
 
 /// The forward tape of a fused rollout, in the precision it ran in.
 #[derive(Debug, Clone)]
-pub enum RolloutTape {
+pub(crate) enum RolloutTape {
     /// An f32 rollout.
     F32(Arc<rollout::Tape<f32>>),
     /// An f64 rollout.
@@ -312,7 +312,7 @@ pub enum RolloutTape {
 
 /// The inputs of a fused rollout, kept for its backward.
 #[derive(Debug, Clone)]
-pub struct RolloutInputs<B: Backend> {
+pub(crate) struct RolloutInputs<B: Backend> {
     x0: FloatTensor<B>,
     v0: FloatTensor<B>,
     k: FloatTensor<B>,
@@ -323,7 +323,7 @@ pub struct RolloutInputs<B: Backend> {
 }
 
 /// Host-side halves of the fused rollout, which the autodiff wrapper calls separately.
-pub trait RolloutKernels: Backend {
+pub(crate) trait RolloutKernels: Backend {
     /// Forward: the losses `[3]` and the tape for the backward.
     fn rollout_forward(
         inputs: &RolloutInputs<Self>,

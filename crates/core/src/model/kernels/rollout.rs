@@ -563,7 +563,7 @@ struct ChunkGradient<T> {
 }
 
 /// How far above the median chunk's gradient norm a chunk's may lie and still count.
-pub const CHUNK_OUTLIER_RATIO: f64 = 100.0;
+pub(crate) const CHUNK_OUTLIER_RATIO: f64 = 100.0;
 
 /// Clips left out of gradients since the last [`take_dropped_clips`].
 static DROPPED_CLIPS: AtomicUsize = AtomicUsize::new(0);
@@ -574,7 +574,7 @@ static DROPPED_CLIPS: AtomicUsize = AtomicUsize::new(0);
 /// of cloth grows at `√(k ε / m)`); over a long clip it overflows or dwarfs every other clip's.
 /// Such chunks of clips, non-finite or more than [`CHUNK_OUTLIER_RATIO`] times the median
 /// chunk's gradient norm, are left out of the step and the rest averaged.
-pub fn take_dropped_clips() -> usize {
+pub(crate) fn take_dropped_clips() -> usize {
     DROPPED_CLIPS.swap(0, Ordering::Relaxed)
 }
 
