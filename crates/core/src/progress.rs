@@ -159,7 +159,7 @@ impl Bar {
     }
 
     /// Leaves the bar where it stopped (on an error).
-    pub fn abandon(&self) {
+    pub(crate) fn abandon(&self) {
         match &self.inner {
             Inner::Bar(b) => b.abandon(),
             Inner::Lines(l) => l.lock().expect("lock").maybe_print(true),

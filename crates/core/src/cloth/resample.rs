@@ -72,7 +72,7 @@ impl Resampler {
     }
 
     /// Whether particle `p` copies landmark `p` for every `p` of `landmarks` landmarks.
-    pub fn is_identity(&self, landmarks: usize) -> bool {
+    pub(crate) fn is_identity(&self, landmarks: usize) -> bool {
         self.index.len() == landmarks
             && self
                 .index
@@ -97,7 +97,7 @@ impl Resampler {
     }
 
     /// Resamples a per-landmark scalar.
-    pub fn apply1(&self, src: &[f64]) -> Vec<f64> {
+    pub(crate) fn apply1(&self, src: &[f64]) -> Vec<f64> {
         self.index
             .iter()
             .zip(&self.weight)

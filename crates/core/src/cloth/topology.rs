@@ -402,7 +402,7 @@ impl Topology {
     }
 
     /// Particle `i`'s mass relative to the mean ([`Topology::mass_weight`]; 1 on a grid).
-    pub fn relative_mass(&self, i: usize) -> f64 {
+    pub(crate) fn relative_mass(&self, i: usize) -> f64 {
         self.mass_weight.as_ref().map_or(1.0, |w| w[i])
     }
 
@@ -443,22 +443,6 @@ impl Topology {
         self.rest_uv.iter().map(|&[u, v]| [u, v, 0.0]).collect()
     }
 
-    /// An upper bound of the largest eigenvalue of `Σ_s w_s u_s u_sᵀ` for any spring directions
-    /// `u_s` (block Gershgorin): `max_i 2 Σ_{s∋i} max(w_s, 0)`.
-    /// With [`Topology::mass_weight`] `W`, the bound for `W^{-1/2} (Σ_s w_s u_s u_sᵀ) W^{-1/2}`:
-    /// each spring's weight divided by its lighter end's `W`.
-    pub fn max_eigenvalue_bound(&self, weights: &[f64]) -> f64 {
-        assert_eq!(weights.len(), self.num_springs());
-        let mut sum = vec![0f64; self.num_particles()];
-        let mw = |i: usize| self.mass_weight.as_ref().map_or(1.0, |m| m[i]);
-        for (&[a, b], &w) in self.springs.iter().zip(weights) {
-            let lightest = mw(a).min(mw(b));
-            sum[a] += w.max(0.0) / lightest;
-            sum[b] += w.max(0.0) / lightest;
-        }
-        2.0 * sum.into_iter().fold(0.0, f64::max)
-    }
-
     /// Largest eigenvalue of `Σ_s w_s u_s u_sᵀ` (3P × 3P, `u_s` the unit rest direction of
     /// spring `s`, assembled through the signed incidence matrix) by power iteration; with
     /// [`Topology::mass_weight`] `W`, of `W^{-1/2} (Σ_s w_s u_s u_sᵀ) W^{-1/2}` (the stiffness
@@ -466,7 +450,7 @@ impl Topology {
     ///
     /// With `w = k` this is the largest `ω²·m` of the rest-state stiffness matrix; with `w = b`
     /// the largest damping rate times `m` (see [`crate::sim::Stability`]).
-    pub fn max_eigenvalue(&self, weights: &[f64]) -> f64 {
+    pub(crate) fn max_eigenvalue(&self, weights: &[f64]) -> f64 {
         assert_eq!(weights.len(), self.num_springs());
         let p = self.num_particles();
         let dirs: Vec<[f64; 3]> = self

@@ -88,20 +88,6 @@ impl RestTriangle {
     pub fn deformation(&self, x: &[V3]) -> [[f64; 2]; 3] {
         deformation([x[self.v[0]], x[self.v[1]], x[self.v[2]]], self.dm_inv)
     }
-
-    /// The gradient of `Σ_rc P[r][c] F[r][c]` with respect to the three vertices: the force
-    /// map of a first Piola–Kirchhoff stress `P` (3 × 2), `[∂/∂x₀, ∂/∂x₁, ∂/∂x₂]`.
-    #[inline]
-    pub fn pull_back(&self, p: [[f64; 2]; 3]) -> [V3; 3] {
-        let m = self.dm_inv;
-        let g1: V3 = std::array::from_fn(|r| p[r][0] * m[0][0] + p[r][1] * m[0][1]);
-        let g2: V3 = std::array::from_fn(|r| p[r][0] * m[1][0] + p[r][1] * m[1][1]);
-        [
-            [-(g1[0] + g2[0]), -(g1[1] + g2[1]), -(g1[2] + g2[2])],
-            g1,
-            g2,
-        ]
-    }
 }
 
 /// `F = Ds Dm⁻¹` (3 × 2) of a triangle with corners `x` (positions or velocities) and rest

@@ -282,7 +282,7 @@ pub struct SetInfo {
 impl SetInfo {
     /// The files' Rayleigh damping for particles of `particle_mass`: the same damping rate per
     /// unit mass as the landmarks, which share `total_mass` equally.
-    pub fn rayleigh_for(&self, particle_mass: f64) -> Option<f64> {
+    pub(crate) fn rayleigh_for(&self, particle_mass: f64) -> Option<f64> {
         self.rayleigh
             .map(|c| c * self.landmarks as f64 / self.total_mass * particle_mass)
     }
@@ -478,7 +478,7 @@ impl ClipSet {
 
     /// Whether every particle sits on one landmark (no interpolation between the data's
     /// vertices; [`Resampler::is_exact`]).
-    pub fn particles_are_landmarks(&self) -> bool {
+    pub(crate) fn particles_are_landmarks(&self) -> bool {
         self.resampler.as_ref().is_some_and(Resampler::is_exact)
     }
 
@@ -510,7 +510,7 @@ impl ClipSet {
     /// reads a window of each clip moves the [`ClipRef`]s and uploads only the window).
     ///
     /// Panics if `steps` is 0 or more than the clips'.
-    pub fn host_batch_of(&self, clips: &[ClipRef], steps: usize) -> Result<HostBatch> {
+    pub(crate) fn host_batch_of(&self, clips: &[ClipRef], steps: usize) -> Result<HostBatch> {
         assert!(
             (1..=self.steps).contains(&steps),
             "{steps} steps of clips of {}",

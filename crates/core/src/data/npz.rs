@@ -290,7 +290,7 @@ impl Array {
 
     /// The values as `i64`, from any integer dtype, or a float dtype holding whole numbers
     /// (not bool; `None` when a value does not fit).
-    pub fn to_i64(&self) -> Option<Vec<i64>> {
+    pub(crate) fn to_i64(&self) -> Option<Vec<i64>> {
         let b = &self.bytes;
         Some(match self.dtype {
             Dtype::I8 => b.iter().map(|&v| i64::from(v as i8)).collect(),
@@ -314,7 +314,7 @@ impl Array {
     }
 
     /// The values as `bool`, from `bool` or integers (non-zero = true).
-    pub fn to_bool(&self) -> Option<Vec<bool>> {
+    pub(crate) fn to_bool(&self) -> Option<Vec<bool>> {
         match self.dtype {
             Dtype::Bool => Some(self.bytes.iter().map(|&v| v != 0).collect()),
             d if d.is_float() => None,

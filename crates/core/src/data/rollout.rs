@@ -378,7 +378,7 @@ impl Rollout {
     }
 
     /// Number of frames of the full timeline (the end of the last stored window).
-    pub fn timeline_frames(&self) -> usize {
+    pub(crate) fn timeline_frames(&self) -> usize {
         self.segments.last().map_or(0, |s| s.start + s.len)
     }
 

@@ -94,12 +94,12 @@ impl GnnConfig {
     }
 
     /// Node features: `3C` velocities, the pinned flag and the distance to the pins.
-    pub fn node_features(&self) -> usize {
+    pub(crate) fn node_features(&self) -> usize {
         3 * self.history + 2
     }
 
     /// Learnable parameters of the network.
-    pub fn parameter_count(&self) -> usize {
+    pub(crate) fn parameter_count(&self) -> usize {
         let l = self.latent;
         let mlp = |input: usize, out: usize, norm: bool| {
             (input + 1) * l
@@ -114,7 +114,7 @@ impl GnnConfig {
     }
 
     /// Data frames a training window spans: `C + 2` GNN frames.
-    pub fn window_frames(&self) -> usize {
+    pub(crate) fn window_frames(&self) -> usize {
         (self.history + 1) * self.downsample + 1
     }
 }
@@ -271,7 +271,7 @@ impl Gnn {
 
     /// The graph of one cloth from its last `C + 1` positions (`frames[k]` is `[P]` of xyz,
     /// oldest first), appended to `graph`.
-    pub fn append_graph(&self, graph: &mut Graph, frames: &[&[[f32; 3]]], pinned: &[bool]) {
+    pub(crate) fn append_graph(&self, graph: &mut Graph, frames: &[&[[f32; 3]]], pinned: &[bool]) {
         let s = &self.stats;
         let p = pinned.len();
         let now = frames[frames.len() - 1];
@@ -310,7 +310,7 @@ impl Gnn {
     }
 
     /// Accelerations in metres per frame² from normalised predictions.
-    pub fn denormalize(&self, pred: &[f32]) -> Vec<[f64; 3]> {
+    pub(crate) fn denormalize(&self, pred: &[f32]) -> Vec<[f64; 3]> {
         let s = &self.stats;
         pred.chunks_exact(3)
             .map(|a| [0, 1, 2].map(|c| a[c] as f64 * s.acc_std[c] + s.acc_mean[c]))
@@ -407,7 +407,7 @@ pub struct Window<'a> {
 impl Gnn {
     /// The training graph and the normalised target accelerations `[N, 3]` (0 for pinned
     /// particles) and free-particle mask `[N]` of a set of windows, with random-walk noise.
-    pub fn training_batch(
+    pub(crate) fn training_batch(
         &self,
         windows: &[Window],
         rng: &mut impl Rng,

@@ -103,7 +103,7 @@ impl ModelConfig {
     }
 
     /// The curvature elements' initial stiffness beside springs of initial stiffness `k_init`.
-    pub fn curvature_init_for(&self, k_init: f64) -> f64 {
+    pub(crate) fn curvature_init_for(&self, k_init: f64) -> f64 {
         self.curvature_init.or(k_init / 20.0)
     }
 }

@@ -50,7 +50,7 @@ impl NeuralOdeConfig {
     }
 
     /// Learnable parameters for `particles` particles.
-    pub fn parameter_count(&self, particles: usize) -> usize {
+    pub(crate) fn parameter_count(&self, particles: usize) -> usize {
         let (w, h, p) = (self.hidden, self.layers, particles);
         (6 * p + 1) * w + (h - 1) * (w + 1) * w + (w + 1) * 3 * p
     }

@@ -125,12 +125,12 @@ impl SpringGraph {
     /// Whether the fused ops take the curvature elements along with the springs: the CPU
     /// kernels do; the CubeCL kernels know springs only, so there the elements' forces are
     /// tensor ops beside the fused spring forces, and the step is tensor ops.
-    pub fn fused_curvature(&self) -> bool {
+    pub(crate) fn fused_curvature(&self) -> bool {
         self.fused_forces() && (self.fused_on == FusedOn::Host || self.host.num_triples() == 0)
     }
 
     /// Whether the fused whole-rollout op ([`kernels::rollout_loss`]) runs here.
-    pub fn fused_rollout(&self) -> bool {
+    pub(crate) fn fused_rollout(&self) -> bool {
         self.kernel == Kernel::Fused && self.fused_on == FusedOn::Host
     }
 }

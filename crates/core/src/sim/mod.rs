@@ -108,7 +108,7 @@ impl Physics {
 
     /// Net force at a state: the model's internal forces plus gravity and Rayleigh damping,
     /// `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
-    pub fn net_force(
+    pub(crate) fn net_force(
         &self,
         model: &dyn ForceModel,
         x: Tensor<3>,

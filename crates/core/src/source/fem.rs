@@ -150,7 +150,7 @@ impl FemCloth {
 
     /// The FEM cloth of a source config with triangle `t`'s Young's modulus multiplied by
     /// `scale[t]` (all 1 where `scale` is empty): a perturbed copy of the source's material.
-    pub fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
+    pub(crate) fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
         let (nx, ny) = (cfg.nx, cfg.ny);
         let (hx, hy) = (cfg.width / (nx - 1) as f64, cfg.height / (ny - 1) as f64);
         let rest_uv: Vec<[f64; 2]> = (0..ny)
@@ -263,11 +263,6 @@ impl FemCloth {
     /// Lumped vertex masses, kg.
     pub fn masses(&self) -> &[f64] {
         &self.mass
-    }
-
-    /// Number of interior (bending) edges.
-    pub fn num_hinges(&self) -> usize {
-        self.hinges.len()
     }
 
     /// Elastic energy (membrane and bending) at positions `x`, J.

@@ -36,7 +36,7 @@ impl SpringCloth {
 
     /// The spring cloth of a source config with spring `s`'s stiffness multiplied by
     /// `scale[s]` (all 1 where `scale` is empty): a perturbed copy of the source's material.
-    pub fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
+    pub(crate) fn from_config_scaled(cfg: &SourceConfig, scale: &[f64]) -> Self {
         let spec = GridSpec {
             nx: cfg.nx,
             ny: cfg.ny,

@@ -75,12 +75,12 @@ pub struct PassConfig {
 impl PassConfig {
     /// The learning rate of the pass's `i`-th iteration (from 0): `lr` for the first
     /// `lr_hold` of the pass, then decayed geometrically to `lr · lr_decay` at the last one.
-    pub fn lr_at(&self, i: usize) -> f64 {
+    pub(crate) fn lr_at(&self, i: usize) -> f64 {
         self.lr * self.schedule(i)
     }
 
     /// The learning rate of `b` at iteration `i` ([`Self::lr_b`] under the same schedule).
-    pub fn lr_b_at(&self, i: usize) -> Option<f64> {
+    pub(crate) fn lr_b_at(&self, i: usize) -> Option<f64> {
         self.lr_b.map(|lr_b| lr_b * self.schedule(i))
     }
 

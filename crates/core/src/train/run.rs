@@ -151,7 +151,7 @@ impl RunDir {
     }
 
     /// The lock file guarding the directory: `.<name>.lock` in its parent.
-    pub fn lock_path(&self) -> PathBuf {
+    pub(crate) fn lock_path(&self) -> PathBuf {
         crate::io::lock_path_beside(&self.dir, "lock", "run")
     }
 
@@ -276,7 +276,7 @@ impl RunDir {
     }
 
     /// Writes `run.json`.
-    pub fn write_state(&self, state: &RunState) -> Result<()> {
+    pub(crate) fn write_state(&self, state: &RunState) -> Result<()> {
         // The build that wrote the run: `springtime.version` and `springtime.commit`.
         let mut value = serde_json::to_value(state)?;
         value["springtime"] = serde_json::json!(crate::BuildInfo::current());
@@ -307,7 +307,7 @@ impl RunDir {
 
     /// Empties (after [`check_fresh`](Self::check_fresh)) and creates the directory with an
     /// empty `metrics.csv`.
-    pub fn create_fresh(&self) -> Result<()> {
+    pub(crate) fn create_fresh(&self) -> Result<()> {
         if self.dir.exists() {
             std::fs::remove_dir_all(&self.dir)
                 .with_context(|| format!("cannot clear {}", self.dir.display()))?;
@@ -326,7 +326,7 @@ impl RunDir {
 
     /// Keeps the metrics rows up to `iteration` (used when resuming from a checkpoint; a row
     /// cut short by a kill is dropped).
-    pub fn truncate_metrics(&self, iteration: usize) -> Result<()> {
+    pub(crate) fn truncate_metrics(&self, iteration: usize) -> Result<()> {
         let path = self.metrics();
         let rows = if path.exists() {
             read_metrics(&path, true)?
@@ -341,7 +341,7 @@ impl RunDir {
     }
 
     /// Appends metrics rows.
-    pub fn append_metrics(&self, rows: &[MetricsRow]) -> Result<()> {
+    pub(crate) fn append_metrics(&self, rows: &[MetricsRow]) -> Result<()> {
         if rows.is_empty() {
             return Ok(());
         }

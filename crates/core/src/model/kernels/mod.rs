@@ -83,7 +83,7 @@ impl HostGraph {
     /// per particle: `1 / w` for relative masses `w`, see [`crate::cloth::Topology::mass_weight`]).
     ///
     /// Panics if `scale` does not hold one finite positive value per particle.
-    pub fn with_force_scale(mut self, scale: Option<Vec<f64>>) -> Self {
+    pub(crate) fn with_force_scale(mut self, scale: Option<Vec<f64>>) -> Self {
         if let Some(s) = &scale {
             assert!(
                 s.len() == self.particles && s.iter().all(|&v| v.is_finite() && v > 0.0),
@@ -124,12 +124,12 @@ impl HostGraph {
     }
 
     /// Number of curvature elements.
-    pub fn num_triples(&self) -> usize {
+    pub(crate) fn num_triples(&self) -> usize {
         self.triples.len()
     }
 
     /// Entries of the ops' `k` and `b`: one per spring and per curvature element.
-    pub fn num_params(&self) -> usize {
+    pub(crate) fn num_params(&self) -> usize {
         self.ends.len() + self.triples.len()
     }
 

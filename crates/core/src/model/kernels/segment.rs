@@ -86,17 +86,17 @@ impl Segments {
     }
 
     /// Number of segments `N`.
-    pub fn num_segments(&self) -> usize {
+    pub(crate) fn num_segments(&self) -> usize {
         self.offsets.len() - 1
     }
 
     /// Number of entries `E`.
-    pub fn num_entries(&self) -> usize {
+    pub(crate) fn num_entries(&self) -> usize {
         self.entries
     }
 
     /// CSR offsets `[N + 1]`.
-    pub fn offsets(&self) -> &[u32] {
+    pub(crate) fn offsets(&self) -> &[u32] {
         &self.offsets
     }
 
