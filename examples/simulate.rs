@@ -7,7 +7,7 @@
 use anyhow::{Context, Result};
 use springtime::cloth::Resampler;
 use springtime::data::{Rollout, Track};
-use springtime::eval::simulate_track;
+use springtime::eval::{frame_rmse, simulate_track};
 use springtime::run::Run;
 
 fn main() -> Result<()> {
@@ -54,13 +54,7 @@ fn main() -> Result<()> {
     for f in (0..=frames).step_by(per_second) {
         let ours = &sim.positions[f * p * 3..(f + 1) * p * 3];
         let theirs = &track.positions[(first + f) * p * 3..(first + f + 1) * p * 3];
-        let rmse = (ours
-            .iter()
-            .zip(theirs)
-            .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
-            .sum::<f64>()
-            / p as f64)
-            .sqrt();
+        let rmse = frame_rmse(ours, theirs);
         println!(
             "t = {:5.2} s: RMSE to the recording {rmse:.4e} m",
             f as f64 * physics.frame_dt

@@ -16,33 +16,6 @@ use springtime::model::SpringNet;
 use springtime::progress::Progress;
 use springtime::train;
 
-const TINY: &str = r#"
-name = "tiny"
-[cloth]
-nx = 6
-ny = 6
-[data]
-dir = "data"
-[data.clips]
-steps = 50
-[source]
-nx = 6
-ny = 6
-width = 2.5
-height = 2.5
-seconds = 0.3
-train_rollouts = 4
-test_rollouts = 2
-[train]
-checkpoint_every = 5
-[train.stiffness]
-iterations = 10
-batch = 4
-[train.damping]
-iterations = 5
-batch = 4
-"#;
-
 #[test]
 fn chaos_floor_is_zero_at_level_zero_and_grows_with_the_level() {
     // A 6 × 6 mass-spring cloth with three stiffness stripes, two 0.4 s test rollouts.
@@ -122,7 +95,9 @@ fn chaos_floor_is_zero_at_level_zero_and_grows_with_the_level() {
 #[test]
 fn diagnose_end_to_end_and_refuses_to_overwrite() {
     let dir = common::temp_dir("diagnose-cli");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    // The shared tiny job with two test rollouts: the error map lists one row per rollout.
+    let tiny = common::TINY.replace("test_rollouts = 1", "test_rollouts = 2");
+    std::fs::write(dir.join("tiny.toml"), tiny).unwrap();
     ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
     let out = ok(&springtime(&["diagnose", "runs/tiny"], &dir));
     assert!(
