@@ -630,8 +630,10 @@ pub enum ImportCommand {
         args: ImportArgs,
     },
     /// Tracked points as CSV: a header naming the columns frame, point, x, y, z and optionally
-    /// u, v (rest coordinates, m); one row per point per frame. Without u, v the first frame
-    /// must be flat. Writes OUT/<file stem>.npz.
+    /// u, v (rest coordinates, m); one row per point per frame. A point missing from a frame, or
+    /// with empty or nan coordinates, was not seen there: the rollout's `visible` mask records
+    /// it, and training and evaluation skip it. Without u, v the first frame must be flat and
+    /// see every point. Writes OUT/<file stem>.npz.
     #[command(
         after_help = "Example:\n  springtime import csv markers.csv --out data/markers \
                             --frame-dt 0.01 --mass 0.2\n\nmarkers.csv:\n  frame,point,x,y,z,u,v\n  \
@@ -1751,6 +1753,7 @@ fn simulate(
         mesh: None,
         gravity: Some(physics.gravity),
         rayleigh: Some(physics.rayleigh),
+        visible: None,
     };
     out_rollout.save(out)?;
     println!(

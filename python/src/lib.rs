@@ -283,6 +283,7 @@ impl Run {
             // Only frame 0's are given (the path's frames move pinned particles only).
             stored_velocities: false,
             pinned,
+            visible: None,
         };
         let frame_dt = frame_dt.unwrap_or(self.loaded.meta.frame_dt);
         if !(frame_dt > 0.0 && frame_dt.is_finite()) {

@@ -2,11 +2,14 @@
 //!
 //! The first line names the columns, in any order: `frame`, `point`, `x`, `y`, `z` (required)
 //! and `u`, `v` (optional rest coordinates in metres); other columns are ignored. `frame` and
-//! `point` are integers; every point must appear in every frame exactly once. Frames are taken
-//! in increasing order of `frame`, points in increasing order of `point` (so `--pinned` counts
-//! points in that order: with ids 0…N−1, the ids themselves). Without `u`, `v` the first frame
-//! must be flat and gives the rest rectangle. Fields are separated by commas (or semicolons or
-//! tabs); lines starting with `#` are skipped.
+//! `point` are integers; a point appears at most once per frame. A point missing from a frame,
+//! or given there with empty or `nan` coordinates, was not seen in it (an occluded or dropped
+//! marker): the rollout's `visible` mask says so, and losses, fits and the motion RMSE skip it.
+//! The points are every id of any frame; frames are taken in increasing order of `frame`,
+//! points in increasing order of `point` (so `--pinned` counts points in that order: with ids
+//! 0…N−1, the ids themselves). Without `u`, `v` the first frame must be flat, see every point and
+//! gives the rest rectangle. Fields are separated by commas (or semicolons or tabs); lines
+//! starting with `#` are skipped.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -14,6 +17,9 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 
 use super::{ImportOptions, ImportSummary, Motion, RestShape, rest_rectangle, write_rollout};
+
+/// One point of one frame: its position (`None` where the point was not seen) and its line.
+type Row = (Option<[f64; 3]>, usize);
 
 /// Imports a CSV of tracked points as `<out>/<file stem>.npz`.
 pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSummary> {
@@ -52,8 +58,7 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
         (None, None) => None,
         _ => bail!("{shown}, line 1: give both `u` and `v` columns, or neither"),
     };
-    // frame id → point id → (position, line)
-    let mut frames: BTreeMap<i64, BTreeMap<i64, ([f64; 3], usize)>> = BTreeMap::new();
+    let mut frames: BTreeMap<i64, BTreeMap<i64, Row>> = BTreeMap::new();
     let mut rest: BTreeMap<i64, ([f64; 2], usize)> = BTreeMap::new();
     for (number, line) in lines {
         let fields: Vec<&str> = line
@@ -88,7 +93,17 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
             Ok(v)
         };
         let (frame, point) = (int(required[0])?, int(required[1])?);
-        let p = [num(required[2])?, num(required[3])?, num(required[4])?];
+        // Empty or `nan` coordinates: the point was not seen in this frame.
+        let hidden = |c: usize| {
+            fields
+                .get(c)
+                .is_some_and(|s| s.is_empty() || s.eq_ignore_ascii_case("nan"))
+        };
+        let p = if required[2..].iter().all(|&c| hidden(c)) {
+            None
+        } else {
+            Some([num(required[2])?, num(required[3])?, num(required[4])?])
+        };
         if let Some((_, first)) = frames.entry(frame).or_default().insert(point, (p, number)) {
             bail!(
                 "{shown}, line {number}: frame {frame}, point {point} was already given on line {first}"
@@ -115,18 +130,25 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
     let Some((&first_frame, first)) = frames.iter().next() else {
         bail!("{shown} holds no rows");
     };
-    let ids: Vec<i64> = first.keys().copied().collect();
+    let ids: Vec<i64> = frames
+        .values()
+        .flat_map(|points| points.keys().copied())
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
     let mut positions = Vec::with_capacity(frames.len() * ids.len() * 3);
-    for (&frame, points) in &frames {
-        if let Some(id) = ids.iter().find(|&&id| !points.contains_key(&id)) {
-            bail!("{shown}: frame {frame} lacks point {id} (frame {first_frame} has it)");
+    let mut visible = Vec::with_capacity(frames.len() * ids.len());
+    for points in frames.values() {
+        for id in &ids {
+            let seen = points.get(id).and_then(|(p, _)| *p);
+            visible.push(seen.is_some());
+            positions.extend(seen.map_or([f32::NAN; 3], |p| p.map(|c| c as f32)));
         }
-        if let Some((id, (_, line))) = points.iter().find(|&(&id, _)| !first.contains_key(&id)) {
-            bail!(
-                "{shown}, line {line}: point {id} of frame {frame} is not in frame {first_frame}"
-            );
+    }
+    for (slot, id) in ids.iter().enumerate() {
+        if !visible.iter().skip(slot).step_by(ids.len()).any(|&v| v) {
+            bail!("{shown}: point {id} is seen in no frame (its coordinates are always missing)");
         }
-        positions.extend(points.values().flat_map(|(p, _)| p.map(|c| c as f32)));
     }
     let shape = if uv_columns.is_some() {
         RestShape::Given {
@@ -134,8 +156,18 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
             what: format!("{shown} (columns u, v)"),
         }
     } else {
+        let mut reference = Vec::with_capacity(ids.len());
+        for id in &ids {
+            match first.get(id) {
+                Some((Some(p), _)) => reference.push(*p),
+                _ => bail!(
+                    "{shown}: frame {first_frame} does not see point {id}: without `u`, `v` \
+                     columns the first frame gives the rest shape and must see every point"
+                ),
+            }
+        }
         RestShape::Flat {
-            reference: first.values().map(|(p, _)| *p).collect(),
+            reference,
             what: format!("{shown}, frame {first_frame}"),
         }
     };
@@ -150,6 +182,7 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
         frames: frames.len(),
         points: ids.len(),
         positions,
+        visible: Some(visible),
         triangles: None,
     };
     write_rollout(&motion, rect, &rest_from, options)

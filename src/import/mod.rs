@@ -52,8 +52,10 @@ pub struct Motion {
     pub frames: usize,
     /// Points per frame `N`.
     pub points: usize,
-    /// Positions `[F, N, 3]`, row-major, finite.
+    /// Positions `[F, N, 3]`, row-major; finite wherever the point was seen.
     pub positions: Vec<f32>,
+    /// Whether each point was seen in each frame, `[F, N]` (tracked markers); `None`: always.
+    pub visible: Option<Vec<bool>>,
     /// The mesh's faces cut into triangles (point indices), when the points come with a mesh;
     /// stored as the key `triangles` when none is degenerate in the rest rectangle.
     pub triangles: Option<Vec<[usize; 3]>>,
@@ -442,6 +444,10 @@ pub fn write_rollout(
         mesh,
         gravity: options.gravity,
         rayleigh: options.rayleigh,
+        visible: motion
+            .visible
+            .clone()
+            .filter(|seen| !seen.iter().all(|&v| v)),
     };
     rollout.save(&path)?;
     Rollout::load(&path).with_context(|| {

@@ -106,6 +106,7 @@ pub fn import_sequence(dir: &Path, options: &ImportOptions) -> Result<ImportSumm
         points: n,
         positions,
         triangles: Some(first.triangles()),
+        visible: None,
     };
     write_rollout(&motion, rest, &rest_from, options)
 }

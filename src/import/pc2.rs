@@ -130,6 +130,7 @@ pub fn import_cache(cache: &Path, rest: &Path, options: &ImportOptions) -> Resul
         points: pc.points,
         positions: pc.positions,
         triangles: Some(mesh.triangles()),
+        visible: None,
     };
     write_rollout(&motion, rect, &rest_from, options)
 }

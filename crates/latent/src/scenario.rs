@@ -347,6 +347,7 @@ pub fn generate(
         }),
         gravity: Some(cloth.gravity),
         rayleigh: Some(0.0),
+        visible: None,
     };
     Ok((rollout, stats))
 }

@@ -252,6 +252,7 @@ impl SpringSheet {
             mesh: None,
             gravity: Some(s.gravity),
             rayleigh: Some(s.rayleigh),
+            visible: None,
         };
         Ok((rollout, stats))
     }

@@ -105,6 +105,16 @@ impl Resampler {
             .collect()
     }
 
+    /// Seen particles of one frame, from its seen landmarks: a particle is seen where every
+    /// landmark it takes a share of is.
+    pub fn visible(&self, landmark_seen: &[bool]) -> Vec<bool> {
+        self.index
+            .iter()
+            .zip(&self.weight)
+            .map(|(idx, w)| (0..3).all(|j| w[j] == 0.0 || landmark_seen[idx[j]]))
+            .collect()
+    }
+
     /// Pinned particles: those whose interpolated pin flag is at least one half, and the
     /// particle nearest to each pinned landmark.
     ///

@@ -128,6 +128,9 @@ pub struct Track {
     pub stored_velocities: bool,
     /// Pinned particles.
     pub pinned: Vec<bool>,
+    /// Whether each particle was seen in each frame, `[F, P]` (a particle resampled from
+    /// landmarks is seen where all of them are); `None`: every particle in every frame.
+    pub visible: Option<Vec<bool>>,
 }
 
 impl Track {
@@ -142,6 +145,7 @@ impl Track {
             velocities: vec![0.0; p * 3],
             stored_velocities: true,
             pinned: vec![false; p],
+            visible: None,
         }
     }
 
@@ -166,6 +170,7 @@ impl Track {
             velocities: rollout.velocities.expect("checked above"),
             stored_velocities: true,
             positions: rollout.positions,
+            visible: rollout.visible,
         }
     }
 
@@ -227,6 +232,26 @@ impl Track {
             velocities,
             stored_velocities: rollout.velocities.is_some(),
             pinned: resampler.pinned(&rollout.pinned),
+            visible: rollout.visible.as_ref().map(|seen| {
+                seen.chunks_exact(n)
+                    .flat_map(|frame| resampler.visible(frame))
+                    .collect()
+            }),
+        }
+    }
+
+    /// Whether particle `i` is seen in every frame of `frames` that the track holds.
+    pub fn seen_throughout(&self, i: usize, frames: std::ops::RangeInclusive<usize>) -> bool {
+        super::rollout::seen_throughout(self.visible.as_deref(), self.particles, i, frames)
+    }
+
+    /// Whether particle `i`'s velocity at frame `f` rests on seen positions: stored velocities
+    /// on frame `f` alone, differences of positions on frames `f − 1 … f + 1`.
+    pub fn velocity_seen(&self, i: usize, f: usize) -> bool {
+        if self.stored_velocities {
+            self.seen_throughout(i, f..=f)
+        } else {
+            self.seen_throughout(i, f.saturating_sub(1)..=f + 1)
         }
     }
 
@@ -258,6 +283,9 @@ pub struct ClipBatch {
     pub forces: Tensor<4>,
     /// 1 for pinned particles, `[B, P, 1]`.
     pub pinned: Tensor<3>,
+    /// Where the clips' particles were seen, when some were not (tracked markers); `None`:
+    /// every particle in every frame.
+    pub seen: Option<SeenMask>,
 }
 
 /// The shared metadata of a set of rollouts.
@@ -543,6 +571,16 @@ impl ClipSet {
     }
 }
 
+/// Which targets of a [`ClipBatch`] rest on seen particles: 1 where they do, 0 where not.
+#[derive(Debug, Clone)]
+pub struct SeenMask {
+    /// Positions seen, `[B, T + 1, P, 1]`.
+    pub positions: Tensor<4>,
+    /// Target forces whose two velocities rest on seen positions
+    /// ([`Track::velocity_seen`]), `[B, T, P, 1]`.
+    pub forces: Tensor<4>,
+}
+
 /// A batch of clips on the host, before it becomes a [`ClipBatch`] on a device.
 #[derive(Debug, Clone)]
 pub struct HostBatch {
@@ -550,6 +588,9 @@ pub struct HostBatch {
     velocities: Vec<f32>,
     forces: Vec<f32>,
     pinned: Vec<f32>,
+    /// `[B, T + 1, P]` and `[B, T, P]` masks of seen positions and forces, when some clip's
+    /// track has hidden particles.
+    seen: Option<(Vec<f32>, Vec<f32>)>,
     clips: usize,
     steps: usize,
     particles: usize,
@@ -592,11 +633,31 @@ impl HostBatch {
             .iter()
             .flat_map(|(track, _)| track.pinned.iter().map(|&x| x as u8 as f32))
             .collect();
+        let seen = clips
+            .iter()
+            .any(|(track, _)| track.visible.is_some())
+            .then(|| {
+                let mut x = Vec::with_capacity(b * (t + 1) * p);
+                let mut f = Vec::with_capacity(b * t * p);
+                for &(track, offset) in clips {
+                    for j in offset..=offset + t {
+                        x.extend((0..p).map(|i| track.seen_throughout(i, j..=j) as u8 as f32));
+                    }
+                    for j in offset..offset + t {
+                        f.extend((0..p).map(|i| {
+                            (track.velocity_seen(i, j) && track.velocity_seen(i, j + 1)) as u8
+                                as f32
+                        }));
+                    }
+                }
+                (x, f)
+            });
         Self {
             positions: pos,
             velocities: vel,
             forces: force,
             pinned,
+            seen,
             clips: b,
             steps: t,
             particles: p,
@@ -634,6 +695,10 @@ impl HostBatch {
             velocities: t4(self.velocities, t + 1),
             forces: t4(self.forces, t),
             pinned: Tensor::from_data(TensorData::new(self.pinned, [b, p, 1]), device),
+            seen: self.seen.map(|(x, f)| SeenMask {
+                positions: Tensor::from_data(TensorData::new(x, [b, t + 1, p, 1]), device),
+                forces: Tensor::from_data(TensorData::new(f, [b, t, p, 1]), device),
+            }),
         })
     }
 }

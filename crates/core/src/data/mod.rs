@@ -5,7 +5,7 @@ pub mod npz;
 pub mod rollout;
 pub mod strain;
 
-pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, Track};
+pub use clips::{ClipBatch, ClipConfig, ClipRef, ClipSet, HostBatch, Sampler, SeenMask, Track};
 pub use rollout::{MeshTruth, Rollout, Segment, SpringTruth};
 
 use std::path::{Path, PathBuf};

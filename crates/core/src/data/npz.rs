@@ -725,6 +725,25 @@ impl Npz {
         self.finite(key, shape, Array::to_f64)
     }
 
+    /// A float array as `f32`, checked against `shape` but not for finiteness (NaN may mark a
+    /// value that is not there: a hidden marker's position).
+    pub(crate) fn f32_any(
+        &self,
+        key: &str,
+        shape: &[Option<usize>],
+    ) -> Result<(Vec<f32>, Vec<usize>)> {
+        let a = self.get(key)?;
+        self.check_shape(key, a, shape)?;
+        let v = a.to_f32().ok_or_else(|| {
+            anyhow::anyhow!(
+                "{}: key `{key}` has dtype {}, expected a float or integer type",
+                self.path.display(),
+                a.dtype.name()
+            )
+        })?;
+        Ok((v, a.shape.clone()))
+    }
+
     /// `key` converted by `convert`, checked against `shape` and for finiteness.
     fn finite<T: Copy + Into<f64> + std::fmt::Display>(
         &self,

@@ -9,6 +9,7 @@
 //! | `total_mass` | f64 | scalar | mass of the whole cloth, kg |
 //! | `width`, `height` | f64 | scalar | size of the rest rectangle, m |
 //! | `velocities` | f32 | `[F, N, 3]` | optional; landmark velocities per frame, m/s |
+//! | `visible` | bool | `[F, N]` | optional; whether each landmark was seen in each frame (tracked markers: occlusions, dropped tracks). A hidden landmark's position (and velocity) may be NaN; the reader fills it by linear interpolation in time between the landmark's seen frames (held at the ends), which serves only as a start state or a pin's path: every loss, fit and motion RMSE of the spring network and the Neural ODE skips hidden landmarks (the GNN baseline reads the filled positions). Absent, or all true: every landmark seen |
 //! | `segments` | i64 | `[K, 2]` | optional; `(first frame, frame count)` of each stored window of a longer rollout, in order (default: one window from frame 0) |
 //! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
 //! | `triangles` | i32 | `[M, 3]` | optional; the landmarks' triangle mesh (the surrogate's springs with `cloth.layout = "data"`) |
@@ -90,6 +91,9 @@ pub struct Rollout {
     /// Rayleigh damping `c` of `−c ẋ` on every landmark, N·s/m, the landmarks sharing
     /// `total_mass` equally (key `rayleigh`), when the file says.
     pub rayleigh: Option<f64>,
+    /// Whether each landmark was seen in each frame, `[F, N]` (key `visible`); `None` when
+    /// every landmark was seen in every frame. Hidden positions hold the reader's fill.
+    pub visible: Option<Vec<bool>>,
 }
 
 /// The plausible range `(low, high, unit)` of a rollout's scalar `key` (SI units, generous for
@@ -126,6 +130,7 @@ pub const KEYS: &[&str] = &[
     "tri_stiffness",
     "gravity",
     "rayleigh",
+    "visible",
 ];
 
 impl Rollout {
@@ -144,17 +149,32 @@ impl Rollout {
     pub fn from_npz(npz: &Npz) -> Result<Self> {
         let path = npz.path.as_path();
         let shown = path.display();
-        let (positions, shape) = npz.f32("positions", &[None, None, Some(3)])?;
+        if !npz.has("visible") {
+            // Every landmark seen: every value must be finite.
+            npz.f32("positions", &[None, None, Some(3)])?;
+        }
+        let (mut positions, shape) = npz.f32_any("positions", &[None, None, Some(3)])?;
         let (frames, n) = (shape[0], shape[1]);
         if frames < 2 || n < 3 {
             bail!(
                 "{shown}: key `positions` has shape {shape:?}: need at least 2 frames and 3 landmarks"
             );
         }
-        let velocities = if npz.has("velocities") {
-            Some(npz.f32("velocities", &[Some(frames), Some(n), Some(3)])?.0)
+        let visible = if npz.has("visible") {
+            let seen = npz.bool("visible", &[Some(frames), Some(n)])?;
+            fill_hidden(&shown, "positions", &mut positions, &seen, n)?;
+            (!seen.iter().all(|&v| v)).then_some(seen)
         } else {
             None
+        };
+        let velocities = match (&visible, npz.has("velocities")) {
+            (_, false) => None,
+            (None, true) => Some(npz.f32("velocities", &[Some(frames), Some(n), Some(3)])?.0),
+            (Some(seen), true) => {
+                let (mut v, _) = npz.f32_any("velocities", &[Some(frames), Some(n), Some(3)])?;
+                fill_hidden(&shown, "velocities", &mut v, seen, n)?;
+                Some(v)
+            }
         };
         let (uv, _) = npz.f32("rest_uv", &[Some(n), Some(2)])?;
         let rest_uv: Vec<[f64; 2]> = uv
@@ -313,6 +333,7 @@ impl Rollout {
             mesh,
             gravity,
             rayleigh,
+            visible,
         })
     }
 
@@ -340,6 +361,9 @@ impl Rollout {
         }
         if let Some(c) = self.rayleigh {
             npz.insert("rayleigh", Array::scalar(c));
+        }
+        if let Some(seen) = &self.visible {
+            npz.insert("visible", Array::bool(&[f, n], seen));
         }
         let whole = self.segments.len() == 1 && self.segments[0].start == 0;
         if !whole {
@@ -391,6 +415,76 @@ impl Rollout {
             self.positions[o + 2],
         ]
     }
+}
+
+/// Checks that `values` (`[F, N, 3]`, of `key`) are finite wherever `seen` (`[F, N]`), then
+/// fills each hidden landmark's values by linear interpolation in time between its seen frames
+/// (held constant before the first and after the last). Refuses a landmark seen in no frame.
+fn fill_hidden(
+    shown: &std::path::Display<'_>,
+    key: &str,
+    values: &mut [f32],
+    seen: &[bool],
+    n: usize,
+) -> Result<()> {
+    let frames = seen.len() / n;
+    for (at, chunk) in values.chunks_exact(3).enumerate() {
+        if seen[at] && chunk.iter().any(|c| !c.is_finite()) {
+            bail!(
+                "{shown}: key `{key}`: landmark {} of frame {} is {chunk:?}, but `visible` says it \
+                 was seen (a hidden landmark is marked false in `visible`)",
+                at % n,
+                at / n
+            );
+        }
+    }
+    for i in 0..n {
+        let known: Vec<usize> = (0..frames).filter(|&f| seen[f * n + i]).collect();
+        let (Some(&first), Some(&last)) = (known.first(), known.last()) else {
+            bail!(
+                "{shown}: key `visible`: landmark {i} is seen in no frame (drop it from the file, \
+                 or mark the frames it was seen in)"
+            );
+        };
+        let copy = |values: &mut [f32], to: usize, from: usize| {
+            for c in 0..3 {
+                values[(to * n + i) * 3 + c] = values[(from * n + i) * 3 + c];
+            }
+        };
+        for f in 0..first {
+            copy(values, f, first);
+        }
+        for f in last + 1..frames {
+            copy(values, f, last);
+        }
+        for pair in known.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            for f in a + 1..b {
+                let s = (f - a) as f64 / (b - a) as f64;
+                for c in 0..3 {
+                    let (xa, xb) = (
+                        values[(a * n + i) * 3 + c] as f64,
+                        values[(b * n + i) * 3 + c] as f64,
+                    );
+                    values[(f * n + i) * 3 + c] = (xa + s * (xb - xa)) as f32;
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Whether landmark (or particle) `i` of `n` is seen in every frame of `frames`, by a `[F, N]`
+/// mask (`None`: all seen; frames past the mask's end count as seen).
+pub fn seen_throughout(
+    visible: Option<&[bool]>,
+    n: usize,
+    i: usize,
+    frames: std::ops::RangeInclusive<usize>,
+) -> bool {
+    let Some(seen) = visible else { return true };
+    let total = seen.len() / n;
+    frames.filter(|&f| f < total).all(|f| seen[f * n + i])
 }
 
 fn check_indices(shown: &std::path::Display<'_>, key: &str, idx: &[i64], n: usize) -> Result<()> {

@@ -66,7 +66,8 @@ impl Edges {
     }
 
     /// Strains `|x_a − x_b| / l₀ − 1` of every edge in frames `0, s, 2s, …` of `r` (with `s`
-    /// chosen to keep at most 200,000 strains), with the largest one and where it is.
+    /// chosen to keep at most 200,000 strains; edges with a hidden end skipped), with the
+    /// largest one and where it is.
     pub fn strains(&self, r: &Rollout, out: &mut Vec<f32>) -> Option<Peak> {
         if self.is_empty() {
             return None;
@@ -76,7 +77,11 @@ impl Edges {
         let mut peak: Option<Peak> = None;
         for f in (0..r.frames).step_by(stride) {
             let x = &r.positions[f * n * 3..(f + 1) * n * 3];
+            let seen = |i: usize| r.visible.as_ref().is_none_or(|v| v[f * n + i]);
             for (e, (&[a, b], &l0)) in self.pairs.iter().zip(&self.rest).enumerate() {
+                if !(seen(a) && seen(b)) {
+                    continue;
+                }
                 let d: f64 = (0..3)
                     .map(|c| (x[a * 3 + c] as f64 - x[b * 3 + c] as f64).powi(2))
                     .sum();
@@ -314,6 +319,7 @@ mod tests {
             }),
             gravity: None,
             rayleigh: None,
+            visible: None,
         }
     }
 

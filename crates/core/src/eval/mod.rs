@@ -241,7 +241,8 @@ pub fn frame_rmse(x: &[f32], target: &[f32]) -> f64 {
 }
 
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
-/// particles following the data, and returns the per-frame motion RMSE of each.
+/// particles following the data, and returns the per-frame motion RMSE of each (over the
+/// particles seen in that frame, where the rollout has a `visible` mask).
 pub fn motion_curves(
     model: &dyn ForceModel,
     physics_template: &Physics,
@@ -327,19 +328,44 @@ pub fn motion_curves(
                 }
                 Ok(())
             };
+            // Tracked markers: each frame's RMSE over the particles seen in it.
+            let masked = chunk.iter().any(|&i| tracks[i].1.visible.is_some());
+            let seen_at = |j: usize| {
+                let mut mask = Vec::with_capacity(b * p);
+                let mut counts = Vec::with_capacity(b);
+                for &i in chunk {
+                    let t = &tracks[i].1;
+                    let before = mask.len();
+                    mask.extend((0..p).map(|q| t.seen_throughout(q, j..=j) as u8 as f32));
+                    counts.push(mask[before..].iter().sum::<f32>().max(1.0));
+                }
+                (
+                    Tensor::<3>::from_data(TensorData::new(mask, [b, p, 1]), device),
+                    Tensor::<1>::from_data(TensorData::new(counts, [b]), device),
+                )
+            };
             for j in first..frames - 1 {
                 let next = frame_of(j + 1, false);
                 let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);
                 state = s;
                 let d = state.x.clone() - next.clone();
-                errs.push(
+                errs.push(if masked {
+                    let (mask, counts) = seen_at(j + 1);
+                    let d = d * mask;
+                    (d.clone() * d)
+                        .sum_dim(2)
+                        .sum_dim(1)
+                        .reshape([b])
+                        .div(counts)
+                        .sqrt()
+                } else {
                     (d.clone() * d)
                         .sum_dim(2)
                         .sum_dim(1)
                         .div_scalar(p as f64)
                         .sqrt()
-                        .reshape([b]),
-                );
+                        .reshape([b])
+                });
                 here = next;
                 if errs.len() == 100 {
                     flush(&mut errs, j, &mut curves)?;

@@ -398,6 +398,7 @@ pub fn simulate_rollout(
         mesh: sim.mesh_truth(),
         gravity: Some(cfg.gravity),
         rayleigh: Some(cfg.rayleigh),
+        visible: None,
     })
 }
 

@@ -30,22 +30,29 @@ pub struct ComplianceConfig {
 /// The largest ratio of a spring's `k` to its family's median, either way.
 const MAX_RATIO: f64 = 100.0;
 
-/// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts.
+/// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts in
+/// which both ends are seen (a spring seen in no frame gets 0: it takes its family's median).
 pub(crate) fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
     let topo = &clips.topology;
     let mut sum = vec![0.0; topo.num_springs()];
+    let mut count = vec![0usize; topo.num_springs()];
     let mut frames = 0usize;
     for r in 0..clips.len() {
         let track = clips.track(r)?;
         let p = track.particles;
         for f in 0..track.frames {
             let x = &track.positions[f * p * 3..(f + 1) * p * 3];
+            let seen = |i: usize| track.visible.as_ref().is_none_or(|v| v[f * p + i]);
             for (s, &[a, b]) in topo.springs.iter().enumerate() {
+                if !(seen(a) && seen(b)) {
+                    continue;
+                }
                 let d: f64 = (0..3)
                     .map(|c| (x[3 * b + c] as f64 - x[3 * a + c] as f64).powi(2))
                     .sum::<f64>()
                     .sqrt();
                 sum[s] += (d / topo.rest_length[s] - 1.0).powi(2);
+                count[s] += 1;
             }
             frames += 1;
         }
@@ -55,7 +62,8 @@ pub(crate) fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
     }
     Ok(sum
         .into_iter()
-        .map(|v| (v / frames as f64).sqrt())
+        .zip(count)
+        .map(|(v, n)| if n == 0 { 0.0 } else { (v / n as f64).sqrt() })
         .collect())
 }
 

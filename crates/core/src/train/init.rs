@@ -155,6 +155,11 @@ impl UniformFit {
         let mut systems = vec![Normal::default(); stencils.len()];
         let p = topo.num_particles();
         let mut cols = vec![[[0f64; 3]; 2]; p];
+        let mut neighbours = vec![Vec::new(); p];
+        for &[a, b] in &topo.springs {
+            neighbours[a].push(b);
+            neighbours[b].push(a);
+        }
         for clip in pool.iter().step_by(stride) {
             let track = clips.track(clip.rollout)?;
             let x = |j: usize, i: usize| -> [f64; 3] {
@@ -183,7 +188,15 @@ impl UniformFit {
                 let h2 = (w as f64 * dt).powi(2);
                 // Frames j − w + 1 … j + w − 1 all lie in 1 … t − 1, where `frames` is filled.
                 for j in w..=t - w {
-                    for i in (0..p).filter(|&i| !track.pinned[i]) {
+                    // With hidden particles, a row counts where the particle and its springs'
+                    // far ends are seen over the stencil and its velocities' frames.
+                    let window = (clip.offset + j).saturating_sub(w + 1)..=clip.offset + j + w + 1;
+                    let seen = |i: usize| track.seen_throughout(i, window.clone());
+                    let row_seen = |i: usize| {
+                        track.visible.is_none()
+                            || (seen(i) && neighbours[i].iter().all(|&e| seen(e)))
+                    };
+                    for i in (0..p).filter(|&i| !track.pinned[i] && row_seen(i)) {
                         let (a, b, c) = (x(j - w, i), x(j, i), x(j + w, i));
                         for d in 0..3 {
                             let mut row = [0f64; 3];

@@ -186,7 +186,7 @@ pub struct LeastSquaresFit {
 /// The sums of the normal equations `A θ = g` of the force fit: 2 × 2 blocks per pair of
 /// springs that share a particle (in the order of a [`Pattern`]'s `col`; block-row `s` holds
 /// `s`'s `k` and `b` rows), `g`, and `yᵀy`.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 struct Sums {
     blocks: Vec<[f64; 4]>,
     rhs: Vec<f64>,
@@ -657,7 +657,18 @@ fn accumulate(
     let (m, c, g) = (physics.mass, physics.rayleigh, physics.gravity);
     let h = w as f64 * physics.frame_dt;
     let mut cols: Vec<([f64; 3], [f64; 3])> = Vec::new();
-    for i in (0..p).filter(|&i| !track.pinned[i]) {
+    // With hidden particles, a row counts only where the particle and the far ends of its
+    // springs are seen over the whole stencil (and the frames its velocities difference).
+    let window = j.saturating_sub(w + 1)..=j + w + 1;
+    let seen = |i: usize| track.seen_throughout(i, window.clone());
+    let row_seen = |i: usize| {
+        track.visible.is_none()
+            || (seen(i)
+                && pattern.incident[i]
+                    .iter()
+                    .all(|&(s, _)| topo.springs[s].iter().all(|&e| seen(e))))
+    };
+    for i in (0..p).filter(|&i| !track.pinned[i] && row_seen(i)) {
         let accel: [f64; 3] = if stencil.velocities {
             let (a, e) = (at(&track.velocities, j, i), at(&track.velocities, j + w, i));
             [0, 1, 2].map(|d| (e[d] - a[d]) / h)
@@ -873,6 +884,7 @@ mod tests {
             velocities,
             stored_velocities: false,
             pinned: vec![false; p],
+            visible: None,
         };
         let physics = Physics {
             frame_dt: 0.1,
@@ -931,6 +943,79 @@ mod tests {
             }
         }
         (topo, sums, jac, y)
+    }
+
+    /// With particle 0 of a 4 × 4 sheet hidden in frames 5 and 6, moving it there changes no
+    /// sum, and the rows whose stencil would read it (its own and its neighbours') are gone.
+    #[test]
+    fn hidden_particles_add_no_rows() {
+        let points: Vec<[f64; 2]> = (0..4)
+            .flat_map(|j| (0..4).map(move |i| [i as f64 * 0.5, j as f64 * 0.5]))
+            .collect();
+        let topo = Topology::of_points(&points, 1.5, 1.5, false).expect("a mesh");
+        let (frames, p) = (12, points.len());
+        let mut rng = StdRng::seed_from_u64(7);
+        let positions: Vec<f32> = (0..frames)
+            .flat_map(|_| points.clone())
+            .flat_map(|[u, v]| [u, v, 0.0])
+            .map(|c| (c + 0.05 * (rng.random::<f64>() - 0.5)) as f32)
+            .collect();
+        let track = |positions: Vec<f32>, visible: Option<Vec<bool>>| {
+            // Central differences, as a capture without velocities gives them.
+            let mut velocities = vec![0f32; positions.len()];
+            for f in 1..frames - 1 {
+                for i in 0..p * 3 {
+                    velocities[f * p * 3 + i] =
+                        (positions[(f + 1) * p * 3 + i] - positions[(f - 1) * p * 3 + i]) / 0.2;
+                }
+            }
+            Track {
+                frames,
+                particles: p,
+                positions,
+                velocities,
+                stored_velocities: false,
+                pinned: vec![false; p],
+                visible,
+            }
+        };
+        let mut seen = vec![true; frames * p];
+        seen[5 * p] = false;
+        seen[6 * p] = false;
+        let mut moved = positions.clone();
+        for f in [5, 6] {
+            moved[f * p * 3] += 0.3;
+        }
+        let physics = Physics {
+            frame_dt: 0.1,
+            substeps: 1,
+            mass: 0.7,
+            rayleigh: 0.1,
+            gravity: [0.0, 0.0, -9.81],
+        };
+        let pattern = Pattern::new(&topo);
+        let stencil = Stencil {
+            w: 1,
+            velocities: false,
+        };
+        let sums = |t: &Track| {
+            let mut acc = pattern.empty_sums();
+            for j in 2..=9 {
+                accumulate(&mut acc, &pattern, &topo, t, &physics, j, stencil);
+            }
+            acc
+        };
+        let hidden = sums(&track(positions.clone(), Some(seen.clone())));
+        assert_eq!(hidden, sums(&track(moved.clone(), Some(seen))));
+        let all = sums(&track(positions, None));
+        assert!(
+            all != sums(&track(moved, None)),
+            "a seen move must change the sums"
+        );
+        // Centres 3…8 read frame 5 or 6 within their window (j − 2 … j + 2: the stencil and the
+        // frames its velocities difference): particle 0 and its neighbours drop out there.
+        let neighbours = topo.springs.iter().filter(|s| s.contains(&0)).count();
+        assert_eq!(all.samples - hidden.samples, 6 * (1 + neighbours));
     }
 
     /// The dense `A` of a `Normal`, column by column.

@@ -123,8 +123,9 @@ pub fn loss(
 /// [`loss`] with the fused rollout's memory budget for stored states, MiB.
 ///
 /// With the fused kernel and simulated forces, the rollout and the three loss terms are one op
-/// ([`kernels::rollout_loss`]) whose backward is the adjoint of the integrator; otherwise the
-/// loss is built from tensor ops around [`sim::rollout`] ([`motion_loss`]).
+/// ([`kernels::rollout_loss`]) whose backward is the adjoint of the integrator; otherwise (and
+/// for clips with hidden particles, whose terms the fused op does not mask) the loss is built
+/// from tensor ops around [`sim::rollout`] ([`motion_loss`]).
 pub fn loss_with_budget(
     model: &SpringNet,
     physics: &Physics,
@@ -133,7 +134,7 @@ pub fn loss_with_budget(
     on: ForceOn,
     budget_mib: usize,
 ) -> LossTerms {
-    if on == ForceOn::Simulated && model.graph.fused_rollout() {
+    if on == ForceOn::Simulated && model.graph.fused_rollout() && batch.seen.is_none() {
         return fused_loss(model, physics, batch, weights, budget_mib);
     }
     let mut terms = motion_loss(model, physics, batch, weights, on);
@@ -201,6 +202,10 @@ fn negativity(model: &SpringNet) -> (Tensor<1>, Tensor<1>) {
 /// - `L_f = 1/(B·N·P) Σ_clips Σ_j Σ_p |f_j − f̂_j|²` with `f̂_j = M (v̂_{j+1} − v̂_j)/Δt`;
 /// - `J = Δt [Σ_j f_j − (f_0 + f_{N−1})/2]` (trapezoid, Eq. 10), `L_J = 1/(B·P) Σ |J − Ĵ|²`;
 /// - position loss `1/(B·T·P) Σ_{j≥1} |x_j − x̂_j|²` (when there is a simulated rollout).
+///
+/// With hidden particles (`batch.seen`), a force or position term counts only where its target
+/// rests on seen positions, and each sum is divided by the number of such terms instead of
+/// `B·N·P` (or `B·T·P`); the impulse sums the seen force errors.
 pub fn motion_loss(
     model: &dyn ForceModel,
     physics: &Physics,
@@ -251,11 +256,36 @@ pub fn motion_loss(
             (forces - batch.forces.clone(), None)
         }
     };
-    let error = error * free.clone();
     let n = error.dims()[1];
+    // Where the targets rest on seen positions (all of them without a mask), and how many
+    // terms that leaves per sum.
+    let (error, force_count, position_mask, position_count) = match &batch.seen {
+        None => (
+            error * free.clone(),
+            (b * n * p) as f64,
+            None,
+            (b * t * p) as f64,
+        ),
+        Some(seen) => {
+            let forces = if n == t {
+                seen.forces.clone()
+            } else {
+                // The frame-difference force of frame j (1..=T−2) rests on positions j−1..=j+2:
+                // seen where the target forces of frames j−1, j and j+1 are.
+                let f = |from: usize, to: usize| {
+                    seen.forces.clone().slice([0..b, from..to, 0..p, 0..1])
+                };
+                f(0, t - 2) * f(1, t - 1) * f(2, t)
+            };
+            let positions = seen.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..1]);
+            let count = |m: &Tensor<4>| (m.clone().sum().into_scalar::<f32>() as f64).max(1.0);
+            let (fc, pc) = (count(&forces), count(&positions));
+            (error * free.clone() * forces, fc, Some(positions), pc)
+        }
+    };
     let force = (error.clone() * error.clone())
         .sum()
-        .div_scalar((b * n * p) as f64);
+        .div_scalar(force_count);
     // The trapezoid impulse is linear in the forces: J − Ĵ is the impulse of the error.
     let ends = error.clone().slice([0..b, 0..1, 0..p, 0..3])
         + error.clone().slice([0..b, n - 1..n, 0..p, 0..3]);
@@ -263,10 +293,13 @@ pub fn motion_loss(
     let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
     let position = match &trajectory {
         Some(traj) => {
-            let dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
+            let mut dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
                 - batch.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3]))
                 * free;
-            (dx.clone() * dx).sum().div_scalar((b * t * p) as f64)
+            if let Some(mask) = position_mask {
+                dx = dx * mask;
+            }
+            (dx.clone() * dx).sum().div_scalar(position_count)
         }
         None => zero(),
     };
