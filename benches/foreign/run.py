@@ -13,6 +13,7 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py                      # every simulator, soft and stiff
     python3 benches/foreign/run.py --sims mujoco,warp --materials soft --quick
     python3 benches/foreign/run.py --set train.scale_search=false --tag noscale
+    python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
 
 Each simulator runs in a virtual environment of its own, made on first use under
 `--venvs` (default `~/.cache/springtime-foreign`) from PyPI with the pinned packages below;
@@ -123,7 +124,25 @@ def generate(sim, material, a) -> Path:
     return out
 
 
+def capture(sim, material, data: Path, a) -> Path:
+    """The capture-grade copy of a set (`capture.py`: noise, missing markers), made once."""
+    noise, missing = a.capture
+    out = a.out / "data" / f"{sim}-{material}-capture-{noise:g}-{missing:g}"
+    args = [str(data), str(out), "--noise", str(noise), "--missing", str(missing),
+            "--seed", str(a.seed)]
+    record = out / "capture-args.json"
+    same = record.exists() and json.loads(record.read_text()) == {
+        "args": args, "source": (data / "bench-args.json").read_text()}
+    if not same:
+        py = venv_python(a.venvs, sim)
+        subprocess.run([str(py), str(HERE / "capture.py"), *args], check=True)
+        record.write_text(json.dumps({"args": args, "source": (data / "bench-args.json").read_text()}))
+    return out
+
+
 def train(sim, material, data: Path, a):
+    if a.capture:
+        material = f"{material}-capture"
     run = a.out / "runs" / a.tag / f"{sim}-{material}"
     cmd = [str(a.springtime), "train", str(a.config), "--out", str(run), "--force",
            "--set", f"data.dir={data / 'train'}", "--set", f"data.test_dir={data / 'test'}",
@@ -206,7 +225,16 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="6 + 2 takes of 2 s (a smoke test)")
     ap.add_argument("--generate-only", action="store_true")
+    ap.add_argument("--capture", metavar="NOISE,MISSING",
+                    help="train and test on capture-grade copies of each set: NOISE m of position "
+                         "noise and a MISSING share of markers hidden (capture.py), e.g. 0.002,0.1")
     a = ap.parse_args()
+    if a.capture:
+        try:
+            a.capture = tuple(float(v) for v in a.capture.split(","))
+            assert len(a.capture) == 2
+        except (ValueError, AssertionError):
+            die(f"--capture: expected NOISE,MISSING (e.g. 0.002,0.1), got {a.capture!r}")
     if a.quick:
         a.train, a.test, a.seconds = 6, 2, 2.0
     sims = [s for s in a.sims.split(",") if s]
@@ -230,6 +258,8 @@ def main():
                 rows.append({"data": f"{sim}-{material}", "wall_s": 0.0,
                              "error": f"generation failed ({e})"})
                 continue
+            if a.capture:
+                data = capture(sim, material, data, a)
             if not a.generate_only:
                 rows.append(train(sim, material, data, a))
                 print(table(rows[-1:], a), flush=True)
