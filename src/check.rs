@@ -191,7 +191,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
         train_files,
         &config.data.clips,
         |r| crate::train::topology(config, r),
-        config.data.cache_bytes().min(1 << 30),
+        config.data.cache_bytes(config.backend).min(1 << 30),
         |_| {},
     );
     let (resolved, defaults) =

@@ -440,7 +440,7 @@ pub fn open_training_clips(
         &split.train,
         &config.data.clips,
         |first| topology(config, first),
-        config.data.cache_bytes(),
+        config.data.cache_bytes(config.backend),
         |n| bar.set_position(n as u64),
     )?;
     bar.finish();
