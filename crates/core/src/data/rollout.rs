@@ -9,7 +9,7 @@
 //! | `total_mass` | f64 | scalar | mass of the whole cloth, kg |
 //! | `width`, `height` | f64 | scalar | size of the rest rectangle, m |
 //! | `velocities` | f32 | `[F, N, 3]` | optional; landmark velocities per frame, m/s |
-//! | `visible` | bool | `[F, N]` | optional; whether each landmark was seen in each frame (tracked markers: occlusions, dropped tracks). A hidden landmark's position (and velocity) may be NaN; the reader fills it by linear interpolation in time between the landmark's seen frames (held at the ends), which serves only as a start state or a pin's path: every loss, fit and motion RMSE of the spring network and the Neural ODE skips hidden landmarks (the GNN baseline reads the filled positions). Absent, or all true: every landmark seen |
+//! | `visible` | bool | `[F, N]` | optional; whether each landmark was seen in each frame (tracked markers: occlusions, dropped tracks). A hidden landmark's position (and velocity) may be NaN; the reader fills it from its seen frames before and after, carried by the motion of its nearest seen neighbours (`fill_hidden`), which serves only as a start state or a pin's path: every loss, fit and motion RMSE of the spring network and the Neural ODE skips hidden landmarks (the GNN baseline reads the filled positions). Absent, or all true: every landmark seen |
 //! | `segments` | i64 | `[K, 2]` | optional; `(first frame, frame count)` of each stored window of a longer rollout, in order (default: one window from frame 0) |
 //! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
 //! | `triangles` | i32 | `[M, 3]` | optional; the landmarks' triangle mesh (the surrogate's springs with `cloth.layout = "data"`) |
@@ -160,9 +160,14 @@ impl Rollout {
                 "{shown}: key `positions` has shape {shape:?}: need at least 2 frames and 3 landmarks"
             );
         }
+        let (uv, _) = npz.f32("rest_uv", &[Some(n), Some(2)])?;
+        let rest_uv: Vec<[f64; 2]> = uv
+            .chunks_exact(2)
+            .map(|c| [c[0] as f64, c[1] as f64])
+            .collect();
         let visible = if npz.has("visible") {
             let seen = npz.bool("visible", &[Some(frames), Some(n)])?;
-            fill_hidden(&shown, "positions", &mut positions, &seen, n)?;
+            fill_hidden(&shown, "positions", &mut positions, &seen, &rest_uv)?;
             (!seen.iter().all(|&v| v)).then_some(seen)
         } else {
             None
@@ -172,15 +177,10 @@ impl Rollout {
             (None, true) => Some(npz.f32("velocities", &[Some(frames), Some(n), Some(3)])?.0),
             (Some(seen), true) => {
                 let (mut v, _) = npz.f32_any("velocities", &[Some(frames), Some(n), Some(3)])?;
-                fill_hidden(&shown, "velocities", &mut v, seen, n)?;
+                fill_hidden(&shown, "velocities", &mut v, seen, &rest_uv)?;
                 Some(v)
             }
         };
-        let (uv, _) = npz.f32("rest_uv", &[Some(n), Some(2)])?;
-        let rest_uv: Vec<[f64; 2]> = uv
-            .chunks_exact(2)
-            .map(|c| [c[0] as f64, c[1] as f64])
-            .collect();
         let pinned = npz.bool("pinned", &[Some(n)])?;
         let plausible = |key: &str| -> Result<f64> {
             let v = npz.scalar(key)?;
@@ -417,16 +417,28 @@ impl Rollout {
     }
 }
 
-/// Checks that `values` (`[F, N, 3]`, of `key`) are finite wherever `seen` (`[F, N]`), then
-/// fills each hidden landmark's values by linear interpolation in time between its seen frames
-/// (held constant before the first and after the last). Refuses a landmark seen in no frame.
+/// Landmarks whose motion fills a hidden one's: the nearest seen ones in the rest rectangle.
+const FILL_NEIGHBOURS: usize = 6;
+
+/// Candidates searched for them, nearest first.
+const FILL_CANDIDATES: usize = 32;
+
+/// Checks that `values` (`[F, N, 3]`, of `key`) are finite wherever `seen`, then fills each
+/// hidden value of a landmark from its seen frames `a` before and `b` after, carried by its
+/// neighbours: from `a`, its value there plus the mean change since `a` of the
+/// [`FILL_NEIGHBOURS`] nearest landmarks (in `rest_uv`) seen at both frames; likewise from `b`;
+/// the two blended linearly in time (one of them before the first seen frame or after the
+/// last). A sheet that moves as a whole is filled exactly, however it moves during an
+/// occlusion; a landmark with no seen neighbour keeps its value at `a` and `b`, blended.
+/// Refuses a landmark seen in no frame.
 fn fill_hidden(
     shown: &std::path::Display<'_>,
     key: &str,
     values: &mut [f32],
     seen: &[bool],
-    n: usize,
+    rest_uv: &[[f64; 2]],
 ) -> Result<()> {
+    let n = rest_uv.len();
     let frames = seen.len() / n;
     for (at, chunk) in values.chunks_exact(3).enumerate() {
         if seen[at] && chunk.iter().any(|c| !c.is_finite()) {
@@ -438,36 +450,76 @@ fn fill_hidden(
             );
         }
     }
+    let source: Vec<f32> = values.to_vec();
+    let at = |f: usize, i: usize| -> [f64; 3] {
+        let o = (f * n + i) * 3;
+        [source[o] as f64, source[o + 1] as f64, source[o + 2] as f64]
+    };
     for i in 0..n {
         let known: Vec<usize> = (0..frames).filter(|&f| seen[f * n + i]).collect();
-        let (Some(&first), Some(&last)) = (known.first(), known.last()) else {
+        if known.is_empty() {
             bail!(
                 "{shown}: key `visible`: landmark {i} is seen in no frame (drop it from the file, \
                  or mark the frames it was seen in)"
             );
-        };
-        let copy = |values: &mut [f32], to: usize, from: usize| {
-            for c in 0..3 {
-                values[(to * n + i) * 3 + c] = values[(from * n + i) * 3 + c];
-            }
-        };
-        for f in 0..first {
-            copy(values, f, first);
         }
-        for f in last + 1..frames {
-            copy(values, f, last);
+        if known.len() == frames {
+            continue;
         }
-        for pair in known.windows(2) {
-            let (a, b) = (pair[0], pair[1]);
-            for f in a + 1..b {
-                let s = (f - a) as f64 / (b - a) as f64;
+        // Nearest landmarks in the rest rectangle, nearest first.
+        let mut near: Vec<(f64, usize)> = (0..n)
+            .filter(|&j| j != i)
+            .map(|j| {
+                let d = (rest_uv[j][0] - rest_uv[i][0]).powi(2)
+                    + (rest_uv[j][1] - rest_uv[i][1]).powi(2);
+                (d, j)
+            })
+            .collect();
+        let keep = FILL_CANDIDATES.min(near.len());
+        if keep < near.len() {
+            near.select_nth_unstable_by(keep, |a, b| a.0.total_cmp(&b.0));
+            near.truncate(keep);
+        }
+        near.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // Landmark i at hidden frame f carried from its seen frame r by its neighbours.
+        let carried = |f: usize, r: usize| -> [f64; 3] {
+            let mut x = at(r, i);
+            let movers: Vec<usize> = near
+                .iter()
+                .map(|&(_, j)| j)
+                .filter(|&j| seen[f * n + j] && seen[r * n + j])
+                .take(FILL_NEIGHBOURS)
+                .collect();
+            for &j in &movers {
+                let (now, then) = (at(f, j), at(r, j));
                 for c in 0..3 {
-                    let (xa, xb) = (
-                        values[(a * n + i) * 3 + c] as f64,
-                        values[(b * n + i) * 3 + c] as f64,
-                    );
-                    values[(f * n + i) * 3 + c] = (xa + s * (xb - xa)) as f32;
+                    x[c] += (now[c] - then[c]) / movers.len() as f64;
                 }
+            }
+            x
+        };
+        let mut next = 0usize; // index into `known` of the first seen frame after f
+        for f in 0..frames {
+            if seen[f * n + i] {
+                next += 1;
+                continue;
+            }
+            let (a, b) = (
+                next.checked_sub(1).map(|k| known[k]),
+                known.get(next).copied(),
+            );
+            let x = match (a, b) {
+                (Some(a), Some(b)) => {
+                    let s = (f - a) as f64 / (b - a) as f64;
+                    let (xa, xb) = (carried(f, a), carried(f, b));
+                    [0, 1, 2].map(|c| xa[c] + s * (xb[c] - xa[c]))
+                }
+                (Some(a), None) => carried(f, a),
+                (None, Some(b)) => carried(f, b),
+                (None, None) => unreachable!("landmark {i} is seen in some frame"),
+            };
+            for c in 0..3 {
+                values[(f * n + i) * 3 + c] = x[c] as f32;
             }
         }
     }
