@@ -7,7 +7,8 @@
 //! differences of positions, noisy where a stiff spring's strain is small, so least squares
 //! leaves the stiffest springs least determined (and biased low), while the strains themselves
 //! are measured directly. Each spring's `k` is its family's median RMS strain over every frame
-//! of the training clips divided by its own (ratios kept within 100× either way),
+//! of the training clips divided by its own (ratios kept within 100× either way; the
+//! positions' noise taken out of each mean square, [`rms_strains`]),
 //! scaled so that the stiffest spring has the run's initial uniform `k` (stable at the run's
 //! substeps); `b` starts uniform. The map's ranks are the point; its
 //! size and how much of it to keep are found by free rollouts (`train.blend_search`).
@@ -30,16 +31,47 @@ pub struct ComplianceConfig {
 /// The largest ratio of a spring's `k` to its family's median, either way.
 const MAX_RATIO: f64 = 100.0;
 
+/// The springs' RMS strains, with the share of their mean square that the positions' noise
+/// made and that was taken out.
+#[derive(Debug, Clone)]
+pub(crate) struct RmsStrains {
+    /// Per-spring RMS strain, noise taken out.
+    pub rms: Vec<f64>,
+    /// The noise's share of the springs' summed mean square strain before it was taken out.
+    pub noise_share: f64,
+}
+
+/// White noise's variance in a fourth difference `ε₀ − 4ε₁ + 6ε₂ − 4ε₃ + ε₄`: `1+16+36+16+1`
+/// times its own.
+const FOURTH_DIFFERENCE_GAIN: f64 = 70.0;
+
+/// A spring's mean square strain keeps at least this share of itself after the noise is taken
+/// out (a spring whose strain is all noise ranks as the most compliant, not as undefined).
+const NOISE_FLOOR: f64 = 0.01;
+
 /// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts in
-/// which both ends are seen (a spring seen in no frame gets 0: it takes its family's median).
-pub(crate) fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
+/// which both ends are seen (a spring seen in no frame gets 0: it takes its family's median),
+/// less the strain noise of the positions.
+///
+/// Measured positions (a capture's markers) carry noise, which adds its variance to every
+/// spring's mean square strain and would rank the springs by their rest length instead of
+/// their stiffness. A motion the frames resolve has almost no fourth difference in time, white
+/// noise has 70 times its variance there: each spring's noise variance is its strain's mean
+/// square fourth difference inside the training clips over 70, and is subtracted (on clean
+/// simulator data it is a small share, reported in the log).
+pub(crate) fn rms_strains(clips: &ClipSet) -> Result<RmsStrains> {
     let topo = &clips.topology;
-    let mut sum = vec![0.0; topo.num_springs()];
-    let mut count = vec![0usize; topo.num_springs()];
+    let springs = topo.num_springs();
+    let mut sum = vec![0.0; springs];
+    let mut count = vec![0usize; springs];
+    let (mut d4_sum, mut d4_count) = (vec![0.0; springs], vec![0usize; springs]);
     let mut frames = 0usize;
+    let all = clips.all_clips();
     for r in 0..clips.len() {
         let track = clips.track(r)?;
         let p = track.particles;
+        // Strain of every spring in every frame, NaN where an end is hidden.
+        let mut strain = vec![f64::NAN; track.frames * springs];
         for f in 0..track.frames {
             let x = &track.positions[f * p * 3..(f + 1) * p * 3];
             let seen = |i: usize| track.visible.as_ref().is_none_or(|v| v[f * p + i]);
@@ -51,20 +83,63 @@ pub(crate) fn rms_strains(clips: &ClipSet) -> Result<Vec<f64>> {
                     .map(|c| (x[3 * b + c] as f64 - x[3 * a + c] as f64).powi(2))
                     .sum::<f64>()
                     .sqrt();
-                sum[s] += (d / topo.rest_length[s] - 1.0).powi(2);
+                let e = d / topo.rest_length[s] - 1.0;
+                strain[f * springs + s] = e;
+                sum[s] += e * e;
                 count[s] += 1;
             }
             frames += 1;
+        }
+        // Fourth differences inside this rollout's clips (a clip lies in one stored window).
+        for clip in all.iter().filter(|c| c.rollout == r) {
+            for s in 0..springs {
+                let series: Vec<f64> = (clip.offset..=clip.offset + clips.steps)
+                    .map(|f| strain[f * springs + s])
+                    .collect();
+                add_fourth_differences(&series, &mut d4_sum[s], &mut d4_count[s]);
+            }
         }
     }
     if frames == 0 {
         bail!("`train.compliance`: the training rollouts hold no frame");
     }
-    Ok(sum
-        .into_iter()
-        .zip(count)
-        .map(|(v, n)| if n == 0 { 0.0 } else { (v / n as f64).sqrt() })
-        .collect())
+    let (mut raw_total, mut noise_total) = (0.0, 0.0);
+    let rms = (0..springs)
+        .map(|s| {
+            if count[s] == 0 {
+                return 0.0;
+            }
+            let ms = sum[s] / count[s] as f64;
+            let noise = if d4_count[s] > 0 {
+                d4_sum[s] / d4_count[s] as f64 / FOURTH_DIFFERENCE_GAIN
+            } else {
+                0.0
+            };
+            raw_total += ms;
+            noise_total += noise.min(ms);
+            (ms - noise).max(NOISE_FLOOR * ms).sqrt()
+        })
+        .collect();
+    Ok(RmsStrains {
+        rms,
+        noise_share: if raw_total > 0.0 {
+            noise_total / raw_total
+        } else {
+            0.0
+        },
+    })
+}
+
+/// Adds the squares of the fourth differences of `series` (those of five finite values) to
+/// `sum`, counting them in `count`.
+fn add_fourth_differences(series: &[f64], sum: &mut f64, count: &mut usize) {
+    for e in series.windows(5) {
+        let d4 = e[0] - 4.0 * e[1] + 6.0 * e[2] - 4.0 * e[3] + e[4];
+        if d4.is_finite() {
+            *sum += d4 * d4;
+            *count += 1;
+        }
+    }
 }
 
 /// The compliance map: each family's median RMS strain over the spring's own, scaled so that
@@ -106,6 +181,44 @@ pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::{Rng, SeedableRng, rngs::StdRng};
+
+    /// The fourth differences of a motion the frames resolve (a swing of 12 frames a period)
+    /// under white noise measure the noise's variance (×70), not the swing's.
+    #[test]
+    fn fourth_differences_measure_white_noise_not_resolved_motion() {
+        let mut rng = StdRng::seed_from_u64(5);
+        let sigma = 0.01;
+        // Uniform noise on ±a has variance a²/3.
+        let a = sigma * 3f64.sqrt();
+        let series: Vec<f64> = (0..20_000)
+            .map(|f| {
+                0.05 * (f as f64 * std::f64::consts::TAU / 12.0).sin()
+                    + a * (2.0 * rng.random::<f64>() - 1.0)
+            })
+            .collect();
+        let (mut sum, mut count) = (0.0, 0);
+        add_fourth_differences(&series, &mut sum, &mut count);
+        let noise = sum / count as f64 / FOURTH_DIFFERENCE_GAIN;
+        assert!(
+            (noise / (sigma * sigma) - 1.0).abs() < 0.1,
+            "estimated variance {noise:e}, true {:e}",
+            sigma * sigma
+        );
+        // Without noise the swing alone leaves a small fraction of its mean square (0.00125).
+        let clean: Vec<f64> = (0..2000)
+            .map(|f| 0.05 * (f as f64 * std::f64::consts::TAU / 12.0).sin())
+            .collect();
+        let (mut sum, mut count) = (0.0, 0);
+        add_fourth_differences(&clean, &mut sum, &mut count);
+        assert!(sum / count as f64 / FOURTH_DIFFERENCE_GAIN < 0.03 * 0.00125);
+        // A NaN (a hidden end) drops the five windows that hold it.
+        let mut gap = clean[..20].to_vec();
+        gap[10] = f64::NAN;
+        let (mut sum, mut count) = (0.0, 0);
+        add_fourth_differences(&gap, &mut sum, &mut count);
+        assert_eq!(count, 16 - 5);
+    }
 
     /// Within a family the map is the inverse of the strain; a spring that never stretches
     /// takes the family's median; the stiffest spring has `k_init`.

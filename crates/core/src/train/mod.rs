@@ -1124,11 +1124,13 @@ impl Fit<'_> {
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
         let strains = compliance::rms_strains(self.clips)?;
-        let k = compliance::stiffness(topo, &strains, k0);
+        let k = compliance::stiffness(topo, &strains.rms, k0);
         let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
         self.progress.note(&format!(
-            "compliance map: k from the springs' RMS strains over the training frames, \
-             {lo:.4}–{k0:.4} N/m; b uniform {b0:.4e} N·s/m"
+            "compliance map: k from the springs' RMS strains over the training frames \
+             ({:.1} % of their mean square was the positions' noise, taken out), \
+             {lo:.4}–{k0:.4} N/m; b uniform {b0:.4e} N·s/m",
+            100.0 * strains.noise_share
         ));
         let b = vec![b0; topo.num_springs()];
         Ok(SpringNet::new(topo, &k, &b, device)
