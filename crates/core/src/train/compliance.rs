@@ -8,7 +8,7 @@
 //! leaves the stiffest springs least determined (and biased low), while the strains themselves
 //! are measured directly. Each spring's `k` is its family's median RMS strain over every frame
 //! of the training clips divided by its own (ratios kept within 100× either way; the
-//! positions' noise taken out of each mean square, [`rms_strains`]),
+//! positions' noise taken out of each mean square, `rms_strains`),
 //! scaled so that the stiffest spring has the run's initial uniform `k` (stable at the run's
 //! substeps); `b` starts uniform. The map's ranks are the point; its
 //! size and how much of it to keep are found by free rollouts (`train.blend_search`).
