@@ -732,9 +732,19 @@ impl Npz {
         key: &str,
         shape: &[Option<usize>],
     ) -> Result<(Vec<f32>, Vec<usize>)> {
+        self.converted(key, shape, Array::to_f32)
+    }
+
+    /// `key` converted by `convert`, checked against `shape`.
+    fn converted<T>(
+        &self,
+        key: &str,
+        shape: &[Option<usize>],
+        convert: fn(&Array) -> Option<Vec<T>>,
+    ) -> Result<(Vec<T>, Vec<usize>)> {
         let a = self.get(key)?;
         self.check_shape(key, a, shape)?;
-        let v = a.to_f32().ok_or_else(|| {
+        let v = convert(a).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: key `{key}` has dtype {}, expected a float or integer type",
                 self.path.display(),
@@ -751,24 +761,16 @@ impl Npz {
         shape: &[Option<usize>],
         convert: fn(&Array) -> Option<Vec<T>>,
     ) -> Result<(Vec<T>, Vec<usize>)> {
-        let a = self.get(key)?;
-        self.check_shape(key, a, shape)?;
-        let v = convert(a).ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected a float or integer type",
-                self.path.display(),
-                a.dtype.name()
-            )
-        })?;
+        let (v, shape) = self.converted(key, shape, convert)?;
         if let Some(i) = v.iter().position(|x| !(*x).into().is_finite()) {
             bail!(
                 "{}: key `{key}` holds a non-finite value ({}) at flat index {i}{}",
                 self.path.display(),
                 v[i],
-                unravel(&a.shape, i)
+                unravel(&shape, i)
             );
         }
-        Ok((v, a.shape.clone()))
+        Ok((v, shape))
     }
 
     /// A finite scalar (0-d or one-element array of any numeric dtype).

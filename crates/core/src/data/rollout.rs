@@ -149,11 +149,12 @@ impl Rollout {
     pub fn from_npz(npz: &Npz) -> Result<Self> {
         let path = npz.path.as_path();
         let shown = path.display();
-        if !npz.has("visible") {
-            // Every landmark seen: every value must be finite.
-            npz.f32("positions", &[None, None, Some(3)])?;
-        }
-        let (mut positions, shape) = npz.f32_any("positions", &[None, None, Some(3)])?;
+        // Every landmark seen: every value must be finite; else the hidden ones may be NaN.
+        let (mut positions, shape) = if npz.has("visible") {
+            npz.f32_any("positions", &[None, None, Some(3)])?
+        } else {
+            npz.f32("positions", &[None, None, Some(3)])?
+        };
         let (frames, n) = (shape[0], shape[1]);
         if frames < 2 || n < 3 {
             bail!(
