@@ -240,9 +240,19 @@ impl Track {
         }
     }
 
+    /// Whether particle `i` was seen in frame `f`.
+    pub fn seen(&self, f: usize, i: usize) -> bool {
+        self.visible
+            .as_ref()
+            .is_none_or(|v| v[f * self.particles + i])
+    }
+
     /// Whether particle `i` is seen in every frame of `frames` that the track holds.
     pub fn seen_throughout(&self, i: usize, frames: std::ops::RangeInclusive<usize>) -> bool {
-        super::rollout::seen_throughout(self.visible.as_deref(), self.particles, i, frames)
+        self.visible.is_none()
+            || frames
+                .take_while(|&f| f < self.frames)
+                .all(|f| self.seen(f, i))
     }
 
     /// Whether particle `i`'s velocity at frame `f` rests on seen positions: stored velocities
@@ -641,7 +651,7 @@ impl HostBatch {
                 let mut f = Vec::with_capacity(b * t * p);
                 for &(track, offset) in clips {
                     for j in offset..=offset + t {
-                        x.extend((0..p).map(|i| track.seen_throughout(i, j..=j) as u8 as f32));
+                        x.extend((0..p).map(|i| track.seen(j, i) as u8 as f32));
                     }
                     for j in offset..offset + t {
                         f.extend((0..p).map(|i| {

@@ -407,6 +407,13 @@ impl Rollout {
         self.segments.last().map_or(0, |s| s.start + s.len)
     }
 
+    /// Whether landmark `i` was seen in stored frame `f`.
+    pub fn seen(&self, f: usize, i: usize) -> bool {
+        self.visible
+            .as_ref()
+            .is_none_or(|v| v[f * self.landmarks + i])
+    }
+
     /// Position of landmark `i` at stored frame `f`.
     pub fn position(&self, f: usize, i: usize) -> [f32; 3] {
         let o = (f * self.landmarks + i) * 3;
@@ -525,19 +532,6 @@ fn fill_hidden(
         }
     }
     Ok(())
-}
-
-/// Whether landmark (or particle) `i` of `n` is seen in every frame of `frames`, by a `[F, N]`
-/// mask (`None`: all seen; frames past the mask's end count as seen).
-pub fn seen_throughout(
-    visible: Option<&[bool]>,
-    n: usize,
-    i: usize,
-    frames: std::ops::RangeInclusive<usize>,
-) -> bool {
-    let Some(seen) = visible else { return true };
-    let total = seen.len() / n;
-    frames.filter(|&f| f < total).all(|f| seen[f * n + i])
 }
 
 fn check_indices(shown: &std::path::Display<'_>, key: &str, idx: &[i64], n: usize) -> Result<()> {

@@ -77,9 +77,8 @@ impl Edges {
         let mut peak: Option<Peak> = None;
         for f in (0..r.frames).step_by(stride) {
             let x = &r.positions[f * n * 3..(f + 1) * n * 3];
-            let seen = |i: usize| r.visible.as_ref().is_none_or(|v| v[f * n + i]);
             for (e, (&[a, b], &l0)) in self.pairs.iter().zip(&self.rest).enumerate() {
-                if !(seen(a) && seen(b)) {
+                if !(r.seen(f, a) && r.seen(f, b)) {
                     continue;
                 }
                 let d: f64 = (0..3)

@@ -336,7 +336,7 @@ pub fn motion_curves(
                 for &i in chunk {
                     let t = &tracks[i].1;
                     let before = mask.len();
-                    mask.extend((0..p).map(|q| t.seen_throughout(q, j..=j) as u8 as f32));
+                    mask.extend((0..p).map(|q| t.seen(j, q) as u8 as f32));
                     counts.push(mask[before..].iter().sum::<f32>().max(1.0));
                 }
                 (

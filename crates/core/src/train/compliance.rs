@@ -74,9 +74,8 @@ pub(crate) fn rms_strains(clips: &ClipSet) -> Result<RmsStrains> {
         let mut strain = vec![f64::NAN; track.frames * springs];
         for f in 0..track.frames {
             let x = &track.positions[f * p * 3..(f + 1) * p * 3];
-            let seen = |i: usize| track.visible.as_ref().is_none_or(|v| v[f * p + i]);
             for (s, &[a, b]) in topo.springs.iter().enumerate() {
-                if !(seen(a) && seen(b)) {
+                if !(track.seen(f, a) && track.seen(f, b)) {
                     continue;
                 }
                 let d: f64 = (0..3)

@@ -863,6 +863,17 @@ mod tests {
     use nalgebra::{DMatrix, DVector};
     use rand::{Rng, SeedableRng, rngs::StdRng};
 
+    /// The physics of the hand-built tracks below: 0.1 s frames, 0.7 kg particles.
+    fn test_physics() -> Physics {
+        Physics {
+            frame_dt: 0.1,
+            substeps: 1,
+            mass: 0.7,
+            rayleigh: 0.1,
+            gravity: [0.0, 0.0, -9.81],
+        }
+    }
+
     /// A free triangle of three springs with random states over six frames, its sums over
     /// centres 1…4 (positions target, `w = 1`), and the same rows built densely.
     fn problem(seed: u64) -> (Topology, Sums, DMatrix<f64>, DVector<f64>) {
@@ -886,13 +897,7 @@ mod tests {
             pinned: vec![false; p],
             visible: None,
         };
-        let physics = Physics {
-            frame_dt: 0.1,
-            substeps: 1,
-            mass: 0.7,
-            rayleigh: 0.1,
-            gravity: [0.0, 0.0, -9.81],
-        };
+        let physics = test_physics();
         let pattern = Pattern::new(&topo);
         let mut sums = pattern.empty_sums();
         let stencil = Stencil {
@@ -986,13 +991,7 @@ mod tests {
         for f in [5, 6] {
             moved[f * p * 3] += 0.3;
         }
-        let physics = Physics {
-            frame_dt: 0.1,
-            substeps: 1,
-            mass: 0.7,
-            rayleigh: 0.1,
-            gravity: [0.0, 0.0, -9.81],
-        };
+        let physics = test_physics();
         let pattern = Pattern::new(&topo);
         let stencil = Stencil {
             w: 1,
