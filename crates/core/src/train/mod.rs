@@ -22,8 +22,9 @@ use std::time::Instant;
 
 use anyhow::{Result, anyhow, bail};
 use burn::module::{Module, Param, ParamId};
+use burn::optim::module_optimizer::ModuleOptimizer;
 use burn::optim::{AdamConfig, GradientsParams};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Gradients, Tensor};
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use serde::{Deserialize, Serialize};
 
@@ -459,21 +460,7 @@ pub fn open_training_clips(
 pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Result<TrainSummary> {
     let run = RunDir::new(config.run_dir(options.out.as_deref()));
     let _lock = run.lock()?;
-    let previous = if options.resume { run.state()? } else { None };
-    if options.resume {
-        match &previous {
-            None => bail!("--resume: {} holds no run to resume", run.dir.display()),
-            Some(s) if s.status == Status::Finished => {
-                bail!(
-                    "--resume: the run in {} is already finished (pass --force to train it again)",
-                    run.dir.display()
-                )
-            }
-            _ => {}
-        }
-    } else {
-        run.check_fresh(options.force)?;
-    }
+    let previous = previous_state(&run, options)?;
     let (clips, truth) = open_training_clips(config, progress)?;
     if config.train.force_on == ForceOn::Frames && clips.steps < 3 {
         bail!(
@@ -484,17 +471,13 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     }
     let clips = Arc::new(clips);
     let requested = config;
-    let Split {
-        train: train_files,
-        validation: validation_files,
-        ..
-    } = config.data.split()?;
+    let split = config.data.split()?;
     let search_device = config.backend.device()?;
     let (resolved, resolution) = init::resolve(
         config,
         &clips,
         Some(&init::SearchContext {
-            files: &train_files,
+            files: &split.train,
             device: &search_device,
         }),
     )?;
@@ -509,20 +492,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     crate::io::write_text(&run.config(), &config.to_toml())?;
     crate::io::write_json(&run.defaults(), &resolution)?;
     let device = training_device(config)?;
-    if config.backend == crate::backend::Backend::Wgpu
-        && config.model.kind != ModelKind::Springs
-        && !cfg!(feature = "autotune")
-    {
-        let (model, speedup) = match config.model.kind {
-            ModelKind::Gnn => ("GNN", "3.3x"),
-            _ => ("Neural ODE", "1.7x"),
-        };
-        progress.note(&format!(
-            "note: the {model} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU \
-             a build with `--features autotune` trains it {speedup} faster (H100; the book, \"On a \
-             GPU\")"
-        ));
-    }
+    note_fixed_kernels(config, progress);
     let physics = Physics::new(&config.sim, clips.info.frame_dt, clips.particle_mass());
     let topo = clips.topology.clone();
     let job = Job {
@@ -533,21 +503,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         device: &device,
         curvature_lr_factor: config.model.curvature_init_for(resolution.k_init) / resolution.k_init,
     };
-    // The model's constants: new ones, or those of the run being resumed.
-    let meta = match (&previous, ModelMeta::read(&run.meta())) {
-        (Some(_), Ok(meta)) => {
-            if meta.kind != config.model.kind {
-                bail!(
-                    "--resume: {} holds a `{}` run, the config asks for `{}`",
-                    run.dir.display(),
-                    meta.kind.name(),
-                    config.model.kind.name()
-                );
-            }
-            meta
-        }
-        _ => ModelMeta::new(config, &clips, &physics, progress)?,
-    };
+    let meta = model_meta(&run, previous.is_some(), config, &clips, &physics, progress)?;
     crate::io::write_json(&run.meta(), &meta)?;
     let fit = Fit {
         run: &run,
@@ -568,129 +524,14 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
             let model = fit
                 .initial_springs(&resolution)?
                 .with_kernel(config.model.kernel);
-            let (summary, mut model) = fit.run(model)?;
-            let mut final_physics = physics;
-            if config.train.blend_search {
-                // The maps to blend: the trained network, and with both starts on the
-                // compliance map too; the one whose blend moves closest to the training
-                // rollouts is kept.
-                let mut maps = vec![("trained", model.clone())];
-                if config.train.compliance.enabled && config.train.least_squares.enabled {
-                    maps.push(("compliance", fit.compliance_springs(&resolution)?));
-                }
-                let mut found = Vec::new();
-                for (name, map) in &maps {
-                    let (net, p, mut record) = scale::blend_search(
-                        map,
-                        (resolution.k_init, resolution.b_init),
-                        &topo,
-                        &physics,
-                        &train_files,
-                        config.eval.batch,
-                        &search_device,
-                        progress,
-                    )?;
-                    record.map = name.to_string();
-                    if maps.len() > 1 {
-                        progress.note(&format!(
-                            "blend search of the {name} map: {:.0} % kept, mean motion RMSE \
-                             {:.4e} m",
-                            100.0 * record.alpha,
-                            record.after
-                        ));
-                    }
-                    found.push((net, p, record));
-                }
-                let (blended, blended_physics, record) = found
-                    .into_iter()
-                    .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
-                    .expect("one map at least");
-                progress.note(&format!(
-                    "blend search: the best uniform network on {} training rollouts is k {:.4} \
-                     N/m, b {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3}, \
-                     b × {:.3} at {} substep(s) per frame: mean motion RMSE {} (as trained) -> \
-                     {:.4e} m",
-                    record.rollouts,
-                    record.uniform.0,
-                    record.uniform.1,
-                    record.uniform.2,
-                    100.0 * record.alpha,
-                    record.map,
-                    record.k_factor,
-                    record.b_factor,
-                    record.substeps,
-                    record
-                        .before
-                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
-                    record.after
-                ));
-                if record.alpha == 0.0 {
-                    progress.note(
-                        "WARNING: blend search: no share of the learned map moves closer to the \
-                         training rollouts than the best uniform network; the run keeps that \
-                         uniform network",
-                    );
-                }
-                keep_searched(
-                    &run,
-                    config,
-                    &blended,
-                    &blended_physics,
-                    "blend.json",
-                    &record,
-                )?;
-                model = blended;
-                final_physics = blended_physics;
-            }
-            if config.train.scale_search {
-                let (scaled, scaled_physics, record) = scale::search(
-                    &model,
-                    &topo,
-                    &physics,
-                    &train_files,
-                    config.eval.batch,
-                    &search_device,
-                    progress,
-                )?;
-                progress.note(&format!(
-                    "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion \
-                     RMSE on {} training rollouts {} -> {:.4e} m",
-                    record.k_factor,
-                    record.b_factor,
-                    record.substeps,
-                    record.rollouts,
-                    record
-                        .before
-                        .map_or("(diverged)".to_string(), |r| format!("{r:.4e}")),
-                    record.after
-                ));
-                keep_searched(
-                    &run,
-                    config,
-                    &scaled,
-                    &scaled_physics,
-                    "scale.json",
-                    &record,
-                )?;
-                model = scaled;
-                final_physics = scaled_physics;
-            }
-            run::write_springs(&run.springs(), &topo, &model, physics.mass)?;
-            if !validation_files.is_empty() {
-                let v = guard::validate(
-                    &model,
-                    &topo,
-                    &final_physics,
-                    (config.model.k_init.or(50.0), config.model.b_init.or(0.0)),
-                    &train_files,
-                    &validation_files,
-                    &config.eval,
-                    &search_device,
-                    progress,
-                )?;
-                progress.note(&format!("validation: {}", v.summary()));
-                crate::io::write_json(&guard::Validation::path(&run.dir), &v)?;
-            }
+            let (summary, model) = fit.run(model)?;
+            let after = AfterFit {
+                fit: &fit,
+                resolution: &resolution,
+                split: &split,
+                device: &search_device,
+            };
+            after.finish(model)?;
             summary
         }
         ModelKind::NeuralOde => fit.run(meta.neural_ode(config, &device))?.0,
@@ -700,6 +541,229 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     state.status = Status::Finished;
     run.write_state(&state)?;
     Ok(summary)
+}
+
+/// The state of the run `--resume` goes on from (`None` without it), after checking that there
+/// is one and that it is unfinished; without `--resume`, checks that the folder may be written.
+fn previous_state(run: &RunDir, options: &TrainOptions) -> Result<Option<RunState>> {
+    if !options.resume {
+        run.check_fresh(options.force)?;
+        return Ok(None);
+    }
+    match run.state()? {
+        None => bail!("--resume: {} holds no run to resume", run.dir.display()),
+        Some(s) if s.status == Status::Finished => {
+            bail!(
+                "--resume: the run in {} is already finished (pass --force to train it again)",
+                run.dir.display()
+            )
+        }
+        state => Ok(state),
+    }
+}
+
+/// Says, when a Neural ODE or GNN trains on wgpu without `autotune`, what that feature buys.
+fn note_fixed_kernels(config: &Config, progress: &Progress) {
+    if config.backend != crate::backend::Backend::Wgpu
+        || config.model.kind == ModelKind::Springs
+        || cfg!(feature = "autotune")
+    {
+        return;
+    }
+    let (model, speedup) = match config.model.kind {
+        ModelKind::Gnn => ("GNN", "3.3x"),
+        _ => ("Neural ODE", "1.7x"),
+    };
+    progress.note(&format!(
+        "note: the {model} trains on wgpu with Burn's fixed matmul and reduce kernels; on a GPU a \
+         build with `--features autotune` trains it {speedup} faster (H100; the book, \"On a \
+         GPU\")"
+    ));
+}
+
+/// The model's constants: those of the run being resumed (which must be of the configured
+/// family), else new ones.
+fn model_meta(
+    run: &RunDir,
+    resuming: bool,
+    config: &Config,
+    clips: &ClipSet,
+    physics: &Physics,
+    progress: &Progress,
+) -> Result<ModelMeta> {
+    match (resuming, ModelMeta::read(&run.meta())) {
+        (true, Ok(meta)) => {
+            if meta.kind != config.model.kind {
+                bail!(
+                    "--resume: {} holds a `{}` run, the config asks for `{}`",
+                    run.dir.display(),
+                    meta.kind.name(),
+                    config.model.kind.name()
+                );
+            }
+            Ok(meta)
+        }
+        _ => ModelMeta::new(config, clips, physics, progress),
+    }
+}
+
+/// What follows a spring network's fit: the blend and scale searches, the springs file and the
+/// check on the held-out training rollouts.
+struct AfterFit<'a> {
+    fit: &'a Fit<'a>,
+    resolution: &'a init::Resolution,
+    split: &'a Split,
+    /// The device of the searches and the check (the config's backend).
+    device: &'a Device,
+}
+
+impl AfterFit<'_> {
+    fn finish(&self, mut model: SpringNet) -> Result<()> {
+        let job = self.fit.job;
+        let config = job.config;
+        let mut final_physics = job.physics;
+        if config.train.blend_search {
+            (model, final_physics) = self.blend(model)?;
+        }
+        if config.train.scale_search {
+            (model, final_physics) = self.scale(&model)?;
+        }
+        run::write_springs(
+            &self.fit.run.springs(),
+            job.topology,
+            &model,
+            job.physics.mass,
+        )?;
+        if !self.split.validation.is_empty() {
+            self.validate(&model, &final_physics)?;
+        }
+        Ok(())
+    }
+
+    /// The blend search on the maps to blend: the trained network, and with both starts on
+    /// the compliance map too; the one whose blend moves closest to the training rollouts is
+    /// kept.
+    fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
+        let (job, progress) = (self.fit.job, self.fit.progress);
+        let config = job.config;
+        let mut maps = vec![("trained", model)];
+        if config.train.compliance.enabled && config.train.least_squares.enabled {
+            maps.push(("compliance", self.fit.compliance_springs(self.resolution)?));
+        }
+        let mut found = Vec::new();
+        for (name, map) in &maps {
+            let (net, p, mut record) = scale::blend_search(
+                map,
+                (self.resolution.k_init, self.resolution.b_init),
+                job.topology,
+                &job.physics,
+                &self.split.train,
+                config.eval.batch,
+                self.device,
+                progress,
+            )?;
+            record.map = name.to_string();
+            if maps.len() > 1 {
+                progress.note(&format!(
+                    "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m",
+                    100.0 * record.alpha,
+                    record.after
+                ));
+            }
+            found.push((net, p, record));
+        }
+        let (blended, blended_physics, record) = found
+            .into_iter()
+            .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
+            .expect("one map at least");
+        progress.note(&format!(
+            "blend search: the best uniform network on {} training rollouts is k {:.4} N/m, b \
+             {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3}, b × {:.3} at {} \
+             substep(s) per frame: mean motion RMSE {} (as trained) -> {:.4e} m",
+            record.rollouts,
+            record.uniform.0,
+            record.uniform.1,
+            record.uniform.2,
+            100.0 * record.alpha,
+            record.map,
+            record.k_factor,
+            record.b_factor,
+            record.substeps,
+            before_text(record.before),
+            record.after
+        ));
+        if record.alpha == 0.0 {
+            progress.note(
+                "WARNING: blend search: no share of the learned map moves closer to the training \
+                 rollouts than the best uniform network; the run keeps that uniform network",
+            );
+        }
+        let run = self.fit.run;
+        keep_searched(
+            run,
+            config,
+            &blended,
+            &blended_physics,
+            "blend.json",
+            &record,
+        )?;
+        Ok((blended, blended_physics))
+    }
+
+    /// The scale search of `model` (from the fit's physics).
+    fn scale(&self, model: &SpringNet) -> Result<(SpringNet, Physics)> {
+        let job = self.fit.job;
+        let config = job.config;
+        let (scaled, scaled_physics, record) = scale::search(
+            model,
+            job.topology,
+            &job.physics,
+            &self.split.train,
+            config.eval.batch,
+            self.device,
+            self.fit.progress,
+        )?;
+        self.fit.progress.note(&format!(
+            "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion RMSE on \
+             {} training rollouts {} -> {:.4e} m",
+            record.k_factor,
+            record.b_factor,
+            record.substeps,
+            record.rollouts,
+            before_text(record.before),
+            record.after
+        ));
+        let run = self.fit.run;
+        keep_searched(run, config, &scaled, &scaled_physics, "scale.json", &record)?;
+        Ok((scaled, scaled_physics))
+    }
+
+    /// The learned network against the best uniform one on the held-out training rollouts,
+    /// written to the run.
+    fn validate(&self, model: &SpringNet, physics: &Physics) -> Result<()> {
+        let job = self.fit.job;
+        let config = job.config;
+        let v = guard::validate(
+            model,
+            job.topology,
+            physics,
+            (config.model.k_init.or(50.0), config.model.b_init.or(0.0)),
+            &self.split.train,
+            &self.split.validation,
+            &config.eval,
+            self.device,
+            self.fit.progress,
+        )?;
+        self.fit
+            .progress
+            .note(&format!("validation: {}", v.summary()));
+        crate::io::write_json(&guard::Validation::path(&self.fit.run.dir), &v)
+    }
+}
+
+/// A search's motion RMSE before it: the figure, or `(diverged)`.
+fn before_text(before: Option<f64>) -> String {
+    before.map_or("(diverged)".to_string(), |r| format!("{r:.4e}"))
 }
 
 /// Keeps a network a search after training found: its substeps into the run's `config.toml`
@@ -1248,231 +1312,69 @@ impl Fit<'_> {
         }
     }
 
-    fn run<M: Trainable>(&self, mut model: M) -> Result<(TrainSummary, M)> {
+    fn run<M: Trainable>(&self, model: M) -> Result<(TrainSummary, M)> {
         let (run, job, config) = (self.run, self.job, self.job.config);
-        let clips = self.clips;
-        let (resumed, mut start_iteration) = self.resume(model)?;
-        model = resumed;
+        let (mut model, mut start_iteration) = self.resume(model)?;
         model.check_start(job)?;
         let passes = config.train.passes(config.model.kind);
         let total: usize = passes.iter().map(|p| p.config.iterations).sum();
-        let started = Instant::now();
-        let prior_wall = self.previous.map_or(0.0, |s| s.wall_seconds);
-        let mut state = RunState {
+        let clock = Clock {
+            started: Instant::now(),
+            prior: self.previous.map_or(0.0, |s| s.wall_seconds),
+        };
+        let state = RunState {
             status: Status::Running,
             iteration: start_iteration,
             checkpoint: start_iteration,
             backend: config.backend.to_string(),
-            wall_seconds: prior_wall,
+            wall_seconds: clock.prior,
             peak_rss_mib: 0.0,
             error: None,
         };
         run.write_state(&state)?;
         let bar = self.progress.bar(total as u64, "train");
         bar.set_position(start_iteration as u64);
-        let mut last = LossValues::default();
-        let mut rmse_now = model.parameter_rmse(job.truth);
+        let mut tally = Tally {
+            state,
+            clock,
+            bar,
+            last: LossValues::default(),
+            rmse_now: model.parameter_rmse(job.truth),
+            pending: Vec::new(),
+            clamped: 0,
+            skipped: 0,
+            dropped_clips: 0,
+        };
         let mut global = 0;
-        let mut pending = Vec::new();
-        let mut clamped_total = 0usize;
-        let mut skipped = 0usize;
-        let mut dropped_clips = 0usize;
-        for (pass_index, stage) in passes.into_iter().enumerate() {
-            let Pass {
-                name,
-                config: pass,
-                train_k,
-                train_b,
-            } = stage;
-            let pass_start = global;
-            global += pass.iterations;
+        for (index, stage) in passes.into_iter().enumerate() {
+            let span = PassSpan {
+                index,
+                start: global,
+                from: start_iteration.max(global),
+                end: global + stage.config.iterations,
+            };
+            global = span.end;
             if start_iteration >= global {
                 continue;
             }
-            let pool: Vec<ClipRef> = pool_of(clips, pass.clips, name, self.progress)?;
-            let mut sampler = Sampler::new(
-                pool.len(),
-                config.train.seed ^ ((pass_index as u64 + 1) * 0x5851_F42D),
-            );
-            // Skip what was done before a resume, keeping the clip order reproducible.
-            for _ in pass_start..start_iteration.max(pass_start) {
-                sampler.next(pass.batch);
-            }
-            let mut optim = AdamConfig::new()
-                .with_epsilon(config.train.adam_epsilon as f32)
-                .init();
-            if start_iteration > pass_start && run.optimizer(start_iteration).exists() {
-                optim = optim
-                    .load(run.optimizer(start_iteration))
-                    .map_err(|e| anyhow::anyhow!("cannot read optimizer state: {e}"))?;
-            }
-            let (prepared, trained) = model.begin_pass(train_k, train_b);
-            model = prepared;
-            let own_rate = model.own_rate(job, train_k);
-            // A model that reads one window of each clip gets only that window, drawn per
-            // iteration (so a resumed run draws the same ones); a window longer than the clips
-            // is left to the model to refuse by name.
-            let window = model
-                .clip_window(job)
-                .filter(|&frames| (2..=clips.steps + 1).contains(&frames));
-            let window_steps = window.map_or(clips.steps, |frames| frames - 1);
-            let next_refs = |sampler: &mut Sampler, it: usize| -> Vec<ClipRef> {
-                let mut rng = StdRng::seed_from_u64(
-                    config.train.seed ^ (it as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03),
-                );
-                sampler
-                    .next(pass.batch)
-                    .into_iter()
-                    .map(|i| {
-                        let mut clip = pool[i];
-                        if let Some(frames) = window {
-                            let shift = rng.random_range(0..=clips.steps + 1 - frames);
-                            clip.offset += shift;
-                            clip.start += shift;
-                        }
-                        clip
-                    })
-                    .collect()
-            };
-            // The next batch is read and assembled on another thread while this one trains.
-            let prefetch = |refs: Vec<ClipRef>| {
-                let clips = Arc::clone(clips);
-                std::thread::spawn(move || clips.host_batch_of(&refs, window_steps))
-            };
-            let mut upcoming = None;
-            for it in start_iteration.max(pass_start)..global {
-                let host = match upcoming.take() {
-                    Some(handle) => join_batch(handle)?,
-                    None => clips.host_batch_of(&next_refs(&mut sampler, it), window_steps)?,
-                };
-                if it + 1 < global {
-                    upcoming = Some(prefetch(next_refs(&mut sampler, it + 1)));
-                }
-                let batch = host.to_device(job.device)?;
-                let terms = model.batch_loss(job, &batch, pass, it);
-                let values = terms.values();
-                if !values.total.is_finite() {
-                    let message = format!(
-                        "training stopped: the loss became {} at iteration {} ({name} pass; force \
-                         {:.4e}, impulse {:.4e}). {}. The last good model is checkpoint {} in {}; \
-                         lower `train.{name}.lr`, use more `sim.substeps`, or resume from the \
-                         checkpoint",
-                        values.total,
-                        it + 1,
-                        values.force,
-                        values.impulse,
-                        model.divergence_hint(job),
-                        state.checkpoint,
-                        run.dir.display(),
-                    );
-                    run.append_metrics(&pending)?;
-                    state.status = Status::Failed;
-                    state.error = Some(message.clone());
-                    run.write_state(&state)?;
-                    bar.abandon();
-                    bail!(message);
-                }
-                let mut grads = terms.total.backward();
-                let lr = pass.lr_at(it - pass_start);
-                let own_step = own_rate.map(|(id, factor)| {
-                    (
-                        lr * factor,
-                        GradientsParams::from_params(&mut grads, &model, &[id]),
-                    )
-                });
-                // One Adam step per learning rate: with `lr_b`, k's and b's gradients step
-                // separately (Adam's moments are per parameter, so this is Adam with two rates).
-                let steps: Vec<(f64, GradientsParams)> =
-                    match (&trained, pass.lr_b_at(it - pass_start)) {
-                        (Some(ids), Some(lr_b)) if ids.len() == 2 => vec![
-                            (
-                                lr,
-                                GradientsParams::from_params(&mut grads, &model, &ids[..1]),
-                            ),
-                            (
-                                lr_b,
-                                GradientsParams::from_params(&mut grads, &model, &ids[1..]),
-                            ),
-                        ],
-                        (Some(ids), _) => {
-                            vec![(lr, GradientsParams::from_params(&mut grads, &model, ids))]
-                        }
-                        (None, _) => vec![(lr, GradientsParams::from_grads(grads, &model))],
-                    };
-                let steps: Vec<(f64, GradientsParams)> =
-                    steps.into_iter().chain(own_step).collect();
-                dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
-                if steps.iter().all(|(_, g)| model.gradients_finite(g)) {
-                    for (lr, grads) in steps {
-                        model = optim.step(lr, model, grads);
-                    }
-                } else {
-                    skipped += 1; // a finite loss with a non-finite gradient: no step
-                }
-                let clamped = if config.train.project_stable {
-                    let (projected, clamped) = model.project_stable(job, train_k, train_b);
-                    model = projected;
-                    clamped
-                } else {
-                    0
-                };
-                clamped_total += clamped;
-                last = values;
-                if job.truth.is_some() {
-                    rmse_now = model.parameter_rmse(job.truth);
-                }
-                let elapsed = prior_wall + started.elapsed().as_secs_f64();
-                pending.push(MetricsRow {
-                    iteration: it + 1,
-                    pass: name.to_string(),
-                    loss: values.total,
-                    force: values.force,
-                    impulse: values.impulse,
-                    position: values.position,
-                    k_neg: values.k_neg,
-                    b_neg: values.b_neg,
-                    rmse_k: rmse_now.map(|r| r.0),
-                    rmse_b: rmse_now.map(|r| r.1),
-                    seconds: elapsed,
-                    clamped,
-                });
-                bar.set_message(match rmse_now {
-                    Some((k, b)) => format!(
-                        "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
-                        values.total
-                    ),
-                    None => format!("{name} loss {:.3e}", values.total),
-                });
-                bar.inc(1);
-                state.iteration = it + 1;
-                if (it + 1) % config.train.checkpoint_every == 0 || it + 1 == global {
-                    run.append_metrics(&pending)?;
-                    pending.clear();
-                    RunDir::save_module(&model, &run.checkpoint(it + 1))?;
-                    let optim_path = run.optimizer(it + 1);
-                    crate::io::write_atomic_with_path(&optim_path, |tmp| {
-                        optim
-                            .save(tmp)
-                            .map_err(|e| anyhow::anyhow!("cannot save optimizer state: {e}"))
-                    })?;
-                    let old = state.checkpoint;
-                    state.checkpoint = it + 1;
-                    state.wall_seconds = elapsed;
-                    state.peak_rss_mib = run::peak_rss_mib();
-                    run.write_state(&state)?;
-                    if old > 0 && old != state.checkpoint {
-                        let _ = std::fs::remove_file(run.optimizer(old));
-                    }
-                }
-            }
+            model = self.run_pass(model, &stage, span, &mut tally)?;
             start_iteration = global;
         }
+        let Tally {
+            mut state,
+            clock,
+            bar,
+            last,
+            rmse_now,
+            pending,
+            ..
+        } = tally;
         bar.finish();
-        self.note_interventions(skipped, dropped_clips, clamped_total);
+        self.note_interventions(tally.skipped, tally.dropped_clips, tally.clamped);
         run.append_metrics(&pending)?;
         let model = model.valid();
         RunDir::save_module(&model, &run.model())?;
-        state.wall_seconds = prior_wall + started.elapsed().as_secs_f64();
+        state.wall_seconds = clock.seconds();
         state.peak_rss_mib = run::peak_rss_mib();
         run.write_state(&state)?;
         let summary = TrainSummary {
@@ -1485,6 +1387,340 @@ impl Fit<'_> {
             rmse_b: rmse_now.map(|r| r.1),
         };
         Ok((summary, model))
+    }
+
+    /// The iterations `span.from..span.end` of one pass of the curriculum.
+    fn run_pass<M: Trainable>(
+        &self,
+        model: M,
+        stage: &Pass,
+        span: PassSpan,
+        tally: &mut Tally,
+    ) -> Result<M> {
+        let (job, config, clips) = (self.job, self.job.config, self.clips);
+        let pass = stage.config;
+        let pool: Vec<ClipRef> = pool_of(clips, pass.clips, stage.name, self.progress)?;
+        let mut sampler = Sampler::new(
+            pool.len(),
+            config.train.seed ^ ((span.index as u64 + 1) * 0x5851_F42D),
+        );
+        // Skip what was done before a resume, keeping the clip order reproducible.
+        for _ in span.start..span.from {
+            sampler.next(pass.batch);
+        }
+        let mut optim = AdamConfig::new()
+            .with_epsilon(config.train.adam_epsilon as f32)
+            .init();
+        if span.from > span.start && self.run.optimizer(span.from).exists() {
+            optim = optim
+                .load(self.run.optimizer(span.from))
+                .map_err(|e| anyhow::anyhow!("cannot read optimizer state: {e}"))?;
+        }
+        let (mut model, trained) = model.begin_pass(stage.train_k, stage.train_b);
+        let rates = Rates {
+            trained,
+            own: model.own_rate(job, stage.train_k),
+        };
+        // A model that reads one window of each clip gets only that window, drawn per
+        // iteration (so a resumed run draws the same ones); a window longer than the clips
+        // is left to the model to refuse by name.
+        let draw = Draw {
+            pool: &pool,
+            seed: config.train.seed,
+            batch: pass.batch,
+            steps: clips.steps,
+            window: model
+                .clip_window(job)
+                .filter(|&frames| (2..=clips.steps + 1).contains(&frames)),
+        };
+        let window_steps = draw.window.map_or(clips.steps, |frames| frames - 1);
+        // The next batch is read and assembled on another thread while this one trains.
+        let prefetch = |refs: Vec<ClipRef>| {
+            let clips = Arc::clone(clips);
+            std::thread::spawn(move || clips.host_batch_of(&refs, window_steps))
+        };
+        let mut upcoming = None;
+        for it in span.from..span.end {
+            let host = match upcoming.take() {
+                Some(handle) => join_batch(handle)?,
+                None => clips.host_batch_of(&draw.refs(&mut sampler, it), window_steps)?,
+            };
+            if it + 1 < span.end {
+                upcoming = Some(prefetch(draw.refs(&mut sampler, it + 1)));
+            }
+            let batch = host.to_device(job.device)?;
+            let at = Iteration {
+                stage,
+                it,
+                span: &span,
+            };
+            model = self.iterate(model, &batch, &mut optim, &rates, &at, tally)?;
+        }
+        Ok(model)
+    }
+
+    /// One iteration: the loss, the Adam steps, the projection, the metrics row and, when due,
+    /// a checkpoint; a non-finite loss ends the run as failed.
+    fn iterate<M: Trainable>(
+        &self,
+        model: M,
+        batch: &ClipBatch,
+        optim: &mut ModuleOptimizer,
+        rates: &Rates,
+        at: &Iteration,
+        tally: &mut Tally,
+    ) -> Result<M> {
+        let (job, config) = (self.job, self.job.config);
+        let (name, pass, it) = (at.stage.name, at.stage.config, at.it);
+        let terms = model.batch_loss(job, batch, pass, it);
+        let values = terms.values();
+        if !values.total.is_finite() {
+            return Err(self.diverged(&model, &values, at, tally));
+        }
+        let grads = terms.total.backward();
+        let lr = pass.lr_at(it - at.span.start);
+        let steps = rates.steps(&model, grads, lr, pass.lr_b_at(it - at.span.start));
+        tally.dropped_clips += crate::model::kernels::rollout::take_dropped_clips();
+        let mut model = model;
+        if steps.iter().all(|(_, g)| model.gradients_finite(g)) {
+            for (lr, grads) in steps {
+                model = optim.step(lr, model, grads);
+            }
+        } else {
+            tally.skipped += 1; // a finite loss with a non-finite gradient: no step
+        }
+        let clamped = if config.train.project_stable {
+            let (projected, clamped) =
+                model.project_stable(job, at.stage.train_k, at.stage.train_b);
+            model = projected;
+            clamped
+        } else {
+            0
+        };
+        tally.clamped += clamped;
+        tally.last = values;
+        if job.truth.is_some() {
+            tally.rmse_now = model.parameter_rmse(job.truth);
+        }
+        let elapsed = tally.clock.seconds();
+        let rmse_now = tally.rmse_now;
+        tally.pending.push(MetricsRow {
+            iteration: it + 1,
+            pass: name.to_string(),
+            loss: values.total,
+            force: values.force,
+            impulse: values.impulse,
+            position: values.position,
+            k_neg: values.k_neg,
+            b_neg: values.b_neg,
+            rmse_k: rmse_now.map(|r| r.0),
+            rmse_b: rmse_now.map(|r| r.1),
+            seconds: elapsed,
+            clamped,
+        });
+        tally.bar.set_message(match rmse_now {
+            Some((k, b)) => format!(
+                "{name} loss {:.3e} rmse_k {k:.3} rmse_b {b:.3}",
+                values.total
+            ),
+            None => format!("{name} loss {:.3e}", values.total),
+        });
+        tally.bar.inc(1);
+        tally.state.iteration = it + 1;
+        if (it + 1) % config.train.checkpoint_every == 0 || it + 1 == at.span.end {
+            self.checkpoint(&model, optim, it + 1, elapsed, tally)?;
+        }
+        Ok(model)
+    }
+
+    /// The error that ends a run whose loss is not finite, after the metrics so far and the
+    /// failed state are written.
+    fn diverged<M: Trainable>(
+        &self,
+        model: &M,
+        values: &LossValues,
+        at: &Iteration,
+        tally: &mut Tally,
+    ) -> anyhow::Error {
+        let name = at.stage.name;
+        let message = format!(
+            "training stopped: the loss became {} at iteration {} ({name} pass; force {:.4e}, \
+             impulse {:.4e}). {}. The last good model is checkpoint {} in {}; lower \
+             `train.{name}.lr`, use more `sim.substeps`, or resume from the checkpoint",
+            values.total,
+            at.it + 1,
+            values.force,
+            values.impulse,
+            model.divergence_hint(self.job),
+            tally.state.checkpoint,
+            self.run.dir.display(),
+        );
+        if let Err(e) = self.run.append_metrics(&tally.pending) {
+            return e;
+        }
+        tally.state.status = Status::Failed;
+        tally.state.error = Some(message.clone());
+        if let Err(e) = self.run.write_state(&tally.state) {
+            return e;
+        }
+        tally.bar.abandon();
+        anyhow!(message)
+    }
+
+    /// Writes the pending metrics, the model and optimizer at `iteration` and the state, and
+    /// drops the previous checkpoint's optimizer state.
+    fn checkpoint<M: Trainable>(
+        &self,
+        model: &M,
+        optim: &ModuleOptimizer,
+        iteration: usize,
+        elapsed: f64,
+        tally: &mut Tally,
+    ) -> Result<()> {
+        let run = self.run;
+        run.append_metrics(&tally.pending)?;
+        tally.pending.clear();
+        RunDir::save_module(model, &run.checkpoint(iteration))?;
+        let optim_path = run.optimizer(iteration);
+        crate::io::write_atomic_with_path(&optim_path, |tmp| {
+            optim
+                .save(tmp)
+                .map_err(|e| anyhow::anyhow!("cannot save optimizer state: {e}"))
+        })?;
+        let state = &mut tally.state;
+        let old = state.checkpoint;
+        state.checkpoint = iteration;
+        state.wall_seconds = elapsed;
+        state.peak_rss_mib = run::peak_rss_mib();
+        run.write_state(state)?;
+        if old > 0 && old != state.checkpoint {
+            let _ = std::fs::remove_file(run.optimizer(old));
+        }
+        Ok(())
+    }
+}
+
+/// The run's clock: the seconds of the sessions before a resume plus this one's.
+struct Clock {
+    started: Instant,
+    prior: f64,
+}
+
+impl Clock {
+    fn seconds(&self) -> f64 {
+        self.prior + self.started.elapsed().as_secs_f64()
+    }
+}
+
+/// What the training loop carries from iteration to iteration and pass to pass.
+struct Tally {
+    state: RunState,
+    clock: Clock,
+    bar: crate::progress::Bar,
+    /// The last iteration's loss terms.
+    last: LossValues,
+    /// The parameters' RMSE against the truth, when known.
+    rmse_now: Option<(f64, f64)>,
+    /// Metrics rows not yet written.
+    pending: Vec<MetricsRow>,
+    /// Parameters clamped by the stability projection.
+    clamped: usize,
+    /// Iterations whose gradient was not finite (no step taken).
+    skipped: usize,
+    /// Clips the rollout kernels dropped.
+    dropped_clips: usize,
+}
+
+/// Where a pass lies among the run's iterations.
+struct PassSpan {
+    /// The pass's place in the curriculum.
+    index: usize,
+    /// Its first global iteration.
+    start: usize,
+    /// The first one this session runs (later than `start` on a resume).
+    from: usize,
+    /// One past its last.
+    end: usize,
+}
+
+/// One global iteration of a pass.
+struct Iteration<'a> {
+    stage: &'a Pass<'a>,
+    it: usize,
+    span: &'a PassSpan,
+}
+
+/// How a pass's clips are drawn: batches of the pool and, for a model that reads one window of
+/// each clip, a window per clip drawn per iteration.
+struct Draw<'a> {
+    pool: &'a [ClipRef],
+    seed: u64,
+    batch: usize,
+    /// Steps of every clip.
+    steps: usize,
+    /// Frames of the window, when the model reads one.
+    window: Option<usize>,
+}
+
+impl Draw<'_> {
+    /// The clips of iteration `it`.
+    fn refs(&self, sampler: &mut Sampler, it: usize) -> Vec<ClipRef> {
+        let mut rng =
+            StdRng::seed_from_u64(self.seed ^ (it as u64 + 1).wrapping_mul(0xD1B5_4A32_D192_ED03));
+        sampler
+            .next(self.batch)
+            .into_iter()
+            .map(|i| {
+                let mut clip = self.pool[i];
+                if let Some(frames) = self.window {
+                    let shift = rng.random_range(0..=self.steps + 1 - frames);
+                    clip.offset += shift;
+                    clip.start += shift;
+                }
+                clip
+            })
+            .collect()
+    }
+}
+
+/// A pass's learning rates beyond the pass's own: the parameters it trains (with `lr_b`, `k`'s
+/// and `b`'s step apart) and a parameter with its own factor of the rate.
+struct Rates {
+    trained: Option<Vec<ParamId>>,
+    own: Option<(ParamId, f64)>,
+}
+
+impl Rates {
+    /// One Adam step per learning rate: with `lr_b`, k's and b's gradients step separately
+    /// (Adam's moments are per parameter, so this is Adam with two rates).
+    fn steps<M: Module>(
+        &self,
+        model: &M,
+        mut grads: Gradients,
+        lr: f64,
+        lr_b: Option<f64>,
+    ) -> Vec<(f64, GradientsParams)> {
+        let own_step = self.own.map(|(id, factor)| {
+            (
+                lr * factor,
+                GradientsParams::from_params(&mut grads, model, &[id]),
+            )
+        });
+        let steps: Vec<(f64, GradientsParams)> = match (&self.trained, lr_b) {
+            (Some(ids), Some(lr_b)) if ids.len() == 2 => vec![
+                (
+                    lr,
+                    GradientsParams::from_params(&mut grads, model, &ids[..1]),
+                ),
+                (
+                    lr_b,
+                    GradientsParams::from_params(&mut grads, model, &ids[1..]),
+                ),
+            ],
+            (Some(ids), _) => vec![(lr, GradientsParams::from_params(&mut grads, model, ids))],
+            (None, _) => vec![(lr, GradientsParams::from_grads(grads, model))],
+        };
+        steps.into_iter().chain(own_step).collect()
     }
 }
 
