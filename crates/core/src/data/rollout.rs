@@ -173,167 +173,30 @@ impl Rollout {
         } else {
             None
         };
-        let velocities = match (&visible, npz.has("velocities")) {
-            (_, false) => None,
-            (None, true) => Some(npz.f32("velocities", &[Some(frames), Some(n), Some(3)])?.0),
-            (Some(seen), true) => {
-                let (mut v, _) = npz.f32_any("velocities", &[Some(frames), Some(n), Some(3)])?;
-                fill_hidden(&shown, "velocities", &mut v, seen, &rest_uv)?;
-                Some(v)
-            }
-        };
+        let velocities = velocities_of(npz, frames, visible.as_deref(), &rest_uv)?;
         let pinned = npz.bool("pinned", &[Some(n)])?;
-        let plausible = |key: &str| -> Result<f64> {
-            let v = npz.scalar(key)?;
-            if v <= 0.0 {
-                bail!("{shown}: key `{key}` must be positive, is {v}");
-            }
-            let (lo, hi, unit) = plausible_range(key);
-            if !(lo..=hi).contains(&v) {
-                bail!(
-                    "{shown}: key `{key}` is {v} {unit}, outside the plausible {lo:e}–{hi:e} {unit} \
-                     for cloth (a unit mix-up or a damaged file?)"
-                );
-            }
-            Ok(v)
-        };
-        let frame_dt = plausible("frame_dt")?;
-        let total_mass = plausible("total_mass")?;
-        let width = plausible("width")?;
-        let height = plausible("height")?;
-        let tol = 1e-4 * width.max(height);
-        if let Some((i, p)) = rest_uv
-            .iter()
-            .enumerate()
-            .find(|(_, p)| p[0] < -tol || p[0] > width + tol || p[1] < -tol || p[1] > height + tol)
-        {
-            bail!(
-                "{shown}: key `rest_uv`: landmark {i} at ({}, {}) lies outside the {width} × {height} rest rectangle",
-                p[0],
-                p[1]
-            );
-        }
-        let segments = if npz.has("segments") {
-            let (seg, _) = npz.int("segments", &[None, Some(2)])?;
-            let mut out = Vec::new();
-            let (mut offset, mut end) = (0usize, 0usize);
-            for (i, w) in seg.chunks_exact(2).enumerate() {
-                if w[0] < 0 || w[1] < 1 || (w[0] as usize) < end {
-                    bail!(
-                        "{shown}: key `segments`: row {i} = ({}, {}) must start at or after frame {end} and hold at least one frame",
-                        w[0],
-                        w[1]
-                    );
-                }
-                out.push(Segment {
-                    start: w[0] as usize,
-                    offset,
-                    len: w[1] as usize,
-                });
-                offset += w[1] as usize;
-                end = (w[0] + w[1]) as usize;
-            }
-            if offset != frames {
-                bail!("{shown}: key `segments` covers {offset} frames, `positions` holds {frames}");
-            }
-            out
-        } else {
-            vec![Segment {
-                start: 0,
-                offset: 0,
-                len: frames,
-            }]
-        };
-        let springs = if npz.has("springs") {
-            let (ends, _) = npz.int("springs", &[None, Some(2)])?;
-            let s = ends.len() / 2;
-            check_indices(&shown, "springs", &ends, n)?;
-            let k = npz.f32("spring_k", &[Some(s)])?.0;
-            let b = npz.f32("spring_b", &[Some(s)])?.0;
-            Some(SpringTruth {
-                springs: ends
-                    .chunks_exact(2)
-                    .map(|c| [c[0] as usize, c[1] as usize])
-                    .collect(),
-                k: k.into_iter().map(f64::from).collect(),
-                b: b.into_iter().map(f64::from).collect(),
-            })
-        } else {
-            None
-        };
-        if npz.has("tri_stiffness") && !npz.has("triangles") {
-            bail!("{shown}: key `tri_stiffness` needs the key `triangles` it maps");
-        }
-        let mesh = if npz.has("triangles") {
-            let (tri, _) = npz.int("triangles", &[None, Some(3)])?;
-            let m = tri.len() / 3;
-            check_indices(&shown, "triangles", &tri, n)?;
-            let triangles: Vec<[usize; 3]> = tri
-                .chunks_exact(3)
-                .map(|c| [c[0] as usize, c[1] as usize, c[2] as usize])
-                .collect();
-            for (i, t) in triangles.iter().enumerate() {
-                let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
-                let area = 0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]));
-                if area.abs() <= 1e-12 * width * height {
-                    bail!(
-                        "{shown}: key `triangles`: triangle {i} {t:?} is degenerate (zero rest area)"
-                    );
-                }
-            }
-            let stiffness = if npz.has("tri_stiffness") {
-                let st = npz.f32("tri_stiffness", &[Some(m)])?.0;
-                Some(st.into_iter().map(f64::from).collect())
-            } else {
-                None
-            };
-            Some(MeshTruth {
-                triangles,
-                stiffness,
-            })
-        } else {
-            None
-        };
-        let gravity = if npz.has("gravity") {
-            let (g, _) = npz.f32("gravity", &[Some(3)])?;
-            let g = [g[0] as f64, g[1] as f64, g[2] as f64];
-            let norm = g.iter().map(|c| c * c).sum::<f64>().sqrt();
-            if !(norm <= MAX_GRAVITY) {
-                bail!(
-                    "{shown}: key `gravity` is {g:?} m/s² ({norm} m/s² long), beyond the plausible \
-                     {MAX_GRAVITY} m/s² (a unit mix-up or a damaged file?)"
-                );
-            }
-            Some(g)
-        } else {
-            None
-        };
-        let rayleigh = if npz.has("rayleigh") {
-            let c = npz.scalar("rayleigh")?;
-            if !(c >= 0.0) {
-                bail!("{shown}: key `rayleigh` must be non-negative, is {c}");
-            }
-            Some(c)
-        } else {
-            None
-        };
+        let frame_dt = plausible(npz, "frame_dt")?;
+        let total_mass = plausible(npz, "total_mass")?;
+        let width = plausible(npz, "width")?;
+        let height = plausible(npz, "height")?;
+        check_rest_uv(npz, &rest_uv, width, height)?;
         Ok(Self {
             path: path.to_path_buf(),
             frames,
             landmarks: n,
             positions,
             velocities,
+            segments: segments_of(npz, frames)?,
+            springs: springs_of(npz, n)?,
+            mesh: mesh_of(npz, &rest_uv, [width, height])?,
+            gravity: gravity_of(npz)?,
+            rayleigh: rayleigh_of(npz)?,
             rest_uv,
             pinned,
             frame_dt,
             total_mass,
             width,
             height,
-            segments,
-            springs,
-            mesh,
-            gravity,
-            rayleigh,
             visible,
         })
     }
@@ -430,6 +293,183 @@ const FILL_NEIGHBOURS: usize = 6;
 
 /// Candidates searched for them, nearest first.
 const FILL_CANDIDATES: usize = 32;
+
+/// The stored velocities, if any, with the hidden ones filled like the positions.
+fn velocities_of(
+    npz: &Npz,
+    frames: usize,
+    visible: Option<&[bool]>,
+    rest_uv: &[[f64; 2]],
+) -> Result<Option<Vec<f32>>> {
+    if !npz.has("velocities") {
+        return Ok(None);
+    }
+    let shape = [Some(frames), Some(rest_uv.len()), Some(3)];
+    Ok(Some(match visible {
+        None => npz.f32("velocities", &shape)?.0,
+        Some(seen) => {
+            let (mut v, _) = npz.f32_any("velocities", &shape)?;
+            fill_hidden(&npz.path.display(), "velocities", &mut v, seen, rest_uv)?;
+            v
+        }
+    }))
+}
+
+/// The positive scalar `key`, refused outside the plausible range for cloth.
+fn plausible(npz: &Npz, key: &str) -> Result<f64> {
+    let shown = npz.path.display();
+    let v = npz.scalar(key)?;
+    if v <= 0.0 {
+        bail!("{shown}: key `{key}` must be positive, is {v}");
+    }
+    let (lo, hi, unit) = plausible_range(key);
+    if !(lo..=hi).contains(&v) {
+        bail!(
+            "{shown}: key `{key}` is {v} {unit}, outside the plausible {lo:e}–{hi:e} {unit} \
+             for cloth (a unit mix-up or a damaged file?)"
+        );
+    }
+    Ok(v)
+}
+
+/// Refuses a rest coordinate outside the `width` × `height` rectangle (beyond a tolerance).
+fn check_rest_uv(npz: &Npz, rest_uv: &[[f64; 2]], width: f64, height: f64) -> Result<()> {
+    let tol = 1e-4 * width.max(height);
+    if let Some((i, p)) = rest_uv
+        .iter()
+        .enumerate()
+        .find(|(_, p)| p[0] < -tol || p[0] > width + tol || p[1] < -tol || p[1] > height + tol)
+    {
+        bail!(
+            "{}: key `rest_uv`: landmark {i} at ({}, {}) lies outside the {width} × {height} rest rectangle",
+            npz.path.display(),
+            p[0],
+            p[1]
+        );
+    }
+    Ok(())
+}
+
+/// The key `segments` (one whole segment without it), checked to cover the `frames`.
+fn segments_of(npz: &Npz, frames: usize) -> Result<Vec<Segment>> {
+    let shown = npz.path.display();
+    if !npz.has("segments") {
+        return Ok(vec![Segment {
+            start: 0,
+            offset: 0,
+            len: frames,
+        }]);
+    }
+    let (seg, _) = npz.int("segments", &[None, Some(2)])?;
+    let mut out = Vec::new();
+    let (mut offset, mut end) = (0usize, 0usize);
+    for (i, w) in seg.chunks_exact(2).enumerate() {
+        if w[0] < 0 || w[1] < 1 || (w[0] as usize) < end {
+            bail!(
+                "{shown}: key `segments`: row {i} = ({}, {}) must start at or after frame {end} and hold at least one frame",
+                w[0],
+                w[1]
+            );
+        }
+        out.push(Segment {
+            start: w[0] as usize,
+            offset,
+            len: w[1] as usize,
+        });
+        offset += w[1] as usize;
+        end = (w[0] + w[1]) as usize;
+    }
+    if offset != frames {
+        bail!("{shown}: key `segments` covers {offset} frames, `positions` holds {frames}");
+    }
+    Ok(out)
+}
+
+/// The source's springs (`springs`, `spring_k`, `spring_b`), when stored.
+fn springs_of(npz: &Npz, n: usize) -> Result<Option<SpringTruth>> {
+    if !npz.has("springs") {
+        return Ok(None);
+    }
+    let (ends, _) = npz.int("springs", &[None, Some(2)])?;
+    let s = ends.len() / 2;
+    check_indices(&npz.path.display(), "springs", &ends, n)?;
+    let k = npz.f32("spring_k", &[Some(s)])?.0;
+    let b = npz.f32("spring_b", &[Some(s)])?.0;
+    Ok(Some(SpringTruth {
+        springs: ends
+            .chunks_exact(2)
+            .map(|c| [c[0] as usize, c[1] as usize])
+            .collect(),
+        k: k.into_iter().map(f64::from).collect(),
+        b: b.into_iter().map(f64::from).collect(),
+    }))
+}
+
+/// The source's triangles and their stiffness map, when stored; a degenerate triangle (zero
+/// rest area relative to the `[width, height]` rectangle) is refused.
+fn mesh_of(npz: &Npz, rest_uv: &[[f64; 2]], [width, height]: [f64; 2]) -> Result<Option<MeshTruth>> {
+    let shown = npz.path.display();
+    if npz.has("tri_stiffness") && !npz.has("triangles") {
+        bail!("{shown}: key `tri_stiffness` needs the key `triangles` it maps");
+    }
+    if !npz.has("triangles") {
+        return Ok(None);
+    }
+    let (tri, _) = npz.int("triangles", &[None, Some(3)])?;
+    let m = tri.len() / 3;
+    check_indices(&shown, "triangles", &tri, rest_uv.len())?;
+    let triangles: Vec<[usize; 3]> = tri
+        .chunks_exact(3)
+        .map(|c| [c[0] as usize, c[1] as usize, c[2] as usize])
+        .collect();
+    for (i, t) in triangles.iter().enumerate() {
+        let (a, b, c) = (rest_uv[t[0]], rest_uv[t[1]], rest_uv[t[2]]);
+        let area = 0.5 * ((b[0] - a[0]) * (c[1] - a[1]) - (c[0] - a[0]) * (b[1] - a[1]));
+        if area.abs() <= 1e-12 * width * height {
+            bail!("{shown}: key `triangles`: triangle {i} {t:?} is degenerate (zero rest area)");
+        }
+    }
+    let stiffness = if npz.has("tri_stiffness") {
+        let st = npz.f32("tri_stiffness", &[Some(m)])?.0;
+        Some(st.into_iter().map(f64::from).collect())
+    } else {
+        None
+    };
+    Ok(Some(MeshTruth {
+        triangles,
+        stiffness,
+    }))
+}
+
+/// The key `gravity`, when stored, refused beyond a plausible length.
+fn gravity_of(npz: &Npz) -> Result<Option<[f64; 3]>> {
+    if !npz.has("gravity") {
+        return Ok(None);
+    }
+    let (g, _) = npz.f32("gravity", &[Some(3)])?;
+    let g = [g[0] as f64, g[1] as f64, g[2] as f64];
+    let norm = g.iter().map(|c| c * c).sum::<f64>().sqrt();
+    if !(norm <= MAX_GRAVITY) {
+        bail!(
+            "{}: key `gravity` is {g:?} m/s² ({norm} m/s² long), beyond the plausible \
+             {MAX_GRAVITY} m/s² (a unit mix-up or a damaged file?)",
+            npz.path.display()
+        );
+    }
+    Ok(Some(g))
+}
+
+/// The key `rayleigh`, when stored, refused when negative.
+fn rayleigh_of(npz: &Npz) -> Result<Option<f64>> {
+    if !npz.has("rayleigh") {
+        return Ok(None);
+    }
+    let c = npz.scalar("rayleigh")?;
+    if !(c >= 0.0) {
+        bail!("{}: key `rayleigh` must be non-negative, is {c}", npz.path.display());
+    }
+    Ok(Some(c))
+}
 
 /// Checks that `values` (`[F, N, 3]`, of `key`) are finite wherever `seen`, then fills each
 /// hidden value of a landmark from its seen frames `a` before and `b` after, carried by its
