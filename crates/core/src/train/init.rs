@@ -480,7 +480,6 @@ pub fn resolve(
     let mut out = config.clone();
     let info = &clips.info;
     let mass = clips.particle_mass();
-    let topo = &clips.topology;
     let (gravity, gravity_from) = match (config.sim.gravity.value(), info.gravity) {
         (Some(g), _) => (g, "config"),
         (None, Some(g)) => (g, "data"),
@@ -503,104 +502,25 @@ pub fn resolve(
         (None, Some(f)) => (f.c, "fit"),
         (None, None) => unreachable!("fitted when not given"),
     };
-    let (mut k, mut b) = (
-        config
-            .model
-            .k_init
-            .value()
-            .or(fit.map(|f| f.k))
-            .unwrap_or(1.0),
-        config
-            .model
-            .b_init
-            .value()
-            .or(fit.map(|f| f.b))
-            .unwrap_or(0.0),
-    );
-    let fitted = config.model.k_init == Auto::Auto || config.model.b_init == Auto::Auto;
-    let mut init_from = match (config.model.k_init, config.model.b_init) {
-        (Auto::Value(_), Auto::Value(_)) => "config".to_string(),
-        (Auto::Auto, Auto::Auto) => "fit".to_string(),
-        _ => "config and fit".to_string(),
+    let stability = UniformStability {
+        topology: &clips.topology,
+        mass,
+        rayleigh,
+        frame_dt: info.frame_dt,
     };
-    let mut searched_substeps = None;
-    if let Some(f) = &fit
-        && f.explained() < FIT_TRUST
-        && config.model.k_init == Auto::Auto
-    {
-        let Some(ctx) = search else {
-            bail!(
-                "the uniform force fit explains only {:.1} % of the data's accelerations (frames \
-                 too far apart for the motion's fastest parts, or a material unlike springs); \
-                 `train` searches k over free rollouts instead",
-                100.0 * f.explained()
-            );
-        };
-        let (k_best, n, rmse) = search_stiffness(
-            clips,
-            gravity,
-            b,
-            rayleigh,
-            config.sim.substeps.value(),
-            ctx,
-        )?;
-        k = k_best;
-        searched_substeps = Some(n);
-        init_from = format!(
-            "k from a search over free rollouts (motion RMSE {rmse:.3e} m on {} training \
-             rollouts): the force fit explains only {:.1} % of the accelerations",
-            ctx.files.len().min(SEARCH_FILES),
-            100.0 * f.explained()
-        );
-    }
-    // A fitted damping of exactly zero stops training with NaN at the first step (seen on
-    // tpcloth data; cause not isolated): keep at least 0.1 % of a spring's critical damping.
-    let b_floor = 1e-3 * 2.0 * (k.max(0.0) * mass).sqrt();
-    if config.model.b_init == Auto::Auto && b < b_floor {
-        b = b_floor;
-    }
-    if k <= 0.0 {
-        bail!(
-            "the data's forces fit no positive uniform stiffness (least squares gave k = {k:.4e} \
-             N/m); check `total_mass`, `frame_dt` and the units of `positions`, or set \
-             `model.k_init`"
-        );
-    }
-    let number = |k: f64, b: f64, n: usize| {
-        let s = topo.num_springs();
-        Stability::estimate(
-            topo,
-            &vec![k; s],
-            &vec![b; s],
-            mass,
-            rayleigh,
-            info.frame_dt / n as f64,
-        )
-        .number()
-    };
-    let (substeps, substeps_from) = match (config.sim.substeps.value(), searched_substeps) {
-        (Some(n), _) => (n, "config"),
-        (None, Some(n)) => (n, "auto"),
-        (None, None) => {
-            let mut n = 1;
-            while number(k, b, n) > AUTO_SUBSTEPS_TARGET {
-                n += 1;
-                if n > 10_000 {
-                    bail!(
-                        "sim.substeps = \"auto\": even 10000 substeps per {:.3e} s frame leave \
-                         the initial surrogate unstable (k = {k:.4e}, b = {b:.4e}); set \
-                         `sim.substeps`, `model.k_init` and `model.b_init`",
-                        info.frame_dt
-                    );
-                }
-            }
-            (n, "auto")
-        }
-    };
+    let start = Start::guess(config, clips, fit.as_ref(), gravity, rayleigh, search)?;
+    let (substeps, substeps_from) = substeps_for(config, &start, &stability)?;
+    let Start {
+        mut k,
+        mut b,
+        mut from,
+        ..
+    } = start;
     // A fitted guess past the limit at fixed substeps is scaled into the stable region.
-    if fitted && number(k, b, substeps) > INITIAL_CLAMP {
+    let fitted = config.model.k_init == Auto::Auto || config.model.b_init == Auto::Auto;
+    if fitted && stability.number(k, b, substeps) > INITIAL_CLAMP {
         let mut scale = 1.0;
-        while number(k * scale, b * scale, substeps) > INITIAL_CLAMP && scale > 1e-6 {
+        while stability.number(k * scale, b * scale, substeps) > INITIAL_CLAMP && scale > 1e-6 {
             scale *= 0.9;
         }
         if config.model.k_init == Auto::Auto {
@@ -609,7 +529,7 @@ pub fn resolve(
         if config.model.b_init == Auto::Auto {
             b *= scale;
         }
-        init_from.push_str(&format!(", scaled by {scale:.3} to stay stable"));
+        from.push_str(&format!(", scaled by {scale:.3} to stay stable"));
     }
     out.data.clips.steps = Auto::Value(clips.steps);
     out.sim.gravity = Auto::Value(gravity);
@@ -624,11 +544,145 @@ pub fn resolve(
         rayleigh_from,
         k_init: k,
         b_init: b,
-        init_from,
+        init_from: from,
         substeps,
         substeps_from,
-        stability_number: number(k, b, substeps),
+        stability_number: stability.number(k, b, substeps),
         fit,
     };
     Ok((out, resolution))
+}
+
+/// The stability number of a uniform network on the data's grid at given substeps.
+struct UniformStability<'a> {
+    topology: &'a Topology,
+    mass: f64,
+    rayleigh: f64,
+    frame_dt: f64,
+}
+
+impl UniformStability<'_> {
+    fn number(&self, k: f64, b: f64, substeps: usize) -> f64 {
+        let s = self.topology.num_springs();
+        Stability::estimate(
+            self.topology,
+            &vec![k; s],
+            &vec![b; s],
+            self.mass,
+            self.rayleigh,
+            self.frame_dt / substeps as f64,
+        )
+        .number()
+    }
+}
+
+/// The uniform start before the stability clamp: `k` and `b` from the config or the fit (or a
+/// search over free rollouts where the fit explains too little), where they came from, and the
+/// substeps that search settled on.
+struct Start {
+    k: f64,
+    b: f64,
+    from: String,
+    searched_substeps: Option<usize>,
+}
+
+impl Start {
+    fn guess(
+        config: &Config,
+        clips: &ClipSet,
+        fit: Option<&UniformFit>,
+        gravity: [f64; 3],
+        rayleigh: f64,
+        search: Option<&SearchContext>,
+    ) -> Result<Self> {
+        let mut k = config
+            .model
+            .k_init
+            .value()
+            .or(fit.map(|f| f.k))
+            .unwrap_or(1.0);
+        let mut b = config
+            .model
+            .b_init
+            .value()
+            .or(fit.map(|f| f.b))
+            .unwrap_or(0.0);
+        let mut from = match (config.model.k_init, config.model.b_init) {
+            (Auto::Value(_), Auto::Value(_)) => "config".to_string(),
+            (Auto::Auto, Auto::Auto) => "fit".to_string(),
+            _ => "config and fit".to_string(),
+        };
+        let mut searched_substeps = None;
+        if let Some(f) = fit
+            && f.explained() < FIT_TRUST
+            && config.model.k_init == Auto::Auto
+        {
+            let Some(ctx) = search else {
+                bail!(
+                    "the uniform force fit explains only {:.1} % of the data's accelerations \
+                     (frames too far apart for the motion's fastest parts, or a material unlike \
+                     springs); `train` searches k over free rollouts instead",
+                    100.0 * f.explained()
+                );
+            };
+            let substeps = config.sim.substeps.value();
+            let (k_best, n, rmse) = search_stiffness(clips, gravity, b, rayleigh, substeps, ctx)?;
+            k = k_best;
+            searched_substeps = Some(n);
+            from = format!(
+                "k from a search over free rollouts (motion RMSE {rmse:.3e} m on {} training \
+                 rollouts): the force fit explains only {:.1} % of the accelerations",
+                ctx.files.len().min(SEARCH_FILES),
+                100.0 * f.explained()
+            );
+        }
+        // A fitted damping of exactly zero stops training with NaN at the first step (seen on
+        // tpcloth data; cause not isolated): keep at least 0.1 % of a spring's critical damping.
+        let b_floor = 1e-3 * 2.0 * (k.max(0.0) * clips.particle_mass()).sqrt();
+        if config.model.b_init == Auto::Auto && b < b_floor {
+            b = b_floor;
+        }
+        if k <= 0.0 {
+            bail!(
+                "the data's forces fit no positive uniform stiffness (least squares gave k = \
+                 {k:.4e} N/m); check `total_mass`, `frame_dt` and the units of `positions`, or \
+                 set `model.k_init`"
+            );
+        }
+        Ok(Self {
+            k,
+            b,
+            from,
+            searched_substeps,
+        })
+    }
+}
+
+/// The substeps per frame and where they came from: the config's, the search's, or the fewest
+/// that keep the start's stability number within `AUTO_SUBSTEPS_TARGET`.
+fn substeps_for(
+    config: &Config,
+    start: &Start,
+    stability: &UniformStability,
+) -> Result<(usize, &'static str)> {
+    let (k, b) = (start.k, start.b);
+    Ok(match (config.sim.substeps.value(), start.searched_substeps) {
+        (Some(n), _) => (n, "config"),
+        (None, Some(n)) => (n, "auto"),
+        (None, None) => {
+            let mut n = 1;
+            while stability.number(k, b, n) > AUTO_SUBSTEPS_TARGET {
+                n += 1;
+                if n > 10_000 {
+                    bail!(
+                        "sim.substeps = \"auto\": even 10000 substeps per {:.3e} s frame leave \
+                         the initial surrogate unstable (k = {k:.4e}, b = {b:.4e}); set \
+                         `sim.substeps`, `model.k_init` and `model.b_init`",
+                        stability.frame_dt
+                    );
+                }
+            }
+            (n, "auto")
+        }
+    })
 }
