@@ -252,139 +252,182 @@ pub fn motion_curves(
     device: &Device,
     progress: &Progress,
 ) -> Result<MotionCurves> {
-    let mut tracks = Vec::new();
-    for f in files {
-        let t = TestTrack::load(f, topology)?;
-        tracks.push((t.path, t.track, t.first, t.frame_dt));
-    }
+    let tracks = files
+        .iter()
+        .map(|f| TestTrack::load(f, topology))
+        .collect::<Result<Vec<_>>>()?;
     // Every rollout is stepped from its first usable frame to its last.
-    let total_frames: usize = tracks.iter().map(|t| t.1.frames - 1 - t.2).sum();
+    let total_frames: usize = tracks.iter().map(|t| t.track.frames - 1 - t.first).sum();
     let bar = progress.bar(total_frames as u64, "eval");
-    let mut curves = vec![Vec::new(); tracks.len()];
-    let p = topology.num_particles();
-    let (mut step_seconds, mut steps) = (0.0, 0);
+    let mut out = MotionCurves {
+        curves: vec![Vec::new(); tracks.len()],
+        step_seconds: 0.0,
+        steps: 0,
+    };
     let mut order: Vec<usize> = (0..tracks.len()).collect();
-    order.sort_by_key(|&i| (tracks[i].1.frames, tracks[i].2));
-    for group in order
-        .chunk_by(|&a, &b| tracks[a].1.frames == tracks[b].1.frames && tracks[a].2 == tracks[b].2)
-    {
+    order.sort_by_key(|&i| (tracks[i].track.frames, tracks[i].first));
+    let alike = |a: &usize, b: &usize| {
+        tracks[*a].track.frames == tracks[*b].track.frames && tracks[*a].first == tracks[*b].first
+    };
+    for group in order.chunk_by(alike) {
         for chunk in group.chunks(batch.max(1)) {
-            let b = chunk.len();
-            let (frames, first, frame_dt) = (
-                tracks[chunk[0]].1.frames,
-                tracks[chunk[0]].2,
-                tracks[chunk[0]].3,
-            );
-            let physics = Physics {
-                frame_dt,
-                ..*physics_template
+            let lead = &tracks[chunk[0]];
+            let batch = EvalBatch {
+                tracks: &tracks,
+                chunk,
+                particles: topology.num_particles(),
+                frames: lead.track.frames,
+                first: lead.first,
+                frame_dt: lead.frame_dt,
+                device,
             };
-            let frame_of = |j: usize, vel: bool| {
-                let mut v = Vec::with_capacity(b * p * 3);
-                for &i in chunk {
-                    let t = &tracks[i].1;
-                    let src = if vel { &t.velocities } else { &t.positions };
-                    v.extend_from_slice(&src[j * p * 3..(j + 1) * p * 3]);
-                }
-                Tensor::<3>::from_data(TensorData::new(v, [b, p, 3]), device)
-            };
-            let pinned: Vec<f32> = chunk
-                .iter()
-                .flat_map(|&i| tracks[i].1.pinned.iter().map(|&x| x as u8 as f32))
-                .collect();
-            let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [b, p, 1]), device);
-            let clock = Instant::now();
-            let mut state = State {
-                x: frame_of(first, false),
-                v: frame_of(first, true),
-            };
-            let mut here = frame_of(first, false);
-            let mut errs: Vec<Tensor<1>> = Vec::new();
-            let flush = |errs: &mut Vec<Tensor<1>>,
-                         upto: usize,
-                         curves: &mut Vec<Curve>|
-             -> Result<()> {
-                if errs.is_empty() {
-                    return Ok(());
-                }
-                let n = errs.len();
-                let data: Vec<f32> = Tensor::cat(std::mem::take(errs), 0)
-                    .into_data()
-                    .try_into_vec_as::<f32>()
-                    .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-                for (k, row) in data.chunks_exact(b).enumerate() {
-                    let j = upto + k + 2 - n; // the frame this error belongs to
-                    for (slot, &e) in row.iter().enumerate() {
-                        let i = chunk[slot];
-                        if !e.is_finite() {
-                            bail!(
-                                "{}: the surrogate's rollout diverged at frame {j} (t = {:.3} s)",
-                                tracks[i].0.display(),
-                                j as f64 * frame_dt
-                            );
-                        }
-                        curves[i].push(((j - first) as f64 * frame_dt, e as f64));
-                    }
-                }
-                Ok(())
-            };
-            // Tracked markers: each frame's RMSE over the particles seen in it.
-            let masked = chunk.iter().any(|&i| tracks[i].1.visible.is_some());
-            let seen_at = |j: usize| {
-                let mut mask = Vec::with_capacity(b * p);
-                let mut counts = Vec::with_capacity(b);
-                for &i in chunk {
-                    let t = &tracks[i].1;
-                    let before = mask.len();
-                    mask.extend((0..p).map(|q| t.seen(j, q) as u8 as f32));
-                    counts.push(mask[before..].iter().sum::<f32>().max(1.0));
-                }
-                (
-                    Tensor::<3>::from_data(TensorData::new(mask, [b, p, 1]), device),
-                    Tensor::<1>::from_data(TensorData::new(counts, [b]), device),
-                )
-            };
-            for j in first..frames - 1 {
-                let next = frame_of(j + 1, false);
-                let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);
-                state = s;
-                let d = state.x.clone() - next.clone();
-                errs.push(if masked {
-                    let (mask, counts) = seen_at(j + 1);
-                    let d = d * mask;
-                    (d.clone() * d)
-                        .sum_dim(2)
-                        .sum_dim(1)
-                        .reshape([b])
-                        .div(counts)
-                        .sqrt()
-                } else {
-                    (d.clone() * d)
-                        .sum_dim(2)
-                        .sum_dim(1)
-                        .div_scalar(p as f64)
-                        .sqrt()
-                        .reshape([b])
-                });
-                here = next;
-                if errs.len() == 100 {
-                    flush(&mut errs, j, &mut curves)?;
-                    bar.inc(100 * b as u64);
-                }
-            }
-            let left = errs.len();
-            flush(&mut errs, frames - 2, &mut curves)?;
-            bar.inc((left * b) as u64);
-            step_seconds += clock.elapsed().as_secs_f64();
-            steps += (frames - 1 - first) * b;
+            batch.simulate(model, physics_template, &mut out, &bar)?;
         }
     }
     bar.finish();
-    Ok(MotionCurves {
-        curves,
-        step_seconds,
-        steps,
-    })
+    Ok(out)
+}
+
+/// Test rollouts of one length and first frame, simulated side by side by [`motion_curves`].
+struct EvalBatch<'a> {
+    tracks: &'a [TestTrack],
+    /// Which of `tracks`.
+    chunk: &'a [usize],
+    particles: usize,
+    frames: usize,
+    first: usize,
+    frame_dt: f64,
+    device: &'a Device,
+}
+
+impl EvalBatch<'_> {
+    /// Steps the rollouts from their first usable frame to their last and appends each frame's
+    /// RMSE to their curves; a non-finite one is refused naming the rollout and frame.
+    fn simulate(
+        &self,
+        model: &dyn ForceModel,
+        physics_template: &Physics,
+        out: &mut MotionCurves,
+        bar: &crate::progress::Bar,
+    ) -> Result<()> {
+        let (b, first, frames) = (self.chunk.len(), self.first, self.frames);
+        let physics = Physics {
+            frame_dt: self.frame_dt,
+            ..*physics_template
+        };
+        let pinned = self.pinned();
+        let clock = Instant::now();
+        let mut state = State {
+            x: self.frame(first, false),
+            v: self.frame(first, true),
+        };
+        let mut here = self.frame(first, false);
+        let mut errs: Vec<Tensor<1>> = Vec::new();
+        // Tracked markers: each frame's RMSE over the particles seen in it.
+        let masked = self.chunk.iter().any(|&i| self.tracks[i].track.visible.is_some());
+        for j in first..frames - 1 {
+            let next = self.frame(j + 1, false);
+            let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);
+            state = s;
+            let d = state.x.clone() - next.clone();
+            errs.push(if masked {
+                let (mask, counts) = self.seen_at(j + 1);
+                let d = d * mask;
+                (d.clone() * d)
+                    .sum_dim(2)
+                    .sum_dim(1)
+                    .reshape([b])
+                    .div(counts)
+                    .sqrt()
+            } else {
+                (d.clone() * d)
+                    .sum_dim(2)
+                    .sum_dim(1)
+                    .div_scalar(self.particles as f64)
+                    .sqrt()
+                    .reshape([b])
+            });
+            here = next;
+            if errs.len() == 100 {
+                self.flush(&mut errs, j, &mut out.curves)?;
+                bar.inc(100 * b as u64);
+            }
+        }
+        let left = errs.len();
+        self.flush(&mut errs, frames - 2, &mut out.curves)?;
+        bar.inc((left * b) as u64);
+        out.step_seconds += clock.elapsed().as_secs_f64();
+        out.steps += (frames - 1 - first) * b;
+        Ok(())
+    }
+
+    /// Frame `j`'s positions (or, with `vel`, velocities) of the batch, [B, P, 3].
+    fn frame(&self, j: usize, vel: bool) -> Tensor<3> {
+        let p = self.particles;
+        let mut v = Vec::with_capacity(self.chunk.len() * p * 3);
+        for &i in self.chunk {
+            let t = &self.tracks[i].track;
+            let src = if vel { &t.velocities } else { &t.positions };
+            v.extend_from_slice(&src[j * p * 3..(j + 1) * p * 3]);
+        }
+        Tensor::<3>::from_data(TensorData::new(v, [self.chunk.len(), p, 3]), self.device)
+    }
+
+    /// 1 where a particle is pinned, [B, P, 1].
+    fn pinned(&self) -> Tensor<3> {
+        let pinned: Vec<f32> = self
+            .chunk
+            .iter()
+            .flat_map(|&i| self.tracks[i].track.pinned.iter().map(|&x| x as u8 as f32))
+            .collect();
+        let shape = [self.chunk.len(), self.particles, 1];
+        Tensor::<3>::from_data(TensorData::new(pinned, shape), self.device)
+    }
+
+    /// Which particles frame `j` sees, [B, P, 1], and how many per rollout (at least 1), [B].
+    fn seen_at(&self, j: usize) -> (Tensor<3>, Tensor<1>) {
+        let (b, p) = (self.chunk.len(), self.particles);
+        let mut mask = Vec::with_capacity(b * p);
+        let mut counts = Vec::with_capacity(b);
+        for &i in self.chunk {
+            let t = &self.tracks[i].track;
+            let before = mask.len();
+            mask.extend((0..p).map(|q| t.seen(j, q) as u8 as f32));
+            counts.push(mask[before..].iter().sum::<f32>().max(1.0));
+        }
+        (
+            Tensor::<3>::from_data(TensorData::new(mask, [b, p, 1]), self.device),
+            Tensor::<1>::from_data(TensorData::new(counts, [b]), self.device),
+        )
+    }
+
+    /// Reads the pending per-frame errors (the last of them is frame `upto + 1`) into the
+    /// curves.
+    fn flush(&self, errs: &mut Vec<Tensor<1>>, upto: usize, curves: &mut [Curve]) -> Result<()> {
+        if errs.is_empty() {
+            return Ok(());
+        }
+        let n = errs.len();
+        let data: Vec<f32> = Tensor::cat(std::mem::take(errs), 0)
+            .into_data()
+            .try_into_vec_as::<f32>()
+            .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+        for (k, row) in data.chunks_exact(self.chunk.len()).enumerate() {
+            let j = upto + k + 2 - n; // the frame this error belongs to
+            for (slot, &e) in row.iter().enumerate() {
+                let i = self.chunk[slot];
+                if !e.is_finite() {
+                    bail!(
+                        "{}: the surrogate's rollout diverged at frame {j} (t = {:.3} s)",
+                        self.tracks[i].path.display(),
+                        j as f64 * self.frame_dt
+                    );
+                }
+                curves[i].push(((j - self.first) as f64 * self.frame_dt, e as f64));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// [`motion_curves`] for the GNN: each test rollout starts from its first `C + 1` GNN frames
