@@ -1036,8 +1036,18 @@ fn make_target(
         refine,
     };
     let solved = match cfg.targets.simulator {
-        TargetSimulator::Xpbd => grid.solve_xpbd(cfg, &truth, sc, progress)?,
-        TargetSimulator::Fem => grid.solve_fem(cfg, &truth, sc, progress)?,
+        TargetSimulator::Xpbd => grid.solve_xpbd(&TruthSolve {
+            cfg,
+            truth,
+            sc,
+            progress,
+        })?,
+        TargetSimulator::Fem => grid.solve_fem(&TruthSolve {
+            cfg,
+            truth,
+            sc,
+            progress,
+        })?,
     };
     let mut noise = TargetNoise::new(cfg.targets.noise, seed)?;
     if cfg.targets.stamp == 0 {
@@ -1061,6 +1071,14 @@ struct Solved {
     reactions: Vec<f64>,
 }
 
+/// A target's solve with the true material `truth` in scenario `sc` of `cfg`.
+struct TruthSolve<'a> {
+    cfg: &'a XpbdConfig,
+    truth: Gamma,
+    sc: &'a Scenario,
+    progress: &'a Progress,
+}
+
 /// The grid a target is solved on: the template's, or one `refine` times finer.
 struct SolveGrid<'a> {
     cloth: &'a XpbdCloth,
@@ -1081,19 +1099,14 @@ impl SolveGrid<'_> {
 
     /// The XPBD cloth's equilibrium with `truth`, polished by Newton; a warning where it is not
     /// at rest.
-    fn solve_xpbd(
-        &self,
-        cfg: &XpbdConfig,
-        truth: &Gamma,
-        sc: &Scenario,
-        progress: &Progress,
-    ) -> Result<Solved> {
+    fn solve_xpbd(&self, job: &TruthSolve) -> Result<Solved> {
+        let (cfg, truth, sc) = (job.cfg, &job.truth, job.sc);
         let (fine, setup) = (self.cloth, &self.setup);
         let solve = resolved_solve(cfg, fine, &cfg.materials());
         let mut xf = fine.solve(truth, &setup.load, &setup.start, &solve)?.x;
         let residual = polish(fine, truth, &setup.load, &mut xf, 50, 1e-11)?;
         if residual > 1e-6 {
-            progress.note(&format!(
+            job.progress.note(&format!(
                 "warning: the target {} is not at equilibrium (relative residual \
                  {residual:.2e} after {} steps and the Newton polish): raise `solve.steps`",
                 sc.name(),
@@ -1117,14 +1130,8 @@ impl SolveGrid<'_> {
 
     /// The FEM source's equilibrium with `truth` (`targets.simulator = "fem"`); a warning where
     /// it is not at rest.
-    fn solve_fem(
-        &self,
-        cfg: &XpbdConfig,
-        truth: &Gamma,
-        sc: &Scenario,
-        progress: &Progress,
-    ) -> Result<Solved> {
-        let sw = cfg.swatch;
+    fn solve_fem(&self, job: &TruthSolve) -> Result<Solved> {
+        let (sw, truth, sc) = (job.cfg.swatch, &job.truth, job.sc);
         let t = super::fem_target::solve(
             self.cloth,
             self.n,
@@ -1135,7 +1142,7 @@ impl SolveGrid<'_> {
         )
         .with_context(|| format!("the FEM target of scenario `{}`", sc.name()))?;
         if t.residual > super::fem_target::WARN_RESIDUAL {
-            progress.note(&format!(
+            job.progress.note(&format!(
                 "warning: the FEM target {} is not at equilibrium (relative residual {:.2e})",
                 sc.name(),
                 t.residual
