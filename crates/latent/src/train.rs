@@ -581,6 +581,25 @@ impl TrainLog {
     }
 }
 
+/// An epoch's batch losses.
+#[derive(Default)]
+struct EpochLoss {
+    sum: f64,
+    batches: usize,
+}
+
+impl EpochLoss {
+    fn add(&mut self, value: f64) {
+        self.sum += value;
+        self.batches += 1;
+    }
+
+    /// The mean over the batches (NaN without any).
+    fn mean(&self) -> f64 {
+        self.sum / self.batches.max(1) as f64
+    }
+}
+
 fn rows_tensor(rows: &[&[f32]], device: &Device) -> Tensor<2> {
     let d = rows.first().map_or(0, |r| r.len());
     let data: Vec<f32> = rows.iter().flat_map(|r| r.iter().copied()).collect();
@@ -664,7 +683,7 @@ fn train_autoencoder(
     let mut last = f64::NAN;
     for epoch in 0..c.epochs {
         order.shuffle(&mut rng);
-        let (mut sum, mut batches) = (0.0, 0);
+        let mut losses = EpochLoss::default();
         for chunk in order.chunks(c.batch) {
             // BatchNorm needs more than one frame in a batch.
             if chunk.len() < 2 {
@@ -682,10 +701,9 @@ fn train_autoencoder(
                 "autoencoder",
                 epoch,
             )?;
-            sum += value;
-            batches += 1;
+            losses.add(value);
         }
-        last = sum / batches.max(1) as f64;
+        last = losses.mean();
         log.row("autoencoder", epoch, last, clock.elapsed().as_secs_f64())?;
         bar.set_message(format!("RMSE {:.3} mm", last.sqrt() * 1e3));
         bar.inc(1);
@@ -864,7 +882,7 @@ impl IntegratorFit<'_> {
                 order = (0..samples.len()).collect();
             }
             order.shuffle(rng);
-            let (mut sum, mut batches) = (0.0, 0);
+            let mut losses = EpochLoss::default();
             for chunk in order.chunks(c.batch) {
                 let loss = self.batch_loss(&integrator, samples, chunk, rng);
                 let value;
@@ -876,10 +894,9 @@ impl IntegratorFit<'_> {
                     "integrator",
                     epoch,
                 )?;
-                sum += value;
-                batches += 1;
+                losses.add(value);
             }
-            last = sum / batches.max(1) as f64;
+            last = losses.mean();
             log.row("integrator", epoch, last, clock.elapsed().as_secs_f64())?;
             bar.set_message(format!("loss {last:.5e}"));
             bar.inc(1);
