@@ -453,58 +453,13 @@ pub fn evaluate(dir: &Path, subspace: bool, iterations: Option<usize>) -> Result
     let size = model.config.cloth.width.max(model.config.cloth.height);
     let track = Track::of(&rolled, r, start, size);
     let subspace = match subspace {
-        Some(solve) => {
-            let clock = Instant::now();
-            let rollout = model.solved_rollout(start, r.frames.len(), solve)?;
-            let solved = Track::of(&rollout.positions, r, start, size);
-            Some(SubspaceReport {
-                solve: *solve,
-                unconverged_steps: rollout.unconverged,
-                diverged: solved.diverged,
-                rmse: solved.rmse,
-                max_error: solved.max_error,
-                rmse_at_300: solved.rmse_per_frame.get(300).copied(),
-                kinetic_energy_ratio: solved.kinetic_energy_ratio,
-                seconds: clock.elapsed().as_secs_f64(),
-                rmse_per_frame: solved.rmse_per_frame,
-            })
-        }
+        Some(solve) => Some(model.subspace_report(start, size, solve)?),
         None => None,
     };
     let n = r.frames[0].len();
     let frames = rolled.len();
-    let decoded = super::train::decode(
-        &model.autoencoder.decoder,
-        &model.latents[start..],
-        &model.device,
-    );
-    let rec: f64 = decoded
-        .iter()
-        .enumerate()
-        .map(|(k, y)| {
-            let rel = r.relative(start + k);
-            rel.iter()
-                .zip(y)
-                .map(|(a, b)| (a - *b as f64).powi(2))
-                .sum::<f64>()
-        })
-        .sum();
-    let l = model.config.autoencoder.latent;
-    let mut scratch = (Vec::new(), Vec::new());
-    let mut one_step = 0.0;
-    for t in start..r.frames.len() {
-        let z = model.plain.step(&model.teacher_input(t), l, &mut scratch);
-        let y = model
-            .plain
-            .decoder
-            .apply(&model.scales.restore(&z), &mut scratch);
-        one_step += r
-            .relative(t)
-            .iter()
-            .zip(y)
-            .map(|(a, b)| (a - *b as f64).powi(2))
-            .sum::<f64>();
-    }
+    let rec = model.reconstruction_error(start);
+    let one_step = model.one_step_error(start);
     let report = EvalReport {
         frames,
         first_frame: start,
@@ -528,6 +483,77 @@ pub fn evaluate(dir: &Path, subspace: bool, iterations: Option<usize>) -> Result
         model.reference.dt,
     )?;
     Ok(report)
+}
+
+impl LatentModel {
+    /// The solved rollout from frame `start` by `solve`, scored against the reference
+    /// (`size` the divergence threshold).
+    fn subspace_report(
+        &self,
+        start: usize,
+        size: f64,
+        solve: &SolveConfig,
+    ) -> Result<SubspaceReport> {
+        let r = &self.reference;
+        let clock = Instant::now();
+        let rollout = self.solved_rollout(start, r.frames.len(), solve)?;
+        let solved = Track::of(&rollout.positions, r, start, size);
+        Ok(SubspaceReport {
+            solve: *solve,
+            unconverged_steps: rollout.unconverged,
+            diverged: solved.diverged,
+            rmse: solved.rmse,
+            max_error: solved.max_error,
+            rmse_at_300: solved.rmse_per_frame.get(300).copied(),
+            kinetic_energy_ratio: solved.kinetic_energy_ratio,
+            seconds: clock.elapsed().as_secs_f64(),
+            rmse_per_frame: solved.rmse_per_frame,
+        })
+    }
+
+    /// The autoencoder's squared reconstruction error summed over the frames from `start`.
+    fn reconstruction_error(&self, start: usize) -> f64 {
+        let r = &self.reference;
+        let decoded = super::train::decode(
+            &self.autoencoder.decoder,
+            &self.latents[start..],
+            &self.device,
+        );
+        decoded
+            .iter()
+            .enumerate()
+            .map(|(k, y)| {
+                let rel = r.relative(start + k);
+                rel.iter()
+                    .zip(y)
+                    .map(|(a, b)| (a - *b as f64).powi(2))
+                    .sum::<f64>()
+            })
+            .sum()
+    }
+
+    /// The squared error of single steps from the encoded reference frames `t − 1`, `t − 2`,
+    /// summed over the frames from `start` (plain Rust).
+    fn one_step_error(&self, start: usize) -> f64 {
+        let r = &self.reference;
+        let l = self.config.autoencoder.latent;
+        let mut scratch = (Vec::new(), Vec::new());
+        let mut one_step = 0.0;
+        for t in start..r.frames.len() {
+            let z = self.plain.step(&self.teacher_input(t), l, &mut scratch);
+            let y = self
+                .plain
+                .decoder
+                .apply(&self.scales.restore(&z), &mut scratch);
+            one_step += r
+                .relative(t)
+                .iter()
+                .zip(y)
+                .map(|(a, b)| (a - *b as f64).powi(2))
+                .sum::<f64>();
+        }
+        one_step
+    }
 }
 
 /// `latent_eval.png`: the vertex RMSE of every rolled-out frame, the learned integrator's and

@@ -14,7 +14,7 @@ use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 use springtime_core::cloth::triangles::V3;
-use springtime_core::data::{MeshTruth, Rollout, Segment};
+use springtime_core::data::{MeshTruth, Rollout, Segment, SpringTruth};
 use springtime_core::progress::Progress;
 use springtime_core::source::fem::{Diagonal, FemCloth, FemMaterial, Membrane, grid_triangles};
 use springtime_core::source::implicit::{ImplicitEuler, NewtonConfig};
@@ -279,6 +279,61 @@ pub struct GenerateStats {
     pub us_per_step: f64,
 }
 
+/// What a reference rollout records of the sheet it was simulated on, besides the motion.
+pub(crate) struct SheetRecord {
+    /// Rest positions in the sheet's plane, m.
+    pub rest_uv: Vec<[f64; 2]>,
+    /// Mass of the sheet, kg.
+    pub total_mass: f64,
+    /// Width, m.
+    pub width: f64,
+    /// Height, m.
+    pub height: f64,
+    /// The springs of a spring surrogate.
+    pub springs: Option<SpringTruth>,
+    /// The triangles of an FEM cloth.
+    pub mesh: Option<MeshTruth>,
+    /// Gravity, m/s².
+    pub gravity: V3,
+    /// Rayleigh damping.
+    pub rayleigh: f64,
+}
+
+impl Scene {
+    /// The scene's reference rollout: `positions` of every frame (frame-major) on `sheet`, one
+    /// segment, its pinned vertices marked.
+    pub(crate) fn rollout(&self, positions: Vec<f32>, sheet: SheetRecord) -> Rollout {
+        let (frames, n) = (self.config.frames, self.start.len());
+        let mut pinned = vec![false; n];
+        for &i in &self.pinned {
+            pinned[i] = true;
+        }
+        Rollout {
+            path: Default::default(),
+            frames,
+            landmarks: n,
+            positions,
+            velocities: None,
+            rest_uv: sheet.rest_uv,
+            pinned,
+            frame_dt: self.config.dt(),
+            total_mass: sheet.total_mass,
+            width: sheet.width,
+            height: sheet.height,
+            segments: vec![Segment {
+                start: 0,
+                offset: 0,
+                len: frames,
+            }],
+            springs: sheet.springs,
+            mesh: sheet.mesh,
+            gravity: Some(sheet.gravity),
+            rayleigh: Some(sheet.rayleigh),
+            visible: None,
+        }
+    }
+}
+
 /// Simulates the scene with implicit Euler; returns the rollout and its cost.
 pub fn generate(
     cloth: &ClothConfig,
@@ -318,36 +373,22 @@ pub fn generate(
         max_iterations: most,
         us_per_step: clock.elapsed().as_secs_f64() * 1e6 / steps,
     };
-    let mut pinned = vec![false; n];
-    for &i in &scene.pinned {
-        pinned[i] = true;
-    }
     let triangles = fem.triangles();
-    let rollout = Rollout {
-        path: Default::default(),
-        frames,
-        landmarks: n,
+    let rollout = scene.rollout(
         positions,
-        velocities: None,
-        rest_uv: cloth.rest_uv(),
-        pinned,
-        frame_dt: scene.config.dt(),
-        total_mass: fem.masses().iter().sum(),
-        width: cloth.width,
-        height: cloth.height,
-        segments: vec![Segment {
-            start: 0,
-            offset: 0,
-            len: frames,
-        }],
-        springs: None,
-        mesh: Some(MeshTruth {
-            stiffness: Some(vec![cloth.surface_modulus(); triangles.len()]),
-            triangles,
-        }),
-        gravity: Some(cloth.gravity),
-        rayleigh: Some(0.0),
-        visible: None,
-    };
+        SheetRecord {
+            rest_uv: cloth.rest_uv(),
+            total_mass: fem.masses().iter().sum(),
+            width: cloth.width,
+            height: cloth.height,
+            springs: None,
+            mesh: Some(MeshTruth {
+                stiffness: Some(vec![cloth.surface_modulus(); triangles.len()]),
+                triangles,
+            }),
+            gravity: cloth.gravity,
+            rayleigh: 0.0,
+        },
+    );
     Ok((rollout, stats))
 }

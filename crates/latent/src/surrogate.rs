@@ -15,10 +15,10 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::scenario::{ClothConfig, GenerateStats, Scene};
+use super::scenario::{ClothConfig, GenerateStats, Scene, SheetRecord};
 use springtime_core::cloth::triangles::V3;
 use springtime_core::cloth::{Diagonal, Topology, grid_triangles};
-use springtime_core::data::{Rollout, Segment, SpringTruth};
+use springtime_core::data::{Rollout, SpringTruth};
 use springtime_core::model::SpringNet;
 use springtime_core::progress::Progress;
 use springtime_core::run::Run;
@@ -223,37 +223,23 @@ impl SpringSheet {
             .chain(&rolled)
             .flat_map(|x| x.iter().flat_map(|p| p.map(|v| v as f32)))
             .collect();
-        let mut pinned = vec![false; n];
-        for &i in &scene.pinned {
-            pinned[i] = true;
-        }
-        let rollout = Rollout {
-            path: Default::default(),
-            frames,
-            landmarks: n,
+        let rollout = scene.rollout(
             positions,
-            velocities: None,
-            rest_uv: s.rest_positions.iter().map(|p| [p[0], p[1]]).collect(),
-            pinned,
-            frame_dt: dt,
-            total_mass: s.masses.iter().sum(),
-            width: s.width,
-            height: s.height,
-            segments: vec![Segment {
-                start: 0,
-                offset: 0,
-                len: frames,
-            }],
-            springs: Some(SpringTruth {
-                springs: s.springs.clone(),
-                k: s.k.iter().map(|&v| v as f64).collect(),
-                b: s.b.iter().map(|&v| v as f64).collect(),
-            }),
-            mesh: None,
-            gravity: Some(s.gravity),
-            rayleigh: Some(s.rayleigh),
-            visible: None,
-        };
+            SheetRecord {
+                rest_uv: s.rest_positions.iter().map(|p| [p[0], p[1]]).collect(),
+                total_mass: s.masses.iter().sum(),
+                width: s.width,
+                height: s.height,
+                springs: Some(SpringTruth {
+                    springs: s.springs.clone(),
+                    k: s.k.iter().map(|&v| v as f64).collect(),
+                    b: s.b.iter().map(|&v| v as f64).collect(),
+                }),
+                mesh: None,
+                gravity: s.gravity,
+                rayleigh: s.rayleigh,
+            },
+        );
         Ok((rollout, stats))
     }
 }

@@ -22,7 +22,9 @@ use super::LatentConfig;
 use super::autoencoder::{Autoencoder, Decoder, Pca};
 use super::energy::Potential;
 use super::full::FullSpace;
-use super::integrator::{Integrator, LossKind, boundary_features, mean, step_input};
+use super::integrator::{
+    Integrator, IntegratorConfig, LossKind, boundary_features, mean, step_input,
+};
 use super::scenario::{GenerateStats, Scene};
 use super::subspace::{Sample, SelfLoss, SolveConfig};
 use springtime_core::cloth::triangles::V3;
@@ -287,119 +289,50 @@ pub fn train(
             run.dir.display()
         );
     }
-    let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
-    let data = match (&options.data, &reused) {
-        (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
-        (None, Some(r)) => Some(r.rollout()),
-        (d, None) => d.clone(),
-    };
-    // The surrogate to distill: `--from`'s, or the reused run's.
-    let from = match (&options.from, &reused) {
-        (Some(f), _) => Some(f.clone()),
-        (None, Some(r)) => Some(r.surrogate()).filter(|p| p.exists()),
-        (None, None) => None,
-    };
+    let sources = Sources::of(options)?;
     let mut config = config.clone();
-    let full = FullSpace::new(&mut config, from.as_deref())?;
+    let full = FullSpace::new(&mut config, sources.from.as_deref())?;
     let config = &config;
-    let given = data.as_deref().map(Rollout::load).transpose()?;
+    let given = sources.data.as_deref().map(Rollout::load).transpose()?;
     if let (FullSpace::Springs(sheet), Some(rollout)) = (&full, &given) {
         // A distilled surrogate's reference must be its own motion.
         sheet.check_reference(rollout)?;
     }
-    // The inputs are valid: only now is an earlier run in the directory replaced.
-    std::fs::create_dir_all(&run.dir)
-        .with_context(|| format!("cannot create {}", run.dir.display()))?;
-    for stale in [run.meta(), run.log()] {
-        if stale.exists() {
-            std::fs::remove_file(&stale)
-                .with_context(|| format!("cannot remove {}", stale.display()))?;
-        }
-    }
-    full.record(&run.surrogate())?;
-    springtime_core::io::write_text(&run.config(), &toml::to_string(config)?)?;
-    let (rollout, generated) = match given {
-        Some(rollout) => {
-            rollout.save(&run.rollout())?;
-            (rollout, None)
-        }
-        None => {
-            progress.note(&format!(
-                "simulating the full-space reference: {}",
-                full.describe()
-            ));
-            let (r, s) = generate_reference(config, &full, &run.dir, true, progress)?;
-            (r, Some(s))
-        }
-    };
-    let reference = Reference::from_rollout(&rollout, config)?;
-    if reference.frames.len() < config.integrator.train_frames + 2 {
-        bail!(
-            "{}: {} frames, fewer than integrator.train_frames + 2 = {}",
-            rollout.path.display(),
-            reference.frames.len(),
-            config.integrator.train_frames + 2
-        );
-    }
+    prepare_run(&run, config, &full)?;
+    let (rollout, generated) = reference_rollout(config, &full, &run, given, progress)?;
+    let reference = training_reference(&rollout, config)?;
     let device = config.backend.device()?;
     device.seed(config.seed);
     let ad = device.clone().autodiff();
     let mut log = TrainLog::create(&run.log())?;
 
-    let (ae, pca_std, ae_stage) = match &reused {
-        None => {
-            let (ae, pca, stage) = train_autoencoder(config, &reference, &ad, &mut log, progress)?;
-            (ae, pca.std, stage)
-        }
-        Some(from) => {
-            let meta: LatentMeta = read_meta(from)?;
-            let ae = load_autoencoder(
-                config,
-                3 * reference.frames[0].len(),
-                &from.autoencoder(),
-                &ad,
-            )?;
-            progress.note(&format!("autoencoder reused from {}", from.dir.display()));
-            (ae, meta.pca_std, meta.autoencoder)
-        }
+    let (ae, pca_std, ae_stage) = match &sources.reused {
+        None => train_autoencoder(config, &reference, &ad, &mut log, progress)?,
+        Some(from) => reuse_autoencoder(config, &reference, from, &ad, progress)?,
     };
     springtime_core::train::run::RunDir::save_module(&ae, &run.autoencoder())?;
     // Everything after reads the saved autoencoder, as `latent eval` will (BatchNorm's running
     // statistics are synchronised on saving).
-    let ae = load_autoencoder(
-        config,
-        3 * reference.frames[0].len(),
-        &run.autoencoder(),
-        &ad,
-    )?;
+    let dof = 3 * reference.frames[0].len();
+    let ae = load_autoencoder(config, dof, &run.autoencoder(), &ad)?;
     let plain = ae.valid();
     let latents = encode_all(&plain, &reference, &device);
     let t = config.integrator.train_frames;
-    let rmse = |range: std::ops::Range<usize>| {
-        let decoded = decode(&plain.decoder, &latents[range.clone()], &device);
-        let mut se = 0.0;
-        for (k, f) in range.clone().enumerate() {
-            let rel = reference.relative(f);
-            se += rel
-                .iter()
-                .zip(&decoded[k])
-                .map(|(a, b)| (a - *b as f64).powi(2))
-                .sum::<f64>();
-        }
-        (se / (range.len() * reference.frames[0].len()) as f64).sqrt()
-    };
-    let (rec_train, rec_test) = (rmse(0..t), rmse(t..reference.frames.len()));
-    progress.note(&format!(
-        "autoencoder: reconstruction RMSE {:.3} mm on the training frames, {:.3} mm unseen",
-        rec_train * 1e3,
-        rec_test * 1e3
-    ));
+    let (rec_train, rec_test) =
+        reconstruction(&plain.decoder, &latents, &reference, t, &device, progress);
 
     let scales = Scales::new(&latents[..t], config.cloth.width.max(config.cloth.height));
     let potential = full.potential(reference.dt, &reference.pinned, config.integrator.w_bc, &ad)?;
-    let (integrator, int_stage) = train_integrator(
-        config, &reference, &potential, &ae, &latents, &scales, &ad, &mut log, progress,
-    )?;
+    let stage = IntegratorData {
+        config,
+        reference: &reference,
+        potential: &potential,
+        ae: &ae,
+        latents: &latents,
+        scales: &scales,
+        ad: &ad,
+    };
+    let (integrator, int_stage) = train_integrator(&stage, &mut log, progress)?;
     springtime_core::train::run::RunDir::save_module(&integrator, &run.integrator())?;
     let meta = LatentMeta {
         name: config.name.clone(),
@@ -417,13 +350,150 @@ pub fn train(
         autoencoder: ae_stage,
         integrator: int_stage,
         generate: generated,
-        build: {
-            let b = springtime_core::BuildInfo::current();
-            format!("{} ({})", b.version, b.commit)
-        },
+        build: build_string(),
     };
     springtime_core::io::write_json(&run.meta(), &meta)?;
     Ok(meta)
+}
+
+/// The reference of `rollout` for training: enough frames for `integrator.train_frames` and
+/// two more.
+fn training_reference(rollout: &Rollout, config: &LatentConfig) -> Result<Reference> {
+    let reference = Reference::from_rollout(rollout, config)?;
+    if reference.frames.len() < config.integrator.train_frames + 2 {
+        bail!(
+            "{}: {} frames, fewer than integrator.train_frames + 2 = {}",
+            rollout.path.display(),
+            reference.frames.len(),
+            config.integrator.train_frames + 2
+        );
+    }
+    Ok(reference)
+}
+
+/// Where `latent train` takes its reference, autoencoder and surrogate from.
+struct Sources {
+    /// The finished run whose reference and autoencoder are reused (`--autoencoder-from`).
+    reused: Option<LatentRun>,
+    /// The reference rollout to read: `--data`, or the reused run's.
+    data: Option<PathBuf>,
+    /// The surrogate to distill: `--from`'s, or the reused run's.
+    from: Option<PathBuf>,
+}
+
+impl Sources {
+    fn of(options: &TrainOptions) -> Result<Self> {
+        let reused = options.autoencoder_from.as_deref().map(LatentRun::new);
+        let data = match (&options.data, &reused) {
+            (Some(_), Some(_)) => bail!("give either --data or --autoencoder-from, not both"),
+            (None, Some(r)) => Some(r.rollout()),
+            (d, None) => d.clone(),
+        };
+        let from = match (&options.from, &reused) {
+            (Some(f), _) => Some(f.clone()),
+            (None, Some(r)) => Some(r.surrogate()).filter(|p| p.exists()),
+            (None, None) => None,
+        };
+        Ok(Self { reused, data, from })
+    }
+}
+
+/// Clears an earlier run from `run`'s directory (the inputs are valid: only now is it
+/// replaced) and writes the surrogate distilled, if any, and the resolved config.
+fn prepare_run(run: &LatentRun, config: &LatentConfig, full: &FullSpace) -> Result<()> {
+    std::fs::create_dir_all(&run.dir)
+        .with_context(|| format!("cannot create {}", run.dir.display()))?;
+    for stale in [run.meta(), run.log()] {
+        if stale.exists() {
+            std::fs::remove_file(&stale)
+                .with_context(|| format!("cannot remove {}", stale.display()))?;
+        }
+    }
+    full.record(&run.surrogate())?;
+    springtime_core::io::write_text(&run.config(), &toml::to_string(config)?)?;
+    Ok(())
+}
+
+/// The reference: the `given` rollout saved into the run, or simulated on `full` (with its
+/// cost).
+fn reference_rollout(
+    config: &LatentConfig,
+    full: &FullSpace,
+    run: &LatentRun,
+    given: Option<Rollout>,
+    progress: &Progress,
+) -> Result<(Rollout, Option<GenerateStats>)> {
+    match given {
+        Some(rollout) => {
+            rollout.save(&run.rollout())?;
+            Ok((rollout, None))
+        }
+        None => {
+            progress.note(&format!(
+                "simulating the full-space reference: {}",
+                full.describe()
+            ));
+            let (r, s) = generate_reference(config, full, &run.dir, true, progress)?;
+            Ok((r, Some(s)))
+        }
+    }
+}
+
+/// The autoencoder of the finished run `from`, with its PCA deviations and stage.
+fn reuse_autoencoder(
+    config: &LatentConfig,
+    reference: &Reference,
+    from: &LatentRun,
+    ad: &Device,
+    progress: &Progress,
+) -> Result<(Autoencoder, Vec<f64>, Stage)> {
+    let meta: LatentMeta = read_meta(from)?;
+    let ae = load_autoencoder(
+        config,
+        3 * reference.frames[0].len(),
+        &from.autoencoder(),
+        ad,
+    )?;
+    progress.note(&format!("autoencoder reused from {}", from.dir.display()));
+    Ok((ae, meta.pca_std, meta.autoencoder))
+}
+
+/// The autoencoder's reconstruction RMSE (m) over the training frames `0 .. t` and over the
+/// unseen ones, noted.
+fn reconstruction(
+    decoder: &Decoder,
+    latents: &[Vec<f32>],
+    reference: &Reference,
+    t: usize,
+    device: &Device,
+    progress: &Progress,
+) -> (f64, f64) {
+    let rmse = |range: std::ops::Range<usize>| {
+        let decoded = decode(decoder, &latents[range.clone()], device);
+        let mut se = 0.0;
+        for (k, f) in range.clone().enumerate() {
+            let rel = reference.relative(f);
+            se += rel
+                .iter()
+                .zip(&decoded[k])
+                .map(|(a, b)| (a - *b as f64).powi(2))
+                .sum::<f64>();
+        }
+        (se / (range.len() * reference.frames[0].len()) as f64).sqrt()
+    };
+    let (rec_train, rec_test) = (rmse(0..t), rmse(t..reference.frames.len()));
+    progress.note(&format!(
+        "autoencoder: reconstruction RMSE {:.3} mm on the training frames, {:.3} mm unseen",
+        rec_train * 1e3,
+        rec_test * 1e3
+    ));
+    (rec_train, rec_test)
+}
+
+/// The springtime build, `version (commit)`.
+fn build_string() -> String {
+    let b = springtime_core::BuildInfo::current();
+    format!("{} ({})", b.version, b.commit)
 }
 
 /// The integrator's standardisation of the latents and the boundary features' length.
@@ -511,6 +581,25 @@ impl TrainLog {
     }
 }
 
+/// An epoch's batch losses.
+#[derive(Default)]
+struct EpochLoss {
+    sum: f64,
+    batches: usize,
+}
+
+impl EpochLoss {
+    fn add(&mut self, value: f64) {
+        self.sum += value;
+        self.batches += 1;
+    }
+
+    /// The mean over the batches (NaN without any).
+    fn mean(&self) -> f64 {
+        self.sum / self.batches.max(1) as f64
+    }
+}
+
 fn rows_tensor(rows: &[&[f32]], device: &Device) -> Tensor<2> {
     let d = rows.first().map_or(0, |r| r.len());
     let data: Vec<f32> = rows.iter().flat_map(|r| r.iter().copied()).collect();
@@ -568,13 +657,15 @@ fn descend<M: Module>(
     Ok((optim.step(lr, module, grads), value))
 }
 
+/// Trains the autoencoder (initialised by the PCA of the training frames); returns it, the
+/// PCA modes' deviations and the stage.
 fn train_autoencoder(
     config: &LatentConfig,
     reference: &Reference,
     ad: &Device,
     log: &mut TrainLog,
     progress: &Progress,
-) -> Result<(Autoencoder, Pca, Stage)> {
+) -> Result<(Autoencoder, Vec<f64>, Stage)> {
     let c = &config.autoencoder;
     let t = config.integrator.train_frames;
     let d = 3 * reference.frames[0].len();
@@ -592,7 +683,7 @@ fn train_autoencoder(
     let mut last = f64::NAN;
     for epoch in 0..c.epochs {
         order.shuffle(&mut rng);
-        let (mut sum, mut batches) = (0.0, 0);
+        let mut losses = EpochLoss::default();
         for chunk in order.chunks(c.batch) {
             // BatchNorm needs more than one frame in a batch.
             if chunk.len() < 2 {
@@ -610,10 +701,9 @@ fn train_autoencoder(
                 "autoencoder",
                 epoch,
             )?;
-            sum += value;
-            batches += 1;
+            losses.add(value);
         }
-        last = sum / batches.max(1) as f64;
+        last = losses.mean();
         log.row("autoencoder", epoch, last, clock.elapsed().as_secs_f64())?;
         bar.set_message(format!("RMSE {:.3} mm", last.sqrt() * 1e3));
         bar.inc(1);
@@ -621,7 +711,7 @@ fn train_autoencoder(
     bar.finish();
     Ok((
         ae,
-        pca,
+        pca.std,
         Stage {
             epochs: c.epochs,
             final_loss: last,
@@ -641,34 +731,98 @@ pub(crate) fn absolute(relative: &[f32], centre: V3) -> Vec<f32> {
         .collect()
 }
 
-#[allow(clippy::too_many_arguments)]
+/// What the integrator trains on: the reference, its latents through the trained autoencoder
+/// and the potential of the self-supervised loss.
+struct IntegratorData<'a> {
+    config: &'a LatentConfig,
+    reference: &'a Reference,
+    potential: &'a Potential,
+    ae: &'a Autoencoder,
+    /// Every frame's latent.
+    latents: &'a [Vec<f32>],
+    scales: &'a Scales,
+    ad: &'a Device,
+}
+
 fn train_integrator(
-    config: &LatentConfig,
-    reference: &Reference,
-    potential: &Potential,
-    ae: &Autoencoder,
-    latents: &[Vec<f32>],
-    scales: &Scales,
-    ad: &Device,
+    data: &IntegratorData,
     log: &mut TrainLog,
     progress: &Progress,
 ) -> Result<(Integrator, Stage)> {
+    let (config, reference, scales, ad) = (data.config, data.reference, data.scales, data.ad);
     let c = &config.integrator;
     let plain_device = ad.clone().inner();
-    let plain = ae.valid();
-    let frozen = ae.decoder.clone().freeze();
-    let l = latents[0].len();
-    let n = reference.frames[0].len();
-    let p = reference.pinned.len();
+    let plain = data.ae.valid();
+    let frozen = data.ae.decoder.clone().freeze();
+    let l = data.latents[0].len();
+    let (std, mut samples) = clean_samples(data, &plain.decoder, &plain_device);
+    let clean_count = samples.len();
+    let z_mean = Tensor::<2>::from_data(TensorData::new(scales.mean.clone(), [1, l]), ad);
+    let z_std = Tensor::<2>::from_data(TensorData::new(scales.std.clone(), [1, l]), ad);
+    let loss_of = SelfLoss {
+        decoder: &frozen,
+        potential: data.potential,
+        z_mean: z_mean.clone(),
+        z_std: z_std.clone(),
+        balance: c.balance,
+        vertices: reference.frames[0].len(),
+        pinned: reference.pinned.len(),
+    };
+    let noisy = NoisyCopies {
+        noise: c.noise,
+        decoder: &plain.decoder,
+        scales,
+        reference,
+        device: &plain_device,
+        floor: c.velocity_floor,
+    };
+    let mut rng = StdRng::seed_from_u64(config.seed.wrapping_add(1));
+    if c.loss == LossKind::Solved {
+        solve_targets(c, &mut samples, &loss_of, &noisy, &mut rng, progress);
+    }
+    let fit = IntegratorFit {
+        c,
+        loss_of: &loss_of,
+        noisy: &noisy,
+        std: &std,
+        ad,
+    };
+    let features = 9 * reference.pinned.len();
+    let integrator = Integrator::new(c, l, features, ad);
+    let clock = Instant::now();
+    let (integrator, last) =
+        fit.epochs(integrator, &mut samples, &mut rng, log, clock, progress)?;
+    let (at_fit, at_truth) = clean_potentials(&samples[..clean_count], &loss_of, &integrator, ad);
+    let count = clean_count.max(1) as f64;
+    Ok((
+        integrator,
+        Stage {
+            epochs: fit.total_epochs(),
+            final_loss: last,
+            seconds: clock.elapsed().as_secs_f64(),
+            potential_at_fit: Some(at_fit / count),
+            potential_at_reference: Some(at_truth / count),
+        },
+    ))
+}
+
+/// Every latent standardised, and the clean training steps `2 .. train_frames`: the encoded
+/// reference's latents, the previous states decoded from them.
+fn clean_samples(
+    data: &IntegratorData,
+    decoder: &Decoder,
+    device: &Device,
+) -> (Vec<Vec<f32>>, Vec<Sample>) {
+    let (c, reference, scales) = (&data.config.integrator, data.reference, data.scales);
     let t_end = c.train_frames;
-    let decoded = decode(&plain.decoder, &latents[..t_end], &plain_device);
+    let decoded = decode(decoder, &data.latents[..t_end], device);
     let abs: Vec<Vec<f32>> = decoded
         .iter()
         .enumerate()
         .map(|(f, r)| absolute(r, reference.centre(f)))
         .collect();
-    let std: Vec<Vec<f32>> = latents.iter().map(|z| scales.standardise(z)).collect();
-    let mut samples: Vec<Sample> = (2..t_end)
+    let std: Vec<Vec<f32>> = data.latents.iter().map(|z| scales.standardise(z)).collect();
+    let samples: Vec<Sample> = (2..t_end)
         .map(|t| Sample {
             input: step_input(
                 &std[t - 1],
@@ -679,119 +833,143 @@ fn train_integrator(
             ..Sample::at(reference, t, &abs[t - 1], &abs[t - 2], c.velocity_floor)
         })
         .collect();
-    let clean_count = samples.len();
-    let z_mean = Tensor::<2>::from_data(TensorData::new(scales.mean.clone(), [1, l]), ad);
-    let z_std = Tensor::<2>::from_data(TensorData::new(scales.std.clone(), [1, l]), ad);
-    let loss_of = SelfLoss {
-        decoder: &frozen,
-        potential,
-        z_mean: z_mean.clone(),
-        z_std: z_std.clone(),
-        balance: c.balance,
-        vertices: n,
-        pinned: p,
-    };
-    let mut rng = StdRng::seed_from_u64(config.seed.wrapping_add(1));
-    if c.loss == LossKind::Solved {
-        solve_targets(
-            config,
-            &mut samples,
-            &loss_of,
-            &plain.decoder,
-            scales,
-            reference,
-            &plain_device,
-            &mut rng,
-            progress,
+    (std, samples)
+}
+
+/// What the integrator's training loop reads: the config's loss, the noisy copies of the
+/// steps for the self-supervised loss with noise, every latent standardised, and the autodiff
+/// device `ad`.
+struct IntegratorFit<'a> {
+    c: &'a IntegratorConfig,
+    loss_of: &'a SelfLoss<'a>,
+    noisy: &'a NoisyCopies<'a>,
+    std: &'a [Vec<f32>],
+    ad: &'a Device,
+}
+
+impl IntegratorFit<'_> {
+    /// Epochs in all: `integrator.rounds` rounds of `integrator.epochs` with the solved loss.
+    fn total_epochs(&self) -> usize {
+        let c = self.c;
+        let rounds = if c.loss == LossKind::Solved {
+            c.rounds.max(1)
+        } else {
+            1
+        };
+        c.epochs * rounds
+    }
+
+    /// Trains `integrator` on `samples` (more join them each round); returns it and the last
+    /// epoch's mean loss. Each epoch is logged with its time since `clock`.
+    fn epochs(
+        &self,
+        mut integrator: Integrator,
+        samples: &mut Vec<Sample>,
+        rng: &mut StdRng,
+        log: &mut TrainLog,
+        clock: Instant,
+        progress: &Progress,
+    ) -> Result<(Integrator, f64)> {
+        let c = self.c;
+        let mut optim = AdamConfig::new().init();
+        let mut order: Vec<usize> = (0..samples.len()).collect();
+        let total = self.total_epochs();
+        let bar = progress.bar(total as u64, "integrator");
+        let mut last = f64::NAN;
+        for epoch in 0..total {
+            if epoch > 0 && epoch % c.epochs == 0 {
+                self.add_visited_steps(&integrator, samples, progress);
+                order = (0..samples.len()).collect();
+            }
+            order.shuffle(rng);
+            let mut losses = EpochLoss::default();
+            for chunk in order.chunks(c.batch) {
+                let loss = self.batch_loss(&integrator, samples, chunk, rng);
+                let value;
+                (integrator, value) = descend(
+                    &mut optim,
+                    integrator,
+                    loss,
+                    c.rate(epoch, total),
+                    "integrator",
+                    epoch,
+                )?;
+                losses.add(value);
+            }
+            last = losses.mean();
+            log.row("integrator", epoch, last, clock.elapsed().as_secs_f64())?;
+            bar.set_message(format!("loss {last:.5e}"));
+            bar.inc(1);
+        }
+        bar.finish();
+        Ok((integrator, last))
+    }
+
+    /// A new round: the steps the integrator itself visits on the training frames, solved, join
+    /// the training set (the states its own errors lead it to).
+    fn add_visited_steps(
+        &self,
+        integrator: &Integrator,
+        samples: &mut Vec<Sample>,
+        progress: &Progress,
+    ) {
+        let noisy = self.noisy;
+        let from = samples.len();
+        samples.extend(visited_steps(
+            &integrator.valid(),
+            noisy.decoder,
+            self.std,
+            noisy.reference,
+            noisy.scales,
+            self.c,
+            noisy.device,
+        ));
+        solve_samples(&mut samples[from..], self.loss_of, &self.c.solve, progress);
+    }
+
+    /// The loss of the batch of `samples` at the steps `chunk`, at the integrator's latents.
+    fn batch_loss(
+        &self,
+        integrator: &Integrator,
+        samples: &[Sample],
+        chunk: &[usize],
+        rng: &mut StdRng,
+    ) -> Tensor<1> {
+        let (c, ad) = (self.c, self.ad);
+        let clean: Vec<&Sample> = chunk.iter().map(|&i| &samples[i]).collect();
+        let copies = if c.noise > 0.0 && c.loss == LossKind::SelfSupervised {
+            self.noisy.of(&clean, chunk, rng)
+        } else {
+            Vec::new()
+        };
+        let batch: Vec<&Sample> = clean.into_iter().chain(&copies).collect();
+        let input = rows_tensor(
+            &batch.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
+            ad,
         );
-    }
-    let features = 9 * p;
-    let mut integrator = Integrator::new(c, l, features, ad);
-    let mut optim = AdamConfig::new().init();
-    let mut order: Vec<usize> = (0..samples.len()).collect();
-    let rounds = if c.loss == LossKind::Solved {
-        c.rounds.max(1)
-    } else {
-        1
-    };
-    let total = c.epochs * rounds;
-    let bar = progress.bar(total as u64, "integrator");
-    let clock = Instant::now();
-    let mut last = f64::NAN;
-    for epoch in 0..total {
-        if epoch > 0 && epoch % c.epochs == 0 {
-            // A new round: the steps the integrator itself visits on the training frames,
-            // solved, join the training set (the states its own errors lead it to).
-            let from = samples.len();
-            samples.extend(visited_steps(
-                &integrator.valid(),
-                &plain.decoder,
-                &std,
-                reference,
-                scales,
-                c,
-                &plain_device,
-            ));
-            solve_samples(&mut samples[from..], &loss_of, &c.solve, progress);
-            order = (0..samples.len()).collect();
+        let z_hat = integrator.forward(input);
+        let rows = |f: &dyn Fn(&Sample) -> &[f32]| {
+            rows_tensor(&batch.iter().map(|s| f(s)).collect::<Vec<_>>(), ad)
+        };
+        match c.loss {
+            LossKind::Supervised => (z_hat - rows(&|s| &s.truth)).powi_scalar(2).mean(),
+            LossKind::Solved => (z_hat - rows(&|s| &s.solved)).powi_scalar(2).mean(),
+            LossKind::SelfSupervised => self.loss_of.potential(&batch, z_hat).mean(),
         }
-        order.shuffle(&mut rng);
-        let (mut sum, mut batches) = (0.0, 0);
-        for chunk in order.chunks(c.batch) {
-            let clean: Vec<&Sample> = chunk.iter().map(|&i| &samples[i]).collect();
-            let noisy = if c.noise > 0.0 && c.loss == LossKind::SelfSupervised {
-                noisy_copies(
-                    &clean,
-                    chunk,
-                    c.noise,
-                    &plain.decoder,
-                    scales,
-                    reference,
-                    l,
-                    &plain_device,
-                    c.velocity_floor,
-                    &mut rng,
-                )
-            } else {
-                Vec::new()
-            };
-            let batch: Vec<&Sample> = clean.into_iter().chain(&noisy).collect();
-            let input = rows_tensor(
-                &batch.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
-                ad,
-            );
-            let z_hat = integrator.forward(input);
-            let rows = |f: &dyn Fn(&Sample) -> &[f32]| {
-                rows_tensor(&batch.iter().map(|s| f(s)).collect::<Vec<_>>(), ad)
-            };
-            let loss = match c.loss {
-                LossKind::Supervised => (z_hat - rows(&|s| &s.truth)).powi_scalar(2).mean(),
-                LossKind::Solved => (z_hat - rows(&|s| &s.solved)).powi_scalar(2).mean(),
-                LossKind::SelfSupervised => loss_of.potential(&batch, z_hat).mean(),
-            };
-            let value;
-            (integrator, value) = descend(
-                &mut optim,
-                integrator,
-                loss,
-                c.rate(epoch, total),
-                "integrator",
-                epoch,
-            )?;
-            sum += value;
-            batches += 1;
-        }
-        last = sum / batches.max(1) as f64;
-        log.row("integrator", epoch, last, clock.elapsed().as_secs_f64())?;
-        bar.set_message(format!("loss {last:.5e}"));
-        bar.inc(1);
     }
-    bar.finish();
-    // The self-supervised loss on the clean training steps at the integrator's latents and at
-    // the encoded reference's: a fit below the reference means the loss's minimum over the
-    // decoder's manifold lies away from the reference (an autoencoder not accurate enough).
+}
+
+/// The self-supervised loss summed over the clean training steps at the integrator's latents
+/// and at the encoded reference's: a fit below the reference means the loss's minimum over the
+/// decoder's manifold lies away from the reference (an autoencoder not accurate enough).
+fn clean_potentials(
+    clean: &[Sample],
+    loss_of: &SelfLoss,
+    integrator: &Integrator,
+    ad: &Device,
+) -> (f64, f64) {
     let (mut at_fit, mut at_truth) = (0.0, 0.0);
-    for chunk in samples[..clean_count].chunks(512) {
+    for chunk in clean.chunks(512) {
         let chunk: Vec<&Sample> = chunk.iter().collect();
         let input = rows_tensor(
             &chunk.iter().map(|s| s.input.as_slice()).collect::<Vec<_>>(),
@@ -805,59 +983,32 @@ fn train_integrator(
         at_fit += sum(loss_of.potential(&chunk, integrator.forward(input)));
         at_truth += sum(loss_of.potential(&chunk, truth));
     }
-    let count = clean_count.max(1) as f64;
-    Ok((
-        integrator,
-        Stage {
-            epochs: total,
-            final_loss: last,
-            seconds: clock.elapsed().as_secs_f64(),
-            potential_at_fit: Some(at_fit / count),
-            potential_at_reference: Some(at_truth / count),
-        },
-    ))
+    (at_fit, at_truth)
 }
 
 /// `loss = "solved"`: adds `noisy_copies` noisy copies of every clean sample (Eq. 5) and sets
 /// every sample's `solved` to its step's latent minimiser of the potential, solved from
 /// `2ẑ_{t−1} − ẑ_{t−2}` of its own input.
-#[allow(clippy::too_many_arguments)]
 fn solve_targets(
-    config: &LatentConfig,
+    c: &IntegratorConfig,
     samples: &mut Vec<Sample>,
     loss: &SelfLoss,
-    decoder: &Decoder,
-    scales: &Scales,
-    reference: &Reference,
-    device: &Device,
+    noisy: &NoisyCopies,
     rng: &mut StdRng,
     progress: &Progress,
 ) {
-    let c = &config.integrator;
-    let l = scales.mean.len();
     if c.noise > 0.0 {
         let mut steps: Vec<usize> = (0..samples.len()).collect();
-        let mut noisy = Vec::new();
+        let mut copies = Vec::new();
         for _ in 0..c.noisy_copies {
             // Random batches, as in training: the noise scale is each batch's deviation.
             steps.shuffle(rng);
             for idx in steps.chunks(c.batch) {
                 let clean: Vec<&Sample> = idx.iter().map(|&i| &samples[i]).collect();
-                noisy.extend(noisy_copies(
-                    &clean,
-                    idx,
-                    c.noise,
-                    decoder,
-                    scales,
-                    reference,
-                    l,
-                    device,
-                    c.velocity_floor,
-                    rng,
-                ));
+                copies.extend(noisy.of(&clean, idx, rng));
             }
         }
-        samples.extend(noisy);
+        samples.extend(copies);
     }
     solve_samples(samples, loss, &c.solve, progress);
 }
@@ -915,7 +1066,7 @@ fn visited_steps(
     std: &[Vec<f32>],
     reference: &Reference,
     scales: &Scales,
-    c: &super::integrator::IntegratorConfig,
+    c: &IntegratorConfig,
     device: &Device,
 ) -> Vec<Sample> {
     let size = scales.length;
@@ -979,44 +1130,46 @@ pub fn perturb(rows: &[Vec<f32>], dims: usize, noise: f64, rng: &mut StdRng) -> 
 /// The noisy copies of a batch (Eq. 5): uniform noise of `noise` × the batch's deviation per
 /// latent coordinate on `ẑ_{t−1}` and `ẑ_{t−2}`, the previous states decoded from the noisy
 /// latents (gap G12), the boundary features unchanged.
-#[allow(clippy::too_many_arguments)]
-fn noisy_copies(
-    batch: &[&Sample],
-    steps: &[usize],
+struct NoisyCopies<'a> {
     noise: f64,
-    decoder: &Decoder,
-    scales: &Scales,
-    reference: &Reference,
-    l: usize,
-    device: &Device,
+    decoder: &'a Decoder,
+    scales: &'a Scales,
+    reference: &'a Reference,
+    device: &'a Device,
+    /// The balancing's velocity floor, m/s.
     floor: f64,
-    rng: &mut StdRng,
-) -> Vec<Sample> {
-    let clean: Vec<Vec<f32>> = batch.iter().map(|s| s.input.clone()).collect();
-    let inputs = perturb(&clean, 2 * l, noise, rng);
-    let restore = |k0: usize| -> Vec<Vec<f32>> {
-        inputs
+}
+
+impl NoisyCopies<'_> {
+    /// The noisy copies of `batch`, the samples of steps `steps` (`t − 2`).
+    fn of(&self, batch: &[&Sample], steps: &[usize], rng: &mut StdRng) -> Vec<Sample> {
+        let (scales, reference, l) = (self.scales, self.reference, self.scales.mean.len());
+        let clean: Vec<Vec<f32>> = batch.iter().map(|s| s.input.clone()).collect();
+        let inputs = perturb(&clean, 2 * l, self.noise, rng);
+        let restore = |k0: usize| -> Vec<Vec<f32>> {
+            inputs
+                .iter()
+                .map(|i| scales.restore(&i[k0..k0 + l]))
+                .collect()
+        };
+        let (prev, prev2) = (
+            decode(self.decoder, &restore(0), self.device),
+            decode(self.decoder, &restore(l), self.device),
+        );
+        batch
             .iter()
-            .map(|i| scales.restore(&i[k0..k0 + l]))
+            .zip(steps)
+            .enumerate()
+            .map(|(k, (s, &i))| {
+                let t = i + 2;
+                let x1 = absolute(&prev[k], reference.centre(t - 1));
+                let x2 = absolute(&prev2[k], reference.centre(t - 2));
+                Sample {
+                    input: inputs[k].clone(),
+                    truth: s.truth.clone(),
+                    ..Sample::at(reference, t, &x1, &x2, self.floor)
+                }
+            })
             .collect()
-    };
-    let (prev, prev2) = (
-        decode(decoder, &restore(0), device),
-        decode(decoder, &restore(l), device),
-    );
-    batch
-        .iter()
-        .zip(steps)
-        .enumerate()
-        .map(|(k, (s, &i))| {
-            let t = i + 2;
-            let x1 = absolute(&prev[k], reference.centre(t - 1));
-            let x2 = absolute(&prev2[k], reference.centre(t - 2));
-            Sample {
-                input: inputs[k].clone(),
-                truth: s.truth.clone(),
-                ..Sample::at(reference, t, &x1, &x2, floor)
-            }
-        })
-        .collect()
+    }
 }

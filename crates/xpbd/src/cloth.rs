@@ -721,6 +721,21 @@ fn apply<R: Real>(v: &[usize], corr: &[[R; 3]], x: &mut [[R; 3]], dx: &mut [[R; 
     }
 }
 
+/// `x` rotated about the y axis by the rotation `(cos, sin)` and then moved by (1, −2, 0.5): a
+/// rigid motion, for the tests of what does not see one.
+#[cfg(test)]
+pub(crate) fn rigidly_moved(x: &[V3], (c, s): (f64, f64)) -> Vec<V3> {
+    x.iter()
+        .map(|p| {
+            [
+                c * p[0] - s * p[2] + 1.0,
+                p[1] - 2.0,
+                s * p[0] + c * p[2] + 0.5,
+            ]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -744,18 +759,7 @@ mod tests {
     #[test]
     fn green_strain_is_zero_under_rigid_motion() {
         let cloth = XpbdCloth::grid(4, 3, 0.3, 0.2, 0.2).unwrap();
-        let (c, s) = (0.6f64.cos(), 0.6f64.sin());
-        let x: Vec<V3> = cloth
-            .rest()
-            .iter()
-            .map(|p| {
-                [
-                    c * p[0] - s * p[2] + 1.0,
-                    p[1] - 2.0,
-                    s * p[0] + c * p[2] + 0.5,
-                ]
-            })
-            .collect();
+        let x = rigidly_moved(&cloth.rest(), (0.6f64.cos(), 0.6f64.sin()));
         let g = Gamma::isotropic(100.0, 0.3, 1e-3);
         for t in &cloth.triangles {
             let (e, _) = strain(t, &x);

@@ -94,23 +94,26 @@ pub fn fft_descriptor(x: &[V3], nx: usize, ny: usize) -> Vec<f64> {
                 rows[r * nx + l] = (re, im);
             }
         }
-        for k in 0..ny {
-            for l in 0..nx {
-                if k == 0 && l == 0 {
-                    continue;
-                }
-                let (mut re, mut im) = (0.0, 0.0);
-                for r in 0..ny {
-                    let (cs, sn) = wy[(k * r) % ny];
-                    let (a, b) = rows[r * nx + l];
-                    re += a * cs - b * sn;
-                    im += a * sn + b * cs;
-                }
-                out.push(norm * (re * re + im * im).sqrt());
+        for (k, l) in frequencies(nx, ny) {
+            let (mut re, mut im) = (0.0, 0.0);
+            for r in 0..ny {
+                let (cs, sn) = wy[(k * r) % ny];
+                let (a, b) = rows[r * nx + l];
+                re += a * cs - b * sn;
+                im += a * sn + b * cs;
             }
+            out.push(norm * (re * re + im * im).sqrt());
         }
     }
     out
+}
+
+/// The descriptor's frequencies `(k, l)` of an `nx × ny` grid in its order: every one but the
+/// mean (DC) bin `(0, 0)`, `k` (along the columns) major.
+fn frequencies(nx: usize, ny: usize) -> impl Iterator<Item = (usize, usize)> {
+    (0..ny)
+        .flat_map(move |k| (0..nx).map(move |l| (k, l)))
+        .skip(1)
 }
 
 /// [`fft_descriptor`] as Burn tensor ops (differentiable): positions `[nx·ny, 3]` → `[3(nx·ny − 1)]`,
@@ -183,23 +186,17 @@ mod tests {
         // A naive 2-D DFT.
         let mut naive = Vec::new();
         for c in 0..3 {
-            for k in 0..ny {
-                for l in 0..nx {
-                    if k == 0 && l == 0 {
-                        continue;
+            for (k, l) in frequencies(nx, ny) {
+                let (mut re, mut im) = (0.0, 0.0);
+                for r in 0..ny {
+                    for q in 0..nx {
+                        let a = -std::f64::consts::TAU
+                            * (k as f64 * r as f64 / ny as f64 + l as f64 * q as f64 / nx as f64);
+                        re += x[r * nx + q][c] * a.cos();
+                        im += x[r * nx + q][c] * a.sin();
                     }
-                    let (mut re, mut im) = (0.0, 0.0);
-                    for r in 0..ny {
-                        for q in 0..nx {
-                            let a = -std::f64::consts::TAU
-                                * (k as f64 * r as f64 / ny as f64
-                                    + l as f64 * q as f64 / nx as f64);
-                            re += x[r * nx + q][c] * a.cos();
-                            im += x[r * nx + q][c] * a.sin();
-                        }
-                    }
-                    naive.push((re * re + im * im).sqrt() / ((nx * ny) as f64).sqrt());
                 }
+                naive.push((re * re + im * im).sqrt() / ((nx * ny) as f64).sqrt());
             }
         }
         for (a, b) in d.iter().zip(&naive) {
@@ -255,17 +252,7 @@ mod tests {
                 ]
             })
             .collect();
-        let (c, s) = (0.8f64, 0.6f64);
-        let moved: Vec<V3> = x
-            .iter()
-            .map(|p| {
-                [
-                    c * p[0] - s * p[2] + 1.0,
-                    p[1] - 2.0,
-                    s * p[0] + c * p[2] + 0.5,
-                ]
-            })
-            .collect();
+        let moved = crate::cloth::rigidly_moved(&x, (0.8, 0.6));
         for d in [Descriptor::Energy, Descriptor::Strain] {
             let (a, b) = (
                 d.of(&cloth, n, n, &gamma, &x),

@@ -7,6 +7,7 @@
 //! the Jacobian from the implicit-function derivatives of the equilibria. Writes
 //! `D/estimate.json`.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -20,12 +21,12 @@ use std::sync::Arc;
 use super::adam::{self, AdamSettings, AdamTarget};
 use super::cloth::{Solve, XpbdCloth};
 use super::descriptor::Descriptor;
-use super::equilibrium::{polish, sensitivity};
+use super::equilibrium::{Sensitivity, polish, sensitivity};
 use super::lm::{self, LeastSquares, Lm};
 use super::material::{Gamma, NAMES};
 use super::op::StaticProblem;
 use super::registration::{RegistrationError, Scan, register};
-use super::scenario::{Scenario, Setup};
+use super::scenario::{Scenario, Setup, SetupGrid};
 use springtime_core::cloth::triangles::{V3, dot};
 use springtime_core::cloth::{Diagonal, grid_triangles};
 use springtime_core::data::npz::{Array, Npz};
@@ -357,6 +358,32 @@ impl Job for XpbdConfig {
 
     /// Checks ranges; errors name the key.
     fn validate(&self) -> Result<()> {
+        self.check_swatch_and_materials()?;
+        self.check_targets()?;
+        self.check_fit()?;
+        if self.targets.stamp > 0 && self.targets.dir.is_some() {
+            bail!(
+                "`targets.stamp` registers synthetic scans, but `targets.dir` reads the targets \
+                 from files: give one of them"
+            );
+        }
+        for sc in &self.scenarios {
+            sc.validate()?;
+            self.check_scenario(sc)?;
+        }
+        if self.truth.is_none() && self.targets.dir.is_none() {
+            bail!("give the targets' material `[truth]` or a folder of targets `targets.dir`");
+        }
+        if !(self.solve.damping > 0.0 && self.solve.damping <= 1.0) {
+            bail!("`solve.damping` must be in (0, 1]");
+        }
+        Ok(())
+    }
+}
+
+impl XpbdConfig {
+    /// The swatch, that there are scenarios, and the stability of the truth and initial guess.
+    fn check_swatch_and_materials(&self) -> Result<()> {
         let s = &self.swatch;
         if s.n < 3 || !(s.size > 0.0) || !(s.density > 0.0) {
             bail!("`swatch` needs n ≥ 3, size > 0 and density > 0");
@@ -375,6 +402,12 @@ impl Job for XpbdConfig {
                 bail!("`{key}` is not a stable material (moduli > 0, ν_uv ν_vu < 1): {e:?}");
             }
         }
+        Ok(())
+    }
+
+    /// `[targets]`: the refinement, noise and stamp, and that files and the FEM exclude each
+    /// other.
+    fn check_targets(&self) -> Result<()> {
         let t = &self.targets;
         if t.refine == 0 || t.refine > 8 || !(t.noise >= 0.0 && t.noise.is_finite()) {
             bail!(
@@ -397,6 +430,11 @@ impl Job for XpbdConfig {
                  would not be used: give one of them"
             );
         }
+        Ok(())
+    }
+
+    /// `[fit]`: the forward derivatives' steps and what Adam needs.
+    fn check_fit(&self) -> Result<()> {
         if self.fit.derivatives == Derivatives::Forward && self.fit.forward_steps == 0 {
             bail!("`fit.forward_steps` must be positive with `fit.derivatives = \"forward\"`");
         }
@@ -411,56 +449,48 @@ impl Job for XpbdConfig {
                 bail!("`fit.adam_steps` and `fit.adam_lr` must be positive");
             }
         }
-        if t.stamp > 0 && t.dir.is_some() {
-            bail!(
-                "`targets.stamp` registers synthetic scans, but `targets.dir` reads the targets \
-                 from files: give one of them"
-            );
-        }
-        for sc in &self.scenarios {
-            sc.validate()?;
-            if let Scenario::LedgeDrape {
-                overhang, radius, ..
-            } = *sc
-            {
-                let cell = s.size / (s.n - 1) as f64;
-                if (1.0 - overhang) * s.size - radius < cell {
-                    bail!(
-                        "`scenarios.overhang` = {overhang} of `{}` leaves the held rows (the first \
-                         {cell} m) off the ledge's flat top on this swatch: lower it, or \
-                         `scenarios.radius`",
-                        sc.name()
-                    );
-                }
-                let g = s.gravity;
-                if !(g[0] == 0.0 && g[1] == 0.0 && g[2] < 0.0) {
-                    bail!(
-                        "`swatch.gravity` must point down (−z) for `{}`: the ledge's top faces +z, \
-                         is {g:?}",
-                        sc.name()
-                    );
-                }
-                if t.simulator == TargetSimulator::Fem {
-                    bail!(
-                        "`targets.simulator = \"fem\"` has no contact (its Newton solve knows no \
-                         collider): `{}` needs the XPBD targets",
-                        sc.name()
-                    );
-                }
-            }
-            if sc.contact_stiffness().is_some() && self.fit.derivatives == Derivatives::Forward {
+        Ok(())
+    }
+
+    /// What a scenario needs of the rest of the config: a ledge drape's held rows on the top,
+    /// gravity down and XPBD targets; contact with implicit derivatives.
+    fn check_scenario(&self, sc: &Scenario) -> Result<()> {
+        let s = &self.swatch;
+        if let Scenario::LedgeDrape {
+            overhang, radius, ..
+        } = *sc
+        {
+            let cell = s.size / (s.n - 1) as f64;
+            if (1.0 - overhang) * s.size - radius < cell {
                 bail!(
-                    "`fit.derivatives = \"forward\"` does not follow the contact of `{}`: use \
-                     \"implicit\"",
+                    "`scenarios.overhang` = {overhang} of `{}` leaves the held rows (the first \
+                     {cell} m) off the ledge's flat top on this swatch: lower it, or \
+                     `scenarios.radius`",
+                    sc.name()
+                );
+            }
+            let g = s.gravity;
+            if !(g[0] == 0.0 && g[1] == 0.0 && g[2] < 0.0) {
+                bail!(
+                    "`swatch.gravity` must point down (−z) for `{}`: the ledge's top faces +z, \
+                     is {g:?}",
+                    sc.name()
+                );
+            }
+            if self.targets.simulator == TargetSimulator::Fem {
+                bail!(
+                    "`targets.simulator = \"fem\"` has no contact (its Newton solve knows no \
+                     collider): `{}` needs the XPBD targets",
                     sc.name()
                 );
             }
         }
-        if self.truth.is_none() && self.targets.dir.is_none() {
-            bail!("give the targets' material `[truth]` or a folder of targets `targets.dir`");
-        }
-        if !(self.solve.damping > 0.0 && self.solve.damping <= 1.0) {
-            bail!("`solve.damping` must be in (0, 1]");
+        if sc.contact_stiffness().is_some() && self.fit.derivatives == Derivatives::Forward {
+            bail!(
+                "`fit.derivatives = \"forward\"` does not follow the contact of `{}`: use \
+                 \"implicit\"",
+                sc.name()
+            );
         }
         Ok(())
     }
@@ -666,109 +696,41 @@ impl Problem<'_> {
         x: &[V3],
         with_jacobian: bool,
     ) -> Result<(Vec<f64>, Vec<Vec<f64>>)> {
-        let gamma = Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]);
+        let at = TargetAt {
+            problem: self,
+            p,
+            gamma: Gamma::from_array([p[0], p[1], p[2], p[3], p[4]]),
+            t,
+            x,
+        };
         let (mut r, mut j) = (Vec::new(), Vec::new());
-        let s = self.descriptor(&gamma, x);
+        let s = self.descriptor(&at.gamma, x);
         let at_gamma;
         let target = match &t.descriptor {
             Some(d) => d,
             None => {
-                at_gamma = self.descriptor(&gamma, &t.x);
+                at_gamma = self.descriptor(&at.gamma, &t.x);
                 &at_gamma
             }
         };
-        let norm = t.norm;
-        r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / norm));
-        let sens = match (with_jacobian, self.cfg.fit.derivatives) {
-            (false, _) => None,
-            (true, Derivatives::Implicit) => Some(sensitivity(
-                self.cloth,
-                &gamma,
-                &t.setup.load,
-                x,
-                &t.setup.groups,
-            )?),
-            (true, Derivatives::Forward) => {
-                // From the equilibrium itself: the values stay, the derivatives converge.
-                let solve = Solve {
-                    steps: self.cfg.fit.forward_steps,
-                    tolerance: 0.0,
-                    ..self.solve
-                };
-                let (_, sens) = self.cloth.solve_with_derivatives(
-                    &gamma,
-                    &t.setup.load,
-                    x,
-                    &solve,
-                    &t.setup.groups,
-                )?;
-                Some(sens)
-            }
+        r.extend(s.iter().zip(target).map(|(a, b)| (a - b) / t.norm));
+        let sens = if with_jacobian {
+            Some(at.sensitivity()?)
+        } else {
+            None
         };
         if let Some(sens) = &sens {
-            // Descriptor derivatives along each dx/dγ_k, by central differences; the energy
-            // descriptor also depends on γ directly (on both sides), linearly.
-            let mut cols = Vec::new();
-            for (k, dx) in sens.dx.iter().enumerate() {
-                let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
-                let eps = if big > 0.0 {
-                    1e-6 * self.cfg.swatch.size / big
-                } else {
-                    0.0
-                };
-                let mut col: Vec<f64> = if eps == 0.0 {
-                    vec![0.0; s.len()]
-                } else {
-                    let shifted = |sign: f64| -> Vec<V3> {
-                        x.iter()
-                            .zip(dx)
-                            .map(|(a, d)| [0, 1, 2].map(|c| a[c] + sign * eps * d[c]))
-                            .collect()
-                    };
-                    let (up, dn) = (
-                        self.descriptor(&gamma, &shifted(1.0)),
-                        self.descriptor(&gamma, &shifted(-1.0)),
-                    );
-                    up.iter()
-                        .zip(&dn)
-                        .map(|(a, b)| (a - b) / (2.0 * eps * norm))
-                        .collect()
-                };
-                if self.cfg.fit.descriptor.depends_on_gamma() {
-                    let h = 1e-6 * p[k].abs().max(1e-300);
-                    let at = |sign: f64| {
-                        let mut q = [p[0], p[1], p[2], p[3], p[4]];
-                        q[k] += sign * h;
-                        Gamma::from_array(q)
-                    };
-                    let (up, dn) = (at(1.0), at(-1.0));
-                    let (su, sd) = (self.descriptor(&up, x), self.descriptor(&dn, x));
-                    let (tu, td) = (self.descriptor(&up, &t.x), self.descriptor(&dn, &t.x));
-                    for (i, c) in col.iter_mut().enumerate() {
-                        *c += ((su[i] - sd[i]) - (tu[i] - td[i])) / (2.0 * h * norm);
-                    }
-                }
-                cols.push(col);
-            }
+            let cols: Vec<Vec<f64>> = sens
+                .dx
+                .iter()
+                .enumerate()
+                .map(|(k, dx)| at.descriptor_column(k, dx, s.len()))
+                .collect();
             for row in 0..s.len() {
                 j.push((0..5).map(|k| cols[k][row]).collect());
             }
         }
-        for (g, group) in t.setup.groups.iter().enumerate() {
-            let react = self.cloth.reaction(&gamma, &t.setup.load, x, group);
-            let mag = dot(react, react).sqrt();
-            let target = t.reactions[g].max(1e-300);
-            let w = self.cfg.fit.force_weight;
-            r.push(w * (mag - t.reactions[g]) / target);
-            if let Some(sens) = &sens {
-                let unit = [0, 1, 2].map(|c| react[c] / mag.max(1e-300));
-                j.push(
-                    (0..5)
-                        .map(|k| w * dot(unit, sens.reactions[g][k]) / target)
-                        .collect(),
-                );
-            }
-        }
+        at.reaction_rows(sens.as_ref(), &mut r, &mut j);
         Ok((r, j))
     }
 
@@ -798,6 +760,117 @@ impl Problem<'_> {
             j.push(row);
         }
         Ok((r, j))
+    }
+}
+
+/// One target's rows of the fit at `p` (`gamma`), from its equilibrium `x` there.
+struct TargetAt<'a> {
+    problem: &'a Problem<'a>,
+    p: &'a [f64],
+    gamma: Gamma,
+    t: &'a Target,
+    x: &'a [V3],
+}
+
+impl TargetAt<'_> {
+    /// `dx/dγ` and the reactions' derivatives at the equilibrium, by the implicit function
+    /// theorem or by forward differentiation of the solve (`fit.derivatives`).
+    fn sensitivity(&self) -> Result<Sensitivity> {
+        let (problem, t) = (self.problem, self.t);
+        match problem.cfg.fit.derivatives {
+            Derivatives::Implicit => sensitivity(
+                problem.cloth,
+                &self.gamma,
+                &t.setup.load,
+                self.x,
+                &t.setup.groups,
+            ),
+            Derivatives::Forward => {
+                // From the equilibrium itself: the values stay, the derivatives converge.
+                let solve = Solve {
+                    steps: problem.cfg.fit.forward_steps,
+                    tolerance: 0.0,
+                    ..problem.solve
+                };
+                let (_, sens) = problem.cloth.solve_with_derivatives(
+                    &self.gamma,
+                    &t.setup.load,
+                    self.x,
+                    &solve,
+                    &t.setup.groups,
+                )?;
+                Ok(sens)
+            }
+        }
+    }
+
+    /// The descriptor residuals' derivatives (`len` of them) along `dx = dx/dγ_k`, by central
+    /// differences; the energy descriptor also depends on γ directly (on both sides), linearly.
+    fn descriptor_column(&self, k: usize, dx: &[V3], len: usize) -> Vec<f64> {
+        let (problem, p, x, norm) = (self.problem, self.p, self.x, self.t.norm);
+        let big = dx.iter().flatten().fold(0.0f64, |m, v| m.max(v.abs()));
+        let eps = if big > 0.0 {
+            1e-6 * problem.cfg.swatch.size / big
+        } else {
+            0.0
+        };
+        let mut col: Vec<f64> = if eps == 0.0 {
+            vec![0.0; len]
+        } else {
+            let shifted = |sign: f64| -> Vec<V3> {
+                x.iter()
+                    .zip(dx)
+                    .map(|(a, d)| [0, 1, 2].map(|c| a[c] + sign * eps * d[c]))
+                    .collect()
+            };
+            let (up, dn) = (
+                problem.descriptor(&self.gamma, &shifted(1.0)),
+                problem.descriptor(&self.gamma, &shifted(-1.0)),
+            );
+            up.iter()
+                .zip(&dn)
+                .map(|(a, b)| (a - b) / (2.0 * eps * norm))
+                .collect()
+        };
+        if problem.cfg.fit.descriptor.depends_on_gamma() {
+            let h = 1e-6 * p[k].abs().max(1e-300);
+            let at = |sign: f64| {
+                let mut q = [p[0], p[1], p[2], p[3], p[4]];
+                q[k] += sign * h;
+                Gamma::from_array(q)
+            };
+            let (up, dn) = (at(1.0), at(-1.0));
+            let (su, sd) = (problem.descriptor(&up, x), problem.descriptor(&dn, x));
+            let (tu, td) = (
+                problem.descriptor(&up, &self.t.x),
+                problem.descriptor(&dn, &self.t.x),
+            );
+            for (i, c) in col.iter_mut().enumerate() {
+                *c += ((su[i] - sd[i]) - (tu[i] - td[i])) / (2.0 * h * norm);
+            }
+        }
+        col
+    }
+
+    /// Appends every clamp group's reaction residual to `r` and, with `sens`, its Jacobian row
+    /// to `j`.
+    fn reaction_rows(&self, sens: Option<&Sensitivity>, r: &mut Vec<f64>, j: &mut Vec<Vec<f64>>) {
+        let (problem, t, x) = (self.problem, self.t, self.x);
+        for (g, group) in t.setup.groups.iter().enumerate() {
+            let react = problem.cloth.reaction(&self.gamma, &t.setup.load, x, group);
+            let mag = dot(react, react).sqrt();
+            let target = t.reactions[g].max(1e-300);
+            let w = problem.cfg.fit.force_weight;
+            r.push(w * (mag - t.reactions[g]) / target);
+            if let Some(sens) = sens {
+                let unit = [0, 1, 2].map(|c| react[c] / mag.max(1e-300));
+                j.push(
+                    (0..5)
+                        .map(|k| w * dot(unit, sens.reactions[g][k]) / target)
+                        .collect(),
+                );
+            }
+        }
     }
 }
 
@@ -944,78 +1017,189 @@ fn make_target(
         fine_cloth = XpbdCloth::grid(nf, nf, sw.size, sw.size, sw.density)?;
         let s = sc.setup_refined(
             &fine_cloth,
-            nf,
-            sw.size,
-            sw.gravity,
-            cfg.fit.noise,
-            seed,
-            refine,
+            &SetupGrid {
+                n: nf,
+                size: sw.size,
+                gravity: sw.gravity,
+                noise: cfg.fit.noise,
+                seed,
+                refine,
+            },
         );
         (&fine_cloth, s)
     };
-    let (xf, residual, reactions) = match cfg.targets.simulator {
-        TargetSimulator::Xpbd => {
-            let solve = resolved_solve(cfg, fine, &cfg.materials());
-            let mut xf = fine
-                .solve(&truth, &fine_setup.load, &fine_setup.start, &solve)?
-                .x;
-            let residual = polish(fine, &truth, &fine_setup.load, &mut xf, 50, 1e-11)?;
-            if residual > 1e-6 {
-                progress.note(&format!(
-                    "warning: the target {} is not at equilibrium (relative residual \
-                     {residual:.2e} after {} steps and the Newton polish): raise `solve.steps`",
-                    sc.name(),
-                    solve.steps
-                ));
-            }
-            let reactions = fine_setup
-                .groups
-                .iter()
-                .map(|g| {
-                    let r = fine.reaction(&truth, &fine_setup.load, &xf, g);
-                    dot(r, r).sqrt()
-                })
-                .collect();
-            (xf, residual, reactions)
-        }
-        TargetSimulator::Fem => {
-            let t = super::fem_target::solve(fine, nf, &truth, sw.density, sw.gravity, &fine_setup)
-                .with_context(|| format!("the FEM target of scenario `{}`", sc.name()))?;
-            if t.residual > super::fem_target::WARN_RESIDUAL {
-                progress.note(&format!(
-                    "warning: the FEM target {} is not at equilibrium (relative residual {:.2e})",
-                    sc.name(),
-                    t.residual
-                ));
-            }
-            (t.x, t.residual, t.reactions)
-        }
+    let grid = SolveGrid {
+        cloth: fine,
+        n: nf,
+        setup: fine_setup,
+        template_n: sw.n,
+        refine,
     };
-    let mut rng = StdRng::seed_from_u64(seed ^ 0x7A67_E75E);
-    let normal = rand_distr::Normal::new(0.0, cfg.targets.noise.max(f64::MIN_POSITIVE))?;
-    let mut noisy = |p: &mut V3, clamped: bool| {
-        if cfg.targets.noise > 0.0 && !clamped {
-            for v in p.iter_mut() {
-                *v += rng.sample(normal);
-            }
-        }
+    let solved = match cfg.targets.simulator {
+        TargetSimulator::Xpbd => grid.solve_xpbd(&TruthSolve {
+            cfg,
+            truth,
+            sc,
+            progress,
+        })?,
+        TargetSimulator::Fem => grid.solve_fem(&TruthSolve {
+            cfg,
+            truth,
+            sc,
+            progress,
+        })?,
     };
-    // The template vertex `k`'s node on the solved grid.
-    let node = |k: usize| (k / sw.n) * refine * nf + (k % sw.n) * refine;
+    let mut noise = TargetNoise::new(cfg.targets.noise, seed)?;
     if cfg.targets.stamp == 0 {
         let x: Vec<V3> = (0..sw.n * sw.n)
             .map(|k| {
-                let mut p = xf[node(k)];
-                noisy(&mut p, setup.load.clamped[k].is_some());
+                let mut p = solved.x[grid.node(k)];
+                noise.apply(&mut p, setup.load.clamped[k].is_some());
                 p
             })
             .collect();
-        return Ok(Target::new(sc, setup, x, residual, reactions));
+        return Ok(Target::new(sc, setup, x, solved.residual, solved.reactions));
     }
-    // A scan of the solved mesh, registered to the template through its stamped landmarks.
+    registered_target(cfg, sc, setup, &grid, solved, &mut noise)
+}
+
+/// A target's equilibrium on the grid it was solved on, with its relative residual and its
+/// clamp groups' reaction magnitudes (N).
+struct Solved {
+    x: Vec<V3>,
+    residual: f64,
+    reactions: Vec<f64>,
+}
+
+/// A target's solve with the true material `truth` in scenario `sc` of `cfg`.
+struct TruthSolve<'a> {
+    cfg: &'a XpbdConfig,
+    truth: Gamma,
+    sc: &'a Scenario,
+    progress: &'a Progress,
+}
+
+/// The grid a target is solved on: the template's, or one `refine` times finer.
+struct SolveGrid<'a> {
+    cloth: &'a XpbdCloth,
+    /// Vertices per side.
+    n: usize,
+    /// The scenario set up on this grid.
+    setup: Setup,
+    /// The template's vertices per side.
+    template_n: usize,
+    refine: usize,
+}
+
+impl SolveGrid<'_> {
+    /// The template vertex `k`'s node on this grid.
+    fn node(&self, k: usize) -> usize {
+        (k / self.template_n) * self.refine * self.n + (k % self.template_n) * self.refine
+    }
+
+    /// The XPBD cloth's equilibrium with `truth`, polished by Newton; a warning where it is not
+    /// at rest.
+    fn solve_xpbd(&self, job: &TruthSolve) -> Result<Solved> {
+        let (cfg, truth, sc) = (job.cfg, &job.truth, job.sc);
+        let (fine, setup) = (self.cloth, &self.setup);
+        let solve = resolved_solve(cfg, fine, &cfg.materials());
+        let mut xf = fine.solve(truth, &setup.load, &setup.start, &solve)?.x;
+        let residual = polish(fine, truth, &setup.load, &mut xf, 50, 1e-11)?;
+        if residual > 1e-6 {
+            job.progress.note(&format!(
+                "warning: the target {} is not at equilibrium (relative residual \
+                 {residual:.2e} after {} steps and the Newton polish): raise `solve.steps`",
+                sc.name(),
+                solve.steps
+            ));
+        }
+        let reactions = setup
+            .groups
+            .iter()
+            .map(|g| {
+                let r = fine.reaction(truth, &setup.load, &xf, g);
+                dot(r, r).sqrt()
+            })
+            .collect();
+        Ok(Solved {
+            x: xf,
+            residual,
+            reactions,
+        })
+    }
+
+    /// The FEM source's equilibrium with `truth` (`targets.simulator = "fem"`); a warning where
+    /// it is not at rest.
+    fn solve_fem(&self, job: &TruthSolve) -> Result<Solved> {
+        let (sw, truth, sc) = (job.cfg.swatch, &job.truth, job.sc);
+        let t = super::fem_target::solve(
+            self.cloth,
+            self.n,
+            truth,
+            sw.density,
+            sw.gravity,
+            &self.setup,
+        )
+        .with_context(|| format!("the FEM target of scenario `{}`", sc.name()))?;
+        if t.residual > super::fem_target::WARN_RESIDUAL {
+            job.progress.note(&format!(
+                "warning: the FEM target {} is not at equilibrium (relative residual {:.2e})",
+                sc.name(),
+                t.residual
+            ));
+        }
+        Ok(Solved {
+            x: t.x,
+            residual: t.residual,
+            reactions: t.reactions,
+        })
+    }
+}
+
+/// `targets.noise`: Gaussian noise of that deviation (m) on a target's free vertices, seeded by
+/// its scenario.
+struct TargetNoise {
+    deviation: f64,
+    rng: StdRng,
+    normal: rand_distr::Normal<f64>,
+}
+
+impl TargetNoise {
+    fn new(deviation: f64, seed: u64) -> Result<Self> {
+        let rng = StdRng::seed_from_u64(seed ^ 0x7A67_E75E);
+        let normal = rand_distr::Normal::new(0.0, deviation.max(f64::MIN_POSITIVE))?;
+        Ok(Self {
+            deviation,
+            rng,
+            normal,
+        })
+    }
+
+    /// Adds the noise to `p` unless it is `clamped`.
+    fn apply(&mut self, p: &mut V3, clamped: bool) {
+        if self.deviation > 0.0 && !clamped {
+            for v in p.iter_mut() {
+                *v += self.rng.sample(self.normal);
+            }
+        }
+    }
+}
+
+/// The target as a registered scan (`targets.stamp`): the solved mesh with noise, registered to
+/// the template through its stamped landmarks, and its distance to the true material points.
+fn registered_target(
+    cfg: &XpbdConfig,
+    sc: &Scenario,
+    setup: Setup,
+    grid: &SolveGrid,
+    solved: Solved,
+    noise: &mut TargetNoise,
+) -> Result<Target> {
+    let sw = cfg.swatch;
+    let (nf, xf) = (grid.n, &solved.x);
     let mut vertices = xf.clone();
-    for (p, c) in vertices.iter_mut().zip(&fine_setup.load.clamped) {
-        noisy(p, c.is_some());
+    for (p, c) in vertices.iter_mut().zip(&grid.setup.load.clamped) {
+        noise.apply(p, c.is_some());
     }
     let scan = Scan {
         vertices,
@@ -1026,15 +1210,15 @@ fn make_target(
     let landmarks: Vec<Option<V3>> = (0..sw.n * sw.n)
         .map(|k| match setup.load.clamped[k] {
             Some(p) => Some(p),
-            None => (on(k / sw.n) && on(k % sw.n)).then(|| scan.vertices[node(k)]),
+            None => (on(k / sw.n) && on(k % sw.n)).then(|| scan.vertices[grid.node(k)]),
         })
         .collect();
     let template = grid_triangles(sw.n, sw.n, Diagonal::Alternating);
     let cell = sw.size / (sw.n - 1) as f64;
     let reg = register(sw.n * sw.n, &template, &landmarks, &scan, cell)
         .with_context(|| format!("registering the scan of `{}`", sc.name()))?;
-    let truth: Vec<V3> = (0..sw.n * sw.n).map(|k| xf[node(k)]).collect();
-    let mut target = Target::new(sc, setup, reg.x, residual, reactions);
+    let truth: Vec<V3> = (0..sw.n * sw.n).map(|k| xf[grid.node(k)]).collect();
+    let mut target = Target::new(sc, setup, reg.x, solved.residual, solved.reactions);
     target.registration = Some(RegistrationError::of(
         &target.x,
         &truth,
@@ -1233,18 +1417,7 @@ pub fn estimate(
     let truth = cfg.truth.map(|e| e.gamma());
     let mut targets = load_targets(cfg, &cloth, progress)?;
     let initial = cfg.initial.gamma();
-    for (i, t) in targets.iter_mut().enumerate() {
-        let d = cfg.fit.descriptor.of(&cloth, sw.n, sw.n, &initial, &t.x);
-        t.norm = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
-        t.descriptor = (!cfg.fit.descriptor.depends_on_gamma()).then_some(d);
-        if cfg.fit.start == FitStart::Flat {
-            let seed = cfg.fit.seed + i as u64;
-            let flat = cfg.scenarios[i].setup(&cloth, sw.n, sw.size, sw.gravity, 0.0, seed);
-            let mut x = cloth.solve(&initial, &flat.load, &flat.start, &solve)?.x;
-            polish(&cloth, &initial, &flat.load, &mut x, 50, 1e-11)?;
-            t.branch = x;
-        }
-    }
+    scale_and_branch(cfg, &cloth, solve, &initial, &mut targets)?;
     // Jacobians at most: one per start and pass, plus one per accepted step.
     let passes = match cfg.fit.schedule {
         Schedule::Joint => 1,
@@ -1256,136 +1429,16 @@ pub fn estimate(
             "LM",
         )
     });
-    let problem = |subset: &dyn Fn(&Target) -> bool| Problem {
-        cloth: &cloth,
-        cfg,
-        solve,
-        targets: targets.iter().filter(|t| subset(t)).collect(),
-        last: None,
-        bar: bar.as_ref(),
-    };
-    let p0 = initial.to_array();
-    let f = cfg.fit.bounds_factor;
-    let lower: Vec<f64> = p0
-        .iter()
-        .enumerate()
-        .map(|(k, v)| if k == 2 { 0.0 } else { v / f })
-        .collect();
-    let upper: Vec<f64> = p0.iter().map(|v| v * f).collect();
-    progress.note(&format!(
-        "fitting γ from {} targets ({} descriptor, {:?} schedule, {} start(s), step {:.2e} s)",
-        targets.len(),
-        cfg.fit.descriptor.name(),
-        cfg.fit.schedule,
-        cfg.fit.starts.max(1),
-        solve.dt
-    ));
-    let lm = Lm {
-        max_iterations: cfg.fit.max_iterations,
-        ..Lm::default()
-    };
-    let mut all = problem(&|_| true);
-    let adam_targets: Vec<AdamTarget> = match cfg.fit.optimizer {
-        Optimizer::Adam => targets
-            .iter()
-            .map(|t| t.adam(&cloth, &cfg.fit, solve))
-            .collect(),
-        Optimizer::Lm => Vec::new(),
-    };
-    let mut rng = StdRng::seed_from_u64(cfg.fit.seed);
-    let mut best: Option<(lm::Fit, StartFit)> = None;
-    let mut start_fits = Vec::new();
-    for start in 0..cfg.fit.starts.max(1) {
-        let s0: Vec<f64> = p0
-            .iter()
-            .enumerate()
-            .map(|(k, &v)| {
-                let factor = if start == 0 {
-                    1.0
-                } else {
-                    cfg.fit.start_spread.powf(rng.random_range(-1.0..1.0))
-                };
-                (v * factor).clamp(lower[k], upper[k])
-            })
-            .collect();
-        let fit = match cfg.fit.schedule {
-            Schedule::Joint if cfg.fit.optimizer == Optimizer::Adam => {
-                let settings = AdamSettings {
-                    n: sw.n,
-                    force_weight: cfg.fit.force_weight,
-                    poisson_penalty: cfg.fit.poisson_penalty,
-                    steps: cfg.fit.adam_steps,
-                    lr: cfg.fit.adam_lr,
-                };
-                adam::fit(&adam_targets, &settings, &s0, &lower, &upper, progress)?
-            }
-            Schedule::Joint => lm::minimize(&mut all, &s0, &lower, &upper, &lm)?,
-            Schedule::BendingFirst => {
-                let (mut p, mut history, mut iterations) = (s0.clone(), Vec::new(), 0);
-                for _ in 0..cfg.fit.rounds.max(1) {
-                    for bending in [true, false] {
-                        let mut part = problem(&|t: &Target| t.bending == bending);
-                        if part.targets.is_empty() {
-                            continue;
-                        }
-                        // Hold the other parameters at their current values.
-                        let (lo, hi): (Vec<f64>, Vec<f64>) = (0..5)
-                            .map(|k| {
-                                if (k == 4) == bending {
-                                    (lower[k], upper[k])
-                                } else {
-                                    (p[k], p[k])
-                                }
-                            })
-                            .unzip();
-                        let pass = lm::minimize(&mut part, &p, &lo, &hi, &lm)?;
-                        p = pass.p;
-                        iterations += pass.iterations;
-                        history.extend(pass.history);
-                    }
-                }
-                let r = all.residuals(&p)?;
-                let cost = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
-                lm::Fit {
-                    p,
-                    cost,
-                    iterations,
-                    history,
-                }
-            }
-        };
-        // Every start is judged on every target.
-        let r = all.residuals(&fit.p)?;
-        let objective = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
-        let record = StartFit {
-            start: Gamma::from_array([s0[0], s0[1], s0[2], s0[3], s0[4]]),
-            fitted: Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]),
-            objective,
-            iterations: fit.iterations,
-        };
-        start_fits.push(record.clone());
-        if best.as_ref().is_none_or(|b| objective < b.1.objective) {
-            best = Some((fit, record));
-        }
-    }
+    let fitter = Fitter::new(cfg, &cloth, solve, &targets, bar.as_ref(), progress);
+    let mut all = fitter.problem(&|_| true);
+    let (fit, chosen, start_fits) = fitter.fit_starts(&initial, &mut all)?;
     if let Some(bar) = &bar {
         bar.finish();
     }
-    let (fit, chosen) = best.expect("at least one start");
     let mut problem = all;
     let gamma = Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]);
     let scenarios = problem.fits(&fit.p)?;
-    let mut relative_error = std::collections::BTreeMap::new();
-    let mut signed_error = std::collections::BTreeMap::new();
-    if let Some(truth) = truth {
-        let (fitted, true_) = (gamma.to_array(), truth.to_array());
-        for k in 0..5 {
-            let e = (fitted[k] - true_[k]) / true_[k];
-            relative_error.insert(NAMES[k].to_string(), e.abs());
-            signed_error.insert(NAMES[k].to_string(), e);
-        }
-    }
-    relative_error.insert("iterations".into(), fit.iterations as f64);
+    let (relative_error, signed_error) = parameter_errors(&gamma, truth, fit.iterations);
     let cgs = gamma.to_cgs();
     let eng = Gamma::from_array(cgs).engineering();
     let report = EstimateReport {
@@ -1415,6 +1468,239 @@ pub fn estimate(
     springtime_core::io::write_json(&json, &report)?;
     error_map_png(&options.out.join("error_map.png"), cfg, &report.scenarios)?;
     Ok(report)
+}
+
+/// Sets every target's residual scale (its descriptor's norm at the `initial` γ), its
+/// descriptor where that does not depend on γ, and with `fit.start = "flat"` the branch the
+/// fit's equilibria start from: the initial γ's own, solved from the scenario's flat start.
+fn scale_and_branch(
+    cfg: &XpbdConfig,
+    cloth: &XpbdCloth,
+    solve: Solve,
+    initial: &Gamma,
+    targets: &mut [Target],
+) -> Result<()> {
+    let sw = cfg.swatch;
+    for (i, t) in targets.iter_mut().enumerate() {
+        let d = cfg.fit.descriptor.of(cloth, sw.n, sw.n, initial, &t.x);
+        t.norm = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
+        t.descriptor = (!cfg.fit.descriptor.depends_on_gamma()).then_some(d);
+        if cfg.fit.start == FitStart::Flat {
+            let seed = cfg.fit.seed + i as u64;
+            let flat = cfg.scenarios[i].setup(cloth, sw.n, sw.size, sw.gravity, 0.0, seed);
+            let mut x = cloth.solve(initial, &flat.load, &flat.start, &solve)?.x;
+            polish(cloth, initial, &flat.load, &mut x, 50, 1e-11)?;
+            t.branch = x;
+        }
+    }
+    Ok(())
+}
+
+/// `(fitted − true) / true` per parameter, absolute (with `iterations`) and signed; empty
+/// without a truth.
+fn parameter_errors(
+    gamma: &Gamma,
+    truth: Option<Gamma>,
+    iterations: usize,
+) -> (BTreeMap<String, f64>, BTreeMap<String, f64>) {
+    let mut relative_error = BTreeMap::new();
+    let mut signed_error = BTreeMap::new();
+    if let Some(truth) = truth {
+        let (fitted, true_) = (gamma.to_array(), truth.to_array());
+        for k in 0..5 {
+            let e = (fitted[k] - true_[k]) / true_[k];
+            relative_error.insert(NAMES[k].to_string(), e.abs());
+            signed_error.insert(NAMES[k].to_string(), e);
+        }
+    }
+    relative_error.insert("iterations".into(), iterations as f64);
+    (relative_error, signed_error)
+}
+
+/// The fit of γ over the targets within the bounds around the initial guess: by
+/// Levenberg–Marquardt or Adam, jointly or bending first, from each of `fit.starts` starts.
+struct Fitter<'a> {
+    cfg: &'a XpbdConfig,
+    cloth: &'a XpbdCloth,
+    solve: Solve,
+    targets: &'a [Target],
+    /// Counts the Levenberg–Marquardt Jacobians.
+    bar: Option<&'a Bar>,
+    lower: Vec<f64>,
+    upper: Vec<f64>,
+    lm: Lm,
+    /// The targets as Adam reads them (`fit.optimizer = "adam"` only).
+    adam_targets: Vec<AdamTarget>,
+    progress: &'a Progress,
+}
+
+impl<'a> Fitter<'a> {
+    /// The fit of `targets`; notes what it fits.
+    fn new(
+        cfg: &'a XpbdConfig,
+        cloth: &'a XpbdCloth,
+        solve: Solve,
+        targets: &'a [Target],
+        bar: Option<&'a Bar>,
+        progress: &'a Progress,
+    ) -> Self {
+        let p0 = cfg.initial.gamma().to_array();
+        let f = cfg.fit.bounds_factor;
+        let lower: Vec<f64> = p0
+            .iter()
+            .enumerate()
+            .map(|(k, v)| if k == 2 { 0.0 } else { v / f })
+            .collect();
+        let upper: Vec<f64> = p0.iter().map(|v| v * f).collect();
+        progress.note(&format!(
+            "fitting γ from {} targets ({} descriptor, {:?} schedule, {} start(s), step {:.2e} s)",
+            targets.len(),
+            cfg.fit.descriptor.name(),
+            cfg.fit.schedule,
+            cfg.fit.starts.max(1),
+            solve.dt
+        ));
+        let lm = Lm {
+            max_iterations: cfg.fit.max_iterations,
+            ..Lm::default()
+        };
+        let adam_targets: Vec<AdamTarget> = match cfg.fit.optimizer {
+            Optimizer::Adam => targets
+                .iter()
+                .map(|t| t.adam(cloth, &cfg.fit, solve))
+                .collect(),
+            Optimizer::Lm => Vec::new(),
+        };
+        Self {
+            cfg,
+            cloth,
+            solve,
+            targets,
+            bar,
+            lower,
+            upper,
+            lm,
+            adam_targets,
+            progress,
+        }
+    }
+
+    /// The least-squares problem over the targets in `subset`.
+    fn problem(&self, subset: &dyn Fn(&Target) -> bool) -> Problem<'a> {
+        Problem {
+            cloth: self.cloth,
+            cfg: self.cfg,
+            solve: self.solve,
+            targets: self.targets.iter().filter(|t| subset(t)).collect(),
+            last: None,
+            bar: self.bar,
+        }
+    }
+
+    /// Fits from every start (the first the `initial` guess, the others random around it),
+    /// each judged on every target (`all`): the best fit, its record and every start's.
+    fn fit_starts(
+        &self,
+        initial: &Gamma,
+        all: &mut Problem,
+    ) -> Result<(lm::Fit, StartFit, Vec<StartFit>)> {
+        let p0 = initial.to_array();
+        let mut rng = StdRng::seed_from_u64(self.cfg.fit.seed);
+        let mut best: Option<(lm::Fit, StartFit)> = None;
+        let mut start_fits = Vec::new();
+        for start in 0..self.cfg.fit.starts.max(1) {
+            let s0: Vec<f64> = p0
+                .iter()
+                .enumerate()
+                .map(|(k, &v)| {
+                    let factor = if start == 0 {
+                        1.0
+                    } else {
+                        self.cfg.fit.start_spread.powf(rng.random_range(-1.0..1.0))
+                    };
+                    (v * factor).clamp(self.lower[k], self.upper[k])
+                })
+                .collect();
+            let fit = self.fit_from(&s0, all)?;
+            // Every start is judged on every target.
+            let r = all.residuals(&fit.p)?;
+            let objective = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
+            let record = StartFit {
+                start: Gamma::from_array([s0[0], s0[1], s0[2], s0[3], s0[4]]),
+                fitted: Gamma::from_array([fit.p[0], fit.p[1], fit.p[2], fit.p[3], fit.p[4]]),
+                objective,
+                iterations: fit.iterations,
+            };
+            start_fits.push(record.clone());
+            if best.as_ref().is_none_or(|b| objective < b.1.objective) {
+                best = Some((fit, record));
+            }
+        }
+        let (fit, chosen) = best.expect("at least one start");
+        Ok((fit, chosen, start_fits))
+    }
+
+    /// One start's fit from `s0` by the config's optimizer and schedule.
+    fn fit_from(&self, s0: &[f64], all: &mut Problem) -> Result<lm::Fit> {
+        let fit = &self.cfg.fit;
+        match fit.schedule {
+            Schedule::Joint if fit.optimizer == Optimizer::Adam => {
+                let settings = AdamSettings {
+                    n: self.cfg.swatch.n,
+                    force_weight: fit.force_weight,
+                    poisson_penalty: fit.poisson_penalty,
+                    steps: fit.adam_steps,
+                    lr: fit.adam_lr,
+                };
+                adam::fit(
+                    &self.adam_targets,
+                    &settings,
+                    s0,
+                    &self.lower,
+                    &self.upper,
+                    self.progress,
+                )
+            }
+            Schedule::Joint => lm::minimize(all, s0, &self.lower, &self.upper, &self.lm),
+            Schedule::BendingFirst => self.bending_first(s0, all),
+        }
+    }
+
+    /// The bending-first schedule: `fit.rounds` rounds of b on the bending targets, then the
+    /// membrane on the others, each pass holding the other parameters.
+    fn bending_first(&self, s0: &[f64], all: &mut Problem) -> Result<lm::Fit> {
+        let (mut p, mut history, mut iterations) = (s0.to_vec(), Vec::new(), 0);
+        for _ in 0..self.cfg.fit.rounds.max(1) {
+            for bending in [true, false] {
+                let mut part = self.problem(&|t: &Target| t.bending == bending);
+                if part.targets.is_empty() {
+                    continue;
+                }
+                // Hold the other parameters at their current values.
+                let (lo, hi): (Vec<f64>, Vec<f64>) = (0..5)
+                    .map(|k| {
+                        if (k == 4) == bending {
+                            (self.lower[k], self.upper[k])
+                        } else {
+                            (p[k], p[k])
+                        }
+                    })
+                    .unzip();
+                let pass = lm::minimize(&mut part, &p, &lo, &hi, &self.lm)?;
+                p = pass.p;
+                iterations += pass.iterations;
+                history.extend(pass.history);
+            }
+        }
+        let r = all.residuals(&p)?;
+        let cost = 0.5 * r.iter().map(|v| v * v).sum::<f64>();
+        Ok(lm::Fit {
+            p,
+            cost,
+            iterations,
+            history,
+        })
+    }
 }
 
 #[cfg(test)]

@@ -92,10 +92,22 @@ pub fn register(
     if count == 0 {
         bail!("a registration needs at least one landmark");
     }
-    // The template's neighbours along its edges; a vertex on the border takes only its border
-    // neighbours, so that the interpolation runs along the border there (with every neighbour,
-    // a border vertex would be pulled inwards by a third of a cell, and an affine map would not
-    // be reproduced).
+    let neighbours = neighbours(len, triangles);
+    let mut x = interpolate(landmarks, &neighbours, count);
+    let normal = vertex_normals(&x, triangles);
+    let projected = project(&mut x, &normal, landmarks, scan, reach)?;
+    Ok(Registered {
+        x,
+        landmarks: count,
+        projected,
+    })
+}
+
+/// The template's neighbours along its edges; a vertex on the border takes only its border
+/// neighbours, so that the interpolation runs along the border there (with every neighbour,
+/// a border vertex would be pulled inwards by a third of a cell, and an affine map would not
+/// be reproduced).
+fn neighbours(len: usize, triangles: &[[usize; 3]]) -> Vec<Vec<usize>> {
     let edges = edges_with_opposites(triangles);
     let mut border = vec![false; len];
     for ([a, b], faces) in &edges {
@@ -114,7 +126,12 @@ pub fn register(
             neighbours[b].push(a);
         }
     }
-    // Harmonic interpolation between the landmarks (Gauss–Seidel to rest), from their mean.
+    neighbours
+}
+
+/// Harmonic interpolation between the `count` landmarks (Gauss–Seidel to rest), from their
+/// mean.
+fn interpolate(landmarks: &[Option<V3>], neighbours: &[Vec<usize>], count: usize) -> Vec<V3> {
     let mut mean = [0.0; 3];
     for p in landmarks.iter().flatten() {
         add_to(&mut mean, p.map(|c| c / count as f64));
@@ -128,7 +145,7 @@ pub fn register(
         .max(1e-9);
     for _ in 0..100_000 {
         let mut moved = 0.0f64;
-        for i in 0..len {
+        for i in 0..x.len() {
             if landmarks[i].is_some() || neighbours[i].is_empty() {
                 continue;
             }
@@ -144,14 +161,30 @@ pub fn register(
             break;
         }
     }
-    // Vertex normals of the interpolated template (area-weighted).
-    let mut normal = vec![[0.0; 3]; len];
+    x
+}
+
+/// Vertex normals of the template at `x` (area-weighted, not normalised).
+fn vertex_normals(x: &[V3], triangles: &[[usize; 3]]) -> Vec<V3> {
+    let mut normal = vec![[0.0; 3]; x.len()];
     for t in triangles {
         let n = cross(sub(x[t[1]], x[t[0]]), sub(x[t[2]], x[t[0]]));
         for &v in t {
             add_to(&mut normal[v], n);
         }
     }
+    normal
+}
+
+/// Moves every vertex of `x` but the landmarks along its `normal` onto `scan`, to the nearer
+/// hit within `reach` either way; returns how many found it.
+fn project(
+    x: &mut [V3],
+    normal: &[V3],
+    landmarks: &[Option<V3>],
+    scan: &Scan,
+    reach: f64,
+) -> Result<usize> {
     let to = |p: V3| Vector::new(p[0], p[1], p[2]);
     let mesh = TriMesh::new(
         scan.vertices.iter().map(|&p| to(p)).collect(),
@@ -159,7 +192,7 @@ pub fn register(
     )
     .map_err(|e| anyhow::anyhow!("the scan is not a triangle mesh: {e:?}"))?;
     let mut projected = 0;
-    for i in 0..len {
+    for i in 0..x.len() {
         let n = normal[i];
         let norm = dot(n, n).sqrt();
         if landmarks[i].is_some() || norm == 0.0 {
@@ -178,11 +211,7 @@ pub fn register(
             projected += 1;
         }
     }
-    Ok(Registered {
-        x,
-        landmarks: count,
-        projected,
-    })
+    Ok(projected)
 }
 
 #[cfg(test)]

@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use super::cloth::{Load, XpbdCloth};
 use super::contact::StaticContact;
 use springtime_core::cloth::triangles::V3;
-use springtime_core::sim::contact::{ColliderConfig, ColliderKind};
+use springtime_core::sim::contact::{Collider, ColliderConfig, ColliderKind};
 
 /// One scenario of a config (`[[scenarios]]`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -189,175 +189,259 @@ impl Scenario {
         noise: f64,
         seed: u64,
     ) -> Setup {
-        self.setup_refined(cloth, n, size, g, noise, seed, 1)
+        let grid = SetupGrid {
+            n,
+            size,
+            gravity: g,
+            noise,
+            seed,
+            refine: 1,
+        };
+        self.setup_refined(cloth, &grid)
     }
 
-    /// [`setup`](Self::setup) on a grid `refine` times finer than the template's (`n` its
-    /// vertices per side): the held strip of a cantilever or a ledge drape is the template's
-    /// first two rows, `refine + 1` rows of this grid.
-    #[allow(clippy::too_many_arguments)]
-    pub fn setup_refined(
-        &self,
-        cloth: &XpbdCloth,
-        n: usize,
-        size: f64,
-        g: V3,
-        noise: f64,
-        seed: u64,
-        refine: usize,
-    ) -> Setup {
-        let held_rows = refine.max(1) + 1;
-        let mut load = Load::gravity(cloth, g);
-        let rest = cloth.rest();
-        let id = |r: usize, c: usize| r * n + c;
-        let mut groups = Vec::new();
-        // The start's out-of-plane coordinate.
-        let mut normal = 2;
-        // A ledge drape's edge: its start is perturbed away from the ledge only (up on the top,
-        // out past the edge), never into it.
-        let mut ledge_edge = None;
+    /// [`setup`](Self::setup) on a grid `grid.refine` times finer than the template's
+    /// (`grid.n` its vertices per side): the held strip of a cantilever or a ledge drape is the
+    /// template's first two rows, `refine + 1` rows of this grid.
+    pub(crate) fn setup_refined(&self, cloth: &XpbdCloth, grid: &SetupGrid) -> Setup {
+        let mut clamps = Clamps::new(cloth, grid);
         // Every vertex first follows the clamps' map; then the clamps are set.
-        let map: Box<dyn Fn(V3) -> V3> = match *self {
-            Scenario::FrameShear { angle_deg } => {
-                let (s, c) = angle_deg.to_radians().sin_cos();
-                for r in 0..n {
-                    for q in 0..n {
-                        if r == 0 || q == 0 || r == n - 1 || q == n - 1 {
-                            let p = rest[id(r, q)];
-                            load.clamped[id(r, q)] = Some([p[0] + p[1] * s, p[1] * c, 0.0]);
-                        }
-                    }
-                }
-                groups.push((0..n).map(|q| id(n - 1, q)).collect());
-                Box::new(move |p: V3| [p[0] + p[1] * s, p[1] * c, 0.0])
-            }
-            Scenario::Stretch { strain, axis } => {
-                // The held and the pulled edge, and the pull's coordinate.
-                let (held, pulled, c): (Vec<usize>, Vec<usize>, usize) = match axis {
-                    Axis::U => (
-                        (0..n).map(|r| id(r, 0)).collect(),
-                        (0..n).map(|r| id(r, n - 1)).collect(),
-                        0,
-                    ),
-                    Axis::V => (
-                        (0..n).map(|q| id(0, q)).collect(),
-                        (0..n).map(|q| id(n - 1, q)).collect(),
-                        1,
-                    ),
-                };
-                for (&a, &b) in held.iter().zip(&pulled) {
-                    load.clamped[a] = Some(rest[a]);
-                    let mut p = rest[b];
-                    p[c] += strain * size;
-                    load.clamped[b] = Some(p);
-                }
-                groups.push(pulled);
-                Box::new(move |p: V3| {
-                    let mut q = p;
-                    q[c] *= 1.0 + strain;
-                    q
-                })
-            }
-            Scenario::Cantilever => {
-                let held: Vec<usize> = (0..held_rows * n).collect();
-                for &i in &held {
-                    load.clamped[i] = Some(rest[i]);
-                }
-                groups.push(held);
-                Box::new(|p: V3| p)
-            }
-            Scenario::DiagonalPull { strain } => {
-                let far = id(n - 1, n - 1);
-                load.clamped[0] = Some(rest[0]);
-                let p = rest[far];
-                load.clamped[far] = Some([p[0] * (1.0 + strain), p[1] * (1.0 + strain), 0.0]);
-                groups.push(vec![far]);
-                Box::new(move |p: V3| [p[0] * (1.0 + strain), p[1] * (1.0 + strain), 0.0])
-            }
-            Scenario::HangingWeight { mass } => {
-                let hang = move |p: V3| [p[0], 0.0, p[1] - size];
-                let held: Vec<usize> = (0..n).map(|q| id(n - 1, q)).collect();
-                for &i in &held {
-                    load.clamped[i] = Some(hang(rest[i]));
-                }
-                for q in 0..n {
-                    load.hang(id(0, q), mass / n as f64, g);
-                }
-                groups.push(held);
-                normal = 1;
-                Box::new(hang)
-            }
+        let map = match *self {
+            Scenario::FrameShear { angle_deg } => clamps.frame_shear(angle_deg),
+            Scenario::Stretch { strain, axis } => clamps.stretch(strain, axis),
+            Scenario::Cantilever => clamps.cantilever(),
+            Scenario::DiagonalPull { strain } => clamps.diagonal_pull(strain),
+            Scenario::HangingWeight { mass } => clamps.hanging_weight(mass),
             Scenario::LedgeDrape {
                 overhang,
                 radius,
                 thickness,
                 stiffness,
-            } => {
-                let edge = (1.0 - overhang) * size;
-                ledge_edge = Some(edge);
-                let held: Vec<usize> = (0..held_rows * n).collect();
-                for &i in &held {
-                    load.clamped[i] = Some([rest[i][0], rest[i][1], thickness]);
-                }
-                groups.push(held);
-                // A box far larger than the swatch, its top at z = 0 and its rounded edge at
-                // v = edge.
-                let half = 10.0 * size;
-                let ledge = ColliderConfig {
-                    kind: ColliderKind::RoundedBox,
-                    radius: Some(radius),
-                    half_height: None,
-                    half_extents: Some([half; 3]),
-                    mesh: None,
-                    scale: 1.0,
-                    translation: [0.5 * size, edge - half - radius, -half - radius],
-                    rotation_deg: [0.0; 3],
-                    friction: 0.0,
-                    path: Vec::new(),
-                }
-                .build(Path::new("."), "ledge")
-                .expect("a validated ledge is a valid rounded box");
-                load.contact = Some(StaticContact {
-                    collider: ledge,
-                    thickness,
-                    stiffness: (0..rest.len())
-                        .map(|i| (cloth.mass[i] + load.added_mass[i]) * stiffness)
-                        .collect(),
-                });
-                // On the top, then straight down past the edge, a layer's thickness out.
-                Box::new(move |p: V3| {
-                    if p[1] <= edge {
-                        [p[0], p[1], thickness]
-                    } else {
-                        [p[0], edge + thickness, thickness - (p[1] - edge)]
-                    }
-                })
-            }
+            } => clamps.ledge_drape(overhang, radius, thickness, stiffness),
         };
-        let mut rng = StdRng::seed_from_u64(seed);
-        let start = rest
+        clamps.start_from(map)
+    }
+}
+
+/// Where a scenario is set up: its grid, gravity and the start's perturbation.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SetupGrid {
+    /// Vertices per side.
+    pub n: usize,
+    /// Side of the swatch, m.
+    pub size: f64,
+    /// Gravity, m/s².
+    pub gravity: V3,
+    /// The start's out-of-plane perturbation, m.
+    pub noise: f64,
+    /// The perturbation's seed.
+    pub seed: u64,
+    /// How many times finer than the template's the grid is.
+    pub refine: usize,
+}
+
+/// Where every vertex of the start goes before its perturbation: the clamps' map.
+type StartMap = Box<dyn Fn(V3) -> V3>;
+
+/// A scenario's clamps, loads and measured groups being set on a grid, then its start.
+struct Clamps<'a> {
+    cloth: &'a XpbdCloth,
+    grid: &'a SetupGrid,
+    rest: Vec<V3>,
+    load: Load,
+    groups: Vec<Vec<usize>>,
+    /// The start's out-of-plane coordinate.
+    normal: usize,
+    /// A ledge drape's edge: its start is perturbed away from the ledge only (up on the top,
+    /// out past the edge), never into it.
+    ledge_edge: Option<f64>,
+}
+
+impl<'a> Clamps<'a> {
+    fn new(cloth: &'a XpbdCloth, grid: &'a SetupGrid) -> Self {
+        Self {
+            cloth,
+            grid,
+            rest: cloth.rest(),
+            load: Load::gravity(cloth, grid.gravity),
+            groups: Vec::new(),
+            normal: 2,
+            ledge_edge: None,
+        }
+    }
+
+    /// Vertex `(r, c)` of the grid.
+    fn id(&self, r: usize, c: usize) -> usize {
+        r * self.grid.n + c
+    }
+
+    /// The held strip of a cantilever or a ledge drape: the template's first two rows.
+    fn held_rows(&self) -> Vec<usize> {
+        let held_rows = self.grid.refine.max(1) + 1;
+        (0..held_rows * self.grid.n).collect()
+    }
+
+    fn frame_shear(&mut self, angle_deg: f64) -> StartMap {
+        let n = self.grid.n;
+        let (s, c) = angle_deg.to_radians().sin_cos();
+        for r in 0..n {
+            for q in 0..n {
+                if r == 0 || q == 0 || r == n - 1 || q == n - 1 {
+                    let i = self.id(r, q);
+                    let p = self.rest[i];
+                    self.load.clamped[i] = Some([p[0] + p[1] * s, p[1] * c, 0.0]);
+                }
+            }
+        }
+        self.groups
+            .push((0..n).map(|q| self.id(n - 1, q)).collect());
+        Box::new(move |p: V3| [p[0] + p[1] * s, p[1] * c, 0.0])
+    }
+
+    fn stretch(&mut self, strain: f64, axis: Axis) -> StartMap {
+        let (n, size) = (self.grid.n, self.grid.size);
+        // The held and the pulled edge, and the pull's coordinate.
+        let (held, pulled, c): (Vec<usize>, Vec<usize>, usize) = match axis {
+            Axis::U => (
+                (0..n).map(|r| self.id(r, 0)).collect(),
+                (0..n).map(|r| self.id(r, n - 1)).collect(),
+                0,
+            ),
+            Axis::V => (
+                (0..n).map(|q| self.id(0, q)).collect(),
+                (0..n).map(|q| self.id(n - 1, q)).collect(),
+                1,
+            ),
+        };
+        for (&a, &b) in held.iter().zip(&pulled) {
+            self.load.clamped[a] = Some(self.rest[a]);
+            let mut p = self.rest[b];
+            p[c] += strain * size;
+            self.load.clamped[b] = Some(p);
+        }
+        self.groups.push(pulled);
+        Box::new(move |p: V3| {
+            let mut q = p;
+            q[c] *= 1.0 + strain;
+            q
+        })
+    }
+
+    fn cantilever(&mut self) -> StartMap {
+        let held = self.held_rows();
+        for &i in &held {
+            self.load.clamped[i] = Some(self.rest[i]);
+        }
+        self.groups.push(held);
+        Box::new(|p: V3| p)
+    }
+
+    fn diagonal_pull(&mut self, strain: f64) -> StartMap {
+        let n = self.grid.n;
+        let far = self.id(n - 1, n - 1);
+        self.load.clamped[0] = Some(self.rest[0]);
+        let p = self.rest[far];
+        self.load.clamped[far] = Some([p[0] * (1.0 + strain), p[1] * (1.0 + strain), 0.0]);
+        self.groups.push(vec![far]);
+        Box::new(move |p: V3| [p[0] * (1.0 + strain), p[1] * (1.0 + strain), 0.0])
+    }
+
+    fn hanging_weight(&mut self, mass: f64) -> StartMap {
+        let (n, size) = (self.grid.n, self.grid.size);
+        let hang = move |p: V3| [p[0], 0.0, p[1] - size];
+        let held: Vec<usize> = (0..n).map(|q| self.id(n - 1, q)).collect();
+        for &i in &held {
+            self.load.clamped[i] = Some(hang(self.rest[i]));
+        }
+        for q in 0..n {
+            self.load
+                .hang(self.id(0, q), mass / n as f64, self.grid.gravity);
+        }
+        self.groups.push(held);
+        self.normal = 1;
+        Box::new(hang)
+    }
+
+    fn ledge_drape(
+        &mut self,
+        overhang: f64,
+        radius: f64,
+        thickness: f64,
+        stiffness: f64,
+    ) -> StartMap {
+        let size = self.grid.size;
+        let edge = (1.0 - overhang) * size;
+        self.ledge_edge = Some(edge);
+        let held = self.held_rows();
+        for &i in &held {
+            self.load.clamped[i] = Some([self.rest[i][0], self.rest[i][1], thickness]);
+        }
+        self.groups.push(held);
+        self.load.contact = Some(StaticContact {
+            collider: ledge(size, edge, radius),
+            thickness,
+            stiffness: (0..self.rest.len())
+                .map(|i| (self.cloth.mass[i] + self.load.added_mass[i]) * stiffness)
+                .collect(),
+        });
+        // On the top, then straight down past the edge, a layer's thickness out.
+        Box::new(move |p: V3| {
+            if p[1] <= edge {
+                [p[0], p[1], thickness]
+            } else {
+                [p[0], edge + thickness, thickness - (p[1] - edge)]
+            }
+        })
+    }
+
+    /// The setup, its start every clamped vertex at its clamp and every other one at `map` of
+    /// its rest position, perturbed out of plane by the seeded noise.
+    fn start_from(self, map: StartMap) -> Setup {
+        let mut rng = StdRng::seed_from_u64(self.grid.seed);
+        let start = self
+            .rest
             .iter()
             .enumerate()
-            .map(|(i, &p)| match load.clamped[i] {
+            .map(|(i, &p)| match self.load.clamped[i] {
                 Some(c) => c,
                 None => {
                     let mut q = map(p);
-                    let xi = noise * rng.random_range(-1.0..1.0);
-                    match ledge_edge {
+                    let xi = self.grid.noise * rng.random_range(-1.0..1.0);
+                    match self.ledge_edge {
                         Some(edge) if p[1] <= edge => q[2] += xi.abs(),
                         Some(_) => q[1] += xi.abs(),
-                        None => q[normal] += xi,
+                        None => q[self.normal] += xi,
                     }
                     q
                 }
             })
             .collect();
         Setup {
-            load,
-            groups,
+            load: self.load,
+            groups: self.groups,
             start,
         }
     }
+}
+
+/// A ledge for a swatch of side `size`: a box far larger than the swatch, its top at z = 0 and
+/// its edge, rounded by `radius`, at v = `edge`.
+fn ledge(size: f64, edge: f64, radius: f64) -> Collider {
+    let half = 10.0 * size;
+    ColliderConfig {
+        kind: ColliderKind::RoundedBox,
+        radius: Some(radius),
+        half_height: None,
+        half_extents: Some([half; 3]),
+        mesh: None,
+        scale: 1.0,
+        translation: [0.5 * size, edge - half - radius, -half - radius],
+        rotation_deg: [0.0; 3],
+        friction: 0.0,
+        path: Vec::new(),
+    }
+    .build(Path::new("."), "ledge")
+    .expect("a validated ledge is a valid rounded box")
 }
 
 #[cfg(test)]
