@@ -103,6 +103,30 @@ pub fn springtime(args: &[&str], cwd: &std::path::Path) -> std::process::Output 
         .unwrap()
 }
 
+/// Runs `springtime import <format> <input> --out <out> --frame-dt <frame_dt> --mass <mass>`,
+/// then `extra`, in `cwd`: `what` is `[format, input, out]`, `step_and_mass` `[frame_dt, mass]`.
+pub fn import(
+    what: [&str; 3],
+    step_and_mass: [&str; 2],
+    extra: &[&str],
+    cwd: &std::path::Path,
+) -> std::process::Output {
+    let ([format, input, out], [frame_dt, mass]) = (what, step_and_mass);
+    let mut args = vec![
+        "import",
+        format,
+        input,
+        "--out",
+        out,
+        "--frame-dt",
+        frame_dt,
+        "--mass",
+        mass,
+    ];
+    args.extend_from_slice(extra);
+    springtime(&args, cwd)
+}
+
 /// Asserts that a command succeeded; its stdout and stderr.
 pub fn ok(out: &std::process::Output) -> String {
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
