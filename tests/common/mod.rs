@@ -65,6 +65,26 @@ pub fn batch(
     ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device).unwrap()
 }
 
+/// The drive of a free rollout over every clip of `batch`: its first frame's positions and
+/// velocities, the pinned particles following the clip's path.
+pub fn clip_drive(batch: &ClipBatch) -> springtime::sim::Drive {
+    let [bsz, _, p, _] = batch.positions.dims();
+    springtime::sim::Drive {
+        x0: batch
+            .positions
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        v0: batch
+            .velocities
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        pinned: batch.pinned.clone(),
+        path: batch.positions.clone(),
+    }
+}
+
 /// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends
 /// (passing or panicking); set `SPRINGTIME_KEEP_TEST_DIRS=1` to keep it for inspection.
 pub fn temp_dir(name: &str) -> TestDir {
