@@ -1,6 +1,8 @@
 //! Shared fixtures: tiny spring cloths simulated in memory, and temporary directories.
 #![allow(dead_code)]
 
+pub mod finite_difference;
+
 use burn::tensor::Device;
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use springtime::cloth::{GridSpec, Resampler, Topology};
