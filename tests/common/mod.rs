@@ -87,6 +87,31 @@ pub fn clip_drive(batch: &ClipBatch) -> springtime::sim::Drive {
     }
 }
 
+/// `model` simulated freely over the first `frames` frames of `track` (with `contact` where
+/// given), pinned particles following the track: the positions of its last frame, `[P × 3]`.
+pub fn last_frame(
+    model: &dyn springtime::model::ForceModel,
+    physics: &springtime::sim::Physics,
+    contact: Option<&springtime::sim::Contact>,
+    track: &Track,
+    frames: usize,
+    device: &Device,
+) -> Vec<f32> {
+    springtime::eval::simulate_track(
+        model,
+        physics,
+        contact,
+        track,
+        0,
+        frames,
+        &[frames],
+        device,
+        |_| {},
+    )
+    .unwrap()
+    .positions
+}
+
 /// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends
 /// (passing or panicking); set `SPRINGTIME_KEEP_TEST_DIRS=1` to keep it for inspection.
 pub fn temp_dir(name: &str) -> TestDir {
