@@ -381,6 +381,25 @@ iterations = 5
 batch = 4
 "#;
 
+/// The recovery tests' start and schedule (tests/recovery.rs, tests/data_mesh.rs): a uniform
+/// 50 N/m and 3 N·s/m, 100-step clips, 120 stiffness iterations (batch 8, lr 2) and 40 damping
+/// iterations (batch 8, lr 0.1).
+pub const RECOVERY: &str = r#"
+[model]
+k_init = 50.0
+b_init = 3.0
+[data.clips]
+steps = 100
+[train.stiffness]
+iterations = 120
+batch = 8
+lr = 2.0
+[train.damping]
+iterations = 40
+batch = 8
+lr = 0.1
+"#;
+
 /// SIGKILLs `child` (no chance to clean up) once the run whose `run.json` is `state` has a
 /// checkpoint at iteration `at` or later on disk; panics if the child ends first.
 pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path::Path, at: u64) {
