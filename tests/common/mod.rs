@@ -400,6 +400,15 @@ batch = 8
 lr = 0.1
 "#;
 
+/// [`TINY`] with each `(from, to)` of `changes` made wherever `from` stands, in turn; a `from`
+/// that is not there fails, so that no change is silently lost.
+pub fn tiny_with(changes: &[(&str, &str)]) -> String {
+    changes.iter().fold(TINY.to_string(), |text, (from, to)| {
+        assert!(text.contains(from), "no {from:?} in the tiny job");
+        text.replace(from, to)
+    })
+}
+
 /// SIGKILLs `child` (no chance to clean up) once the run whose `run.json` is `state` has a
 /// checkpoint at iteration `at` or later on disk; panics if the child ends first.
 pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path::Path, at: u64) {
