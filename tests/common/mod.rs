@@ -381,25 +381,6 @@ iterations = 5
 batch = 4
 "#;
 
-/// The recovery tests' start and schedule (tests/recovery.rs, tests/data_mesh.rs): a uniform
-/// 50 N/m and 3 N·s/m, 100-step clips, 120 stiffness iterations (batch 8, lr 2) and 40 damping
-/// iterations (batch 8, lr 0.1).
-pub const RECOVERY: &str = r#"
-[model]
-k_init = 50.0
-b_init = 3.0
-[data.clips]
-steps = 100
-[train.stiffness]
-iterations = 120
-batch = 8
-lr = 2.0
-[train.damping]
-iterations = 40
-batch = 8
-lr = 0.1
-"#;
-
 /// [`TINY`] with each `(from, to)` of `changes` made wherever `from` stands, in turn; a `from`
 /// that is not there fails, so that no change is silently lost.
 pub fn tiny_with(changes: &[(&str, &str)]) -> String {
@@ -408,6 +389,52 @@ pub fn tiny_with(changes: &[(&str, &str)]) -> String {
         text.replace(from, to)
     })
 }
+
+/// A 4 × 4 surrogate of a 1 m square FEM sheet (0.3 s rollouts, three to train and one to
+/// test), trained for a few steps: a job's tables but its `name` and `[data]` folders.
+pub const FEM_4X4: &str = r#"
+[cloth]
+nx = 4
+ny = 4
+
+[model]
+k_init = 100.0
+b_init = 0.05
+
+[sim]
+substeps = 2
+rayleigh = 0.1
+
+[data.clips]
+steps = 20
+
+[source]
+kind = "fem"
+nx = 4
+ny = 4
+width = 1.0
+height = 1.0
+stiffness_levels = [300.0]
+layout = "uniform"
+seconds = 0.3
+dt = 5e-4
+frame_stride = 2
+train_rollouts = 3
+test_rollouts = 1
+anchor_radius = 0.2
+
+[source.fem]
+bending = 0.002
+strain_damping = 0.0
+
+[train.stiffness]
+iterations = 4
+batch = 2
+
+[train.damping]
+iterations = 2
+batch = 2
+"#;
 
 /// SIGKILLs `child` (no chance to clean up) once the run whose `run.json` is `state` has a
 /// checkpoint at iteration `at` or later on disk; panics if the child ends first.
@@ -430,3 +457,22 @@ pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path:
     child.kill().unwrap();
     child.wait().unwrap();
 }
+
+/// The recovery tests' start and schedule (tests/recovery.rs, tests/data_mesh.rs): a uniform
+/// 50 N/m and 3 N·s/m, 100-step clips, 120 stiffness iterations (batch 8, lr 2) and 40 damping
+/// iterations (batch 8, lr 0.1).
+pub const RECOVERY: &str = r#"
+[model]
+k_init = 50.0
+b_init = 3.0
+[data.clips]
+steps = 100
+[train.stiffness]
+iterations = 120
+batch = 8
+lr = 2.0
+[train.damping]
+iterations = 40
+batch = 8
+lr = 0.1
+"#;
