@@ -6,7 +6,7 @@ mod common;
 use burn::tensor::Device;
 use springtime::data::Rollout;
 use springtime::model::{SpringNet, springs::to_f64};
-use springtime::sim::{self, Drive, Physics};
+use springtime::sim::{self, Physics};
 use springtime::train::{ForceOn, LossWeights, loss};
 
 struct Outcome {
@@ -48,21 +48,8 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn, curvature: bool) -> O
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
     };
-    let [bsz, frames, p, _] = batch.positions.dims();
-    let drive = Drive {
-        x0: batch
-            .positions
-            .clone()
-            .slice([0..bsz, 0..1, 0..p, 0..3])
-            .reshape([bsz, p, 3]),
-        v0: batch
-            .velocities
-            .clone()
-            .slice([0..bsz, 0..1, 0..p, 0..3])
-            .reshape([bsz, p, 3]),
-        pinned: batch.pinned.clone(),
-        path: batch.positions.clone(),
-    };
+    let frames = batch.positions.dims()[1];
+    let drive = common::clip_drive(&batch);
     let positions = to_f64(
         sim::rollout(&model, &physics, &drive, frames - 1)
             .positions

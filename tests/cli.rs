@@ -17,6 +17,13 @@ fn user_data_config(data_dir: &str) -> String {
     )
 }
 
+/// Runs `springtime train tiny.toml` and then `extra` in `dir`.
+fn train_tiny(extra: &[&str], dir: &std::path::Path) -> std::process::Output {
+    let mut args = vec!["train", "tiny.toml"];
+    args.extend_from_slice(extra);
+    springtime(&args, dir)
+}
+
 fn setup(name: &str) -> common::TestDir {
     let dir = common::temp_dir(name);
     std::fs::write(dir.join("tiny.toml"), common::TINY).unwrap();
@@ -26,7 +33,7 @@ fn setup(name: &str) -> common::TestDir {
 #[test]
 fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     let dir = setup("cli-flow");
-    let out = ok(&springtime(&["train", "tiny.toml"], &dir));
+    let out = ok(&train_tiny(&[], &dir));
     assert!(
         out.contains("rmse_k") && out.contains("motion RMSE"),
         "{out}"
@@ -131,14 +138,8 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     );
 
     // A finished run is not overwritten unless asked.
-    fails(
-        &springtime(&["train", "tiny.toml"], &dir),
-        &["finished run", "--force"],
-    );
-    fails(
-        &springtime(&["train", "tiny.toml", "--resume"], &dir),
-        &["already finished"],
-    );
+    fails(&train_tiny(&[], &dir), &["finished run", "--force"]);
+    fails(&train_tiny(&["--resume"], &dir), &["already finished"]);
 
     // Resume: pretend the run stopped at its first checkpoint.
     let state_path = run.join("run.json");
@@ -147,10 +148,7 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
     state["status"] = "running".into();
     state["checkpoint"] = 5.into();
     std::fs::write(&state_path, state.to_string()).unwrap();
-    ok(&springtime(
-        &["train", "tiny.toml", "--resume", "--no-eval"],
-        &dir,
-    ));
+    ok(&train_tiny(&["--resume", "--no-eval"], &dir));
     let metrics = std::fs::read_to_string(run.join("metrics.csv")).unwrap();
     let iterations: Vec<usize> = metrics
         .lines()
@@ -163,10 +161,8 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
         "each iteration once after resuming"
     );
 
-    ok(&springtime(
+    ok(&train_tiny(
         &[
-            "train",
-            "tiny.toml",
             "--force",
             "--no-eval",
             "--set",
@@ -177,23 +173,8 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
 
     // Simulate from a test rollout; the output is a valid rollout file.
     let init = dir.join("data/test_0000.npz");
-    ok(&springtime(
-        &[
-            "simulate",
-            "runs/tiny",
-            "--init",
-            init.to_str().unwrap(),
-            "--seconds",
-            "0.1",
-            "--out",
-            "sim.npz",
-        ],
-        &dir,
-    ));
-    let sim = Rollout::load(&dir.join("sim.npz")).unwrap();
-    assert_eq!((sim.frames, sim.landmarks), (101, 36));
-    fails(
-        &springtime(
+    let simulate = || {
+        springtime(
             &[
                 "simulate",
                 "runs/tiny",
@@ -205,9 +186,12 @@ fn train_eval_simulate_resume_and_refuse_to_overwrite() {
                 "sim.npz",
             ],
             &dir,
-        ),
-        &["sim.npz", "--force"],
-    );
+        )
+    };
+    ok(&simulate());
+    let sim = Rollout::load(&dir.join("sim.npz")).unwrap();
+    assert_eq!((sim.frames, sim.landmarks), (101, 36));
+    fails(&simulate(), &["sim.npz", "--force"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -233,24 +217,15 @@ fn bad_configs_name_the_key() {
         &["data.clips.steps"],
     );
     fails(
-        &springtime(
-            &["train", "tiny.toml", "--set", "train.stiffness.batch=0"],
-            &dir,
-        ),
+        &train_tiny(&["--set", "train.stiffness.batch=0"], &dir),
         &["train.stiffness.batch"],
     );
     fails(
-        &springtime(
-            &["train", "tiny.toml", "--set", "train.damping.lr_decay=0"],
-            &dir,
-        ),
+        &train_tiny(&["--set", "train.damping.lr_decay=0"], &dir),
         &["train.damping.lr_decay"],
     );
     fails(
-        &springtime(
-            &["train", "tiny.toml", "--set", "train.stiffness.lr_b=0.1"],
-            &dir,
-        ),
+        &train_tiny(&["--set", "train.stiffness.lr_b=0.1"], &dir),
         &["train.stiffness.lr_b", "single pass"],
     );
     fails(
@@ -259,10 +234,8 @@ fn bad_configs_name_the_key() {
     );
     // Frame differences need three steps per clip: an error naming the key, not a panic.
     fails(
-        &springtime(
+        &train_tiny(
             &[
-                "train",
-                "tiny.toml",
                 "--set",
                 "train.force_on=frames",
                 "--set",
@@ -272,10 +245,7 @@ fn bad_configs_name_the_key() {
         ),
         &["train.force_on", "data.clips.steps"],
     );
-    fails(
-        &springtime(&["train", "tiny.toml", "--backend", "cuda"], &dir),
-        &["cuda"],
-    );
+    fails(&train_tiny(&["--backend", "cuda"], &dir), &["cuda"]);
     // A source that would blow up at its time step is refused with the largest stable step.
     fails(
         &springtime(
@@ -374,10 +344,8 @@ fn bad_rollout_files_name_the_file_and_key() {
 #[test]
 fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() {
     let dir = setup("cli-diverge");
-    let out = springtime(
+    let out = train_tiny(
         &[
-            "train",
-            "tiny.toml",
             "--set",
             "train.stiffness.lr=1e5",
             "--set",
@@ -399,15 +367,8 @@ fn a_diverging_training_run_stops_with_a_clear_error_and_keeps_its_checkpoint() 
             .exists()
     );
     // The same learning rate with the projection on (the default) stays stable and finishes.
-    let out = springtime(
-        &[
-            "train",
-            "tiny.toml",
-            "--force",
-            "--no-report",
-            "--set",
-            "train.stiffness.lr=1e5",
-        ],
+    let out = train_tiny(
+        &["--force", "--no-report", "--set", "train.stiffness.lr=1e5"],
         &dir,
     );
     let text = ok(&out);
@@ -423,10 +384,7 @@ fn a_generating_config_never_writes_beside_someone_elses_rollouts() {
     let mine = dir.join("mine");
     std::fs::create_dir_all(&mine).unwrap();
     std::fs::copy(dir.join("data/train_0000.npz"), mine.join("my_take.npz")).unwrap();
-    let out = springtime(
-        &["train", "tiny.toml", "--set", "data.dir=mine", "--no-eval"],
-        &dir,
-    );
+    let out = train_tiny(&["--set", "data.dir=mine", "--no-eval"], &dir);
     fails(&out, &["mine", "my_take.npz", "[source]", "another folder"]);
     let left: Vec<_> = std::fs::read_dir(&mine)
         .unwrap()
@@ -479,16 +437,7 @@ fn a_plain_folder_of_takes_without_a_test_split_trains_and_says_how_to_evaluate(
 fn held_out_training_takes_check_the_learned_network_against_the_best_uniform_one() {
     let dir = setup("cli-holdout");
     // Four training rollouts: the last one is held out of the fit.
-    let out = springtime(
-        &[
-            "train",
-            "tiny.toml",
-            "--set",
-            "data.holdout=1",
-            "--no-report",
-        ],
-        &dir,
-    );
+    let out = train_tiny(&["--set", "data.holdout=1", "--no-report"], &dir);
     let text = ok(&out);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("validation: on 1 held-out"), "{stderr}");
@@ -522,10 +471,7 @@ fn held_out_training_takes_check_the_learned_network_against_the_best_uniform_on
     assert_eq!(eval["validation"], v);
     // Holding out every training rollout is refused, naming the key.
     fails(
-        &springtime(
-            &["train", "tiny.toml", "--set", "data.holdout=4", "--force"],
-            &dir,
-        ),
+        &train_tiny(&["--set", "data.holdout=4", "--force"], &dir),
         &["`data.holdout`", "leave at least one"],
     );
     std::fs::remove_dir_all(&dir).ok();
@@ -538,7 +484,7 @@ fn a_second_training_process_on_the_same_run_refuses() {
     // Another process (this test) is training in runs/tiny.
     let held = run.lock().unwrap();
     fails(
-        &springtime(&["train", "tiny.toml", "--no-eval", "--no-report"], &dir),
+        &train_tiny(&["--no-eval", "--no-report"], &dir),
         &["another springtime process", "runs/tiny", ".tiny.lock"],
     );
     assert!(
@@ -547,10 +493,7 @@ fn a_second_training_process_on_the_same_run_refuses() {
     );
     // Once the holder is done, training goes ahead (and a lock of its own is released on exit).
     drop(held);
-    ok(&springtime(
-        &["train", "tiny.toml", "--no-eval", "--no-report"],
-        &dir,
-    ));
+    ok(&train_tiny(&["--no-eval", "--no-report"], &dir));
     run.lock().expect("the finished process released its lock");
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -614,10 +557,7 @@ fn a_run_killed_with_sigkill_resumes_to_the_uninterrupted_result() {
 #[test]
 fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
     let dir = setup("cli-curvature");
-    let out = ok(&springtime(
-        &["train", "tiny.toml", "--set", "cloth.curvature=true"],
-        &dir,
-    ));
+    let out = ok(&train_tiny(&["--set", "cloth.curvature=true"], &dir));
     let run = dir.join("runs/tiny");
     assert!(run.join("report/curvature_map.png").exists(), "{out}");
     let npz = Npz::read(&run.join("springs.npz")).unwrap();
@@ -655,10 +595,8 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
     assert_eq!(json["curvature_k"].as_array().unwrap().len(), 80);
     // Curvature elements live on a grid.
     fails(
-        &springtime(
+        &train_tiny(
             &[
-                "train",
-                "tiny.toml",
                 "--out",
                 "runs/mesh",
                 "--set",

@@ -11,8 +11,8 @@ use burn::tensor::{Device, FloatDType, Tensor, TensorData};
 use springtime::cloth::{GridSpec, Topology};
 use springtime::model::springs::to_f64;
 use springtime::model::{Kernel, SpringNet};
-use springtime::sim::{Physics, Stability};
-use springtime::train::{ForceOn, LossWeights, loss_with_budget};
+use springtime::sim::Stability;
+use springtime::train::{ForceOn, loss_with_budget};
 
 /// The f64 flex device, configured once before any test makes a tensor.
 fn device() -> Device {
@@ -169,9 +169,7 @@ fn curvature_elements_give_the_linear_bending_stiffness_that_springs_lack() {
 fn the_loss_gradient_in_kappa_matches_central_differences() {
     let plain = device();
     let ad = plain.clone().autodiff();
-    let cfg = common::source(4, &[10.0, 50.0], 0.08);
-    let (_, r1) = common::rollout(&cfg, 1);
-    let (_, r2) = common::rollout(&cfg, 2);
+    let (cfg, rollouts) = common::finite_difference::data();
     let topo = Topology::grid(
         &GridSpec {
             nx: 4,
@@ -183,25 +181,13 @@ fn the_loss_gradient_in_kappa_matches_central_differences() {
         cfg.height,
     );
     let (s, t) = (topo.num_springs(), topo.curvature.len());
-    let physics = Physics {
-        frame_dt: r1.frame_dt,
-        substeps: 2,
-        mass: r1.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
-    };
+    let physics = common::finite_difference::physics(&rollouts[0], &topo);
     let k0: Vec<f64> = (0..s)
         .map(|i| 30.0 + 7.0 * (i as f64 * 0.37).sin())
         .collect();
     let b0 = vec![4.0; s];
     let kappa0: Vec<f64> = (0..t).map(|i| 3.0 + (i as f64 * 0.53).cos()).collect();
-    let weights = LossWeights {
-        force: 1.0,
-        impulse: 10.0,
-        position: 100.0,
-        k_neg: 1.0,
-        b_neg: 1.0,
-    };
+    let weights = common::finite_difference::WEIGHTS;
     // The fused rollout (states kept, or recomputed from checkpoints), the fused step under
     // teacher forcing, and the tensor-op reference: the same gradient.
     for (on, kernel, budget) in [
@@ -212,7 +198,7 @@ fn the_loss_gradient_in_kappa_matches_central_differences() {
     ] {
         let eval = |kappa: &[f64], device: &Device| {
             // The clips come from a cloth without curvature: what is checked is the gradient.
-            let batch = common::batch(&cfg, &[r1.clone(), r2.clone()], 30, 20, device);
+            let batch = common::batch(&cfg, &rollouts, 30, 20, device);
             let model = SpringNet::new(&topo, &k0, &b0, device)
                 .with_kernel(kernel)
                 .with_curvature(kappa);

@@ -5,7 +5,7 @@ mod common;
 use springtime::settings::Job;
 use std::path::{Path, PathBuf};
 
-use common::{fails, ok, springtime};
+use common::{fails, import, ok, springtime};
 
 fn fixture(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
@@ -202,6 +202,9 @@ fn write_sequence(dir: &Path, frames: &[Vec<[f64; 3]>], uv: bool) {
     }
 }
 
+/// The swinging cloth's frame step (s) and mass (kg), as `import` takes them.
+const SWING: [&str; 2] = ["0.04", "0.25"];
+
 fn close(a: f64, b: f64) -> bool {
     (a - b).abs() < 1e-5
 }
@@ -212,20 +215,10 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
     let dir = common::temp_dir("import");
     let cloth = swinging_cloth(13);
     write_sequence(&dir.join("swing"), &cloth, true);
-    let out = ok(&springtime(
-        &[
-            "import",
-            "obj",
-            "swing",
-            "--out",
-            "data",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-            "--pinned",
-            "0,4",
-        ],
+    let out = ok(&import(
+        ["obj", "swing", "data"],
+        SWING,
+        &["--pinned", "0,4"],
         &dir,
     ));
     assert!(out.contains("13 frames of 20 points"), "{out}");
@@ -260,21 +253,9 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
         }
     }
     // Nothing is overwritten without --force.
-    let args = [
-        "import",
-        "obj",
-        "swing",
-        "--out",
-        "data",
-        "--frame-dt",
-        "0.04",
-        "--mass",
-        "0.25",
-    ];
-    fails(&springtime(&args, &dir), &["swing.npz", "--force"]);
-    let mut forced = args.to_vec();
-    forced.push("--force");
-    ok(&springtime(&forced, &dir));
+    let swing = ["obj", "swing", "data"];
+    fails(&import(swing, SWING, &[], &dir), &["swing.npz", "--force"]);
+    ok(&import(swing, SWING, &["--force"], &dir));
     // The imported folder is a usable dataset.
     let out = ok(&springtime(&["data", "check", "data"], &dir));
     assert!(out.contains("frames           13 per file"), "{out}");
@@ -293,20 +274,10 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
     };
     cache.write(&dir.join("swing_cache.pc2")).unwrap();
     std::fs::write(dir.join("rest.obj"), obj_text(&cloth[0], true)).unwrap();
-    ok(&springtime(
-        &[
-            "import",
-            "pc2",
-            "swing_cache.pc2",
-            "--rest",
-            "rest.obj",
-            "--out",
-            "data",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-        ],
+    ok(&import(
+        ["pc2", "swing_cache.pc2", "data"],
+        SWING,
+        &["--rest", "rest.obj"],
         &dir,
     ));
     let p = Rollout::load(&dir.join("data/swing_cache.npz")).unwrap();
@@ -324,20 +295,7 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
         }
     }
     std::fs::write(dir.join("markers.csv"), csv).unwrap();
-    ok(&springtime(
-        &[
-            "import",
-            "csv",
-            "markers.csv",
-            "--out",
-            "data",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-        ],
-        &dir,
-    ));
+    ok(&import(["csv", "markers.csv", "data"], SWING, &[], &dir));
     let c = Rollout::load(&dir.join("data/markers.npz")).unwrap();
     assert_eq!(c.positions, r.positions);
     assert!(c.mesh.is_none(), "tracked points have no mesh");
@@ -352,41 +310,16 @@ fn import_obj_sequence_pc2_and_csv_give_the_same_loadable_rollout() {
 fn import_obj_without_texture_coordinates_unrolls_the_flat_first_frame() {
     let dir = common::temp_dir("import-flat");
     write_sequence(&dir.join("flat"), &swinging_cloth(4), false);
-    ok(&springtime(
-        &[
-            "import",
-            "obj",
-            "flat",
-            "--out",
-            "out",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-        ],
-        &dir,
-    ));
+    let flat = ["obj", "flat", "out"];
+    ok(&import(flat, SWING, &[], &dir));
     let r = springtime::data::Rollout::load(&dir.join("out/flat.npz")).unwrap();
     let (w, h) = (r.width.max(r.height), r.width.min(r.height));
     assert!(close(w, 0.8) && close(h, 0.6), "{w} × {h}");
     // --width/--height set the rectangle outright.
-    ok(&springtime(
-        &[
-            "import",
-            "obj",
-            "flat",
-            "--out",
-            "out",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-            "--width",
-            "2",
-            "--height",
-            "1.5",
-            "--force",
-        ],
+    ok(&import(
+        flat,
+        SWING,
+        &["--width", "2", "--height", "1.5", "--force"],
         &dir,
     ));
     let r = springtime::data::Rollout::load(&dir.join("out/flat.npz")).unwrap();
@@ -397,23 +330,10 @@ fn import_obj_without_texture_coordinates_unrolls_the_flat_first_frame() {
         "nothing stored unless given"
     );
     // --gravity and --rayleigh are stored in the rollout (a y-up tool's gravity here).
-    ok(&springtime(
-        &[
-            "import",
-            "obj",
-            "flat",
-            "--out",
-            "out",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-            "--gravity",
-            "0,-9.8,0",
-            "--rayleigh",
-            "0.05",
-            "--force",
-        ],
+    ok(&import(
+        flat,
+        SWING,
+        &["--gravity", "0,-9.8,0", "--rayleigh", "0.05", "--force"],
         &dir,
     ));
     let r = springtime::data::Rollout::load(&dir.join("out/flat.npz")).unwrap();
@@ -425,23 +345,7 @@ fn import_obj_without_texture_coordinates_unrolls_the_flat_first_frame() {
     assert_eq!(r.rayleigh, Some(0.05));
     // A gravity of two components is refused, naming the flag.
     fails(
-        &springtime(
-            &[
-                "import",
-                "obj",
-                "flat",
-                "--out",
-                "out",
-                "--frame-dt",
-                "0.04",
-                "--mass",
-                "0.25",
-                "--gravity",
-                "0,-9.8",
-                "--force",
-            ],
-            &dir,
-        ),
+        &import(flat, SWING, &["--gravity", "0,-9.8", "--force"], &dir),
         &["--gravity", "three numbers"],
     );
     std::fs::remove_dir_all(&dir).ok();
@@ -451,21 +355,7 @@ fn import_obj_without_texture_coordinates_unrolls_the_flat_first_frame() {
 fn import_errors_name_the_file_frame_and_line() {
     let dir = common::temp_dir("import-bad");
     let cloth = swinging_cloth(4);
-    let import = |folder: &str, extra: &[&str]| {
-        let mut args = vec![
-            "import",
-            "obj",
-            folder,
-            "--out",
-            "out",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-        ];
-        args.extend_from_slice(extra);
-        springtime(&args, &dir)
-    };
+    let obj = |folder: &str, extra: &[&str]| import(["obj", folder, "out"], SWING, extra, &dir);
     // A frame with a vertex too few.
     write_sequence(&dir.join("short"), &cloth, true);
     let mut v = cloth[2].clone();
@@ -478,7 +368,7 @@ fn import_errors_name_the_file_frame_and_line() {
         .collect();
     std::fs::write(dir.join("short/frame_2.obj"), text).unwrap();
     fails(
-        &import("short", &[]),
+        &obj("short", &[]),
         &["frame_2.obj", "frame 2", "19 vertices", "20"],
     );
     // NaN in a frame: file and line.
@@ -486,7 +376,7 @@ fn import_errors_name_the_file_frame_and_line() {
     let text = obj_text(&cloth[3], true).replacen("v 0.2 ", "v NaN ", 1);
     std::fs::write(dir.join("nan/frame_3.obj"), text).unwrap();
     fails(
-        &import("nan", &[]),
+        &obj("nan", &[]),
         &["frame 3", "frame_3.obj", "line 4", "non-finite"],
     );
     // A vertex that no face gives a texture coordinate.
@@ -495,7 +385,7 @@ fn import_errors_name_the_file_frame_and_line() {
     let last_line = text.lines().count().to_string();
     std::fs::write(dir.join("loose/frame_0.obj"), text).unwrap();
     fails(
-        &import("loose", &[]),
+        &obj("loose", &[]),
         &[
             "frame_0.obj",
             &format!("line {last_line}"),
@@ -512,17 +402,17 @@ fn import_errors_name_the_file_frame_and_line() {
         p[1] += 0.05 * ((k % 5) as f64 - 2.0).powi(2);
     }
     std::fs::write(dir.join("bent/frame_0.obj"), obj_text(&curved, false)).unwrap();
-    fails(&import("bent", &[]), &["frame_0.obj", "not flat", "vt"]);
+    fails(&obj("bent", &[]), &["frame_0.obj", "not flat", "vt"]);
     // A pin that does not exist.
     write_sequence(&dir.join("pins"), &cloth, true);
     fails(
-        &import("pins", &["--pinned", "3,20"]),
+        &obj("pins", &["--pinned", "3,20"]),
         &["--pinned 20", "20 points"],
     );
     // One frame only.
     std::fs::create_dir_all(dir.join("one")).unwrap();
     std::fs::write(dir.join("one/a.obj"), obj_text(&cloth[0], true)).unwrap();
-    fails(&import("one", &[]), &["one", "at least 2 frames"]);
+    fails(&obj("one", &[]), &["one", "at least 2 frames"]);
     // A CSV without rest coordinates whose first frame misses a point (a point missing from a
     // later frame is a hidden marker: tests/visibility.rs).
     std::fs::write(
@@ -531,40 +421,17 @@ fn import_errors_name_the_file_frame_and_line() {
     )
     .unwrap();
     fails(
-        &springtime(
-            &[
-                "import",
-                "csv",
-                "gap.csv",
-                "--out",
-                "out",
-                "--frame-dt",
-                "0.1",
-                "--mass",
-                "1",
-            ],
-            &dir,
-        ),
+        &import(["csv", "gap.csv", "out"], ["0.1", "1"], &[], &dir),
         &["gap.csv", "frame 0 does not see point 1", "u`, `v`"],
     );
     // A truncated point cache.
     std::fs::write(dir.join("bad.pc2"), b"POINTCACHE2\0\x01\0\0\0\x14\0\0\0").unwrap();
     std::fs::write(dir.join("rest.obj"), obj_text(&cloth[0], true)).unwrap();
     fails(
-        &springtime(
-            &[
-                "import",
-                "pc2",
-                "bad.pc2",
-                "--rest",
-                "rest.obj",
-                "--out",
-                "out",
-                "--frame-dt",
-                "0.1",
-                "--mass",
-                "1",
-            ],
+        &import(
+            ["pc2", "bad.pc2", "out"],
+            ["0.1", "1"],
+            &["--rest", "rest.obj"],
             &dir,
         ),
         &["bad.pc2"],
@@ -705,24 +572,9 @@ fn takes_imported_one_by_one_into_one_folder_share_one_rest_rectangle() {
     }
     write_sequence(&dir.join("take_a"), &take_a, true);
     write_sequence(&dir.join("take_b"), &take_b, true);
-    let import = |take: &str| {
-        springtime(
-            &[
-                "import",
-                "obj",
-                take,
-                "--out",
-                "set",
-                "--frame-dt",
-                "0.04",
-                "--mass",
-                "0.25",
-            ],
-            &dir,
-        )
-    };
-    ok(&import("take_a"));
-    let joined = import("take_b");
+    let into_set = |take: &str| import(["obj", take, "set"], SWING, &[], &dir);
+    ok(&into_set("take_a"));
+    let joined = into_set("take_b");
     ok(&joined);
     let said = String::from_utf8_lossy(&joined.stdout);
     assert!(said.contains("matched to the set already in"), "{said}");
@@ -734,20 +586,7 @@ fn takes_imported_one_by_one_into_one_folder_share_one_rest_rectangle() {
     ok(&springtime(&["data", "check", "set"], &dir));
     // Imported into another folder, take_b keeps its own (stretched) scale, and a set of the
     // two is refused by `data check`, naming the key.
-    ok(&springtime(
-        &[
-            "import",
-            "obj",
-            "take_b",
-            "--out",
-            "alone",
-            "--frame-dt",
-            "0.04",
-            "--mass",
-            "0.25",
-        ],
-        &dir,
-    ));
+    ok(&import(["obj", "take_b", "alone"], SWING, &[], &dir));
     let alone = Rollout::load(&dir.join("alone/take_b.npz")).unwrap();
     assert!(
         (alone.width / a.width - 1.005).abs() < 2e-3,

@@ -58,26 +58,8 @@ fn a_data_mesh_surrogate_recovers_the_stiffness_of_an_irregular_spring_cloth() {
 
     let text = |layout: &str| {
         format!(
-            r#"
-            name = "{layout}"
-            [cloth]
-            layout = "{layout}"
-            nx = {n}
-            ny = {n}
-            [model]
-            k_init = 50.0
-            b_init = 3.0
-            [data.clips]
-            steps = 100
-            [train.stiffness]
-            iterations = 120
-            batch = 8
-            lr = 2.0
-            [train.damping]
-            iterations = 40
-            batch = 8
-            lr = 0.1
-            "#
+            "name = \"{layout}\"\n[cloth]\nlayout = \"{layout}\"\nnx = {n}\nny = {n}\n{}",
+            common::RECOVERY
         )
     };
     let run = |layout: &str| {
@@ -151,19 +133,7 @@ fn a_data_mesh_surrogate_with_the_true_springs_follows_its_lumped_mass_source() 
     let device = burn::tensor::Device::flex();
     let gap = |topology: &Topology, kernel: Kernel| {
         let model = SpringNet::new(topology, &truth.k, &truth.b, &device).with_kernel(kernel);
-        let sim = springtime::eval::simulate_track(
-            &model,
-            &physics,
-            None,
-            &track,
-            0,
-            frames,
-            &[frames],
-            &device,
-            |_| {},
-        )
-        .unwrap();
-        sim.positions
+        common::last_frame(&model, &physics, None, &track, frames, &device)
             .iter()
             .zip(r.positions[frames * r.landmarks * 3..].iter())
             .map(|(a, b)| (a - b).abs() as f64)

@@ -9,69 +9,34 @@ mod common;
 
 use common::{fails, ok, springtime};
 
-const TINY: &str = r#"
-name = "tiny_drape"
+/// The tiny FEM job, its data in `data/`.
+fn tiny() -> String {
+    format!(
+        "name = \"tiny_drape\"\n[data]\ndir = \"data\"\n{}",
+        common::FEM_4X4
+    )
+}
 
-[cloth]
-nx = 4
-ny = 4
-
-[model]
-k_init = 100.0
-b_init = 0.05
-
-[sim]
-substeps = 2
-rayleigh = 0.1
-
-[data]
-dir = "data"
-
-[data.clips]
-steps = 20
-
-[source]
-kind = "fem"
-nx = 4
-ny = 4
-width = 1.0
-height = 1.0
-stiffness_levels = [300.0]
-layout = "uniform"
-seconds = 0.3
-dt = 5e-4
-frame_stride = 2
-train_rollouts = 3
-test_rollouts = 1
-anchor_radius = 0.2
-
-[source.fem]
-bending = 0.002
-strain_damping = 0.0
-
-[train.stiffness]
-iterations = 4
-batch = 2
-
-[train.damping]
-iterations = 2
-batch = 2
-"#;
-
-const SPHERE: &str = r#"
+/// A `[scene]` of `timing` over the sphere both tests drape on: 0.3 m in radius, its top at the
+/// origin, friction 0.5.
+fn sphere_scene(timing: &str) -> String {
+    format!(
+        r#"
 [scene]
-seconds = 0.4
-settle = 0.2
-perturb = 0.05
-release_height = 0.2
-record_every = 0.02
+{timing}
 
 [[scene.colliders]]
 kind = "sphere"
 radius = 0.3
 translation = [0.0, 0.0, -0.3]
 friction = 0.5
-"#;
+"#
+    )
+}
+
+/// Dropped from 0.2 m, perturbed by 5 %, recorded every 0.02 s over 0.4 s, then settled 0.2 s.
+const SPHERE: &str =
+    "seconds = 0.4\nsettle = 0.2\nperturb = 0.05\nrelease_height = 0.2\nrecord_every = 0.02";
 
 /// A closed tetrahedron, outward faces, in `meshes/` beside the scene file.
 const TET: &str = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n";
@@ -90,26 +55,38 @@ scale = 0.5
 translation = [-0.2, -0.2, -0.5]
 "#;
 
+/// Runs `springtime drape <run>` with a `--scene` for each of `scenes`, `--out <out>` and then
+/// `extra`, in `dir`.
+fn drape(
+    run: &str,
+    scenes: &[&str],
+    out: &str,
+    extra: &[&str],
+    dir: &std::path::Path,
+) -> std::process::Output {
+    let mut args = vec!["drape", run];
+    for scene in scenes {
+        args.extend(["--scene", scene]);
+    }
+    args.extend(["--out", out]);
+    args.extend_from_slice(extra);
+    springtime(&args, dir)
+}
+
 #[test]
 fn drape_writes_its_metrics_and_refuses_bad_scenes() {
     let dir = common::temp_dir("drape");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), tiny()).unwrap();
     std::fs::create_dir_all(dir.join("scenes/meshes")).unwrap();
-    std::fs::write(dir.join("scenes/sphere.toml"), SPHERE).unwrap();
+    std::fs::write(dir.join("scenes/sphere.toml"), sphere_scene(SPHERE)).unwrap();
     std::fs::write(dir.join("scenes/meshes/tet.obj"), TET).unwrap();
     std::fs::write(dir.join("scenes/mesh.toml"), MESH).unwrap();
     ok(&springtime(&["train", "tiny.toml", "--out", "run"], &dir));
-    let out = ok(&springtime(
-        &[
-            "drape",
-            "run",
-            "--scene",
-            "scenes/sphere.toml",
-            "--scene",
-            "scenes/mesh.toml",
-            "--out",
-            "d",
-        ],
+    let out = ok(&drape(
+        "run",
+        &["scenes/sphere.toml", "scenes/mesh.toml"],
+        "d",
+        &[],
         &dir,
     ));
     assert!(out.contains("springs") && out.contains("fem4x4"), "{out}");
@@ -180,33 +157,15 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
         "{sphere}"
     );
     // A finished drape is not overwritten without --force.
-    fails(
-        &springtime(
-            &[
-                "drape",
-                "run",
-                "--scene",
-                "scenes/sphere.toml",
-                "--out",
-                "d",
-            ],
-            &dir,
-        ),
-        &["--force"],
-    );
+    let on_sphere = ["scenes/sphere.toml"];
+    fails(&drape("run", &on_sphere, "d", &[], &dir), &["--force"]);
     // Contact too stiff for the step: the guard's refusal with the largest stable step.
     fails(
-        &springtime(
-            &[
-                "drape",
-                "run",
-                "--scene",
-                "scenes/sphere.toml",
-                "--out",
-                "d2",
-                "--set",
-                "scene.contact.stiffness=1e9",
-            ],
+        &drape(
+            "run",
+            &on_sphere,
+            "d2",
+            &["--set", "scene.contact.stiffness=1e9"],
             &dir,
         ),
         &["unstable", "largest stable dt", "contact stiffness"],
@@ -218,24 +177,11 @@ fn drape_writes_its_metrics_and_refuses_bad_scenes() {
     )
     .unwrap();
     fails(
-        &springtime(
-            &["drape", "run", "--scene", "scenes/mesh.toml", "--out", "d3"],
-            &dir,
-        ),
+        &drape("run", &["scenes/mesh.toml"], "d3", &[], &dir),
         &["tet.obj", "not closed", "scene.colliders[0]"],
     );
     fails(
-        &springtime(
-            &[
-                "drape",
-                "run",
-                "--scene",
-                "scenes/nothing.toml",
-                "--out",
-                "d3",
-            ],
-            &dir,
-        ),
+        &drape("run", &["scenes/nothing.toml"], "d3", &[], &dir),
         &["nothing.toml"],
     );
     // export --scene writes the surrogate's drape as OBJ frames.
@@ -310,20 +256,9 @@ iterations = 0
 iterations = 0
 "#;
 
-const SPHERE_AT_REST: &str = r#"
-[scene]
-seconds = 0.5
-settle = 1.5
-perturb = 0.0
-release_height = 0.1
-record_every = 0.05
-
-[[scene.colliders]]
-kind = "sphere"
-radius = 0.3
-translation = [0.0, 0.0, -0.3]
-friction = 0.5
-"#;
+/// Dropped from 0.1 m, recorded every 0.05 s over 0.5 s, then settled 1.5 s.
+const SPHERE_AT_REST: &str =
+    "seconds = 0.5\nsettle = 1.5\nperturb = 0.0\nrelease_height = 0.1\nrecord_every = 0.05";
 
 /// `relaxed_from_source`: a surrogate with its source's own springs, started from the source's
 /// settled drape, stays on it; one with a third of the stiffness sags away from it.
@@ -331,7 +266,7 @@ friction = 0.5
 fn a_surrogate_started_from_its_source_drape_keeps_it_only_with_the_source_springs() {
     let dir = common::temp_dir("drape_relax");
     std::fs::write(dir.join("springs.toml"), SPRING_SOURCE).unwrap();
-    std::fs::write(dir.join("sphere.toml"), SPHERE_AT_REST).unwrap();
+    std::fs::write(dir.join("sphere.toml"), sphere_scene(SPHERE_AT_REST)).unwrap();
     ok(&springtime(
         &["train", "springs.toml", "--out", "same"],
         &dir,
@@ -349,10 +284,7 @@ fn a_surrogate_started_from_its_source_drape_keeps_it_only_with_the_source_sprin
     ));
     let relaxed = |run: &str| {
         let out = format!("d_{run}");
-        ok(&springtime(
-            &["drape", run, "--scene", "sphere.toml", "--out", &out],
-            &dir,
-        ));
+        ok(&drape(run, &["sphere.toml"], &out, &[], &dir));
         let json: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(dir.join(&out).join("drape.json")).unwrap(),
         )

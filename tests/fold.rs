@@ -7,7 +7,12 @@ mod common;
 
 use common::{fails, ok, springtime};
 
-const TINY: &str = r#"
+/// The fold job over the tiny FEM surrogate ([`common::FEM_4X4`], its tables under
+/// `[surrogate]`).
+fn tiny() -> String {
+    let surrogate = common::FEM_4X4.replace("\n[", "\n[surrogate.");
+    format!(
+        r#"
 [fold]
 fine = 7
 pin_radius = 0.2
@@ -19,54 +24,14 @@ max_seconds = 6.0
 
 [surrogate]
 name = "tiny_fold"
-
-[surrogate.cloth]
-nx = 4
-ny = 4
-
-[surrogate.model]
-k_init = 100.0
-b_init = 0.05
-
-[surrogate.sim]
-substeps = 2
-rayleigh = 0.1
-
-[surrogate.data.clips]
-steps = 20
-
-[surrogate.source]
-kind = "fem"
-nx = 4
-ny = 4
-width = 1.0
-height = 1.0
-stiffness_levels = [300.0]
-layout = "uniform"
-seconds = 0.3
-dt = 5e-4
-frame_stride = 2
-train_rollouts = 3
-test_rollouts = 1
-anchor_radius = 0.2
-
-[surrogate.source.fem]
-bending = 0.002
-strain_damping = 0.0
-
-[surrogate.train.stiffness]
-iterations = 4
-batch = 2
-
-[surrogate.train.damping]
-iterations = 2
-batch = 2
-"#;
+{surrogate}"#
+    )
+}
 
 #[test]
 fn fold_writes_the_criteria_and_refuses_to_overwrite() {
     let dir = common::temp_dir("fold");
-    std::fs::write(dir.join("fold.toml"), TINY).unwrap();
+    std::fs::write(dir.join("fold.toml"), tiny()).unwrap();
     let out = ok(&springtime(&["fold", "fold.toml", "--out", "out"], &dir));
     for needle in [
         "L1",

@@ -7,8 +7,7 @@ mod common;
 
 use burn::tensor::{Device, FloatDType};
 use springtime::model::{Kernel, SpringNet};
-use springtime::sim::Physics;
-use springtime::train::{ForceOn, LossWeights, loss_with_budget};
+use springtime::train::{ForceOn, loss_with_budget};
 
 #[test]
 fn autodiff_gradients_match_central_differences() {
@@ -16,18 +15,10 @@ fn autodiff_gradients_match_central_differences() {
     plain.configure(FloatDType::F64).expect("flex supports f64");
     let ad = plain.clone().autodiff();
 
-    let cfg = common::source(4, &[10.0, 50.0], 0.08);
-    let (_, r1) = common::rollout(&cfg, 1);
-    let (_, r2) = common::rollout(&cfg, 2);
+    let (cfg, rollouts) = common::finite_difference::data();
     let topo = common::grid_of(&cfg);
     let s = topo.num_springs();
-    let physics = Physics {
-        frame_dt: r1.frame_dt,
-        substeps: 2,
-        mass: r1.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
-    };
+    let physics = common::finite_difference::physics(&rollouts[0], &topo);
     // A guess away from the truth, so that every term of the loss is non-zero.
     let k0: Vec<f64> = (0..s)
         .map(|i| 30.0 + 7.0 * ((i as f64) * 0.37).sin())
@@ -35,13 +26,7 @@ fn autodiff_gradients_match_central_differences() {
     let b0: Vec<f64> = (0..s)
         .map(|i| 4.0 + 0.5 * ((i as f64) * 0.91).cos())
         .collect();
-    let weights = LossWeights {
-        force: 1.0,
-        impulse: 10.0,
-        position: 100.0,
-        k_neg: 1.0,
-        b_neg: 1.0,
-    };
+    let weights = common::finite_difference::WEIGHTS;
 
     // The fused rollout keeps every state (budget 1 GiB) or recomputes from checkpoints (0).
     for (on, kernel, budget) in [
@@ -52,7 +37,7 @@ fn autodiff_gradients_match_central_differences() {
         (ForceOn::Frames, Kernel::Fused, 1024),
     ] {
         let eval = |k: &[f64], b: &[f64], device: &Device| {
-            let batch = common::batch(&cfg, &[r1.clone(), r2.clone()], 30, 20, device);
+            let batch = common::batch(&cfg, &rollouts, 30, 20, device);
             let model = SpringNet::new(&topo, k, b, device).with_kernel(kernel);
             (
                 model.clone(),

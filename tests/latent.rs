@@ -313,6 +313,22 @@ fn train_in(
     )
 }
 
+/// Trains `cfg` in a fresh directory for the test `name`: the directory (removed when dropped),
+/// the training's record and the saved model, opened.
+fn trained(
+    name: &str,
+    cfg: &LatentConfig,
+) -> (
+    common::TestDir,
+    springtime::latent::train::LatentMeta,
+    LatentModel,
+) {
+    let dir = common::temp_dir(name);
+    let meta = train_in(&dir, cfg).unwrap();
+    let model = LatentModel::open(&dir).unwrap();
+    (dir, meta, model)
+}
+
 #[test]
 fn the_moving_corner_scene_follows_its_path_and_generates_a_rollout() {
     let cfg = tiny_config(LossKind::SelfSupervised);
@@ -346,9 +362,8 @@ fn the_moving_corner_scene_follows_its_path_and_generates_a_rollout() {
 
 #[test]
 fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_copy() {
-    let dir = common::temp_dir("latent");
     let cfg = tiny_config(LossKind::SelfSupervised);
-    let meta = train_in(&dir, &cfg).unwrap();
+    let (dir, meta, model) = trained("latent", &cfg);
     // The autoencoder reconstructs the training frames to well below the motion's extent
     // (the corners move ±5 cm; the sheet swings by more).
     assert!(
@@ -356,7 +371,6 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
         "reconstruction RMSE {} m",
         meta.reconstruction_rmse_train
     );
-    let model = LatentModel::open(&dir).unwrap();
     // The saved autoencoder (BatchNorm statistics included) reconstructs as the trained one did.
     let r = &model.reference;
     let latents = &model.latents;
@@ -412,12 +426,10 @@ fn a_tiny_latent_model_trains_reconstructs_rolls_out_and_matches_its_plain_rust_
 
 #[test]
 fn the_supervised_integrator_overfits_a_short_sequence() {
-    let dir = common::temp_dir("latent-supervised");
     let mut cfg = tiny_config(LossKind::Supervised);
     // Overfitting 38 steps takes a few thousand Adam steps.
     cfg.integrator.epochs = 2000;
-    train_in(&dir, &cfg).unwrap();
-    let model = LatentModel::open(&dir).unwrap();
+    let (_dir, _, model) = trained("latent-supervised", &cfg);
     // One-step predictions on the training frames, from the encoded reference.
     let latents = &model.latents;
     let l = cfg.autoencoder.latent;
@@ -442,13 +454,11 @@ fn the_supervised_integrator_overfits_a_short_sequence() {
 
 #[test]
 fn solved_steps_minimise_the_potential_and_the_solved_integrator_learns_them() {
-    let dir = common::temp_dir("latent-solved");
     let mut cfg = tiny_config(LossKind::Solved);
     cfg.integrator.epochs = 800;
     cfg.integrator.rounds = 2;
-    let meta = train_in(&dir, &cfg).unwrap();
+    let (_dir, meta, model) = trained("latent-solved", &cfg);
     assert_eq!(meta.integrator.epochs, 1600, "two rounds of 800 epochs");
-    let model = LatentModel::open(&dir).unwrap();
     let solve = SolveConfig::default();
     let l = cfg.autoencoder.latent;
     let mut scratch = (Vec::new(), Vec::new());
@@ -481,12 +491,50 @@ fn solved_steps_minimise_the_potential_and_the_solved_integrator_learns_them() {
     );
 }
 
+/// Writes a job of the command-line tests to `dir/<file>`: `head`, then the small networks they
+/// train, with `integrator` (keys) added to the integrator's table. Returns its path and the
+/// run folder, `dir/run`.
+fn write_job(
+    dir: &std::path::Path,
+    file: &str,
+    head: &str,
+    integrator: &str,
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let text = format!(
+        r#"{head}
+[autoencoder]
+latent = 2
+pca_modes = 6
+hidden = [16, 16]
+epochs = 50
+batch = 30
+[integrator]
+hidden = [16]
+batch = 28
+train_frames = 30
+{integrator}
+"#
+    );
+    std::fs::write(dir.join(file), text).unwrap();
+    (dir.join(file), dir.join("run"))
+}
+
+/// `springtime latent bench <run> --full-frames 3` in `dir`: the JSON line it prints.
+fn bench(run: &str, dir: &std::path::Path) -> serde_json::Value {
+    let out = common::ok(&common::springtime(
+        &["latent", "bench", run, "--full-frames", "3"],
+        dir,
+    ));
+    let stdout = out.lines().rev().find(|l| l.starts_with('{')).unwrap();
+    serde_json::from_str(stdout).unwrap()
+}
+
 #[test]
 fn the_latent_commands_train_evaluate_and_bench_from_a_config() {
     let dir = common::temp_dir("latent-cli");
-    let config = dir.join("tiny.toml");
-    std::fs::write(
-        &config,
+    let (config, run) = write_job(
+        &dir,
+        "tiny.toml",
         r#"
 name = "tiny"
 [cloth]
@@ -496,22 +544,9 @@ width = 0.15
 height = 0.2
 [scenario]
 frames = 40
-amplitude = 0.04
-[autoencoder]
-latent = 2
-pca_modes = 6
-hidden = [16, 16]
-epochs = 50
-batch = 30
-[integrator]
-hidden = [16]
-epochs = 20
-batch = 28
-train_frames = 30
-"#,
-    )
-    .unwrap();
-    let run = dir.join("run");
+amplitude = 0.04"#,
+        "epochs = 20",
+    );
     let run_s = run.to_str().unwrap();
     let cfg_s = config.to_str().unwrap();
     common::ok(&common::springtime(
@@ -548,46 +583,25 @@ train_frames = 30
         eval["subspace"]["rmse_per_frame"].as_array().unwrap().len(),
         10
     );
-    let out = common::ok(&common::springtime(
-        &["latent", "bench", run_s, "--full-frames", "3"],
-        &dir,
-    ));
-    let stdout = out.lines().rev().find(|l| l.starts_with('{')).unwrap();
-    let bench: serde_json::Value = serde_json::from_str(stdout).unwrap();
+    let bench = bench(run_s, &dir);
     assert!(bench["latent_us_per_frame"].as_f64().unwrap() > 0.0);
     assert!(bench["full_us_per_frame"].as_f64().unwrap() > 0.0);
     assert!(bench["solved_us_per_frame"].as_f64().unwrap() > 0.0);
     // A finished run is refused without --force, and a typo names the key.
     let again = common::springtime(&["latent", "train", cfg_s, "--out", run_s], &dir);
     assert!(!again.status.success());
-    let bad = common::springtime(
-        &[
-            "latent",
-            "train",
-            cfg_s,
-            "--out",
-            run_s,
-            "--force",
-            "--set",
-            "integrator.nosie=0",
-        ],
-        &dir,
-    );
+    let retrain = |set: &str| {
+        common::springtime(
+            &[
+                "latent", "train", cfg_s, "--out", run_s, "--force", "--set", set,
+            ],
+            &dir,
+        )
+    };
+    let bad = retrain("integrator.nosie=0");
     assert!(String::from_utf8_lossy(&bad.stderr).contains("nosie"));
     // More PCA modes than training frames is refused up front, naming both keys.
-    let short = common::springtime(
-        &[
-            "latent",
-            "train",
-            cfg_s,
-            "--out",
-            run_s,
-            "--force",
-            "--set",
-            "autoencoder.pca_modes=31",
-        ],
-        &dir,
-    );
+    let short = retrain("autoencoder.pca_modes=31");
     let err = String::from_utf8_lossy(&short.stderr);
     assert!(
         !short.status.success() && err.contains("pca_modes") && err.contains("train_frames"),
@@ -739,31 +753,16 @@ fn a_spring_surrogate_distils_into_a_latent_model_from_its_surrogate_json() {
     let dir = common::temp_dir("latent-distill");
     let json = dir.join("surrogate.json");
     std::fs::write(&json, small_surrogate().to_text().unwrap()).unwrap();
-    let config = dir.join("distill.toml");
-    std::fs::write(
-        &config,
+    let (config, run) = write_job(
+        &dir,
+        "distill.toml",
         r#"
 name = "distill"
 [scenario]
 frames = 40
-amplitude = 0.05
-[autoencoder]
-latent = 2
-pca_modes = 6
-hidden = [16, 16]
-epochs = 50
-batch = 30
-[integrator]
-hidden = [16]
-epochs = 100
-batch = 28
-train_frames = 30
-rounds = 1
-noisy_copies = 1
-"#,
-    )
-    .unwrap();
-    let run = dir.join("run");
+amplitude = 0.05"#,
+        "epochs = 100\nrounds = 1\nnoisy_copies = 1",
+    );
     let (run_s, cfg_s, json_s) = (
         run.to_str().unwrap(),
         config.to_str().unwrap(),
@@ -814,12 +813,7 @@ noisy_copies = 1
         "{step:?}"
     );
     common::ok(&common::springtime(&["latent", "eval", run_s], &dir));
-    let out = common::ok(&common::springtime(
-        &["latent", "bench", run_s, "--full-frames", "3"],
-        &dir,
-    ));
-    let stdout = out.lines().rev().find(|l| l.starts_with('{')).unwrap();
-    let bench: serde_json::Value = serde_json::from_str(stdout).unwrap();
+    let bench = bench(run_s, &dir);
     assert!(bench["full_us_per_frame"].as_f64().unwrap() > 0.0);
     assert_eq!(
         bench["full_newton_iterations"], 0.0,

@@ -2,10 +2,30 @@
 
 mod common;
 
+use std::path::Path;
+
 use springtime::config::Config;
 use springtime::progress::Progress;
 use springtime::settings::Job;
-use springtime::train::{TrainOptions, train};
+use springtime::source::SourceConfig;
+use springtime::train::{TrainOptions, TrainSummary, train};
+
+/// Trains an 8 × 8 surrogate named `name` on data of `source` (generated into `dir/data`, runs in
+/// `dir/runs`): the config `body` after the name and cloth, with the overrides `set`.
+fn train_8x8(
+    dir: &Path,
+    name: &str,
+    body: &str,
+    set: &[String],
+    source: SourceConfig,
+) -> TrainSummary {
+    let text = format!("name = \"{name}\"\n[cloth]\nnx = 8\nny = 8\n{body}");
+    let mut config = Config::parse(&text, set).unwrap();
+    config.data.dir = dir.join("data");
+    config.runs_dir = dir.join("runs");
+    config.source = Some(source);
+    train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap()
+}
 
 #[test]
 fn dual_pass_training_recovers_two_stiffness_levels() {
@@ -13,33 +33,7 @@ fn dual_pass_training_recovers_two_stiffness_levels() {
     let mut source = common::source(8, &[20.0, 80.0], 1.0);
     source.train_rollouts = 16;
     source.test_rollouts = 2;
-    let mut config = Config::parse(
-        r#"
-        name = "recovery"
-        [cloth]
-        nx = 8
-        ny = 8
-        [model]
-        k_init = 50.0
-        b_init = 3.0
-        [data.clips]
-        steps = 100
-        [train.stiffness]
-        iterations = 120
-        batch = 8
-        lr = 2.0
-        [train.damping]
-        iterations = 40
-        batch = 8
-        lr = 0.1
-        "#,
-        &[],
-    )
-    .unwrap();
-    config.data.dir = dir.join("data");
-    config.runs_dir = dir.join("runs");
-    config.source = Some(source);
-    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let summary = train_8x8(&dir, "recovery", common::RECOVERY, &[], source);
     let (rmse_k, rmse_b) = (summary.rmse_k.unwrap(), summary.rmse_b.unwrap());
     eprintln!("rmse_k {rmse_k:.3} N/m, rmse_b {rmse_b:.3} N·s/m");
     // Stated tolerance: RMSE of k within 10 % of the mean stiffness (50 N/m) from a start of
@@ -108,7 +102,7 @@ fn frame_difference_loss_is_zero_at_the_truth_and_ranks_uniform_stiffness() {
 /// `(rmse_k, rmse_b)` and the fit's record.
 fn least_squares_only(
     name: &str,
-    source: springtime::source::SourceConfig,
+    source: SourceConfig,
     extra: &[&str],
 ) -> (f64, f64, serde_json::Value) {
     let dir = common::temp_dir(name);
@@ -118,25 +112,8 @@ fn least_squares_only(
         "train.damping.iterations=0".to_string(),
     ];
     set.extend(extra.iter().map(|s| s.to_string()));
-    let mut config = Config::parse(
-        r#"
-        name = "least_squares"
-        [cloth]
-        nx = 8
-        ny = 8
-        [model]
-        k_init = 50.0
-        b_init = 3.0
-        [data.clips]
-        steps = 40
-        "#,
-        &set,
-    )
-    .unwrap();
-    config.data.dir = dir.join("data");
-    config.runs_dir = dir.join("runs");
-    config.source = Some(source);
-    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let body = "[model]\nk_init = 50.0\nb_init = 3.0\n[data.clips]\nsteps = 40\n";
+    let summary = train_8x8(&dir, "least_squares", body, &set, source);
     let record: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(summary.run_dir.join("least_squares.json")).unwrap(),
     )

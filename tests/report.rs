@@ -10,37 +10,19 @@ use std::path::{Path, PathBuf};
 use springtime::cloth::{GridSpec, Topology};
 use springtime::data::{MeshTruth, Rollout};
 
-const TINY: &str = r#"
-name = "tiny"
-[cloth]
-nx = 6
-ny = 6
-[data]
-dir = "data"
-[data.clips]
-steps = 50
-[source]
-nx = 6
-ny = 6
-width = 2.5
-height = 2.5
-seconds = 0.3
-train_rollouts = 4
-test_rollouts = 2
-[train]
-checkpoint_every = 5
-[train.stiffness]
-iterations = 6
-batch = 4
-[train.damping]
-iterations = 4
-batch = 4
-"#;
+/// The tiny job with two test rollouts, 6 stiffness and 4 damping iterations.
+fn tiny() -> String {
+    common::tiny_with(&[
+        ("test_rollouts = 1", "test_rollouts = 2"),
+        ("iterations = 10", "iterations = 6"),
+        ("iterations = 5", "iterations = 4"),
+    ])
+}
 
 /// Trains the tiny run in a fresh directory (with its report) and returns the directory.
 fn trained(name: &str) -> (common::TestDir, String) {
     let dir = common::temp_dir(name);
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), tiny()).unwrap();
     let out = ok(&springtime(&["train", "tiny.toml"], &dir));
     (dir, out)
 }
@@ -172,7 +154,7 @@ fn train_writes_a_report_with_every_figure_embedded() {
 #[test]
 fn report_without_data_leaves_out_what_needs_rollouts() {
     let dir = common::temp_dir("report-nodata");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), tiny()).unwrap();
     ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
     assert!(
         !dir.join("runs/tiny/report").exists(),
@@ -198,27 +180,13 @@ fn report_without_data_leaves_out_what_needs_rollouts() {
 #[test]
 fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
     let dir = common::temp_dir("export");
-    std::fs::write(dir.join("tiny.toml"), TINY).unwrap();
+    std::fs::write(dir.join("tiny.toml"), tiny()).unwrap();
     ok(&springtime(&["train", "tiny.toml", "--no-report"], &dir));
     // 6 × 6 particles: 36 vertices, 5 × 5 cells of 2 triangles.
     let (verts, faces) = (36, 50);
     for format in ["obj", "ply-ascii"] {
-        let out_dir = format!("export_{format}");
         let ext = &format[..3];
-        let out = ok(&springtime(
-            &[
-                "export",
-                "runs/tiny",
-                "--format",
-                format,
-                "--out",
-                &out_dir,
-                "--fps",
-                "100",
-            ],
-            &dir,
-        ));
-        let out_dir = dir.join(out_dir);
+        let (out, out_dir) = export_at_100_fps(&dir, format);
         assert!(out.contains("frames"), "{out}");
         let rest = out_dir.join(format!("rest.{ext}"));
         assert_eq!(
@@ -301,26 +269,30 @@ fn export_writes_meshes_that_read_back_and_refuses_to_overwrite() {
     assert_eq!(n, 2, "--force left stale frames behind"); // 0.05 s at 30 fps: frames 0 and 1
 }
 
+/// `export runs/tiny --format <format> --out export_<format> --fps 100` in `dir`: what it
+/// printed, and the folder.
+fn export_at_100_fps(dir: &Path, format: &str) -> (String, PathBuf) {
+    let out_dir = format!("export_{format}");
+    let out = ok(&springtime(
+        &[
+            "export",
+            "runs/tiny",
+            "--format",
+            format,
+            "--out",
+            &out_dir,
+            "--fps",
+            "100",
+        ],
+        dir,
+    ));
+    (out, dir.join(out_dir))
+}
+
 /// Binary PLY, glTF (JSON and binary, read back with the `gltf` crate) and the point cache of
 /// the same 31-frame rollout.
 fn check_binary_exports(dir: &Path, verts: usize, faces: usize) {
-    let export = |format: &str| {
-        let out_dir = format!("export_{format}");
-        ok(&springtime(
-            &[
-                "export",
-                "runs/tiny",
-                "--format",
-                format,
-                "--out",
-                &out_dir,
-                "--fps",
-                "100",
-            ],
-            dir,
-        ));
-        dir.join(out_dir)
-    };
+    let export = |format: &str| export_at_100_fps(dir, format).1;
     // Binary PLY: the header, then vertex 1 as five little-endian floats (x y z s t).
     let ply = export("ply");
     let frame = std::fs::read(ply.join("rollout/frame_0000.ply")).unwrap();

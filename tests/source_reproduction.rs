@@ -6,7 +6,7 @@ mod common;
 use burn::tensor::Device;
 use springtime::data::{ClipConfig, ClipSet, DataConfig, Rollout};
 use springtime::model::SpringNet;
-use springtime::sim::{self, Drive, Physics};
+use springtime::sim::{self, Physics};
 use springtime::train::{ForceOn, LossWeights, loss, matching_truth};
 
 #[test]
@@ -49,20 +49,7 @@ fn ground_truth_parameters_reproduce_the_source() {
     let batch = set.batch(&refs, &device).unwrap();
     let truth = SpringNet::new(&grid, &k, &b, &device);
     let [bsz, frames, p, _] = batch.positions.dims();
-    let drive = Drive {
-        x0: batch
-            .positions
-            .clone()
-            .slice([0..bsz, 0..1, 0..p, 0..3])
-            .reshape([bsz, p, 3]),
-        v0: batch
-            .velocities
-            .clone()
-            .slice([0..bsz, 0..1, 0..p, 0..3])
-            .reshape([bsz, p, 3]),
-        pinned: batch.pinned.clone(),
-        path: batch.positions.clone(),
-    };
+    let drive = common::clip_drive(&batch);
     let traj = sim::rollout(&truth, &physics, &drive, frames - 1);
     let err = (traj.positions - batch.positions.clone())
         .abs()

@@ -366,18 +366,10 @@ fn import_csv_marks_missing_rows_hidden() {
         }
     }
     std::fs::write(dir.join("marks.csv"), csv).unwrap();
-    common::ok(&common::springtime(
-        &[
-            "import",
-            "csv",
-            "marks.csv",
-            "--out",
-            "out",
-            "--frame-dt",
-            "0.1",
-            "--mass",
-            "1",
-        ],
+    common::ok(&common::import(
+        ["csv", "marks.csv", "out"],
+        ["0.1", "1"],
+        &[],
         &dir,
     ));
     let r = Rollout::load(&dir.join("out/marks.npz")).unwrap();

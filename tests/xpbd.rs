@@ -51,12 +51,30 @@ strain = 0.03
 axis = "v"
 "#;
 
-/// Runs `springtime args` in `dir` and requires success, showing its stderr otherwise.
-fn run_ok(dir: &std::path::Path, args: &[&str]) {
-    let out = springtime(args, dir);
+/// A fresh directory for the test `name` with the small job in it as `small.toml`.
+fn with_small(name: &str) -> common::TestDir {
+    let dir = common::temp_dir(name);
+    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
+    dir
+}
+
+/// Runs `springtime xpbd <command> <config> --out <out>` and then `extra` in `dir`.
+fn xpbd(
+    dir: &std::path::Path,
+    [command, config, out]: [&str; 3],
+    extra: &[&str],
+) -> std::process::Output {
+    let mut args = vec!["xpbd", command, config, "--out", out];
+    args.extend_from_slice(extra);
+    springtime(&args, dir)
+}
+
+/// [`xpbd`], requiring success (showing its stderr otherwise).
+fn xpbd_ok(dir: &std::path::Path, what: [&str; 3], extra: &[&str]) {
+    let out = xpbd(dir, what, extra);
     assert!(
         out.status.success(),
-        "{args:?}: {}",
+        "{what:?} {extra:?}: {}",
         String::from_utf8_lossy(&out.stderr)
     );
 }
@@ -73,9 +91,8 @@ fn estimate_json(dir: &std::path::Path) -> serde_json::Value {
 
 #[test]
 fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
-    let dir = common::temp_dir("xpbd-estimate");
-    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    run_ok(&dir, &["xpbd", "estimate", "small.toml", "--out", "est"]);
+    let dir = with_small("xpbd-estimate");
+    xpbd_ok(&dir, ["estimate", "small.toml", "est"], &[]);
     let json = estimate_json(&dir);
     assert!(dir.join("est/error_map.png").exists());
     let rel = &json["relative_error"];
@@ -97,7 +114,7 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
     let objective = json["objective"].as_array().unwrap();
     assert!(objective.last().unwrap().as_f64().unwrap() < 1e-3 * objective[0].as_f64().unwrap());
     // A finished estimate is not overwritten without --force.
-    let again = springtime(&["xpbd", "estimate", "small.toml", "--out", "est"], &dir);
+    let again = xpbd(&dir, ["estimate", "small.toml", "est"], &[]);
     assert!(!again.status.success());
     assert!(String::from_utf8_lossy(&again.stderr).contains("--force"));
     // A bad key is named.
@@ -106,7 +123,7 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
         SMALL.replace("angle_deg = 15.0", "angle = 15.0"),
     )
     .unwrap();
-    let bad = springtime(&["xpbd", "estimate", "bad.toml", "--out", "b"], &dir);
+    let bad = xpbd(&dir, ["estimate", "bad.toml", "b"], &[]);
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(
         !bad.status.success() && err.contains("bad.toml") && err.contains("scenarios"),
@@ -116,16 +133,11 @@ fn the_sim_to_sim_fit_recovers_the_targets_material_and_writes_estimate_json() {
 
 #[test]
 fn the_adam_fit_through_the_burn_equilibrium_op_descends_and_bad_combinations_are_named() {
-    let dir = common::temp_dir("xpbd-adam");
-    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    run_ok(
+    let dir = with_small("xpbd-adam");
+    xpbd_ok(
         &dir,
+        ["estimate", "small.toml", "est"],
         &[
-            "xpbd",
-            "estimate",
-            "small.toml",
-            "--out",
-            "est",
             "--set",
             "fit.optimizer=\"adam\"",
             "--set",
@@ -153,19 +165,15 @@ fn the_adam_fit_through_the_burn_equilibrium_op_descends_and_bad_combinations_ar
         objective[30]
     );
     // Adam needs the FFT descriptor (its Burn form) and the joint schedule.
-    let bad = springtime(
+    let bad = xpbd(
+        &dir,
+        ["estimate", "small.toml", "b"],
         &[
-            "xpbd",
-            "estimate",
-            "small.toml",
-            "--out",
-            "b",
             "--set",
             "fit.optimizer=\"adam\"",
             "--set",
             "fit.descriptor=\"positions\"",
         ],
-        &dir,
     );
     common::fails(&bad, &["fit.optimizer", "fit.descriptor"]);
 }
@@ -178,7 +186,7 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
         "max_iterations = 20\nschedule = \"bending_first\"\nrounds = 2\nstarts = 2",
     ) + "\n[[scenarios]]\nkind = \"cantilever\"\n";
     std::fs::write(dir.join("bf.toml"), cfg).unwrap();
-    run_ok(&dir, &["xpbd", "estimate", "bf.toml", "--out", "est"]);
+    xpbd_ok(&dir, ["estimate", "bf.toml", "est"], &[]);
     let json = estimate_json(&dir);
     assert_eq!(json["schedule"], "bending_first");
     let starts = json["starts"].as_array().unwrap();
@@ -198,19 +206,11 @@ fn the_bending_first_schedule_fits_b_on_the_cantilever_then_the_membrane() {
 
 #[test]
 fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination() {
-    let dir = common::temp_dir("xpbd-descriptors");
-    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    run_ok(
+    let dir = with_small("xpbd-descriptors");
+    xpbd_ok(
         &dir,
-        &[
-            "xpbd",
-            "descriptors",
-            "small.toml",
-            "--out",
-            "d",
-            "--noise",
-            "0.005",
-        ],
+        ["descriptors", "small.toml", "d"],
+        &["--noise", "0.005"],
     );
     let json = read_json(&dir, "d/descriptors.json");
     let fits = json["fits"].as_array().unwrap();
@@ -264,21 +264,11 @@ fn the_descriptor_study_fits_with_each_descriptor_and_counts_the_discrimination(
 
 #[test]
 fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the_spread() {
-    let dir = common::temp_dir("xpbd-invariance");
-    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    run_ok(
+    let dir = with_small("xpbd-invariance");
+    xpbd_ok(
         &dir,
-        &[
-            "xpbd",
-            "invariance",
-            "small.toml",
-            "--out",
-            "inv",
-            "--seeds",
-            "2",
-            "--noise",
-            "0.002",
-        ],
+        ["invariance", "small.toml", "inv"],
+        &["--seeds", "2", "--noise", "0.002"],
     );
     let json = read_json(&dir, "inv/invariance.json");
     let fits = json["fits"].as_array().unwrap();
@@ -320,21 +310,10 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
     // From each target's own shape (the paper's protocol) every fit stays on its target's
     // branch, so on targets from the fit's own simulator each seed recovers the truth and the
     // spread vanishes, for either descriptor.
-    run_ok(
+    xpbd_ok(
         &dir,
-        &[
-            "xpbd",
-            "invariance",
-            "small.toml",
-            "--out",
-            "own",
-            "--seeds",
-            "2",
-            "--noise",
-            "0.002",
-            "--start",
-            "target",
-        ],
+        ["invariance", "small.toml", "own"],
+        &["--seeds", "2", "--noise", "0.002", "--start", "target"],
     );
     let own = read_json(&dir, "own/invariance.json");
     assert_eq!(own["start"], "target");
@@ -350,18 +329,7 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
         }
     }
     // Too few seeds for a spread is refused.
-    let one = springtime(
-        &[
-            "xpbd",
-            "invariance",
-            "small.toml",
-            "--out",
-            "one",
-            "--seeds",
-            "1",
-        ],
-        &dir,
-    );
+    let one = xpbd(&dir, ["invariance", "small.toml", "one"], &["--seeds", "1"]);
     assert!(!one.status.success());
     assert!(String::from_utf8_lossy(&one.stderr).contains("--seeds"));
 }
@@ -369,19 +337,15 @@ fn the_invariance_experiment_fits_every_seed_from_its_own_branch_and_reports_the
 #[test]
 fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named() {
     use springtime::data::npz::{Array, Npz};
-    let dir = common::temp_dir("xpbd-targets");
-    std::fs::write(dir.join("small.toml"), SMALL).unwrap();
-    run_ok(&dir, &["xpbd", "generate", "small.toml", "--out", "tg"]);
-    run_ok(
-        &dir,
-        &["xpbd", "estimate", "small.toml", "--out", "synthetic"],
-    );
+    let dir = with_small("xpbd-targets");
+    xpbd_ok(&dir, ["generate", "small.toml", "tg"], &[]);
+    xpbd_ok(&dir, ["estimate", "small.toml", "synthetic"], &[]);
     // The same job without its truth, reading the files: a user's measured drapes.
     let a = SMALL.find("[truth]").unwrap();
     let b = SMALL.find("[initial]").unwrap();
     let user = format!("{}{}\n[targets]\ndir = \"tg\"\n", &SMALL[..a], &SMALL[b..]);
     std::fs::write(dir.join("user.toml"), &user).unwrap();
-    run_ok(&dir, &["xpbd", "estimate", "user.toml", "--out", "user"]);
+    xpbd_ok(&dir, ["estimate", "user.toml", "user"], &[]);
     let (s, u) = (
         read_json(&dir, "synthetic/estimate.json"),
         read_json(&dir, "user/estimate.json"),
@@ -395,16 +359,12 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
         assert!((x - y).abs() <= 1e-9 * x.abs(), "{key}: {x} vs {y}");
     }
     // The fitted γ re-simulated in a configuration the fit never saw.
-    run_ok(
+    xpbd_ok(
         &dir,
+        ["resim", "small.toml", "rs"],
         &[
-            "xpbd",
-            "resim",
-            "small.toml",
             "--estimate",
             "synthetic/estimate.json",
-            "--out",
-            "rs",
             "--set",
             "scenarios=[{kind=\"frame_shear\",angle_deg=25.0}]",
         ],
@@ -415,10 +375,7 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
     // Bad files: each error names the file and the key or the scenario.
     let fails = |cfg: &str, want: &[&str]| {
         std::fs::write(dir.join("bad.toml"), cfg).unwrap();
-        let out = springtime(
-            &["xpbd", "estimate", "bad.toml", "--out", "bad", "--force"],
-            &dir,
-        );
+        let out = xpbd(&dir, ["estimate", "bad.toml", "bad"], &["--force"]);
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{cfg}");
         for w in want {
@@ -448,7 +405,7 @@ fn targets_written_by_generate_fit_as_the_synthetic_ones_and_bad_files_are_named
         &["[truth]", "targets.dir"],
     );
     // generate does not overwrite without --force.
-    let again = springtime(&["xpbd", "generate", "small.toml", "--out", "tg"], &dir);
+    let again = xpbd(&dir, ["generate", "small.toml", "tg"], &[]);
     assert!(!again.status.success());
 }
 
@@ -462,58 +419,41 @@ fn a_ledge_drape_identifies_b_and_what_it_cannot_do_is_named() {
         ) + &format!("\n[[scenarios]]\nkind = \"ledge_drape\"\noverhang = {overhang}\n")
     };
     std::fs::write(dir.join("ledge.toml"), ledge("0.4")).unwrap();
-    run_ok(&dir, &["xpbd", "estimate", "ledge.toml", "--out", "est"]);
+    xpbd_ok(&dir, ["estimate", "ledge.toml", "est"], &[]);
     let json = estimate_json(&dir);
     // The drape over the ledge is the only bending target: b comes from it.
     for key in ["C00", "C11", "C01", "C22", "b"] {
         let e = json["relative_error"][key].as_f64().unwrap();
         assert!(e < 5e-3, "relative error of {key}: {e}");
     }
-    let refused = |args: &[&str], want: &[&str]| {
-        let out = springtime(args, &dir);
+    let refused = |what: [&str; 3], extra: &[&str], want: &[&str]| {
+        let out = xpbd(&dir, what, extra);
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success(), "{args:?} succeeded");
+        assert!(!out.status.success(), "{what:?} {extra:?} succeeded");
         for w in want {
-            assert!(err.contains(w), "{args:?}: {err}");
+            assert!(err.contains(w), "{what:?} {extra:?}: {err}");
         }
     };
     std::fs::write(dir.join("far.toml"), ledge("0.9")).unwrap();
     refused(
-        &["xpbd", "estimate", "far.toml", "--out", "far"],
+        ["estimate", "far.toml", "far"],
+        &[],
         &["far.toml", "scenarios.overhang"],
     );
     refused(
-        &[
-            "xpbd",
-            "estimate",
-            "ledge.toml",
-            "--out",
-            "fwd",
-            "--set",
-            "fit.derivatives=\"forward\"",
-        ],
+        ["estimate", "ledge.toml", "fwd"],
+        &["--set", "fit.derivatives=\"forward\""],
         &["fit.derivatives", "ledge_drape_0.4"],
     );
     refused(
-        &[
-            "xpbd",
-            "estimate",
-            "ledge.toml",
-            "--out",
-            "stamp",
-            "--set",
-            "targets.stamp=5",
-        ],
+        ["estimate", "ledge.toml", "stamp"],
+        &["--set", "targets.stamp=5"],
         &["targets.stamp"],
     );
     // The FEM targets (an isotropic truth) have no collider.
     refused(
+        ["estimate", "ledge.toml", "fem"],
         &[
-            "xpbd",
-            "estimate",
-            "ledge.toml",
-            "--out",
-            "fem",
             "--set",
             "targets.simulator=\"fem\"",
             "--set",

@@ -1,6 +1,8 @@
 //! Shared fixtures: tiny spring cloths simulated in memory, and temporary directories.
 #![allow(dead_code)]
 
+pub mod finite_difference;
+
 use burn::tensor::Device;
 use rand::{Rng, SeedableRng, rngs::StdRng};
 use springtime::cloth::{GridSpec, Resampler, Topology};
@@ -65,6 +67,51 @@ pub fn batch(
     ClipBatch::new(&views, steps, mass, rollouts[0].frame_dt, device).unwrap()
 }
 
+/// The drive of a free rollout over every clip of `batch`: its first frame's positions and
+/// velocities, the pinned particles following the clip's path.
+pub fn clip_drive(batch: &ClipBatch) -> springtime::sim::Drive {
+    let [bsz, _, p, _] = batch.positions.dims();
+    springtime::sim::Drive {
+        x0: batch
+            .positions
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        v0: batch
+            .velocities
+            .clone()
+            .slice([0..bsz, 0..1, 0..p, 0..3])
+            .reshape([bsz, p, 3]),
+        pinned: batch.pinned.clone(),
+        path: batch.positions.clone(),
+    }
+}
+
+/// `model` simulated freely over the first `frames` frames of `track` (with `contact` where
+/// given), pinned particles following the track: the positions of its last frame, `[P × 3]`.
+pub fn last_frame(
+    model: &dyn springtime::model::ForceModel,
+    physics: &springtime::sim::Physics,
+    contact: Option<&springtime::sim::Contact>,
+    track: &Track,
+    frames: usize,
+    device: &Device,
+) -> Vec<f32> {
+    springtime::eval::simulate_track(
+        model,
+        physics,
+        contact,
+        track,
+        0,
+        frames,
+        &[frames],
+        device,
+        |_| {},
+    )
+    .unwrap()
+    .positions
+}
+
 /// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends
 /// (passing or panicking); set `SPRINGTIME_KEEP_TEST_DIRS=1` to keep it for inspection.
 pub fn temp_dir(name: &str) -> TestDir {
@@ -101,6 +148,30 @@ pub fn springtime(args: &[&str], cwd: &std::path::Path) -> std::process::Output 
         .current_dir(cwd)
         .output()
         .unwrap()
+}
+
+/// Runs `springtime import <format> <input> --out <out> --frame-dt <frame_dt> --mass <mass>`,
+/// then `extra`, in `cwd`: `what` is `[format, input, out]`, `step_and_mass` `[frame_dt, mass]`.
+pub fn import(
+    what: [&str; 3],
+    step_and_mass: [&str; 2],
+    extra: &[&str],
+    cwd: &std::path::Path,
+) -> std::process::Output {
+    let ([format, input, out], [frame_dt, mass]) = (what, step_and_mass);
+    let mut args = vec![
+        "import",
+        format,
+        input,
+        "--out",
+        out,
+        "--frame-dt",
+        frame_dt,
+        "--mass",
+        mass,
+    ];
+    args.extend_from_slice(extra);
+    springtime(&args, cwd)
 }
 
 /// Asserts that a command succeeded; its stdout and stderr.
@@ -310,6 +381,61 @@ iterations = 5
 batch = 4
 "#;
 
+/// [`TINY`] with each `(from, to)` of `changes` made wherever `from` stands, in turn; a `from`
+/// that is not there fails, so that no change is silently lost.
+pub fn tiny_with(changes: &[(&str, &str)]) -> String {
+    changes.iter().fold(TINY.to_string(), |text, (from, to)| {
+        assert!(text.contains(from), "no {from:?} in the tiny job");
+        text.replace(from, to)
+    })
+}
+
+/// A 4 × 4 surrogate of a 1 m square FEM sheet (0.3 s rollouts, three to train and one to
+/// test), trained for a few steps: a job's tables but its `name` and `[data]` folders.
+pub const FEM_4X4: &str = r#"
+[cloth]
+nx = 4
+ny = 4
+
+[model]
+k_init = 100.0
+b_init = 0.05
+
+[sim]
+substeps = 2
+rayleigh = 0.1
+
+[data.clips]
+steps = 20
+
+[source]
+kind = "fem"
+nx = 4
+ny = 4
+width = 1.0
+height = 1.0
+stiffness_levels = [300.0]
+layout = "uniform"
+seconds = 0.3
+dt = 5e-4
+frame_stride = 2
+train_rollouts = 3
+test_rollouts = 1
+anchor_radius = 0.2
+
+[source.fem]
+bending = 0.002
+strain_damping = 0.0
+
+[train.stiffness]
+iterations = 4
+batch = 2
+
+[train.damping]
+iterations = 2
+batch = 2
+"#;
+
 /// SIGKILLs `child` (no chance to clean up) once the run whose `run.json` is `state` has a
 /// checkpoint at iteration `at` or later on disk; panics if the child ends first.
 pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path::Path, at: u64) {
@@ -331,3 +457,22 @@ pub fn kill_after_checkpoint(child: &mut std::process::Child, state: &std::path:
     child.kill().unwrap();
     child.wait().unwrap();
 }
+
+/// The recovery tests' start and schedule (tests/recovery.rs, tests/data_mesh.rs): a uniform
+/// 50 N/m and 3 N·s/m, 100-step clips, 120 stiffness iterations (batch 8, lr 2) and 40 damping
+/// iterations (batch 8, lr 0.1).
+pub const RECOVERY: &str = r#"
+[model]
+k_init = 50.0
+b_init = 3.0
+[data.clips]
+steps = 100
+[train.stiffness]
+iterations = 120
+batch = 8
+lr = 2.0
+[train.damping]
+iterations = 40
+batch = 8
+lr = 0.1
+"#;
