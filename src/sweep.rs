@@ -33,12 +33,12 @@ fn figure(path: &Path, plan: &Plan, table: &Table) -> Result<()> {
     let long = table.rows.iter().any(|r| r.motion_rmse_long.is_some());
     let metric = if long {
         Metric {
-            of: (|r: &Row| r.motion_rmse_long) as fn(&Row) -> Option<f64>,
+            of: |r| r.motion_rmse_long,
             label: "motion RMSE, long horizon (m)",
         }
     } else {
         Metric {
-            of: (|r: &Row| r.rmse_k) as fn(&Row) -> Option<f64>,
+            of: |r| r.rmse_k,
             label: "rmse_k (N/m)",
         }
     };
