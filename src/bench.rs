@@ -12,12 +12,13 @@ use std::time::Instant;
 use anyhow::Result;
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::Device;
 use rand::{SeedableRng, rngs::StdRng};
 use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::backend::Backend;
-use crate::cloth::Resampler;
+use crate::cloth::{Resampler, Topology};
 use crate::data::{ClipBatch, Track};
 use crate::model::{Kernel, SpringNet};
 use crate::sim::{self, Physics, State};
@@ -113,96 +114,30 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
     let cloth = SpringCloth::from_config(&cfg);
     let topo = cloth.topology.clone();
     let p = topo.num_particles();
-    let mut rng = StdRng::seed_from_u64(0);
-    let identity = Resampler::new(&topo.rest_uv, &topo.rest_uv);
-    // Scenarios drawn in order (one seed, any thread count), simulated in parallel.
-    let scenarios: Vec<Scenario> = (0..b)
-        .map(|_| {
-            let mut scenario = Scenario::random(&topo.rest_uv, 0.0, &mut rng);
-            scenario.pinned = (0..p).map(|i| i == (n - 1) * n || i == n * n - 1).collect();
-            scenario
-        })
-        .collect();
-    let tracks: Vec<Track> = scenarios
-        .par_iter()
-        .map(|scenario| {
-            let r = simulate_rollout(&cloth, &cfg, scenario, None, "bench")?;
-            Ok(Track::new(&r, &identity))
-        })
-        .collect::<Result<_>>()?;
+    let work = Workload {
+        tracks: peer_tracks(&cloth, &cfg, n, b)?,
+        physics: Physics {
+            frame_dt: 1e-3,
+            substeps: 1,
+            mass: cloth.mass,
+            rayleigh: cfg.rayleigh,
+            gravity: cfg.gravity,
+        },
+        batch: b,
+        steps: t,
+        particles: p,
+    };
     let plain = options.backend.device()?;
-    let device = plain.clone().autodiff();
-    let views: Vec<(&Track, usize)> = tracks.iter().map(|tr| (tr, 0)).collect();
-    let batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &device)?;
-    let physics = Physics {
-        frame_dt: 1e-3,
-        substeps: 1,
-        mass: cloth.mass,
-        rayleigh: cfg.rayleigh,
-        gravity: cfg.gravity,
-    };
-    let mut model = SpringNet::uniform(&topo, 50.0, 0.01, &device).with_kernel(options.kernel);
-    let fused = model.graph.fused_forces();
-    let mut optim = AdamConfig::new().with_epsilon(1e-8).init();
-    let weights = LossWeights::default();
-    let ids = [model.k.id, model.b.id];
-    let mut last = 0.0;
-    let mut step = |model: SpringNet| {
-        let terms = loss(&model, &physics, &batch, &weights, ForceOn::Simulated);
-        last = terms.total.clone().into_scalar::<f32>() as f64;
-        let mut grads = terms.total.backward();
-        let grads = GradientsParams::from_params(&mut grads, &model, &ids);
-        optim.step(1e-3, model, grads)
-    };
-    model = step(model); // warm-up
-    let start = Instant::now();
-    for _ in 0..options.iters {
-        model = step(model);
-    }
-    let sec_per_iter = start.elapsed().as_secs_f64() / options.iters.max(1) as f64;
-
+    let training = work.train(
+        &topo,
+        options.kernel,
+        &plain.clone().autodiff(),
+        options.iters,
+    )?;
+    let sec_per_iter = training.sec_per_iter;
     // Forward only: the rollout on the plain device, no graph.
-    let fwd_model = model.valid().to_device(&plain);
-    let plain_batch = ClipBatch::new(&views, t, cloth.mass, 1e-3, &plain)?;
-    let pinned = plain_batch.pinned.clone();
-    let frame = |j: usize| {
-        plain_batch
-            .positions
-            .clone()
-            .slice([0..b, j..j + 1, 0..p, 0..3])
-            .reshape([b, p, 3])
-    };
-    let frames: Vec<_> = (0..=t).map(frame).collect();
-    let forward = || {
-        let mut state = State {
-            x: frames[0].clone(),
-            v: plain_batch
-                .velocities
-                .clone()
-                .slice([0..b, 0..1, 0..p, 0..3])
-                .reshape([b, p, 3]),
-        };
-        for j in 0..t {
-            state = sim::step_frame(
-                &fwd_model,
-                &physics,
-                None,
-                state,
-                &pinned,
-                &frames[j],
-                &frames[j + 1],
-            )
-            .0;
-        }
-        state.x.sum().into_scalar::<f32>()
-    };
-    forward(); // warm-up
-    let reps = options.iters.max(1);
-    let start = Instant::now();
-    for _ in 0..reps {
-        forward();
-    }
-    let fwd = start.elapsed().as_secs_f64() / reps as f64;
+    let fwd_model = training.model.valid().to_device(&plain);
+    let fwd = work.forward(&fwd_model, &plain, options.iters.max(1))?;
     Ok(BenchReport {
         train_us_per_clip_step: sec_per_iter / (b * t) as f64 * 1e6,
         fwd_us_per_clip_step: fwd / (b * t) as f64 * 1e6,
@@ -210,7 +145,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         peak_rss_mib: crate::train::run::peak_rss_mib(),
         backend: options.backend.to_string(),
         kernel: options.kernel,
-        kernel_used: if fused { "fused" } else { "tensor" },
+        kernel_used: if training.fused { "fused" } else { "tensor" },
         device: crate::backend::describe(&plain),
         max_buffer_bytes: crate::backend::max_buffer_bytes(&plain),
         autotune: cfg!(feature = "autotune"),
@@ -220,6 +155,144 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
         particles: p,
         iters: options.iters,
         threads: rayon::current_num_threads(),
-        loss: last,
+        loss: training.loss,
     })
+}
+
+/// The peer's `b` clips: random rotations at rest, the two top corners (of `n` per side)
+/// pinned, drawn in order (one seed, any thread count) and simulated in parallel.
+fn peer_tracks(cloth: &SpringCloth, cfg: &SourceConfig, n: usize, b: usize) -> Result<Vec<Track>> {
+    let topo = &cloth.topology;
+    let p = topo.num_particles();
+    let mut rng = StdRng::seed_from_u64(0);
+    let identity = Resampler::new(&topo.rest_uv, &topo.rest_uv);
+    let scenarios: Vec<Scenario> = (0..b)
+        .map(|_| {
+            let mut scenario = Scenario::random(&topo.rest_uv, 0.0, &mut rng);
+            scenario.pinned = (0..p).map(|i| i == (n - 1) * n || i == n * n - 1).collect();
+            scenario
+        })
+        .collect();
+    scenarios
+        .par_iter()
+        .map(|scenario| {
+            let r = simulate_rollout(cloth, cfg, scenario, None, "bench")?;
+            Ok(Track::new(&r, &identity))
+        })
+        .collect::<Result<_>>()
+}
+
+/// The timed work: the clips and the surrogate's physics.
+struct Workload {
+    tracks: Vec<Track>,
+    physics: Physics,
+    /// Clips per iteration.
+    batch: usize,
+    /// Steps per clip.
+    steps: usize,
+    /// Particles per clip.
+    particles: usize,
+}
+
+/// The training iterations' outcome.
+struct Training {
+    /// The model after the last iteration.
+    model: SpringNet,
+    /// Whether its spring forces ran the fused kernels.
+    fused: bool,
+    /// Seconds per timed iteration.
+    sec_per_iter: f64,
+    /// The loss of the last iteration.
+    loss: f64,
+}
+
+impl Workload {
+    /// Every clip, from its first frame.
+    fn views(&self) -> Vec<(&Track, usize)> {
+        self.tracks.iter().map(|tr| (tr, 0)).collect()
+    }
+
+    /// A uniform surrogate trained on the clips on the autodiff `device`: one warm-up
+    /// iteration, then `iters` timed.
+    fn train(
+        &self,
+        topo: &Topology,
+        kernel: Kernel,
+        device: &Device,
+        iters: usize,
+    ) -> Result<Training> {
+        let physics = &self.physics;
+        let batch = ClipBatch::new(&self.views(), self.steps, physics.mass, 1e-3, device)?;
+        let mut model = SpringNet::uniform(topo, 50.0, 0.01, device).with_kernel(kernel);
+        let fused = model.graph.fused_forces();
+        let mut optim = AdamConfig::new().with_epsilon(1e-8).init();
+        let weights = LossWeights::default();
+        let ids = [model.k.id, model.b.id];
+        let mut last = 0.0;
+        let mut step = |model: SpringNet| {
+            let terms = loss(&model, physics, &batch, &weights, ForceOn::Simulated);
+            last = terms.total.clone().into_scalar::<f32>() as f64;
+            let mut grads = terms.total.backward();
+            let grads = GradientsParams::from_params(&mut grads, &model, &ids);
+            optim.step(1e-3, model, grads)
+        };
+        model = step(model); // warm-up
+        let start = Instant::now();
+        for _ in 0..iters {
+            model = step(model);
+        }
+        let sec_per_iter = start.elapsed().as_secs_f64() / iters.max(1) as f64;
+        Ok(Training {
+            model,
+            fused,
+            sec_per_iter,
+            loss: last,
+        })
+    }
+
+    /// Seconds per forward rollout of the clips (no graph) with `model` on `device`: one
+    /// warm-up, then the mean of `reps`.
+    fn forward(&self, model: &SpringNet, device: &Device, reps: usize) -> Result<f64> {
+        let (b, t, p) = (self.batch, self.steps, self.particles);
+        let physics = &self.physics;
+        let plain_batch = ClipBatch::new(&self.views(), t, physics.mass, 1e-3, device)?;
+        let pinned = plain_batch.pinned.clone();
+        let frame = |j: usize| {
+            plain_batch
+                .positions
+                .clone()
+                .slice([0..b, j..j + 1, 0..p, 0..3])
+                .reshape([b, p, 3])
+        };
+        let frames: Vec<_> = (0..=t).map(frame).collect();
+        let forward = || {
+            let mut state = State {
+                x: frames[0].clone(),
+                v: plain_batch
+                    .velocities
+                    .clone()
+                    .slice([0..b, 0..1, 0..p, 0..3])
+                    .reshape([b, p, 3]),
+            };
+            for j in 0..t {
+                state = sim::step_frame(
+                    model,
+                    physics,
+                    None,
+                    state,
+                    &pinned,
+                    &frames[j],
+                    &frames[j + 1],
+                )
+                .0;
+            }
+            state.x.sum().into_scalar::<f32>()
+        };
+        forward(); // warm-up
+        let start = Instant::now();
+        for _ in 0..reps {
+            forward();
+        }
+        Ok(start.elapsed().as_secs_f64() / reps as f64)
+    }
 }

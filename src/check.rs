@@ -111,15 +111,7 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     if !dir.is_dir() {
         bail!("{} is not a directory", dir.display());
     }
-    let index = match Index::probe(dir)? {
-        IndexFile::Missing => "none (every .npz is a training rollout)".to_string(),
-        IndexFile::Springtime(i) => format!(
-            "springtime's ({} train, {} test)",
-            i.train.len(),
-            i.test.len()
-        ),
-        IndexFile::Foreign(why) => format!("ignored: {why}"),
-    };
+    let index = describe_index(dir)?;
     let data = DataConfig {
         dir: dir.to_path_buf(),
         ..DataConfig::default()
@@ -129,23 +121,80 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
     if paths.is_empty() {
         bail!("{} lists no rollout files", Index::path(dir).display());
     }
-    let mut first: Option<(SetInfo, Rollout)> = None;
-    let (mut frames, mut pinned) = (None, None);
-    let (mut total_frames, mut with_velocities, mut with_springs, mut with_mesh) = (0, 0, 0, 0);
-    let mut ignored_keys = BTreeMap::new();
-    let mut strain = StrainStats::default();
+    let mut survey = Survey::default();
     for path in &paths {
+        survey.add(path, paths[0])?;
+    }
+    let (info, first) = survey.first.expect("at least one file");
+    // The surrogate training would start from: the config's values, its "auto"s resolved from
+    // the training files exactly as `train` resolves them.
+    let train_files = if split.train.is_empty() {
+        &split.test
+    } else {
+        &split.train
+    };
+    let surrogate = SurrogateStability::of(config, &info, &first, train_files)?;
+    Ok(DatasetReport {
+        dir: dir.to_path_buf(),
+        index,
+        train: split.train.len(),
+        test: split.test.len(),
+        frames: survey.frames.expect("at least one file"),
+        total_frames: survey.total_frames,
+        info,
+        landmarks: first.rest_uv.len(),
+        pinned: survey.pinned.expect("at least one file"),
+        with_velocities: survey.with_velocities,
+        with_springs: survey.with_springs,
+        with_mesh: survey.with_mesh,
+        ignored_keys: survey.ignored_keys,
+        strain: survey.strain.summary(),
+        surrogate,
+    })
+}
+
+/// `index.json` of `dir` in words: springtime's (with its counts), none, or another tool's.
+fn describe_index(dir: &Path) -> Result<String> {
+    Ok(match Index::probe(dir)? {
+        IndexFile::Missing => "none (every .npz is a training rollout)".to_string(),
+        IndexFile::Springtime(i) => format!(
+            "springtime's ({} train, {} test)",
+            i.train.len(),
+            i.test.len()
+        ),
+        IndexFile::Foreign(why) => format!("ignored: {why}"),
+    })
+}
+
+/// What the files read so far hold.
+#[derive(Default)]
+struct Survey {
+    /// The first file's shared values and contents.
+    first: Option<(SetInfo, Rollout)>,
+    frames: Option<Range>,
+    pinned: Option<Range>,
+    total_frames: usize,
+    with_velocities: usize,
+    with_springs: usize,
+    with_mesh: usize,
+    ignored_keys: BTreeMap<String, String>,
+    strain: StrainStats,
+}
+
+impl Survey {
+    /// Reads the rollout at `path`, checking that it matches the first file (`first_path`).
+    fn add(&mut self, path: &Path, first_path: &Path) -> Result<()> {
         let npz = Npz::read(path)?;
         for (key, a) in &npz.arrays {
             if !KEYS.contains(&key.as_str()) {
-                ignored_keys
+                self.ignored_keys
                     .entry(key.clone())
                     .or_insert_with(|| format!("{} {:?}", a.dtype.name(), a.shape));
             }
         }
         for (key, u) in &npz.unreadable {
             if !KEYS.contains(&key.as_str()) {
-                ignored_keys
+                self.ignored_keys
                     .entry(key.clone())
                     .or_insert_with(|| u.descr.clone());
             }
@@ -160,75 +209,64 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
             gravity: r.gravity,
             rayleigh: r.rayleigh,
         };
-        if let Some((info0, r0)) = &first {
-            check_same(info0, &info, path, paths[0])?;
-            check_same_landmarks(&r0.rest_uv, &r.rest_uv, path, paths[0])?;
+        if let Some((info0, r0)) = &self.first {
+            check_same(info0, &info, path, first_path)?;
+            check_same_landmarks(&r0.rest_uv, &r.rest_uv, path, first_path)?;
             let first_mesh = r0.mesh.as_ref().map(|m| &m.triangles);
-            check_same_mesh(first_mesh, r.mesh.as_ref(), path, paths[0])?;
+            check_same_mesh(first_mesh, r.mesh.as_ref(), path, first_path)?;
         }
-        Range::add(&mut frames, r.frames);
-        Range::add(&mut pinned, r.pinned.iter().filter(|&&p| p).count());
-        total_frames += r.frames;
-        with_velocities += usize::from(r.velocities.is_some());
-        with_springs += usize::from(r.springs.is_some());
-        with_mesh += usize::from(r.mesh.is_some());
-        strain.add(&r);
-        if first.is_none() {
-            first = Some((info, r));
+        Range::add(&mut self.frames, r.frames);
+        Range::add(&mut self.pinned, r.pinned.iter().filter(|&&p| p).count());
+        self.total_frames += r.frames;
+        self.with_velocities += usize::from(r.velocities.is_some());
+        self.with_springs += usize::from(r.springs.is_some());
+        self.with_mesh += usize::from(r.mesh.is_some());
+        self.strain.add(&r);
+        if self.first.is_none() {
+            self.first = Some((info, r));
         }
+        Ok(())
     }
-    let (info, first) = first.expect("at least one file");
-    // The surrogate training would start from: the config's values, its "auto"s resolved from
-    // the training files exactly as `train` resolves them.
-    let train_files = if split.train.is_empty() {
-        &split.test
-    } else {
-        &split.train
-    };
-    let topo = crate::train::topology(config, &first)?;
-    let mass = info.total_mass / topo.num_particles() as f64;
-    let opened = ClipSet::open(
-        train_files,
-        &config.data.clips,
-        |r| crate::train::topology(config, r),
-        config.data.cache_bytes(config.backend).min(1 << 30),
-        |_| {},
-    );
-    let (resolved, defaults) =
-        match opened.and_then(|clips| crate::train::init::resolve(config, &clips, None)) {
-            Ok((c, how)) => (c, Ok(how.lines())),
-            Err(e) => (config.clone(), Err(format!("{e:#}"))),
-        };
-    let s = topo.num_springs();
-    let (k, b) = (
-        resolved.model.k_init.or(50.0),
-        resolved.model.b_init.or(3.0),
-    );
-    let substeps = resolved.sim.substeps.or(1);
-    let stability = Stability::estimate(
-        &topo,
-        &vec![k; s],
-        &vec![b; s],
-        mass,
-        resolved.sim.rayleigh.or(crate::sim::RAYLEIGH),
-        info.frame_dt / substeps as f64,
-    );
-    Ok(DatasetReport {
-        dir: dir.to_path_buf(),
-        index,
-        train: split.train.len(),
-        test: split.test.len(),
-        frames: frames.expect("at least one file"),
-        total_frames,
-        info,
-        landmarks: first.rest_uv.len(),
-        pinned: pinned.expect("at least one file"),
-        with_velocities,
-        with_springs,
-        with_mesh,
-        ignored_keys,
-        strain: strain.summary(),
-        surrogate: SurrogateStability {
+}
+
+impl SurrogateStability {
+    /// The surrogate `config` would train on the data (first file `first`, shared values
+    /// `info`), its "auto"s resolved from `train_files` as `train` resolves them.
+    fn of(
+        config: &Config,
+        info: &SetInfo,
+        first: &Rollout,
+        train_files: &[PathBuf],
+    ) -> Result<Self> {
+        let topo = crate::train::topology(config, first)?;
+        let mass = info.total_mass / topo.num_particles() as f64;
+        let opened = ClipSet::open(
+            train_files,
+            &config.data.clips,
+            |r| crate::train::topology(config, r),
+            config.data.cache_bytes(config.backend).min(1 << 30),
+            |_| {},
+        );
+        let (resolved, defaults) =
+            match opened.and_then(|clips| crate::train::init::resolve(config, &clips, None)) {
+                Ok((c, how)) => (c, Ok(how.lines())),
+                Err(e) => (config.clone(), Err(format!("{e:#}"))),
+            };
+        let s = topo.num_springs();
+        let (k, b) = (
+            resolved.model.k_init.or(50.0),
+            resolved.model.b_init.or(3.0),
+        );
+        let substeps = resolved.sim.substeps.or(1);
+        let stability = Stability::estimate(
+            &topo,
+            &vec![k; s],
+            &vec![b; s],
+            mass,
+            resolved.sim.rayleigh.or(crate::sim::RAYLEIGH),
+            info.frame_dt / substeps as f64,
+        );
+        Ok(Self {
             grid: topo.grid,
             layout: topo.describe(),
             interpolated: !crate::cloth::Resampler::new(&first.rest_uv, &topo.rest_uv).is_exact(),
@@ -240,8 +278,8 @@ pub fn check_dir(dir: &Path, config: &Config) -> Result<DatasetReport> {
                 && config.sim.substeps.value().is_none(),
             stability,
             defaults,
-        },
-    })
+        })
+    }
 }
 
 impl DatasetReport {
@@ -253,13 +291,18 @@ impl DatasetReport {
     /// The report as lines of text.
     pub fn render(&self) -> String {
         let mut s = String::new();
+        self.render_files(&mut s);
+        self.render_grid(&mut s);
+        self.render_contents(&mut s);
+        self.render_defaults(&mut s);
+        self.render_stability(&mut s);
+        s
+    }
+
+    /// The folder, its files, frames, frame step, mass, rectangle and landmarks.
+    fn render_files(&self, s: &mut String) {
         let i = &self.info;
         let files = self.files();
-        let all_or = |n: usize| match n {
-            0 => "no".to_string(),
-            n if n == files => "yes".to_string(),
-            n => format!("in {n} of {files} files"),
-        };
         let _ = writeln!(s, "dataset {}", self.dir.display());
         let _ = writeln!(
             s,
@@ -283,6 +326,11 @@ impl DatasetReport {
         let _ = writeln!(s, "  total mass       {} kg", i.total_mass);
         let _ = writeln!(s, "  rest rectangle   {} m × {} m", i.width, i.height);
         let _ = writeln!(s, "  landmarks        {}", self.landmarks);
+    }
+
+    /// A note where the surrogate's grid particles are interpolated between the landmarks.
+    fn render_grid(&self, s: &mut String) {
+        let i = &self.info;
         if let Some([gx, gy]) = self.surrogate.grid
             && gx * gy <= 2 * self.landmarks
             && self.surrogate.interpolated
@@ -310,6 +358,16 @@ impl DatasetReport {
                 self.landmarks
             );
         }
+    }
+
+    /// Pins, velocities, ground truth, ignored keys and the strain.
+    fn render_contents(&self, s: &mut String) {
+        let files = self.files();
+        let all_or = |n: usize| match n {
+            0 => "no".to_string(),
+            n if n == files => "yes".to_string(),
+            n => format!("in {n} of {files} files"),
+        };
         let _ = writeln!(s, "  pinned           {}", self.pinned.show());
         let _ = writeln!(s, "  velocities       {}", all_or(self.with_velocities));
         if self.with_springs > 0 || self.with_mesh > 0 {
@@ -336,6 +394,10 @@ impl DatasetReport {
                 let _ = writeln!(s, "  WARNING          {w}");
             }
         }
+    }
+
+    /// What `train` would derive from the data, or why it cannot.
+    fn render_defaults(&self, s: &mut String) {
         let g = &self.surrogate;
         match &g.defaults {
             Ok(lines) => {
@@ -356,6 +418,12 @@ impl DatasetReport {
                 );
             }
         }
+    }
+
+    /// The surrogate's stability number and what it means for training.
+    fn render_stability(&self, s: &mut String) {
+        let i = &self.info;
+        let g = &self.surrogate;
         let st = &g.stability;
         let _ = writeln!(
             s,
@@ -384,6 +452,5 @@ impl DatasetReport {
                 )
             }
         );
-        s
     }
 }

@@ -718,7 +718,9 @@ impl ImportArgs {
     }
 }
 
-/// Runs a parsed command line.
+/// Runs a parsed command line: the data, config and study commands here, the commands that
+/// train and evaluate a run in [`train_or_evaluate`], those that put a trained run to use in
+/// [`use_trained`].
 pub fn run(cli: Cli) -> Result<()> {
     let progress = Progress::auto();
     match cli.command {
@@ -735,17 +737,57 @@ pub fn run(cli: Cli) -> Result<()> {
             defaults,
             set,
         } => print_config(config.as_deref(), defaults, &set),
-        Command::Completions { shell } => {
-            let mut command = <Cli as clap::CommandFactory>::command();
-            clap_complete::generate(shell, &mut command, "springtime", &mut std::io::stdout());
-            Ok(())
-        }
+        Command::Completions { shell } => completions(shell),
         Command::Import { source } => import(&source),
         Command::Xpbd { command } => xpbd(command, &progress),
         Command::Latent { command } => latent(command, &progress),
         Command::Data {
             command: DataCommand::Check { dir, config, set },
         } => data_check(&dir, config.as_deref(), &set),
+        Command::Compare {
+            config,
+            out,
+            backend,
+            force,
+            set,
+        } => compare(
+            &config,
+            &set,
+            &crate::compare::CompareOptions {
+                out,
+                force,
+                backend,
+            },
+            &progress,
+        ),
+        Command::Fold {
+            config,
+            out,
+            force,
+            set,
+        } => fold(&config, out, force, &set, &progress),
+        Command::Bench {
+            batch,
+            steps,
+            backend,
+            iters,
+            kernel,
+            n,
+        } => bench(&crate::bench::BenchOptions {
+            batch,
+            steps,
+            backend,
+            iters,
+            kernel,
+            n,
+        }),
+        command => train_or_evaluate(command, &progress),
+    }
+}
+
+/// `train`, `eval`, `report` and `diagnose`; the other commands go on to [`use_trained`].
+fn train_or_evaluate(command: Command, progress: &Progress) -> Result<()> {
+    match command {
         Command::Train {
             config,
             backend,
@@ -762,13 +804,27 @@ pub fn run(cli: Cli) -> Result<()> {
             !no_eval,
             !no_report,
             &set,
-            &progress,
+            progress,
+        ),
+        Command::Eval {
+            run_dir,
+            data,
+            backend,
+            set,
+            precision,
+        } => evaluate(
+            &run_dir,
+            data.as_deref(),
+            backend,
+            &set,
+            precision,
+            progress,
         ),
         Command::Report {
             run_dir,
             data,
             backend,
-        } => report(&run_dir, data, backend, &progress),
+        } => report(&run_dir, data, backend, progress),
         Command::Diagnose {
             run_dir,
             data,
@@ -787,8 +843,15 @@ pub fn run(cli: Cli) -> Result<()> {
                 seed,
                 backend,
             },
-            &progress,
+            progress,
         ),
+        command => use_trained(command, progress),
+    }
+}
+
+/// `export`, `simulate` and `drape`: what [`run`] and [`train_or_evaluate`] leave.
+fn use_trained(command: Command, progress: &Progress) -> Result<()> {
+    match command {
         Command::Export {
             run_dir,
             format,
@@ -813,89 +876,8 @@ pub fn run(cli: Cli) -> Result<()> {
                 backend,
                 scene,
             },
-            &progress,
+            progress,
         ),
-        Command::Eval {
-            run_dir,
-            data,
-            backend,
-            set,
-            precision,
-        } => {
-            if precision == crate::backend::Precision::F64 {
-                let run = train::RunDir::new(&run_dir);
-                let configured = Config::load(&run.config(), &set).map(|c| c.backend).ok();
-                if backend.or(configured) == Some(Backend::Wgpu) {
-                    bail!(
-                        "--precision f64 runs on the CPU backends; the run's backend is wgpu \
-                         (pass --backend flex)"
-                    );
-                }
-            }
-            precision.apply()?;
-            let report = crate::run::evaluate(&run_dir, data.as_deref(), backend, &set, &progress)?;
-            print_eval(&report);
-            Ok(())
-        }
-        Command::Compare {
-            config,
-            out,
-            backend,
-            force,
-            set,
-        } => compare(
-            &config,
-            &set,
-            &crate::compare::CompareOptions {
-                out,
-                force,
-                backend,
-            },
-            &progress,
-        ),
-        Command::Fold {
-            config,
-            out,
-            force,
-            set,
-        } => fold(&config, out, force, &set, &progress),
-        Command::Drape {
-            runs,
-            scene,
-            out,
-            force,
-            backend,
-            set,
-        } => drape(
-            &crate::drape::DrapeOptions {
-                runs,
-                scenes: scene,
-                out,
-                force,
-                backend,
-                set,
-            },
-            &progress,
-        ),
-        Command::Bench {
-            batch,
-            steps,
-            backend,
-            iters,
-            kernel,
-            n,
-        } => {
-            let report = crate::bench::run(&crate::bench::BenchOptions {
-                batch,
-                steps,
-                backend,
-                iters,
-                kernel,
-                n,
-            })?;
-            println!("{}", serde_json::to_string(&report)?);
-            Ok(())
-        }
         Command::Simulate {
             run_dir,
             init,
@@ -916,9 +898,67 @@ pub fn run(cli: Cli) -> Result<()> {
             },
             backend,
             &set,
-            &progress,
+            progress,
         ),
+        Command::Drape {
+            runs,
+            scene,
+            out,
+            force,
+            backend,
+            set,
+        } => drape(
+            &crate::drape::DrapeOptions {
+                runs,
+                scenes: scene,
+                out,
+                force,
+                backend,
+                set,
+            },
+            progress,
+        ),
+        _ => unreachable!("run and train_or_evaluate dispatch every other command"),
     }
+}
+
+/// `springtime completions`: the shell's completion script on standard output.
+fn completions(shell: clap_complete::Shell) -> Result<()> {
+    let mut command = <Cli as clap::CommandFactory>::command();
+    clap_complete::generate(shell, &mut command, "springtime", &mut std::io::stdout());
+    Ok(())
+}
+
+/// `springtime eval`: the run evaluated and its figures printed; f64 only on the CPU backends.
+fn evaluate(
+    run_dir: &Path,
+    data: Option<&Path>,
+    backend: Option<Backend>,
+    set: &[String],
+    precision: crate::backend::Precision,
+    progress: &Progress,
+) -> Result<()> {
+    if precision == crate::backend::Precision::F64 {
+        let run = train::RunDir::new(run_dir);
+        let configured = Config::load(&run.config(), set).map(|c| c.backend).ok();
+        if backend.or(configured) == Some(Backend::Wgpu) {
+            bail!(
+                "--precision f64 runs on the CPU backends; the run's backend is wgpu \
+                 (pass --backend flex)"
+            );
+        }
+    }
+    precision.apply()?;
+    let report = crate::run::evaluate(run_dir, data, backend, set, progress)?;
+    print_eval(&report);
+    Ok(())
+}
+
+/// `springtime bench`: the report as one JSON line.
+fn bench(options: &crate::bench::BenchOptions) -> Result<()> {
+    let report = crate::bench::run(options)?;
+    println!("{}", serde_json::to_string(&report)?);
+    Ok(())
 }
 
 /// The config schemas of springtime's jobs (`config --defaults KIND`).
@@ -986,7 +1026,6 @@ fn import(source: &ImportCommand) -> Result<()> {
 
 /// `springtime latent …`.
 fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
-    use crate::latent::{LatentConfig, eval, train};
     match command {
         LatentCommand::Generate {
             config,
@@ -994,19 +1033,7 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             force,
             from,
             set,
-        } => {
-            let mut cfg = LatentConfig::load(&config, &set)?;
-            let full = crate::latent::full::FullSpace::new(&mut cfg, from.as_deref())?;
-            let (_, stats) = train::generate_reference(&cfg, &full, &out, force, progress)?;
-            println!(
-                "{} frames, {:.2} Newton iterations per step (at most {}), {:.1} ms per step",
-                stats.frames,
-                stats.mean_iterations,
-                stats.max_iterations,
-                stats.us_per_step / 1e3
-            );
-            println!("reference: {}", out.join("rollout.npz").display());
-        }
+        } => latent_generate(&config, &set, from.as_deref(), &out, force, progress),
         LatentCommand::Train {
             config,
             out,
@@ -1015,89 +1042,132 @@ fn latent(command: LatentCommand, progress: &Progress) -> Result<()> {
             from,
             force,
             set,
-        } => {
-            let cfg = LatentConfig::load(&config, &set)?;
-            let options = train::TrainOptions {
-                out: out.clone(),
+        } => latent_train(
+            &config,
+            &set,
+            &crate::latent::train::TrainOptions {
+                out,
                 data,
                 force,
                 autoencoder_from,
                 from,
-            };
-            let meta = train::train(&cfg, &options, progress)?;
-            println!(
-                "autoencoder: {} epochs in {:.0} s, reconstruction RMSE {:.3} mm (train) / {:.3} mm (unseen)",
-                meta.autoencoder.epochs,
-                meta.autoencoder.seconds,
-                meta.reconstruction_rmse_train * 1e3,
-                meta.reconstruction_rmse_test * 1e3
-            );
-            println!(
-                "integrator: {} epochs in {:.0} s, final loss {:.5e}",
-                meta.integrator.epochs, meta.integrator.seconds, meta.integrator.final_loss
-            );
-            println!("run: {}", out.display());
-        }
+            },
+            progress,
+        ),
         LatentCommand::Eval {
             run,
             subspace,
             solve_iterations,
-        } => {
-            if solve_iterations == Some(0) {
-                bail!("--solve-iterations must be at least 1");
-            }
-            let r = eval::evaluate(&run, subspace, solve_iterations)?;
-            if let Some(s) = &r.subspace {
-                println!(
-                    "solved latent steps: RMSE {:.2} mm, max error {:.2} mm, kinetic energy ratio {:.2}, {}, {:.0} s, {} of {} steps unconverged",
-                    s.rmse * 1e3,
-                    s.max_error * 1e3,
-                    s.kinetic_energy_ratio,
-                    if s.diverged {
-                        "DIVERGED"
-                    } else {
-                        "no divergence"
-                    },
-                    s.seconds,
-                    s.unconverged_steps,
-                    r.frames
-                );
-            }
-            println!(
-                "{} unseen frames from frame {}: RMSE {:.2} mm, max error {:.2} mm, pinned within {:.3} mm, {}",
-                r.frames,
-                r.first_frame,
-                r.rmse * 1e3,
-                r.max_error * 1e3,
-                r.pinned_max_error * 1e3,
-                if r.diverged {
-                    "DIVERGED"
-                } else {
-                    "no divergence"
-                }
-            );
-            println!(
-                "last 50 frames: {:.2} mm from the reference's last frame, moving {:.3} mm per frame",
-                r.rest_rmse_last_50 * 1e3,
-                r.rest_motion_last_50 * 1e3
-            );
-            println!("eval: {}", run.join("latent_eval.json").display());
-        }
-        LatentCommand::Bench { run, full_frames } => {
-            let r = eval::bench(&run, full_frames)?;
-            println!(
-                "latent frame {:.1} µs (integrator {:.1} + decoder {:.1}; Burn {:.0} µs), full-space step {:.0} µs: {:.0}× faster; a solved latent step {:.0} µs",
-                r.latent_us_per_frame,
-                r.integrator_us,
-                r.decoder_us,
-                r.burn_us_per_frame,
-                r.full_us_per_frame,
-                r.speedup,
-                r.solved_us_per_frame
-            );
-            println!("{}", serde_json::to_string(&r)?);
-        }
+        } => latent_eval(&run, subspace, solve_iterations),
+        LatentCommand::Bench { run, full_frames } => latent_bench(&run, full_frames),
     }
+}
+
+/// `springtime latent generate`: the full-space reference rollout.
+fn latent_generate(
+    config: &Path,
+    set: &[String],
+    from: Option<&Path>,
+    out: &Path,
+    force: bool,
+    progress: &Progress,
+) -> Result<()> {
+    let mut cfg = crate::latent::LatentConfig::load(config, set)?;
+    let full = crate::latent::full::FullSpace::new(&mut cfg, from)?;
+    let (_, stats) = crate::latent::train::generate_reference(&cfg, &full, out, force, progress)?;
+    println!(
+        "{} frames, {:.2} Newton iterations per step (at most {}), {:.1} ms per step",
+        stats.frames,
+        stats.mean_iterations,
+        stats.max_iterations,
+        stats.us_per_step / 1e3
+    );
+    println!("reference: {}", out.join("rollout.npz").display());
+    Ok(())
+}
+
+/// `springtime latent train`: the autoencoder, then the latent integrator.
+fn latent_train(
+    config: &Path,
+    set: &[String],
+    options: &crate::latent::train::TrainOptions,
+    progress: &Progress,
+) -> Result<()> {
+    let cfg = crate::latent::LatentConfig::load(config, set)?;
+    let meta = crate::latent::train::train(&cfg, options, progress)?;
+    println!(
+        "autoencoder: {} epochs in {:.0} s, reconstruction RMSE {:.3} mm (train) / {:.3} mm (unseen)",
+        meta.autoencoder.epochs,
+        meta.autoencoder.seconds,
+        meta.reconstruction_rmse_train * 1e3,
+        meta.reconstruction_rmse_test * 1e3
+    );
+    println!(
+        "integrator: {} epochs in {:.0} s, final loss {:.5e}",
+        meta.integrator.epochs, meta.integrator.seconds, meta.integrator.final_loss
+    );
+    println!("run: {}", options.out.display());
+    Ok(())
+}
+
+/// `springtime latent eval`: the unseen frames' errors (and the solved latent steps').
+fn latent_eval(run: &Path, subspace: bool, solve_iterations: Option<usize>) -> Result<()> {
+    if solve_iterations == Some(0) {
+        bail!("--solve-iterations must be at least 1");
+    }
+    let r = crate::latent::eval::evaluate(run, subspace, solve_iterations)?;
+    if let Some(s) = &r.subspace {
+        println!(
+            "solved latent steps: RMSE {:.2} mm, max error {:.2} mm, kinetic energy ratio {:.2}, {}, {:.0} s, {} of {} steps unconverged",
+            s.rmse * 1e3,
+            s.max_error * 1e3,
+            s.kinetic_energy_ratio,
+            if s.diverged {
+                "DIVERGED"
+            } else {
+                "no divergence"
+            },
+            s.seconds,
+            s.unconverged_steps,
+            r.frames
+        );
+    }
+    println!(
+        "{} unseen frames from frame {}: RMSE {:.2} mm, max error {:.2} mm, pinned within {:.3} mm, {}",
+        r.frames,
+        r.first_frame,
+        r.rmse * 1e3,
+        r.max_error * 1e3,
+        r.pinned_max_error * 1e3,
+        if r.diverged {
+            "DIVERGED"
+        } else {
+            "no divergence"
+        }
+    );
+    println!(
+        "last 50 frames: {:.2} mm from the reference's last frame, moving {:.3} mm per frame",
+        r.rest_rmse_last_50 * 1e3,
+        r.rest_motion_last_50 * 1e3
+    );
+    println!("eval: {}", run.join("latent_eval.json").display());
+    Ok(())
+}
+
+/// `springtime latent bench`: the timings, a summary line and one JSON line.
+fn latent_bench(run: &Path, full_frames: usize) -> Result<()> {
+    let r = crate::latent::eval::bench(run, full_frames)?;
+    println!(
+        "latent frame {:.1} µs (integrator {:.1} + decoder {:.1}; Burn {:.0} µs), full-space step {:.0} µs: {:.0}× faster; a solved latent step {:.0} µs",
+        r.latent_us_per_frame,
+        r.integrator_us,
+        r.decoder_us,
+        r.burn_us_per_frame,
+        r.full_us_per_frame,
+        r.speedup,
+        r.solved_us_per_frame
+    );
+    println!("{}", serde_json::to_string(&r)?);
     Ok(())
 }
 
@@ -1504,54 +1574,70 @@ fn sweep(
     out: Option<PathBuf>,
     progress: &Progress,
 ) -> Result<()> {
-    use crate::sweep::{self, JobStatus, Outcome, Plan};
-    let plan = Plan::load(plan)?;
-    let out = out.unwrap_or_else(|| sweep::default_out(&plan));
+    let plan = crate::sweep::Plan::load(plan)?;
+    let out = out.unwrap_or_else(|| crate::sweep::default_out(&plan));
     if list {
-        for job in plan.jobs()? {
-            println!(
-                "{}\t{}\t{}",
-                job.index,
-                job.dir_name,
-                job.overrides.join(" ")
-            );
-        }
-        return Ok(());
+        return sweep_list(&plan);
     }
     if let Some(spec) = index {
-        let indices = parse_indices(spec, plan.len())?;
-        let mut failed = Vec::new();
-        for i in indices {
-            match sweep::run_index(&plan, i, &out, progress) {
-                Ok(Outcome::Skipped(dir)) => {
-                    println!("job {i}: already finished in {}", dir.display())
-                }
-                Ok(Outcome::Finished(r)) => println!(
-                    "job {i}: finished in {:.1} s{}",
-                    r.seconds,
-                    if r.resumed { " (resumed)" } else { "" }
-                ),
-                Err(e) => {
-                    eprintln!("error: {e:#}");
-                    failed.push(i);
-                }
-            }
-        }
-        if !failed.is_empty() {
-            bail!(
-                "{} job(s) failed: {}",
-                failed.len(),
-                failed
-                    .iter()
-                    .map(|i| i.to_string())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            );
-        }
-        return Ok(());
+        return sweep_run(&plan, spec, &out, progress);
     }
     debug_assert!(gather);
-    let g = sweep::gather(&plan, &out)?;
+    sweep_gather(&plan, &out)
+}
+
+/// `sweep --list`: each job's index, folder name and overrides.
+fn sweep_list(plan: &crate::sweep::Plan) -> Result<()> {
+    for job in plan.jobs()? {
+        println!(
+            "{}\t{}\t{}",
+            job.index,
+            job.dir_name,
+            job.overrides.join(" ")
+        );
+    }
+    Ok(())
+}
+
+/// `sweep --index SPEC`: the jobs run in turn; fails after the last naming those that failed.
+fn sweep_run(plan: &crate::sweep::Plan, spec: &str, out: &Path, progress: &Progress) -> Result<()> {
+    use crate::sweep::Outcome;
+    let indices = parse_indices(spec, plan.len())?;
+    let mut failed = Vec::new();
+    for i in indices {
+        match crate::sweep::run_index(plan, i, out, progress) {
+            Ok(Outcome::Skipped(dir)) => {
+                println!("job {i}: already finished in {}", dir.display())
+            }
+            Ok(Outcome::Finished(r)) => println!(
+                "job {i}: finished in {:.1} s{}",
+                r.seconds,
+                if r.resumed { " (resumed)" } else { "" }
+            ),
+            Err(e) => {
+                eprintln!("error: {e:#}");
+                failed.push(i);
+            }
+        }
+    }
+    if !failed.is_empty() {
+        bail!(
+            "{} job(s) failed: {}",
+            failed.len(),
+            failed
+                .iter()
+                .map(|i| i.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// `sweep --gather`: the jobs counted by status and the gathered files listed.
+fn sweep_gather(plan: &crate::sweep::Plan, out: &Path) -> Result<()> {
+    use crate::sweep::JobStatus;
+    let g = crate::sweep::gather(plan, out)?;
     let count = |s| g.table.indices(s);
     let listed = |ids: Vec<usize>| {
         ids.iter()
@@ -1691,77 +1777,114 @@ fn simulate(
     }
     let run = crate::run::Run::open(run_dir, set, backend)?;
     let (model, topo, config) = (run.springs()?, &run.topology, &run.config);
-    let (track, first, physics) = if rest {
-        let rest = crate::export::rest_start(&run, init, None)?;
-        let mut track = Track::at_rest(&topo.rest_positions());
-        for &i in &rest.pinned {
-            track.pinned[i] = true;
-        }
-        (track, 0, rest.physics)
-    } else {
-        let init = init.expect("clap requires --init without --rest");
-        let rollout = Rollout::load(init)?;
-        let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
-        let first = rollout.first_usable_frame();
-        (
-            Track::new(&rollout, &res),
-            first,
-            run.physics(rollout.frame_dt),
-        )
-    };
+    let start = SimulateStart::new(&run, init, rest)?;
+    let physics = &start.physics;
     physics
         .stability_of(topo, model)
         .check("the trained surrogate", config.sim.allow_unstable)?;
-    let p = topo.num_particles();
     let frames = (seconds / physics.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");
     let keep: Vec<usize> = (0..=frames).collect();
     let sim = eval::simulate_track(
         model,
-        &physics,
+        physics,
         None,
-        &track,
-        first,
+        &start.track,
+        start.first,
         frames,
         &keep,
         &run.device,
         |_| bar.inc(1),
     )?;
     bar.finish();
-    let out_rollout = Rollout {
-        path: out.to_path_buf(),
-        frames: frames + 1,
-        landmarks: p,
-        positions: sim.positions,
-        velocities: Some(sim.velocities),
-        rest_uv: topo.rest_uv.clone(),
-        pinned: track.pinned.clone(),
-        frame_dt: physics.frame_dt,
-        total_mass: physics.mass * p as f64,
-        width: topo.width,
-        height: topo.height,
-        segments: vec![Segment {
-            start: 0,
-            offset: 0,
-            len: frames + 1,
-        }],
-        springs: Some(SpringTruth {
-            springs: topo.springs.clone(),
-            k: model.k_values(),
-            b: model.b_values(),
-        }),
-        mesh: None,
-        gravity: Some(physics.gravity),
-        rayleigh: Some(physics.rayleigh),
-        visible: None,
-    };
-    out_rollout.save(out)?;
+    start.rollout(topo, model, sim, frames, out).save(out)?;
     println!(
         "wrote {} frames ({seconds} s) to {}",
         frames + 1,
         out.display()
     );
     Ok(())
+}
+
+/// Where `springtime simulate` starts: the track that holds the pins, its first frame and the
+/// physics.
+struct SimulateStart {
+    /// The pinned particles' path (at rest, or the `--init` rollout's).
+    track: Track,
+    /// The track's first usable frame.
+    first: usize,
+    /// The simulation's physics.
+    physics: crate::sim::Physics,
+}
+
+impl SimulateStart {
+    /// From the surrogate's rest state (`--rest`) or from the first usable frame of `init`.
+    fn new(run: &crate::run::Run, init: Option<&Path>, rest: bool) -> Result<Self> {
+        let topo = &run.topology;
+        if rest {
+            let rest = crate::export::rest_start(run, init, None)?;
+            let mut track = Track::at_rest(&topo.rest_positions());
+            for &i in &rest.pinned {
+                track.pinned[i] = true;
+            }
+            Ok(Self {
+                track,
+                first: 0,
+                physics: rest.physics,
+            })
+        } else {
+            let init = init.expect("clap requires --init without --rest");
+            let rollout = Rollout::load(init)?;
+            let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
+            let first = rollout.first_usable_frame();
+            Ok(Self {
+                track: Track::new(&rollout, &res),
+                first,
+                physics: run.physics(rollout.frame_dt),
+            })
+        }
+    }
+
+    /// The simulated `frames` (after the start) as a rollout file's contents, with the
+    /// surrogate's springs as its truth.
+    fn rollout(
+        &self,
+        topo: &crate::cloth::Topology,
+        model: &crate::model::SpringNet,
+        sim: eval::FreeRollout,
+        frames: usize,
+        out: &Path,
+    ) -> Rollout {
+        let physics = &self.physics;
+        let p = topo.num_particles();
+        Rollout {
+            path: out.to_path_buf(),
+            frames: frames + 1,
+            landmarks: p,
+            positions: sim.positions,
+            velocities: Some(sim.velocities),
+            rest_uv: topo.rest_uv.clone(),
+            pinned: self.track.pinned.clone(),
+            frame_dt: physics.frame_dt,
+            total_mass: physics.mass * p as f64,
+            width: topo.width,
+            height: topo.height,
+            segments: vec![Segment {
+                start: 0,
+                offset: 0,
+                len: frames + 1,
+            }],
+            springs: Some(SpringTruth {
+                springs: topo.springs.clone(),
+                k: model.k_values(),
+                b: model.b_values(),
+            }),
+            mesh: None,
+            gravity: Some(physics.gravity),
+            rayleigh: Some(physics.rayleigh),
+            visible: None,
+        }
+    }
 }
 
 /// `springtime drape`: drapes the runs over the scenes and prints each model's figures.
@@ -1778,87 +1901,113 @@ fn drape(options: &crate::drape::DrapeOptions, progress: &Progress) -> Result<()
         "settled",
         "diverged"
     );
-    let show = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.4}"));
-    let row = |name: &str,
-               who: &str,
-               end: Option<f64>,
-               src: Option<f64>,
-               fine: Option<f64>,
-               deepest: Option<f64>,
-               settled: &str,
-               diverged: &str| {
-        println!(
-            "{:<10} {:<22} {:>13} {:>13} {:>13} {:>11} {:>8} {:>9}",
-            name,
-            who,
-            show(end),
-            show(src),
-            show(fine),
-            show(deepest),
-            settled,
-            diverged
-        );
-    };
-    // A system started from another's settled drape: its distances at rest.
-    let relaxed = |name: &str, who: &str, r: &crate::drape::Relaxed| {
-        row(
-            name,
-            who,
-            None,
-            r.steady_rmse_vs_source,
-            r.steady_rmse_vs_fine,
-            None,
-            &r.settled.to_string(),
-            &r.diverged.to_string(),
-        )
-    };
     for (name, s) in &report.scenes {
-        for r in [&s.source, &s.perturbed].into_iter().flatten() {
-            row(
-                name,
-                &r.label,
-                None,
-                r.steady_rmse_vs_source,
-                r.steady_rmse_vs_fine,
-                Some(r.max_penetration),
-                &r.settled.to_string(),
-                &r.diverged.to_string(),
-            );
-            if let Some(x) = &r.relaxed_from_fine {
-                relaxed(name, &format!("{} from fine", r.label), x);
-            }
-        }
-        for (kind, m) in &s.models {
-            let (settled, diverged) = if m.applicable {
-                (m.settled.to_string(), m.diverged.to_string())
-            } else {
-                ("n/a".into(), "n/a".into())
-            };
-            row(
-                name,
-                kind,
-                m.motion_rmse_end,
-                m.steady_rmse_vs_source,
-                m.steady_rmse_vs_fine,
-                m.max_penetration,
-                &settled,
-                &diverged,
-            );
-            for (from, r) in [
-                ("source", &m.relaxed_from_source),
-                ("fine", &m.relaxed_from_fine),
-            ] {
-                if let Some(r) = r {
-                    relaxed(name, &format!("{kind} from {from}"), r);
-                }
-            }
-        }
-        for w in &s.warnings {
-            eprintln!("warning: {name}: {w}");
-        }
+        print_drape_scene(name, s);
     }
     println!("drape: {}", options.out.join("drape.json").display());
     Ok(())
+}
+
+/// One scene's rows of the `drape` table (the source's, the perturbed source's, each model's,
+/// and those relaxed from another's drape), then its warnings.
+fn print_drape_scene(name: &str, s: &crate::drape::SceneResult) {
+    for r in [&s.source, &s.perturbed].into_iter().flatten() {
+        DrapeRow {
+            scene: name,
+            system: &r.label,
+            end: None,
+            vs_source: r.steady_rmse_vs_source,
+            vs_fine: r.steady_rmse_vs_fine,
+            deepest: Some(r.max_penetration),
+            settled: &r.settled.to_string(),
+            diverged: &r.diverged.to_string(),
+        }
+        .print();
+        if let Some(x) = &r.relaxed_from_fine {
+            DrapeRow::relaxed(name, &format!("{} from fine", r.label), x);
+        }
+    }
+    for (kind, m) in &s.models {
+        let (settled, diverged) = if m.applicable {
+            (m.settled.to_string(), m.diverged.to_string())
+        } else {
+            ("n/a".into(), "n/a".into())
+        };
+        DrapeRow {
+            scene: name,
+            system: kind,
+            end: m.motion_rmse_end,
+            vs_source: m.steady_rmse_vs_source,
+            vs_fine: m.steady_rmse_vs_fine,
+            deepest: m.max_penetration,
+            settled: &settled,
+            diverged: &diverged,
+        }
+        .print();
+        for (from, r) in [
+            ("source", &m.relaxed_from_source),
+            ("fine", &m.relaxed_from_fine),
+        ] {
+            if let Some(r) = r {
+                DrapeRow::relaxed(name, &format!("{kind} from {from}"), r);
+            }
+        }
+    }
+    for w in &s.warnings {
+        eprintln!("warning: {name}: {w}");
+    }
+}
+
+/// A row of the `drape` table: a system's distances in a scene (`—` where it has none).
+struct DrapeRow<'a> {
+    /// The scene's name.
+    scene: &'a str,
+    /// The system's label.
+    system: &'a str,
+    /// The motion RMSE at the end (m).
+    end: Option<f64>,
+    /// The steady RMSE against the source (m).
+    vs_source: Option<f64>,
+    /// The steady RMSE against the fine reference (m).
+    vs_fine: Option<f64>,
+    /// The deepest penetration (m).
+    deepest: Option<f64>,
+    /// Whether it settled.
+    settled: &'a str,
+    /// Whether it diverged.
+    diverged: &'a str,
+}
+
+impl DrapeRow<'_> {
+    /// A system started from another's settled drape: its distances at rest.
+    fn relaxed(scene: &str, system: &str, r: &crate::drape::Relaxed) {
+        DrapeRow {
+            scene,
+            system,
+            end: None,
+            vs_source: r.steady_rmse_vs_source,
+            vs_fine: r.steady_rmse_vs_fine,
+            deepest: None,
+            settled: &r.settled.to_string(),
+            diverged: &r.diverged.to_string(),
+        }
+        .print()
+    }
+
+    fn print(&self) {
+        let show = |v: Option<f64>| v.map_or("—".to_string(), |v| format!("{v:.4}"));
+        println!(
+            "{:<10} {:<22} {:>13} {:>13} {:>13} {:>11} {:>8} {:>9}",
+            self.scene,
+            self.system,
+            show(self.end),
+            show(self.vs_source),
+            show(self.vs_fine),
+            show(self.deepest),
+            self.settled,
+            self.diverged
+        );
+    }
 }
 
 fn fold(

@@ -130,33 +130,7 @@ pub fn compare(
 fn compare_one(cfg: &Config, run_dir: &Path, force: bool, progress: &Progress) -> Result<Row> {
     let run = RunDir::new(run_dir);
     let state = run.state()?;
-    let reused = match &state {
-        Some(s) if s.status == Status::Finished && !force => {
-            // Compared as requested: `config.toml` holds the values resolved from the data.
-            let requested = run.requested_config();
-            let path = if requested.exists() {
-                requested
-            } else {
-                run.config()
-            };
-            let mut previous = Config::load(&path, &[])?;
-            previous.backend = cfg.backend;
-            if previous.to_toml() != cfg.to_toml() {
-                bail!(
-                    "{} holds a finished run trained with another config; pass --force to \
-                     retrain it or --out to compare elsewhere",
-                    run_dir.display()
-                );
-            }
-            true
-        }
-        Some(s) if s.status == Status::Failed && !force => bail!(
-            "{} holds a failed run ({}); pass --force to train it again",
-            run_dir.display(),
-            s.error.as_deref().unwrap_or("no message")
-        ),
-        _ => false,
-    };
+    let reused = reusable(cfg, &run, state.as_ref(), force)?;
     if reused {
         progress.note(&format!(
             "compare: reusing the finished {} run in {}",
@@ -182,14 +156,7 @@ fn compare_one(cfg: &Config, run_dir: &Path, force: bool, progress: &Progress) -
         )?;
     }
     // A reused run keeps its evaluation when it has every figure the table needs.
-    let previous_eval: Option<EvalReport> = if reused {
-        std::fs::read_to_string(run.eval())
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
-            .filter(|e: &EvalReport| e.inference.is_some())
-    } else {
-        None
-    };
+    let previous_eval = if reused { complete_eval(&run) } else { None };
     let eval = match previous_eval {
         Some(e) => e,
         None => crate::run::evaluate(run_dir, None, Some(cfg.backend), &[], progress)?,
@@ -208,6 +175,52 @@ fn compare_one(cfg: &Config, run_dir: &Path, force: bool, progress: &Progress) -
         eval,
         reused,
     })
+}
+
+/// Whether the run in `run` (state `state`) is finished with the same config and is reused;
+/// refuses, without `force`, a finished run of another config and a failed run.
+fn reusable(
+    cfg: &Config,
+    run: &RunDir,
+    state: Option<&train::RunState>,
+    force: bool,
+) -> Result<bool> {
+    let run_dir = &run.dir;
+    Ok(match state {
+        Some(s) if s.status == Status::Finished && !force => {
+            // Compared as requested: `config.toml` holds the values resolved from the data.
+            let requested = run.requested_config();
+            let path = if requested.exists() {
+                requested
+            } else {
+                run.config()
+            };
+            let mut previous = Config::load(&path, &[])?;
+            previous.backend = cfg.backend;
+            if previous.to_toml() != cfg.to_toml() {
+                bail!(
+                    "{} holds a finished run trained with another config; pass --force to \
+                     retrain it or --out to compare elsewhere",
+                    run_dir.display()
+                );
+            }
+            true
+        }
+        Some(s) if s.status == Status::Failed && !force => bail!(
+            "{} holds a failed run ({}); pass --force to train it again",
+            run_dir.display(),
+            s.error.as_deref().unwrap_or("no message")
+        ),
+        _ => false,
+    })
+}
+
+/// The run's `eval.json`, when it is readable and has the inference timing the table needs.
+fn complete_eval(run: &RunDir) -> Option<EvalReport> {
+    std::fs::read_to_string(run.eval())
+        .ok()
+        .and_then(|t| serde_json::from_str(&t).ok())
+        .filter(|e: &EvalReport| e.inference.is_some())
 }
 
 fn label(kind: ModelKind) -> &'static str {

@@ -8,7 +8,7 @@ use anyhow::Result;
 
 use crate::progress::Progress;
 pub use springtime_core::sweep::*;
-use springtime_plot::{Series, draw_curves, png_figure};
+use springtime_plot::{Area, Series, draw_curves, png_figure};
 
 /// [`springtime_core::sweep::run_index`] with the run's report page drawn when the plan asks.
 pub fn run_index(plan: &Plan, index: usize, out: &Path, progress: &Progress) -> Result<Outcome> {
@@ -31,17 +31,18 @@ pub fn gather(plan: &Plan, out: &Path) -> Result<Gathered> {
 /// axes' jobs that finished).
 fn figure(path: &Path, plan: &Plan, table: &Table) -> Result<()> {
     let long = table.rows.iter().any(|r| r.motion_rmse_long.is_some());
-    let (metric, label) = if long {
-        (
-            (|r: &Row| r.motion_rmse_long) as fn(&Row) -> Option<f64>,
-            "motion RMSE, long horizon (m)",
-        )
+    let metric = if long {
+        Metric {
+            of: |r| r.motion_rmse_long,
+            label: "motion RMSE, long horizon (m)",
+        }
     } else {
-        (
-            (|r: &Row| r.rmse_k) as fn(&Row) -> Option<f64>,
-            "rmse_k (N/m)",
-        )
+        Metric {
+            of: |r| r.rmse_k,
+            label: "rmse_k (N/m)",
+        }
     };
+    let label = metric.label;
     let panels = plan.axes.len().max(1);
     png_figure(path, 480 * panels as u32, 360, |root| {
         let areas = root.split_evenly((1, panels));
@@ -49,7 +50,7 @@ fn figure(path: &Path, plan: &Plan, table: &Table) -> Result<()> {
             let points: Vec<(f64, f64)> = table
                 .rows
                 .iter()
-                .filter_map(|r| metric(r).map(|m| (r.index as f64, m)))
+                .filter_map(|r| (metric.of)(r).map(|m| (r.index as f64, m)))
                 .collect();
             return draw_curves(
                 &areas[0],
@@ -61,61 +62,73 @@ fn figure(path: &Path, plan: &Plan, table: &Table) -> Result<()> {
                 &[],
             );
         }
-        for (a, (axis, area)) in plan.axes.iter().zip(&areas).enumerate() {
-            let numeric = axis.values.iter().all(|v| v.is_integer() || v.is_float());
-            let x_of = |i: usize| -> f64 {
-                if numeric {
-                    axis.values[i]
-                        .as_float()
-                        .or(axis.values[i].as_integer().map(|n| n as f64))
-                        .unwrap_or(i as f64)
-                } else {
-                    i as f64
-                }
-            };
-            let mut mean = Vec::new();
-            let mut lo = Vec::new();
-            let mut hi = Vec::new();
-            for (i, value) in axis.values.iter().enumerate() {
-                let m: Vec<f64> = table
-                    .rows
-                    .iter()
-                    .filter(|r| &r.values[a] == value)
-                    .filter_map(metric)
-                    .collect();
-                if m.is_empty() {
-                    continue;
-                }
-                let x = x_of(i);
-                mean.push((x, m.iter().sum::<f64>() / m.len() as f64));
-                lo.push((x, m.iter().copied().fold(f64::INFINITY, f64::min)));
-                hi.push((x, m.iter().copied().fold(f64::NEG_INFINITY, f64::max)));
-            }
-            let x_label = if numeric {
-                axis.key.clone()
-            } else {
-                let names: Vec<String> = axis
-                    .values
-                    .iter()
-                    .enumerate()
-                    .map(|(i, v)| format!("{i} = {}", value_text(v)))
-                    .collect();
-                format!("{} ({})", axis.key, names.join(", "))
-            };
-            draw_curves(
-                area,
-                &format!("{} against {}", plan.name, axis.key),
-                &x_label,
-                label,
-                &[
-                    Series::new("mean", mean).with_width(2),
-                    Series::new("min", lo),
-                    Series::new("max", hi),
-                ],
-                false,
-                &[],
-            )?;
+        for (a, area) in areas.iter().enumerate().take(plan.axes.len()) {
+            draw_axis(area, plan, table, a, &metric)?;
         }
         Ok(())
     })
+}
+
+/// The figure's metric of a job and its label.
+struct Metric {
+    of: fn(&Row) -> Option<f64>,
+    label: &'static str,
+}
+
+/// The panel of axis `a`: the metric's mean, min and max over the jobs at each of its values.
+fn draw_axis(area: &Area, plan: &Plan, table: &Table, a: usize, metric: &Metric) -> Result<()> {
+    let axis = &plan.axes[a];
+    let numeric = axis.values.iter().all(|v| v.is_integer() || v.is_float());
+    let x_of = |i: usize| -> f64 {
+        if numeric {
+            axis.values[i]
+                .as_float()
+                .or(axis.values[i].as_integer().map(|n| n as f64))
+                .unwrap_or(i as f64)
+        } else {
+            i as f64
+        }
+    };
+    let mut mean = Vec::new();
+    let mut lo = Vec::new();
+    let mut hi = Vec::new();
+    for (i, value) in axis.values.iter().enumerate() {
+        let m: Vec<f64> = table
+            .rows
+            .iter()
+            .filter(|r| &r.values[a] == value)
+            .filter_map(metric.of)
+            .collect();
+        if m.is_empty() {
+            continue;
+        }
+        let x = x_of(i);
+        mean.push((x, m.iter().sum::<f64>() / m.len() as f64));
+        lo.push((x, m.iter().copied().fold(f64::INFINITY, f64::min)));
+        hi.push((x, m.iter().copied().fold(f64::NEG_INFINITY, f64::max)));
+    }
+    let x_label = if numeric {
+        axis.key.clone()
+    } else {
+        let names: Vec<String> = axis
+            .values
+            .iter()
+            .enumerate()
+            .map(|(i, v)| format!("{i} = {}", value_text(v)))
+            .collect();
+        format!("{} ({})", axis.key, names.join(", "))
+    };
+    draw_curves(
+        area,
+        &format!("{} against {}", plan.name, axis.key),
+        &x_label,
+        metric.label,
+        &[
+            Series::new("mean", mean).with_width(2),
+            Series::new("min", lo),
+            Series::new("max", hi),
+        ],
+        false,
+        &[],
+    )
 }

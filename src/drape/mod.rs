@@ -589,13 +589,7 @@ impl<'a> Job<'a> {
             params.stiffness,
             params.damping
         ));
-        let every = ((cfg.record_every / self.frame_dt).round() as usize).max(1);
-        let frames = Frames {
-            total: ((cfg.seconds + cfg.settle) / self.frame_dt).round() as usize,
-            every,
-            scored: (cfg.seconds / self.frame_dt).round() as usize / every,
-            record_dt: every as f64 * self.frame_dt,
-        };
+        let frames = self.frames(cfg);
         let mut warnings = Vec::new();
         let refs = match &self.source {
             Some(src) => self.references(scene, &params, src, frames)?,
@@ -607,88 +601,95 @@ impl<'a> Job<'a> {
                 References::default()
             }
         };
-        let References {
-            coarse,
-            fine,
-            perturbed,
-        } = refs;
         let recs = self.simulate_models(scene, &params, frames, None)?;
-        let relax = Frames {
-            total: (cfg.settle / self.frame_dt).round() as usize / every * every,
-            ..frames
-        };
-        // Relaxations start at rest from a settled drape, at t = 0 with the colliders where
-        // they stand then, not where a drape ended: static scenes only.
-        let mut relaxes = |r: Option<&Recording>| {
-            let r = r?;
-            let why = if relax.total == 0 {
-                "scene.settle is shorter than scene.record_every"
-            } else if cfg.colliders.iter().any(|k| k.path.len() >= 2) {
-                "a collider moves"
-            } else if r.diverged.is_some() || r.frames.is_empty() {
-                "it diverged"
-            } else {
-                if !r.settled() {
-                    warnings.push(format!(
-                        "the {} drape had not come to rest: the relaxations from it include \
-                         its own unfinished motion",
-                        r.label
-                    ));
-                }
-                return Some(());
-            };
-            warnings.push(format!("no relaxation from the {} drape: {why}", r.label));
-            None
-        };
-        let mut from_source = Vec::new();
-        if relaxes(coarse.as_ref()).is_some() {
-            from_source = self.simulate_models(scene, &params, relax, coarse.as_ref())?;
-        }
-        let mut from_fine = Vec::new();
-        let mut source_from_fine = None;
-        if let (Some(()), Some(src)) = (relaxes(fine.as_ref()), &self.source) {
-            from_fine = self.simulate_models(scene, &params, relax, fine.as_ref())?;
-            let start = fine.as_ref();
-            source_from_fine = Some(self.host_run(scene, &params, src, 0.0, relax, start)?);
-        }
-        let relax_seconds = relax.total as f64 * self.frame_dt;
+        let relaxations = self.relaxations(scene, &params, frames, &refs, &mut warnings)?;
         let score = Score {
-            coarse: coarse.as_ref(),
-            fine: fine.as_ref(),
+            coarse: refs.coarse.as_ref(),
+            fine: refs.fine.as_ref(),
             thickness: params.thickness,
             record_dt: frames.record_dt,
             scored: frames.scored,
         };
-        let source_ref = coarse.as_ref().map(|c| {
-            let mut r = score.reference(c, "source", &mut warnings);
-            r.relaxed_from_fine = source_from_fine
-                .as_ref()
-                .map(|x| score.relaxed(x, relax_seconds, &mut warnings));
-            r
-        });
-        let fine_ref = fine.as_ref().map(|f| {
-            let mut r = score.reference(f, "fine reference", &mut warnings);
-            r.steady_rmse_vs_fine = Some(0.0);
-            r
-        });
-        let perturbed_ref = perturbed
-            .as_ref()
-            .map(|p| score.reference(p, "perturbed source", &mut warnings));
-        let models: BTreeMap<String, ModelResult> = recs
-            .iter()
-            .enumerate()
-            .map(|(i, d)| {
-                let mut m = score.model(d, &mut warnings);
-                let mut relaxed = |from: &[Draped]| {
-                    let r = from.get(i).and_then(|r| r.recording.as_ref())?;
-                    Some(score.relaxed(r, relax_seconds, &mut warnings))
-                };
-                m.relaxed_from_source = relaxed(&from_source);
-                m.relaxed_from_fine = relaxed(&from_fine);
-                (d.kind.clone(), m)
-            })
-            .collect();
-        for (who, r) in &models {
+        let scored = score.scene(&refs, &recs, &relaxations, &mut warnings);
+        self.note_scores(scene, &scored);
+        let mut drawn: Vec<&Recording> = Vec::new();
+        drawn.extend(refs.coarse.as_ref());
+        drawn.extend(recs.iter().filter_map(|r| r.recording.as_ref()));
+        drawn.extend(refs.fine.as_ref());
+        figure(
+            &out.join(format!("{}.png", scene.name)),
+            scene,
+            &params,
+            &drawn,
+            &scored.models,
+        )?;
+        write_curves(
+            &out.join(format!("{}_motion_rmse.csv", scene.name)),
+            &scored.models,
+        )?;
+        Ok(SceneResult {
+            scene_file: scene.path.clone(),
+            scene: scene.config.clone(),
+            contact_thickness: params.thickness,
+            contact: params,
+            record_dt: frames.record_dt,
+            source: scored.source,
+            fine: scored.fine,
+            perturbed: scored.perturbed,
+            models: scored.models,
+            warnings,
+            wall_seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// The scene's timing in data frames.
+    fn frames(&self, cfg: &SceneConfig) -> Frames {
+        let every = ((cfg.record_every / self.frame_dt).round() as usize).max(1);
+        Frames {
+            total: ((cfg.seconds + cfg.settle) / self.frame_dt).round() as usize,
+            every,
+            scored: (cfg.seconds / self.frame_dt).round() as usize / every,
+            record_dt: every as f64 * self.frame_dt,
+        }
+    }
+
+    /// Every model started at rest from the source's and from the fine mesh's settled drape,
+    /// and the source from the fine mesh's, where [`relaxable`] allows (warning where not).
+    fn relaxations(
+        &self,
+        scene: &Scene,
+        params: &ContactParams,
+        frames: Frames,
+        refs: &References,
+        warnings: &mut Vec<String>,
+    ) -> Result<Relaxations> {
+        let cfg = &scene.config;
+        let relax = Frames {
+            total: (cfg.settle / self.frame_dt).round() as usize / frames.every * frames.every,
+            ..frames
+        };
+        let (coarse, fine) = (refs.coarse.as_ref(), refs.fine.as_ref());
+        let mut from_source = Vec::new();
+        if relaxable(coarse, relax, cfg, warnings) {
+            from_source = self.simulate_models(scene, params, relax, coarse)?;
+        }
+        let mut from_fine = Vec::new();
+        let mut source_from_fine = None;
+        if let (true, Some(src)) = (relaxable(fine, relax, cfg, warnings), &self.source) {
+            from_fine = self.simulate_models(scene, params, relax, fine)?;
+            source_from_fine = Some(self.host_run(scene, params, src, 0.0, relax, fine)?);
+        }
+        Ok(Relaxations {
+            from_source,
+            from_fine,
+            source_from_fine,
+            seconds: relax.total as f64 * self.frame_dt,
+        })
+    }
+
+    /// Prints each model's and reference's figures in the scene.
+    fn note_scores(&self, scene: &Scene, scored: &Scored) {
+        for (who, r) in &scored.models {
             self.progress.note(&format!(
                 "  {who}: motion RMSE at {:.1} s {}; at rest to the source {}, to the fine mesh {}{}; deepest {:.4} m, {:.1} s wall{}",
                 scene.config.seconds,
@@ -707,7 +708,7 @@ impl<'a> Job<'a> {
                 if r.diverged { ", DIVERGED" } else { "" }
             ));
         }
-        for (who, r) in [("source", &source_ref), ("perturbed", &perturbed_ref)] {
+        for (who, r) in [("source", &scored.source), ("perturbed", &scored.perturbed)] {
             if let Some(s) = r {
                 self.progress.note(&format!(
                     "  {who} {}: at rest to the source {}, to the fine mesh {}; deepest {:.4} m, {:.1} s wall",
@@ -719,34 +720,6 @@ impl<'a> Job<'a> {
                 ));
             }
         }
-        let mut drawn: Vec<&Recording> = Vec::new();
-        drawn.extend(coarse.as_ref());
-        drawn.extend(recs.iter().filter_map(|r| r.recording.as_ref()));
-        drawn.extend(fine.as_ref());
-        figure(
-            &out.join(format!("{}.png", scene.name)),
-            scene,
-            &params,
-            &drawn,
-            &models,
-        )?;
-        write_curves(
-            &out.join(format!("{}_motion_rmse.csv", scene.name)),
-            &models,
-        )?;
-        Ok(SceneResult {
-            scene_file: scene.path.clone(),
-            scene: scene.config.clone(),
-            contact_thickness: params.thickness,
-            contact: params,
-            record_dt: frames.record_dt,
-            source: source_ref,
-            fine: fine_ref,
-            perturbed: perturbed_ref,
-            models,
-            warnings,
-            wall_seconds: start.elapsed().as_secs_f64(),
-        })
     }
 
     /// The coarse source, (for an FEM source) the fine FEM mesh and (for `scene.perturb > 0`)
@@ -905,6 +878,60 @@ struct References {
     perturbed: Option<Recording>,
 }
 
+/// Whether a relaxation can start from the settled drape `r` (`relax` long) in a scene:
+/// relaxations start at rest from a settled drape, at t = 0 with the colliders where they
+/// stand then, not where a drape ended: static scenes only. Warns where it cannot, or where
+/// `r` had not come to rest.
+fn relaxable(
+    r: Option<&Recording>,
+    relax: Frames,
+    cfg: &SceneConfig,
+    warnings: &mut Vec<String>,
+) -> bool {
+    let Some(r) = r else {
+        return false;
+    };
+    let why = if relax.total == 0 {
+        "scene.settle is shorter than scene.record_every"
+    } else if cfg.colliders.iter().any(|k| k.path.len() >= 2) {
+        "a collider moves"
+    } else if r.diverged.is_some() || r.frames.is_empty() {
+        "it diverged"
+    } else {
+        if !r.settled() {
+            warnings.push(format!(
+                "the {} drape had not come to rest: the relaxations from it include \
+                 its own unfinished motion",
+                r.label
+            ));
+        }
+        return true;
+    };
+    warnings.push(format!("no relaxation from the {} drape: {why}", r.label));
+    false
+}
+
+/// One scene's drapes started at rest from a reference's settled drape.
+#[derive(Default)]
+struct Relaxations {
+    /// Every model from the source's drape (none where it cannot relax).
+    from_source: Vec<Draped>,
+    /// Every model from the fine mesh's drape.
+    from_fine: Vec<Draped>,
+    /// The source from the fine mesh's drape.
+    source_from_fine: Option<Recording>,
+    /// How long each ran, s.
+    seconds: f64,
+}
+
+/// One scene's figures: the references' and every model's.
+struct Scored {
+    source: Option<Reference>,
+    fine: Option<Reference>,
+    perturbed: Option<Reference>,
+    models: BTreeMap<String, ModelResult>,
+}
+
 /// Scores one scene's recordings against its references.
 struct Score<'a> {
     coarse: Option<&'a Recording>,
@@ -987,6 +1014,55 @@ impl Score<'_> {
             settled: rec.settled(),
             diverged: rec.diverged.is_some(),
             seconds,
+        }
+    }
+
+    /// The scene's figures: the source (with its relaxation from the fine mesh), the fine mesh,
+    /// the perturbed source and every model (with its relaxations).
+    fn scene(
+        &self,
+        refs: &References,
+        recs: &[Draped],
+        relaxations: &Relaxations,
+        warnings: &mut Vec<String>,
+    ) -> Scored {
+        let seconds = relaxations.seconds;
+        let source = refs.coarse.as_ref().map(|c| {
+            let mut r = self.reference(c, "source", warnings);
+            r.relaxed_from_fine = relaxations
+                .source_from_fine
+                .as_ref()
+                .map(|x| self.relaxed(x, seconds, warnings));
+            r
+        });
+        let fine = refs.fine.as_ref().map(|f| {
+            let mut r = self.reference(f, "fine reference", warnings);
+            r.steady_rmse_vs_fine = Some(0.0);
+            r
+        });
+        let perturbed = refs
+            .perturbed
+            .as_ref()
+            .map(|p| self.reference(p, "perturbed source", warnings));
+        let models = recs
+            .iter()
+            .enumerate()
+            .map(|(i, d)| {
+                let mut m = self.model(d, warnings);
+                let mut relaxed = |from: &[Draped]| {
+                    let r = from.get(i).and_then(|r| r.recording.as_ref())?;
+                    Some(self.relaxed(r, seconds, warnings))
+                };
+                m.relaxed_from_source = relaxed(&relaxations.from_source);
+                m.relaxed_from_fine = relaxed(&relaxations.from_fine);
+                (d.kind.clone(), m)
+            })
+            .collect();
+        Scored {
+            source,
+            fine,
+            perturbed,
+            models,
         }
     }
 
@@ -1187,91 +1263,132 @@ fn figure(
     recs: &[&Recording],
     models: &BTreeMap<String, ModelResult>,
 ) -> Result<()> {
-    use springtime_plot::anim::{Layer, View, draw_cloth};
-    use springtime_plot::{self as plot, Series};
+    use springtime_plot::{self as plot, anim::View};
     let view = View::default();
     let ends: Vec<&[f32]> = recs
         .iter()
         .filter_map(|r| r.frames.last().map(Vec::as_slice))
         .collect();
     let bounds = view.bounds(ends.iter().copied());
-    let lo = [0, 1, 2].map(|c| {
-        ends.iter()
-            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
-            .fold(f64::INFINITY, f64::min)
-    });
-    let hi = [0, 1, 2].map(|c| {
-        ends.iter()
-            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
-            .fold(f64::NEG_INFINITY, f64::max)
-    });
+    let (lo, hi) = extent(&ends);
     let surface: Vec<f32> = surface_points(scene, lo, hi, params.thickness);
     let panels = recs.len().max(1);
     let (w, h) = (380 * panels as u32, 760);
     plot::png_figure(path, w.max(760), h, |root| {
         let (top, bottom) = root.split_vertically(400);
         let cells = top.split_evenly((1, panels));
+        let panel = DrapePanel {
+            scene,
+            surface: &surface,
+            view: &view,
+            bounds,
+        };
         for (area, rec) in cells.iter().zip(recs) {
-            let edges = &rec.edges;
-            let (caption, pos) = match (&rec.diverged, rec.frames.last()) {
-                (None, Some(f)) => (
-                    format!(
-                        "{}: t = {:.1} s",
-                        rec.label,
-                        scene.config.seconds + scene.config.settle
-                    ),
-                    f,
-                ),
-                (_, _) => {
-                    plot::draw_message(area, &rec.label, "diverged")?;
-                    continue;
-                }
-            };
-            let layers = [
-                Layer {
-                    positions: &surface,
-                    edges: &[],
-                    pinned: &[],
-                    color: plotters::style::RGBColor(170, 170, 170),
-                    radius: 1,
-                },
-                Layer {
-                    positions: pos,
-                    edges,
-                    pinned: &[],
-                    color: plotters::style::RGBColor(31, 119, 180),
-                    radius: 0,
-                },
-            ];
-            draw_cloth(area, &caption, &view, bounds, &layers)?;
+            panel.draw(area, rec)?;
         }
-        let series: Vec<Series> = models
-            .iter()
-            .filter(|(_, m)| !m.motion_rmse_over_time.is_empty())
-            .map(|(k, m)| {
-                Series::new(
-                    k.clone(),
-                    m.motion_rmse_over_time
-                        .iter()
-                        .map(|c| (c[0], c[1]))
-                        .collect(),
-                )
-            })
-            .collect();
-        plot::draw_curves(
-            &bottom,
-            &format!("{}: motion RMSE to the source (Eq. 14)", scene.name),
-            "time (s)",
-            "RMSE (m)",
-            &series,
-            false,
-            &if scene.config.settle > 0.0 {
-                vec![(scene.config.seconds, "settling from here")]
-            } else {
-                Vec::new()
-            },
-        )
+        draw_motion_rmse(&bottom, scene, models)
     })
+}
+
+/// The smallest and largest coordinate of the frames' points, per axis.
+fn extent(frames: &[&[f32]]) -> (V3, V3) {
+    let lo = [0, 1, 2].map(|c| {
+        frames
+            .iter()
+            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
+            .fold(f64::INFINITY, f64::min)
+    });
+    let hi = [0, 1, 2].map(|c| {
+        frames
+            .iter()
+            .flat_map(|f| f.chunks_exact(3).map(move |p| p[c] as f64))
+            .fold(f64::NEG_INFINITY, f64::max)
+    });
+    (lo, hi)
+}
+
+/// What every drape panel of a scene's figure shares.
+struct DrapePanel<'a> {
+    scene: &'a Scene,
+    /// Points on the colliders' surfaces.
+    surface: &'a [f32],
+    view: &'a springtime_plot::anim::View,
+    /// The drawn extent of every panel.
+    bounds: ((f64, f64), (f64, f64)),
+}
+
+impl DrapePanel<'_> {
+    /// `rec`'s last frame over the colliders, or a note that it diverged.
+    fn draw(&self, area: &springtime_plot::Area, rec: &Recording) -> Result<()> {
+        use springtime_plot::anim::{Layer, draw_cloth};
+        let scene = self.scene;
+        let edges = &rec.edges;
+        let (caption, pos) = match (&rec.diverged, rec.frames.last()) {
+            (None, Some(f)) => (
+                format!(
+                    "{}: t = {:.1} s",
+                    rec.label,
+                    scene.config.seconds + scene.config.settle
+                ),
+                f,
+            ),
+            (_, _) => {
+                return springtime_plot::draw_message(area, &rec.label, "diverged");
+            }
+        };
+        let layers = [
+            Layer {
+                positions: self.surface,
+                edges: &[],
+                pinned: &[],
+                color: plotters::style::RGBColor(170, 170, 170),
+                radius: 1,
+            },
+            Layer {
+                positions: pos,
+                edges,
+                pinned: &[],
+                color: plotters::style::RGBColor(31, 119, 180),
+                radius: 0,
+            },
+        ];
+        draw_cloth(area, &caption, self.view, self.bounds, &layers)
+    }
+}
+
+/// Each model's motion RMSE to the source over time, marking where settling starts.
+fn draw_motion_rmse(
+    area: &springtime_plot::Area,
+    scene: &Scene,
+    models: &BTreeMap<String, ModelResult>,
+) -> Result<()> {
+    use springtime_plot::Series;
+    let series: Vec<Series> = models
+        .iter()
+        .filter(|(_, m)| !m.motion_rmse_over_time.is_empty())
+        .map(|(k, m)| {
+            Series::new(
+                k.clone(),
+                m.motion_rmse_over_time
+                    .iter()
+                    .map(|c| (c[0], c[1]))
+                    .collect(),
+            )
+        })
+        .collect();
+    springtime_plot::draw_curves(
+        area,
+        &format!("{}: motion RMSE to the source (Eq. 14)", scene.name),
+        "time (s)",
+        "RMSE (m)",
+        &series,
+        false,
+        &if scene.config.settle > 0.0 {
+            vec![(scene.config.seconds, "settling from here")]
+        } else {
+            Vec::new()
+        },
+    )
 }
 
 /// Points on the colliders' surfaces within the box `lo..hi` (grown by a margin), for the

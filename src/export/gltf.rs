@@ -95,40 +95,8 @@ pub fn document(mesh: &AnimatedMesh) -> (Value, Vec<u8>) {
         views: Vec::new(),
         accessors: Vec::new(),
     };
-    let indices: Vec<u8> = mesh
-        .triangles
-        .iter()
-        .flat_map(|t| t.map(|i| i as u32))
-        .flat_map(u32::to_le_bytes)
-        .collect();
-    let view = b.view(&indices, Some(ELEMENT_ARRAY_BUFFER));
-    let max_index = mesh.triangles.iter().flatten().copied().max().unwrap_or(0);
-    let indices = b.accessor(json!({
-        "bufferView": view, "componentType": UNSIGNED_INT, "count": mesh.triangles.len() * 3,
-        "type": "SCALAR", "min": [0], "max": [max_index],
-    }));
     let rest: Vec<[f32; 3]> = mesh.rest.chunks_exact(3).map(y_up).collect();
-    let view = b.view(&le(rest.iter().flatten().copied()), Some(ARRAY_BUFFER));
-    let (lo, hi) = bounds(&rest);
-    let position = b.accessor(json!({
-        "bufferView": view, "componentType": FLOAT, "count": p, "type": "VEC3",
-        "min": lo, "max": hi,
-    }));
-    let view = b.view(
-        &le(mesh
-            .uv
-            .iter()
-            .flat_map(|t| [t[0] as f32, 1.0 - t[1] as f32])),
-        Some(ARRAY_BUFFER),
-    );
-    let texcoord = b.accessor(json!({
-        "bufferView": view, "componentType": FLOAT, "count": p, "type": "VEC2",
-    }));
-    let mut primitive = json!({
-        "attributes": {"POSITION": position, "TEXCOORD_0": texcoord},
-        "indices": indices,
-        "mode": 4,
-    });
+    let mut primitive = b.primitive(mesh, &rest);
     let mut gltf_mesh = json!({"name": mesh.name, "primitives": []});
     let mut root = json!({
         "asset": {
@@ -140,56 +108,13 @@ pub fn document(mesh: &AnimatedMesh) -> (Value, Vec<u8>) {
         "nodes": [{"name": mesh.name, "mesh": 0}],
     });
     if k > 0 {
-        // One morph target per frame: its displacement from the rest positions.
-        let displacements: Vec<[f32; 3]> = mesh
-            .frames
-            .chunks_exact(3)
-            .map(y_up)
-            .enumerate()
-            .map(|(i, q)| {
-                let r = rest[i % p];
-                [q[0] - r[0], q[1] - r[1], q[2] - r[2]]
-            })
-            .collect();
-        let view = b.view(
-            &le(displacements.iter().flatten().copied()),
-            Some(ARRAY_BUFFER),
-        );
-        let mut targets = Vec::with_capacity(k);
-        for f in 0..k {
-            let (lo, hi) = bounds(&displacements[f * p..(f + 1) * p]);
-            let a = b.accessor(json!({
-                "bufferView": view, "byteOffset": f * p * 12, "componentType": FLOAT, "count": p,
-                "type": "VEC3", "min": lo, "max": hi,
-            }));
-            targets.push(json!({"POSITION": a}));
-        }
-        primitive["targets"] = targets.into();
+        primitive["targets"] = b.morph_targets(mesh, &rest).into();
         let mut weights = vec![0.0; k];
         weights[0] = 1.0;
         gltf_mesh["weights"] = json!(weights);
         gltf_mesh["extras"] =
             json!({"targetNames": (0..k).map(|f| format!("frame_{f:04}")).collect::<Vec<_>>()});
-        // Key f shows frame f alone until the next key.
-        let t0 = mesh.times[0];
-        let times: Vec<f32> = mesh.times.iter().map(|t| (t - t0) as f32).collect();
-        let view = b.view(&le(times.iter().copied()), None);
-        let input = b.accessor(json!({
-            "bufferView": view, "componentType": FLOAT, "count": k, "type": "SCALAR",
-            "min": [times[0]], "max": [times[k - 1]],
-        }));
-        let view = b.view(
-            &le((0..k * k).map(|i| if i / k == i % k { 1.0 } else { 0.0 })),
-            None,
-        );
-        let output = b.accessor(json!({
-            "bufferView": view, "componentType": FLOAT, "count": k * k, "type": "SCALAR",
-        }));
-        root["animations"] = json!([{
-            "name": "rollout",
-            "samplers": [{"input": input, "output": output, "interpolation": "STEP"}],
-            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
-        }]);
+        root["animations"] = b.animation(mesh.times);
     }
     gltf_mesh["primitives"] = json!([primitive]);
     root["meshes"] = json!([gltf_mesh]);
@@ -200,6 +125,101 @@ pub fn document(mesh: &AnimatedMesh) -> (Value, Vec<u8>) {
     root["accessors"] = b.accessors.into();
     root["buffers"] = json!([{"byteLength": b.bin.len()}]);
     (root, b.bin)
+}
+
+impl Builder {
+    /// The triangles with the rest positions (`rest`, y up) and texture coordinates.
+    fn primitive(&mut self, mesh: &AnimatedMesh, rest: &[[f32; 3]]) -> Value {
+        let p = rest.len();
+        let indices: Vec<u8> = mesh
+            .triangles
+            .iter()
+            .flat_map(|t| t.map(|i| i as u32))
+            .flat_map(u32::to_le_bytes)
+            .collect();
+        let view = self.view(&indices, Some(ELEMENT_ARRAY_BUFFER));
+        let max_index = mesh.triangles.iter().flatten().copied().max().unwrap_or(0);
+        let indices = self.accessor(json!({
+            "bufferView": view, "componentType": UNSIGNED_INT, "count": mesh.triangles.len() * 3,
+            "type": "SCALAR", "min": [0], "max": [max_index],
+        }));
+        let view = self.view(&le(rest.iter().flatten().copied()), Some(ARRAY_BUFFER));
+        let (lo, hi) = bounds(rest);
+        let position = self.accessor(json!({
+            "bufferView": view, "componentType": FLOAT, "count": p, "type": "VEC3",
+            "min": lo, "max": hi,
+        }));
+        let view = self.view(
+            &le(mesh
+                .uv
+                .iter()
+                .flat_map(|t| [t[0] as f32, 1.0 - t[1] as f32])),
+            Some(ARRAY_BUFFER),
+        );
+        let texcoord = self.accessor(json!({
+            "bufferView": view, "componentType": FLOAT, "count": p, "type": "VEC2",
+        }));
+        json!({
+            "attributes": {"POSITION": position, "TEXCOORD_0": texcoord},
+            "indices": indices,
+            "mode": 4,
+        })
+    }
+
+    /// One morph target per frame of the mesh: its displacement from the rest positions
+    /// `rest` (y up).
+    fn morph_targets(&mut self, mesh: &AnimatedMesh, rest: &[[f32; 3]]) -> Vec<Value> {
+        let (p, k) = (rest.len(), mesh.times.len());
+        let displacements: Vec<[f32; 3]> = mesh
+            .frames
+            .chunks_exact(3)
+            .map(y_up)
+            .enumerate()
+            .map(|(i, q)| {
+                let r = rest[i % p];
+                [q[0] - r[0], q[1] - r[1], q[2] - r[2]]
+            })
+            .collect();
+        let view = self.view(
+            &le(displacements.iter().flatten().copied()),
+            Some(ARRAY_BUFFER),
+        );
+        let mut targets = Vec::with_capacity(k);
+        for f in 0..k {
+            let (lo, hi) = bounds(&displacements[f * p..(f + 1) * p]);
+            let a = self.accessor(json!({
+                "bufferView": view, "byteOffset": f * p * 12, "componentType": FLOAT, "count": p,
+                "type": "VEC3", "min": lo, "max": hi,
+            }));
+            targets.push(json!({"POSITION": a}));
+        }
+        targets
+    }
+
+    /// The animation: key f (at `times[f]`, from the first) shows frame f alone until the next
+    /// key.
+    fn animation(&mut self, times: &[f64]) -> Value {
+        let k = times.len();
+        let t0 = times[0];
+        let times: Vec<f32> = times.iter().map(|t| (t - t0) as f32).collect();
+        let view = self.view(&le(times.iter().copied()), None);
+        let input = self.accessor(json!({
+            "bufferView": view, "componentType": FLOAT, "count": k, "type": "SCALAR",
+            "min": [times[0]], "max": [times[k - 1]],
+        }));
+        let view = self.view(
+            &le((0..k * k).map(|i| if i / k == i % k { 1.0 } else { 0.0 })),
+            None,
+        );
+        let output = self.accessor(json!({
+            "bufferView": view, "componentType": FLOAT, "count": k * k, "type": "SCALAR",
+        }));
+        json!([{
+            "name": "rollout",
+            "samplers": [{"input": input, "output": output, "interpolation": "STEP"}],
+            "channels": [{"sampler": 0, "target": {"node": 0, "path": "weights"}}],
+        }])
+    }
 }
 
 /// Writes `.gltf` (JSON with the buffer embedded as base64) or, with `binary`, `.glb`,

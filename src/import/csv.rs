@@ -34,35 +34,99 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
     let Some((_, header)) = lines.next() else {
         bail!("{shown} is empty");
     };
-    let sep = [',', ';', '\t']
-        .into_iter()
-        .find(|&c| header.contains(c))
-        .unwrap_or(',');
-    let names: Vec<String> = header
-        .split(sep)
-        .map(|s| s.trim().trim_matches('"').to_ascii_lowercase())
-        .collect();
-    let column = |name: &str| names.iter().position(|n| n == name);
-    let mut required = [0usize; 5];
-    for (slot, name) in required.iter_mut().zip(["frame", "point", "x", "y", "z"]) {
-        *slot = column(name).ok_or_else(|| {
-            anyhow::anyhow!(
-                "{shown}, line 1: no `{name}` column (the header must name frame, point, x, y, z; \
-                 optionally u, v), found: {}",
-                names.join(", ")
-            )
-        })?;
-    }
-    let uv_columns = match (column("u"), column("v")) {
-        (Some(u), Some(v)) => Some([u, v]),
-        (None, None) => None,
-        _ => bail!("{shown}, line 1: give both `u` and `v` columns, or neither"),
-    };
-    let mut frames: BTreeMap<i64, BTreeMap<i64, Row>> = BTreeMap::new();
-    let mut rest: BTreeMap<i64, ([f64; 2], usize)> = BTreeMap::new();
+    let header = Header::parse(header, path)?;
+    let mut tracks = Tracks::default();
     for (number, line) in lines {
-        let fields: Vec<&str> = line
+        tracks.add(&header, number, line, path)?;
+    }
+    let Some((&first_frame, _)) = tracks.frames.iter().next() else {
+        bail!("{shown} holds no rows");
+    };
+    let grid = Grid::new(&tracks.frames, path)?;
+    let shape = tracks.rest_shape(&header, &grid.ids, path)?;
+    let rect = rest_rectangle(&shape, options.size)?;
+    let rest_from = if header.uv.is_some() {
+        "the u, v columns".to_string()
+    } else {
+        format!("the flat frame {first_frame}")
+    };
+    let motion = Motion {
+        name: super::stem(path),
+        frames: tracks.frames.len(),
+        points: grid.ids.len(),
+        positions: grid.positions,
+        visible: Some(grid.visible),
+        triangles: None,
+    };
+    write_rollout(&motion, rect, &rest_from, options)
+}
+
+/// The header line: the separator and where each column is.
+struct Header {
+    /// The field separator.
+    sep: char,
+    /// The column names, lowercase.
+    names: Vec<String>,
+    /// The columns of `frame`, `point`, `x`, `y`, `z`.
+    required: [usize; 5],
+    /// The columns of `u` and `v`, when given.
+    uv: Option<[usize; 2]>,
+}
+
+impl Header {
+    /// Reads the header line of the CSV file at `path`; fails where a column is missing.
+    fn parse(header: &str, path: &Path) -> Result<Self> {
+        let shown = path.display();
+        let sep = [',', ';', '\t']
+            .into_iter()
+            .find(|&c| header.contains(c))
+            .unwrap_or(',');
+        let names: Vec<String> = header
             .split(sep)
+            .map(|s| s.trim().trim_matches('"').to_ascii_lowercase())
+            .collect();
+        let column = |name: &str| names.iter().position(|n| n == name);
+        let mut required = [0usize; 5];
+        for (slot, name) in required.iter_mut().zip(["frame", "point", "x", "y", "z"]) {
+            *slot = column(name).ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{shown}, line 1: no `{name}` column (the header must name frame, point, x, y, z; \
+                     optionally u, v), found: {}",
+                    names.join(", ")
+                )
+            })?;
+        }
+        let uv = match (column("u"), column("v")) {
+            (Some(u), Some(v)) => Some([u, v]),
+            (None, None) => None,
+            _ => bail!("{shown}, line 1: give both `u` and `v` columns, or neither"),
+        };
+        Ok(Self {
+            sep,
+            names,
+            required,
+            uv,
+        })
+    }
+}
+
+/// The rows read so far.
+#[derive(Default)]
+struct Tracks {
+    /// Per frame, per point: its row.
+    frames: BTreeMap<i64, BTreeMap<i64, Row>>,
+    /// Per point: its rest coordinates and the line that first gave them.
+    rest: BTreeMap<i64, ([f64; 2], usize)>,
+}
+
+impl Tracks {
+    /// Adds line `number` of the CSV file at `path`; fails on a malformed field, a point
+    /// given twice in a frame, or rest coordinates that differ from the point's earlier ones.
+    fn add(&mut self, header: &Header, number: usize, line: &str, path: &Path) -> Result<()> {
+        let shown = path.display();
+        let (names, required) = (&header.names, &header.required);
+        let fields: Vec<&str> = line
+            .split(header.sep)
             .map(|s| s.trim().trim_matches('"'))
             .collect();
         let field = |c: usize| -> Result<&str> {
@@ -104,14 +168,15 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
         } else {
             Some([num(required[2])?, num(required[3])?, num(required[4])?])
         };
-        if let Some((_, first)) = frames.entry(frame).or_default().insert(point, (p, number)) {
+        let rows = self.frames.entry(frame).or_default();
+        if let Some((_, first)) = rows.insert(point, (p, number)) {
             bail!(
                 "{shown}, line {number}: frame {frame}, point {point} was already given on line {first}"
             );
         }
-        if let Some([u, v]) = uv_columns {
+        if let Some([u, v]) = header.uv {
             let q = [num(u)?, num(v)?];
-            match rest.get(&point) {
+            match self.rest.get(&point) {
                 Some(&(old, line)) if old != q => bail!(
                     "{shown}, line {number}: point {point} has rest coordinates ({}, {}) here and \
                      ({}, {}) on line {line}",
@@ -122,42 +187,30 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
                 ),
                 Some(_) => {}
                 None => {
-                    rest.insert(point, (q, number));
+                    self.rest.insert(point, (q, number));
                 }
             }
         }
+        Ok(())
     }
-    let Some((&first_frame, first)) = frames.iter().next() else {
-        bail!("{shown} holds no rows");
-    };
-    let ids: Vec<i64> = frames
-        .values()
-        .flat_map(|points| points.keys().copied())
-        .collect::<std::collections::BTreeSet<_>>()
-        .into_iter()
-        .collect();
-    let mut positions = Vec::with_capacity(frames.len() * ids.len() * 3);
-    let mut visible = Vec::with_capacity(frames.len() * ids.len());
-    for points in frames.values() {
-        for id in &ids {
-            let seen = points.get(id).and_then(|(p, _)| *p);
-            visible.push(seen.is_some());
-            positions.extend(seen.map_or([f32::NAN; 3], |p| p.map(|c| c as f32)));
+
+    /// The rest shape of the points `ids`: their `u`, `v` columns, or else the first frame,
+    /// which must see every point.
+    fn rest_shape(&self, header: &Header, ids: &[i64], path: &Path) -> Result<RestShape> {
+        let shown = path.display();
+        if header.uv.is_some() {
+            return Ok(RestShape::Given {
+                uv: ids.iter().map(|id| self.rest[id].0).collect(),
+                what: format!("{shown} (columns u, v)"),
+            });
         }
-    }
-    for (slot, id) in ids.iter().enumerate() {
-        if !visible.iter().skip(slot).step_by(ids.len()).any(|&v| v) {
-            bail!("{shown}: point {id} is seen in no frame (its coordinates are always missing)");
-        }
-    }
-    let shape = if uv_columns.is_some() {
-        RestShape::Given {
-            uv: ids.iter().map(|id| rest[id].0).collect(),
-            what: format!("{shown} (columns u, v)"),
-        }
-    } else {
+        let (&first_frame, first) = self
+            .frames
+            .iter()
+            .next()
+            .expect("import_tracks refuses a file without rows");
         let mut reference = Vec::with_capacity(ids.len());
-        for id in &ids {
+        for id in ids {
             match first.get(id) {
                 Some((Some(p), _)) => reference.push(*p),
                 _ => bail!(
@@ -166,24 +219,53 @@ pub fn import_tracks(path: &Path, options: &ImportOptions) -> Result<ImportSumma
                 ),
             }
         }
-        RestShape::Flat {
+        Ok(RestShape::Flat {
             reference,
             what: format!("{shown}, frame {first_frame}"),
+        })
+    }
+}
+
+/// Every point of every frame, in increasing order of `frame` and `point`.
+struct Grid {
+    /// The point ids of any frame.
+    ids: Vec<i64>,
+    /// Positions per frame and point (NaN where not seen).
+    positions: Vec<f32>,
+    /// Whether each point was seen in each frame.
+    visible: Vec<bool>,
+}
+
+impl Grid {
+    /// The rows laid out frame by frame; fails where a point is seen in no frame.
+    fn new(frames: &BTreeMap<i64, BTreeMap<i64, Row>>, path: &Path) -> Result<Self> {
+        let shown = path.display();
+        let ids: Vec<i64> = frames
+            .values()
+            .flat_map(|points| points.keys().copied())
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect();
+        let mut positions = Vec::with_capacity(frames.len() * ids.len() * 3);
+        let mut visible = Vec::with_capacity(frames.len() * ids.len());
+        for points in frames.values() {
+            for id in &ids {
+                let seen = points.get(id).and_then(|(p, _)| *p);
+                visible.push(seen.is_some());
+                positions.extend(seen.map_or([f32::NAN; 3], |p| p.map(|c| c as f32)));
+            }
         }
-    };
-    let rect = rest_rectangle(&shape, options.size)?;
-    let rest_from = if uv_columns.is_some() {
-        "the u, v columns".to_string()
-    } else {
-        format!("the flat frame {first_frame}")
-    };
-    let motion = Motion {
-        name: super::stem(path),
-        frames: frames.len(),
-        points: ids.len(),
-        positions,
-        visible: Some(visible),
-        triangles: None,
-    };
-    write_rollout(&motion, rect, &rest_from, options)
+        for (slot, id) in ids.iter().enumerate() {
+            if !visible.iter().skip(slot).step_by(ids.len()).any(|&v| v) {
+                bail!(
+                    "{shown}: point {id} is seen in no frame (its coordinates are always missing)"
+                );
+            }
+        }
+        Ok(Self {
+            ids,
+            positions,
+            visible,
+        })
+    }
 }

@@ -350,47 +350,8 @@ pub fn write_rollout(
     rest_from: &str,
     options: &ImportOptions,
 ) -> Result<ImportSummary> {
-    if !(options.frame_dt > 0.0 && options.frame_dt.is_finite()) {
-        bail!("--frame-dt must be positive, is {}", options.frame_dt);
-    }
-    if !(options.total_mass > 0.0 && options.total_mass.is_finite()) {
-        bail!("--mass must be positive, is {}", options.total_mass);
-    }
-    if let Some(g) = options.gravity
-        && g.iter().any(|c| !c.is_finite())
-    {
-        bail!("--gravity must be three finite numbers, is {g:?}");
-    }
-    if let Some(c) = options.rayleigh
-        && !(c >= 0.0 && c.is_finite())
-    {
-        bail!("--rayleigh must be non-negative, is {c}");
-    }
-    if motion.frames < 2 {
-        bail!(
-            "{}: {} frame(s): a rollout needs at least 2",
-            motion.name,
-            motion.frames
-        );
-    }
-    if motion.points < 3 {
-        bail!(
-            "{}: {} point(s): a rollout needs at least 3",
-            motion.name,
-            motion.points
-        );
-    }
-    let mut pinned = vec![false; motion.points];
-    for &i in &options.pinned {
-        if i >= motion.points {
-            bail!(
-                "--pinned {i}: there are {} points (indices 0 to {})",
-                motion.points,
-                motion.points - 1
-            );
-        }
-        pinned[i] = true;
-    }
+    check_options(options)?;
+    let pinned = pinned_points(motion, options)?;
     let path = options.out.join(format!("{}.npz", motion.name));
     crate::io::refuse_overwrite(&path, options.force)?;
     let (rest, rest_from) = match join_set(&rest, &options.out, &path)? {
@@ -403,26 +364,7 @@ pub fn write_rollout(
         ),
         None => (rest, rest_from.to_string()),
     };
-    let area = rest.width * rest.height;
-    let flat_face = motion
-        .triangles
-        .as_ref()
-        .and_then(|t| t.iter().position(|t| degenerate(&rest.rest_uv, t, area)));
-    let mesh = motion
-        .triangles
-        .as_ref()
-        .filter(|t| !t.is_empty() && flat_face.is_none())
-        .map(|t| MeshTruth {
-            triangles: t.clone(),
-            stiffness: None,
-        });
-    let rest_from = match flat_face {
-        Some(i) => format!(
-            "{rest_from}; the faces are not stored (`triangles`): triangle {i} of the faces has \
-             no area in the rest rectangle"
-        ),
-        None => rest_from,
-    };
+    let (mesh, rest_from) = stored_faces(motion, &rest, rest_from);
     let rollout = Rollout {
         path: path.clone(),
         frames: motion.frames,
@@ -464,6 +406,87 @@ pub fn write_rollout(
         height: rollout.height,
         rest_from,
     })
+}
+
+/// Checks the options' frame step, mass, gravity and damping.
+fn check_options(options: &ImportOptions) -> Result<()> {
+    if !(options.frame_dt > 0.0 && options.frame_dt.is_finite()) {
+        bail!("--frame-dt must be positive, is {}", options.frame_dt);
+    }
+    if !(options.total_mass > 0.0 && options.total_mass.is_finite()) {
+        bail!("--mass must be positive, is {}", options.total_mass);
+    }
+    if let Some(g) = options.gravity
+        && g.iter().any(|c| !c.is_finite())
+    {
+        bail!("--gravity must be three finite numbers, is {g:?}");
+    }
+    if let Some(c) = options.rayleigh
+        && !(c >= 0.0 && c.is_finite())
+    {
+        bail!("--rayleigh must be non-negative, is {c}");
+    }
+    Ok(())
+}
+
+/// The pinned mask of `--pinned`, once the motion has enough frames and points for a rollout.
+fn pinned_points(motion: &Motion, options: &ImportOptions) -> Result<Vec<bool>> {
+    if motion.frames < 2 {
+        bail!(
+            "{}: {} frame(s): a rollout needs at least 2",
+            motion.name,
+            motion.frames
+        );
+    }
+    if motion.points < 3 {
+        bail!(
+            "{}: {} point(s): a rollout needs at least 3",
+            motion.name,
+            motion.points
+        );
+    }
+    let mut pinned = vec![false; motion.points];
+    for &i in &options.pinned {
+        if i >= motion.points {
+            bail!(
+                "--pinned {i}: there are {} points (indices 0 to {})",
+                motion.points,
+                motion.points - 1
+            );
+        }
+        pinned[i] = true;
+    }
+    Ok(pinned)
+}
+
+/// The motion's faces as the rollout's mesh, unless one has no area in the rest rectangle:
+/// then none, and `rest_from` says why.
+fn stored_faces(
+    motion: &Motion,
+    rest: &RestRectangle,
+    rest_from: String,
+) -> (Option<MeshTruth>, String) {
+    let area = rest.width * rest.height;
+    let flat_face = motion
+        .triangles
+        .as_ref()
+        .and_then(|t| t.iter().position(|t| degenerate(&rest.rest_uv, t, area)));
+    let mesh = motion
+        .triangles
+        .as_ref()
+        .filter(|t| !t.is_empty() && flat_face.is_none())
+        .map(|t| MeshTruth {
+            triangles: t.clone(),
+            stiffness: None,
+        });
+    let rest_from = match flat_face {
+        Some(i) => format!(
+            "{rest_from}; the faces are not stored (`triangles`): triangle {i} of the faces has \
+             no area in the rest rectangle"
+        ),
+        None => rest_from,
+    };
+    (mesh, rest_from)
 }
 
 /// Largest landmark mismatch, as a fraction of the rectangle's size, under which a new import

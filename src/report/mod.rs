@@ -95,6 +95,8 @@ pub fn data_files(config: &Config, data: Option<&Path>) -> Result<DataFiles> {
 /// Everything the figures draw from.
 struct Inputs {
     name: String,
+    /// The run's files.
+    run: train::RunDir,
     config: Config,
     state: RunState,
     topology: Topology,
@@ -117,151 +119,15 @@ pub fn build(
     options: &ReportOptions,
     progress: &Progress,
 ) -> Result<ReportSummary> {
-    let opened = Run::open(run_dir, &[], options.backend)?;
-    let model = opened.springs()?.clone();
-    let Run {
-        dir: run,
-        state,
-        config,
-        device,
-        topology,
-        meta,
-        ..
-    } = opened;
-    let mass = meta.particle_mass;
-    let metrics = train::run::read_metrics(&run.metrics(), false)?;
-    let eval: Option<EvalReport> = match std::fs::read_to_string(run.eval()) {
-        Ok(text) => Some(
-            serde_json::from_str(&text)
-                .with_context(|| format!("{} is not a valid eval report", run.eval().display()))?,
-        ),
-        Err(_) => None,
-    };
     let mut notes = Vec::new();
-    let files = match data_files(&config, options.data.as_deref()) {
-        Ok(f) => f,
-        // Rollouts named on the command line must be there.
-        Err(e) if options.data.is_some() => return Err(e),
-        Err(e) => {
-            notes.push(format!(
-                "the run's rollouts are not available ({e:#}): the ground truth and the rollout \
-                 animation are left out; pass --data DIR with test rollouts"
-            ));
-            DataFiles {
-                test: Vec::new(),
-                train: Vec::new(),
-            }
-        }
-    };
-    // Ground truth from the first rollout at hand (every rollout of a set shares it).
-    let (mut truth, mut mesh) = (None, None);
-    if let Some(first) = files.test.first().or(files.train.first()) {
-        let r = Rollout::load(first)?;
-        truth = r.springs.as_ref().and_then(|t| {
-            train::matching_truth(t, &topology, &Resampler::new(&r.rest_uv, &topology.rest_uv))
-        });
-        if r.springs.is_some() && truth.is_none() {
-            notes.push(
-                "the source's springs differ from the surrogate's: no per-spring ground truth"
-                    .into(),
-            );
-        }
-        mesh = r.mesh.clone().map(|m| (r.rest_uv.clone(), m));
-    }
-    if let Ok(text) = std::fs::read_to_string(run.least_squares()) {
-        let r: serde_json::Value = serde_json::from_str(&text)
-            .map_err(|e| anyhow::anyhow!("{}: {e}", run.least_squares().display()))?;
-        notes.push(format!(
-            "training started from the per-spring least-squares fit of the data's forces \
-             (`train.least_squares`, least_squares.json): stencil ±{} over {} frames, force \
-             residual {:.3} of the target against the uniform start's {:.3}; {} of {} values \
-             fixed at 0",
-            r["stencil"],
-            r["frames"],
-            r["residual_fitted"].as_f64().unwrap_or(f64::NAN),
-            r["residual_initial"].as_f64().unwrap_or(f64::NAN),
-            r["fixed_at_zero"],
-            r["unknowns"]
-        ));
-    }
-    if let Some(v) = train::guard::Validation::read(&run.dir)? {
-        notes.push(format!("validation (`data.holdout`): {}", v.summary()));
-    }
-    let (k, b) = (model.k_values(), model.b_values());
-    let mut inputs = Inputs {
-        name: config.name.clone(),
-        state,
-        topology,
-        model,
-        mass,
-        k,
-        b,
-        metrics,
-        eval,
-        truth,
-        mesh,
-        test: files.test,
-        curves: None,
-        device,
-        config,
-    };
-    // Per-rollout motion curves: from the last evaluation, or simulated now for --data.
-    let csv = run.motion_curves();
-    if options.data.is_none() && csv.exists() {
-        inputs.curves = Some(eval::read_curves_csv(&csv)?);
-    } else if !inputs.test.is_empty() {
-        match simulate_curves(&inputs, progress) {
-            Ok(c) => inputs.curves = Some(c),
-            Err(e) => notes.push(format!("no motion RMSE: {e:#}")),
-        }
-    } else {
-        notes.push(format!(
-            "no motion RMSE: {} is missing (run `springtime eval`) and no test rollouts are at hand",
-            csv.display()
-        ));
-    }
+    let mut inputs = Inputs::read(run_dir, options, &mut notes)?;
+    inputs.curves = motion_curves(&inputs, options, progress, &mut notes)?;
     if inputs.test.is_empty() && !notes.iter().any(|n| n.contains("not available")) {
         notes.push("no test rollouts: the rollout animation is left out".into());
     }
     let dir = report_dir(run_dir);
     std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let mut figures: Vec<Figure> = Vec::new();
-    figures.push(training_curves(&dir, &inputs)?);
-    figures.extend(maps(&dir, &inputs)?);
-    if !inputs.topology.curvature.is_empty() {
-        let file = "curvature_map.png";
-        let kappa = inputs.model.curvature_values();
-        plot::curvature_map_png(
-            &dir.join(file),
-            &inputs.topology,
-            &kappa,
-            &format!("{}: curvature stiffness κ per element (N/m)", inputs.name),
-        )?;
-        let (lo, hi) = plot::value_range(&[&kappa]);
-        figures.push(figure(
-            &dir,
-            file,
-            "Learned curvature stiffness on the rest sheet",
-            format!(
-                "Every curvature element (three consecutive particles of a row, column or \
-                 diagonal, energy ½κ|x_i − 2x_j + x_l|²) drawn at its middle particle, coloured by \
-                 its κ ({lo:.3} to {hi:.3} N/m), one panel per direction: along the rows, the \
-                 columns, the main and the anti diagonal (border particles, the middle of none, \
-                 grey)."
-            ),
-        ));
-    }
-    if let Some(f) = fem_figure(&dir, &inputs)? {
-        figures.push(f);
-    }
-    figures.push(fig7(&dir, &inputs)?);
-    for (png, caption) in crate::drape::report_figures(&run.drapes()) {
-        figures.push(Figure {
-            path: png,
-            heading: "Drape with contact (paper §4.5, Fig. 8)".into(),
-            caption,
-        });
-    }
+    let mut figures = figures(&dir, &inputs)?;
     if let Some(test) = inputs.test.first() {
         match rollout_figures(&dir, &inputs, test, progress) {
             Ok(f) => figures.extend(f),
@@ -280,6 +146,210 @@ pub fn build(
         files: written,
         notes,
     })
+}
+
+impl Inputs {
+    /// The finished run in `run_dir`, its metrics, evaluation and ground truth (the motion
+    /// curves are left for [`motion_curves`]); notes what is missing or how training started.
+    fn read(run_dir: &Path, options: &ReportOptions, notes: &mut Vec<String>) -> Result<Self> {
+        let opened = Run::open(run_dir, &[], options.backend)?;
+        let model = opened.springs()?.clone();
+        let Run {
+            dir: run,
+            state,
+            config,
+            device,
+            topology,
+            meta,
+            ..
+        } = opened;
+        let mass = meta.particle_mass;
+        let metrics = train::run::read_metrics(&run.metrics(), false)?;
+        let eval = read_eval(&run)?;
+        let files = available_files(&config, options, notes)?;
+        let truth = GroundTruth::read(&files, &topology, notes)?;
+        note_least_squares(&run, notes)?;
+        if let Some(v) = train::guard::Validation::read(&run.dir)? {
+            notes.push(format!("validation (`data.holdout`): {}", v.summary()));
+        }
+        let (k, b) = (model.k_values(), model.b_values());
+        Ok(Self {
+            name: config.name.clone(),
+            run,
+            state,
+            topology,
+            model,
+            mass,
+            k,
+            b,
+            metrics,
+            eval,
+            truth: truth.springs,
+            mesh: truth.mesh,
+            test: files.test,
+            curves: None,
+            device,
+            config,
+        })
+    }
+}
+
+/// The run's `eval.json`, when there is one.
+fn read_eval(run: &train::RunDir) -> Result<Option<EvalReport>> {
+    Ok(match std::fs::read_to_string(run.eval()) {
+        Ok(text) => Some(
+            serde_json::from_str(&text)
+                .with_context(|| format!("{} is not a valid eval report", run.eval().display()))?,
+        ),
+        Err(_) => None,
+    })
+}
+
+/// The run's rollout files ([`data_files`]), or none with a note when the run's own are gone
+/// (rollouts named by `--data` must be there).
+fn available_files(
+    config: &Config,
+    options: &ReportOptions,
+    notes: &mut Vec<String>,
+) -> Result<DataFiles> {
+    Ok(match data_files(config, options.data.as_deref()) {
+        Ok(f) => f,
+        // Rollouts named on the command line must be there.
+        Err(e) if options.data.is_some() => return Err(e),
+        Err(e) => {
+            notes.push(format!(
+                "the run's rollouts are not available ({e:#}): the ground truth and the rollout \
+                 animation are left out; pass --data DIR with test rollouts"
+            ));
+            DataFiles {
+                test: Vec::new(),
+                train: Vec::new(),
+            }
+        }
+    })
+}
+
+/// What the data knows of the source: its springs' `k` and `b` (where they match the
+/// surrogate's) and its mesh.
+struct GroundTruth {
+    springs: Option<(Vec<f64>, Vec<f64>)>,
+    mesh: Option<(Vec<[f64; 2]>, MeshTruth)>,
+}
+
+impl GroundTruth {
+    /// From the first rollout at hand (every rollout of a set shares it).
+    fn read(files: &DataFiles, topology: &Topology, notes: &mut Vec<String>) -> Result<Self> {
+        let (mut springs, mut mesh) = (None, None);
+        if let Some(first) = files.test.first().or(files.train.first()) {
+            let r = Rollout::load(first)?;
+            springs = r.springs.as_ref().and_then(|t| {
+                train::matching_truth(t, topology, &Resampler::new(&r.rest_uv, &topology.rest_uv))
+            });
+            if r.springs.is_some() && springs.is_none() {
+                notes.push(
+                    "the source's springs differ from the surrogate's: no per-spring ground truth"
+                        .into(),
+                );
+            }
+            mesh = r.mesh.clone().map(|m| (r.rest_uv.clone(), m));
+        }
+        Ok(Self { springs, mesh })
+    }
+}
+
+/// Notes the least-squares start of training, when the run had one.
+fn note_least_squares(run: &train::RunDir, notes: &mut Vec<String>) -> Result<()> {
+    if let Ok(text) = std::fs::read_to_string(run.least_squares()) {
+        let r: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", run.least_squares().display()))?;
+        notes.push(format!(
+            "training started from the per-spring least-squares fit of the data's forces \
+             (`train.least_squares`, least_squares.json): stencil ±{} over {} frames, force \
+             residual {:.3} of the target against the uniform start's {:.3}; {} of {} values \
+             fixed at 0",
+            r["stencil"],
+            r["frames"],
+            r["residual_fitted"].as_f64().unwrap_or(f64::NAN),
+            r["residual_initial"].as_f64().unwrap_or(f64::NAN),
+            r["fixed_at_zero"],
+            r["unknowns"]
+        ));
+    }
+    Ok(())
+}
+
+/// Per-rollout motion curves: from the last evaluation, or simulated now for --data; `None`
+/// with a note when neither is at hand.
+fn motion_curves(
+    inputs: &Inputs,
+    options: &ReportOptions,
+    progress: &Progress,
+    notes: &mut Vec<String>,
+) -> Result<Option<Vec<Curve>>> {
+    let csv = inputs.run.motion_curves();
+    if options.data.is_none() && csv.exists() {
+        return Ok(Some(eval::read_curves_csv(&csv)?));
+    }
+    if !inputs.test.is_empty() {
+        match simulate_curves(inputs, progress) {
+            Ok(c) => return Ok(Some(c)),
+            Err(e) => notes.push(format!("no motion RMSE: {e:#}")),
+        }
+    } else {
+        notes.push(format!(
+            "no motion RMSE: {} is missing (run `springtime eval`) and no test rollouts are at hand",
+            csv.display()
+        ));
+    }
+    Ok(None)
+}
+
+/// Every figure but the rollout's: training curves, spring maps, curvature map, the FEM
+/// source's map, Fig. 7 and the run's drapes.
+fn figures(dir: &Path, inputs: &Inputs) -> Result<Vec<Figure>> {
+    let mut figures: Vec<Figure> = Vec::new();
+    figures.push(training_curves(dir, inputs)?);
+    figures.extend(maps(dir, inputs)?);
+    if !inputs.topology.curvature.is_empty() {
+        figures.push(curvature_figure(dir, inputs)?);
+    }
+    if let Some(f) = fem_figure(dir, inputs)? {
+        figures.push(f);
+    }
+    figures.push(fig7(dir, inputs)?);
+    for (png, caption) in crate::drape::report_figures(&inputs.run.drapes()) {
+        figures.push(Figure {
+            path: png,
+            heading: "Drape with contact (paper §4.5, Fig. 8)".into(),
+            caption,
+        });
+    }
+    Ok(figures)
+}
+
+/// The learned curvature stiffness of every curvature element.
+fn curvature_figure(dir: &Path, inputs: &Inputs) -> Result<Figure> {
+    let file = "curvature_map.png";
+    let kappa = inputs.model.curvature_values();
+    plot::curvature_map_png(
+        &dir.join(file),
+        &inputs.topology,
+        &kappa,
+        &format!("{}: curvature stiffness κ per element (N/m)", inputs.name),
+    )?;
+    let (lo, hi) = plot::value_range(&[&kappa]);
+    Ok(figure(
+        dir,
+        file,
+        "Learned curvature stiffness on the rest sheet",
+        format!(
+            "Every curvature element (three consecutive particles of a row, column or \
+             diagonal, energy ½κ|x_i − 2x_j + x_l|²) drawn at its middle particle, coloured by \
+             its κ ({lo:.3} to {hi:.3} N/m), one panel per direction: along the rows, the \
+             columns, the main and the anti diagonal (border particles, the middle of none, \
+             grey)."
+        ),
+    ))
 }
 
 fn physics_for(inputs: &Inputs, frame_dt: f64) -> Physics {
@@ -315,8 +385,14 @@ fn figure(dir: &Path, file: &str, heading: &str, caption: String) -> Figure {
     }
 }
 
-/// One panel of the training curves: caption, series, y label, marked iterations.
-type Panel = (String, Vec<Series>, &'static str, Vec<(f64, String)>);
+/// One panel of the training curves.
+struct Panel {
+    caption: String,
+    series: Vec<Series>,
+    y_label: &'static str,
+    /// Marked iterations and their labels.
+    marks: Vec<(f64, String)>,
+}
 
 fn training_curves(dir: &Path, inputs: &Inputs) -> Result<Figure> {
     let rows = &inputs.metrics;
@@ -329,89 +405,9 @@ fn training_curves(dir: &Path, inputs: &Inputs) -> Result<Figure> {
     let has_rmse = rows
         .iter()
         .any(|r| r.rmse_k.is_some() || r.rmse_b.is_some());
-    let mut panels: Vec<Panel> = Vec::new();
-    for pass in &passes {
-        let mine: Vec<&MetricsRow> = rows.iter().filter(|r| r.pass == *pass).collect();
-        let weights = inputs
-            .config
-            .train
-            .passes(crate::model::ModelKind::Springs)
-            .into_iter()
-            .find(|p| p.name == *pass)
-            .map(|p| p.config.weights.clone());
-        let mut series = Vec::new();
-        let mut total = None;
-        for (t, (name, _)) in MetricsRow::default().terms().iter().enumerate() {
-            let pts: Vec<(f64, f64)> = mine
-                .iter()
-                .map(|r| (r.iteration as f64, r.terms()[t].1))
-                .collect();
-            if !pts.iter().any(|p| p.1 > 0.0 && p.1.is_finite()) {
-                continue;
-            }
-            let weight = weights.as_ref().map(|w| match *name {
-                "force" => w.force,
-                "impulse" => w.impulse,
-                "position" => w.position,
-                "k_neg" => w.k_neg,
-                _ => w.b_neg,
-            });
-            match (*name, weight) {
-                ("loss", _) => {
-                    total = Some(
-                        Series::new("loss (weighted sum)", pts)
-                            .with_color(RGBColor(0, 0, 0))
-                            .with_width(1),
-                    )
-                }
-                (_, Some(0.0)) => series.push(Series::new(
-                    format!("{name} (weight 0: not in the loss)"),
-                    pts,
-                )),
-                (_, Some(w)) => {
-                    series.push(Series::new(format!("{name} × {}", plot::tick(w)), pts))
-                }
-                (_, None) => series.push(Series::new(*name, pts)),
-            }
-        }
-        // The total last, on top of the terms it sums.
-        series.extend(total);
-        panels.push((
-            format!("{pass} pass: loss terms"),
-            series,
-            "loss",
-            Vec::new(),
-        ));
-    }
+    let mut panels: Vec<Panel> = passes.iter().map(|p| loss_panel(inputs, p)).collect();
     if has_rmse {
-        let bounds: Vec<(f64, String)> = passes
-            .iter()
-            .filter_map(|p| {
-                rows.iter()
-                    .find(|r| r.pass == *p)
-                    .map(|r| (r.iteration as f64 - 0.5, format!("{p} pass →")))
-            })
-            .collect();
-        let series = vec![
-            Series::new(
-                "rmse_k (N/m)",
-                rows.iter()
-                    .filter_map(|r| r.rmse_k.map(|v| (r.iteration as f64, v)))
-                    .collect(),
-            ),
-            Series::new(
-                "rmse_b (N·s/m)",
-                rows.iter()
-                    .filter_map(|r| r.rmse_b.map(|v| (r.iteration as f64, v)))
-                    .collect(),
-            ),
-        ];
-        panels.push((
-            "parameter error against the ground truth".into(),
-            series,
-            "RMSE",
-            bounds,
-        ));
+        panels.push(rmse_panel(rows, &passes));
     }
     let cols = panels.len().clamp(1, 3);
     let rows_n = panels.len().div_ceil(cols).max(1);
@@ -419,9 +415,17 @@ fn training_curves(dir: &Path, inputs: &Inputs) -> Result<Figure> {
     let path = dir.join("training_curves.png");
     plot::png_figure(&path, pw * cols as u32, ph * rows_n as u32, |root| {
         let cells = root.split_evenly((rows_n, cols));
-        for (cell, (caption, series, ylabel, marks)) in cells.iter().zip(&panels) {
-            let marks: Vec<(f64, &str)> = marks.iter().map(|(x, s)| (*x, s.as_str())).collect();
-            plot::draw_curves(cell, caption, "iteration", ylabel, series, true, &marks)?;
+        for (cell, p) in cells.iter().zip(&panels) {
+            let marks: Vec<(f64, &str)> = p.marks.iter().map(|(x, s)| (*x, s.as_str())).collect();
+            plot::draw_curves(
+                cell,
+                &p.caption,
+                "iteration",
+                p.y_label,
+                &p.series,
+                true,
+                &marks,
+            )?;
         }
         Ok(())
     })?;
@@ -445,6 +449,91 @@ fn training_curves(dir: &Path, inputs: &Inputs) -> Result<Figure> {
             }
         ),
     ))
+}
+
+/// One training pass's loss terms (each labelled with its weight) and their weighted sum.
+fn loss_panel(inputs: &Inputs, pass: &str) -> Panel {
+    let mine: Vec<&MetricsRow> = inputs.metrics.iter().filter(|r| r.pass == pass).collect();
+    let weights = inputs
+        .config
+        .train
+        .passes(crate::model::ModelKind::Springs)
+        .into_iter()
+        .find(|p| p.name == pass)
+        .map(|p| p.config.weights.clone());
+    let mut series = Vec::new();
+    let mut total = None;
+    for (t, (name, _)) in MetricsRow::default().terms().iter().enumerate() {
+        let pts: Vec<(f64, f64)> = mine
+            .iter()
+            .map(|r| (r.iteration as f64, r.terms()[t].1))
+            .collect();
+        if !pts.iter().any(|p| p.1 > 0.0 && p.1.is_finite()) {
+            continue;
+        }
+        let weight = weights.as_ref().map(|w| match *name {
+            "force" => w.force,
+            "impulse" => w.impulse,
+            "position" => w.position,
+            "k_neg" => w.k_neg,
+            _ => w.b_neg,
+        });
+        match (*name, weight) {
+            ("loss", _) => {
+                total = Some(
+                    Series::new("loss (weighted sum)", pts)
+                        .with_color(RGBColor(0, 0, 0))
+                        .with_width(1),
+                )
+            }
+            (_, Some(0.0)) => series.push(Series::new(
+                format!("{name} (weight 0: not in the loss)"),
+                pts,
+            )),
+            (_, Some(w)) => series.push(Series::new(format!("{name} × {}", plot::tick(w)), pts)),
+            (_, None) => series.push(Series::new(*name, pts)),
+        }
+    }
+    // The total last, on top of the terms it sums.
+    series.extend(total);
+    Panel {
+        caption: format!("{pass} pass: loss terms"),
+        series,
+        y_label: "loss",
+        marks: Vec::new(),
+    }
+}
+
+/// `rmse_k` and `rmse_b` over every pass, marking where each pass starts.
+fn rmse_panel(rows: &[MetricsRow], passes: &[&str]) -> Panel {
+    let bounds: Vec<(f64, String)> = passes
+        .iter()
+        .filter_map(|p| {
+            rows.iter()
+                .find(|r| r.pass == *p)
+                .map(|r| (r.iteration as f64 - 0.5, format!("{p} pass →")))
+        })
+        .collect();
+    let series = vec![
+        Series::new(
+            "rmse_k (N/m)",
+            rows.iter()
+                .filter_map(|r| r.rmse_k.map(|v| (r.iteration as f64, v)))
+                .collect(),
+        ),
+        Series::new(
+            "rmse_b (N·s/m)",
+            rows.iter()
+                .filter_map(|r| r.rmse_b.map(|v| (r.iteration as f64, v)))
+                .collect(),
+        ),
+    ];
+    Panel {
+        caption: "parameter error against the ground truth".into(),
+        series,
+        y_label: "RMSE",
+        marks: bounds,
+    }
 }
 
 fn family_index(f: SpringFamily) -> usize {
@@ -606,12 +695,6 @@ fn spread(curves: &[Curve], n: usize) -> plot::Band {
 
 fn fig7(dir: &Path, inputs: &Inputs) -> Result<Figure> {
     let (pw, ph) = plot::PLOT_PANEL;
-    let groups: Vec<usize> = inputs
-        .topology
-        .family
-        .iter()
-        .map(|f| family_index(*f))
-        .collect();
     let path = dir.join("fig7.png");
     let curves = inputs.curves.as_deref().unwrap_or(&[]);
     plot::png_figure(&path, 3 * pw, ph + plot::TITLE_HEIGHT, |root| {
@@ -621,129 +704,139 @@ fn fig7(dir: &Path, inputs: &Inputs) -> Result<Figure> {
             18,
         )?;
         let cells = body.split_evenly((1, 3));
-        match &inputs.truth {
-            Some((tk, tb)) => {
-                for (cell, caption, quantity, truth, learned) in [
-                    (
-                        &cells[0],
-                        "(a) stiffness per spring",
-                        "k (N/m)",
-                        tk,
-                        &inputs.k,
-                    ),
-                    (
-                        &cells[1],
-                        "(b) damping per spring",
-                        "b (N·s/m)",
-                        tb,
-                        &inputs.b,
-                    ),
-                ] {
-                    // A few true levels: strips per level; a continuous truth: a scatter.
-                    let draw = if plot::levels(truth).len() <= MAX_LEVELS {
-                        plot::draw_level_strips
-                    } else {
-                        plot::draw_truth_scatter
-                    };
-                    draw(
-                        cell,
-                        caption,
-                        quantity,
-                        truth,
-                        learned,
-                        &groups,
-                        &FAMILY_NAMES,
-                    )?;
-                }
-            }
-            None => {
-                plot::draw_histogram(
-                    &cells[0],
-                    "(a) learned stiffness",
-                    "k (N/m)",
-                    &inputs.k,
-                    &groups,
-                    &FAMILY_NAMES,
-                    40,
-                )?;
-                plot::draw_histogram(
-                    &cells[1],
-                    "(b) learned damping",
-                    "b (N·s/m)",
-                    &inputs.b,
-                    &groups,
-                    &FAMILY_NAMES,
-                    40,
-                )?;
-            }
-        }
-        let members: Vec<Vec<(f64, f64)>> = curves
-            .iter()
-            .map(|c| {
-                let step = c.len().div_ceil(600).max(1);
-                c.iter().step_by(step).copied().collect()
-            })
-            .collect();
-        if curves.is_empty() {
-            return plot::draw_message(
-                &cells[2],
-                "(c) per-frame motion RMSE (Eq. 14)",
-                "no motion RMSE: no evaluation and no test rollouts",
-            );
-        }
-        let band = spread(curves, 600);
-        let mean_label = format!("mean over {} test rollouts", curves.len());
-        plot::draw_band(
-            &cells[2],
-            "(c) per-frame motion RMSE (Eq. 14)",
-            "time since start (s)",
-            "RMSE (m)",
-            &members,
-            &band,
-            (&mean_label, "min – max over rollouts", "each rollout"),
-        )
+        draw_parameters(&cells[0], &cells[1], inputs)?;
+        draw_motion_rmse(&cells[2], curves)
     })?;
-    let m = inputs.eval.as_ref().map(|e| &e.motion_rmse);
     Ok(figure(
         dir,
         "fig7.png",
         "Parameters and motion error (cf. the paper's Fig. 7)",
-        format!(
-            "{} (c) The per-frame motion RMSE of the surrogate simulated freely from the first \
-             frame of each of {} test rollouts, pinned particles following the data: the bold line is \
-             the mean over rollouts, the band their range, thin grey lines each rollout (empty \
-             without an evaluation or test rollouts).{}",
-            match &inputs.truth {
-                Some((tk, tb))
-                    if plot::levels(tk).len() <= MAX_LEVELS
-                        && plot::levels(tb).len() <= MAX_LEVELS =>
-                {
-                    "(a), (b) Learned stiffness and damping of every spring, grouped by the \
-                     source's true value (x axis) and coloured by family; points are spread \
-                     sideways within their column only to keep them apart. The red line is the \
-                     true value, the black tick the mean of each column: a column centred on \
-                     the red line with little spread is an exact recovery."
-                }
-                Some(_) => {
-                    "(a), (b) Learned against true stiffness and damping, one point per spring, \
-                     coloured by family (or true levels as columns when there are few); points \
-                     on the black identity line are exact."
-                }
-                None => {
-                    "(a), (b) Distributions of the learned stiffness and damping (the data has \
-                     no per-spring ground truth), stacked by spring family."
-                }
-            },
-            curves.len(),
-            match m {
-                Some(m) => format!(
-                    " Over all frames: {:.3e} ± {:.3e} m (eval.json).",
-                    m.mean, m.std
-                ),
-                None => String::new(),
-            }
-        ),
+        fig7_caption(inputs, curves.len()),
     ))
+}
+
+/// Fig. 7 (a) and (b): learned against true `k` and `b`, or their distributions without
+/// ground truth, coloured by spring family.
+fn draw_parameters<'a>(k_cell: &Area<'a>, b_cell: &Area<'a>, inputs: &Inputs) -> Result<()> {
+    let groups: Vec<usize> = inputs
+        .topology
+        .family
+        .iter()
+        .map(|f| family_index(*f))
+        .collect();
+    match &inputs.truth {
+        Some((tk, tb)) => {
+            for (cell, caption, quantity, truth, learned) in [
+                (k_cell, "(a) stiffness per spring", "k (N/m)", tk, &inputs.k),
+                (b_cell, "(b) damping per spring", "b (N·s/m)", tb, &inputs.b),
+            ] {
+                // A few true levels: strips per level; a continuous truth: a scatter.
+                let draw = if plot::levels(truth).len() <= MAX_LEVELS {
+                    plot::draw_level_strips
+                } else {
+                    plot::draw_truth_scatter
+                };
+                draw(
+                    cell,
+                    caption,
+                    quantity,
+                    truth,
+                    learned,
+                    &groups,
+                    &FAMILY_NAMES,
+                )?;
+            }
+        }
+        None => {
+            plot::draw_histogram(
+                k_cell,
+                "(a) learned stiffness",
+                "k (N/m)",
+                &inputs.k,
+                &groups,
+                &FAMILY_NAMES,
+                40,
+            )?;
+            plot::draw_histogram(
+                b_cell,
+                "(b) learned damping",
+                "b (N·s/m)",
+                &inputs.b,
+                &groups,
+                &FAMILY_NAMES,
+                40,
+            )?;
+        }
+    }
+    Ok(())
+}
+
+/// Fig. 7 (c): the per-frame motion RMSE of every test rollout, their mean and range.
+fn draw_motion_rmse(cell: &Area, curves: &[Curve]) -> Result<()> {
+    let members: Vec<Vec<(f64, f64)>> = curves
+        .iter()
+        .map(|c| {
+            let step = c.len().div_ceil(600).max(1);
+            c.iter().step_by(step).copied().collect()
+        })
+        .collect();
+    if curves.is_empty() {
+        return plot::draw_message(
+            cell,
+            "(c) per-frame motion RMSE (Eq. 14)",
+            "no motion RMSE: no evaluation and no test rollouts",
+        );
+    }
+    let band = spread(curves, 600);
+    let mean_label = format!("mean over {} test rollouts", curves.len());
+    plot::draw_band(
+        cell,
+        "(c) per-frame motion RMSE (Eq. 14)",
+        "time since start (s)",
+        "RMSE (m)",
+        &members,
+        &band,
+        (&mean_label, "min – max over rollouts", "each rollout"),
+    )
+}
+
+/// Fig. 7's caption, for what its panels show and `rollouts` test rollouts.
+fn fig7_caption(inputs: &Inputs, rollouts: usize) -> String {
+    let m = inputs.eval.as_ref().map(|e| &e.motion_rmse);
+    format!(
+        "{} (c) The per-frame motion RMSE of the surrogate simulated freely from the first \
+         frame of each of {} test rollouts, pinned particles following the data: the bold line is \
+         the mean over rollouts, the band their range, thin grey lines each rollout (empty \
+         without an evaluation or test rollouts).{}",
+        match &inputs.truth {
+            Some((tk, tb))
+                if plot::levels(tk).len() <= MAX_LEVELS && plot::levels(tb).len() <= MAX_LEVELS =>
+            {
+                "(a), (b) Learned stiffness and damping of every spring, grouped by the \
+                 source's true value (x axis) and coloured by family; points are spread \
+                 sideways within their column only to keep them apart. The red line is the \
+                 true value, the black tick the mean of each column: a column centred on \
+                 the red line with little spread is an exact recovery."
+            }
+            Some(_) => {
+                "(a), (b) Learned against true stiffness and damping, one point per spring, \
+                 coloured by family (or true levels as columns when there are few); points \
+                 on the black identity line are exact."
+            }
+            None => {
+                "(a), (b) Distributions of the learned stiffness and damping (the data has \
+                 no per-spring ground truth), stacked by spring family."
+            }
+        },
+        rollouts,
+        match m {
+            Some(m) => format!(
+                " Over all frames: {:.3e} ± {:.3e} m (eval.json).",
+                m.mean, m.std
+            ),
+            None => String::new(),
+        }
+    )
 }
 
 /// Frames of the animation: at most `n` from `0..=frames`, evenly spaced, with the first and
@@ -799,60 +892,7 @@ fn rollout_figures(
     test: &Path,
     progress: &Progress,
 ) -> Result<Vec<Figure>> {
-    let r = Rollout::load(test)?;
-    if r.segments.len() != 1 {
-        bail!("a test rollout must be stored in full (it has `segments`)");
-    }
-    let topo = &inputs.topology;
-    let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
-    let track = Track::new(&r, &res);
-    let first = r.first_usable_frame();
-    let frames = r.frames - 1 - first;
-    let physics = physics_for(inputs, r.frame_dt);
-    let keep = animation_frames(frames, 80);
-    let bar = progress.bar(frames as u64, "animate");
-    let sim = eval::simulate_track(
-        &inputs.model,
-        &physics,
-        None,
-        &track,
-        first,
-        frames,
-        &keep,
-        &inputs.device,
-        |_| bar.inc(1),
-    )?;
-    bar.finish();
-    let mut scene = RolloutScene {
-        name: test
-            .file_name()
-            .map(|f| f.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-        src_edges: source_edges(&r),
-        structural: topo
-            .springs
-            .iter()
-            .zip(&topo.family)
-            .filter(|(_, f)| **f == SpringFamily::Structural)
-            .map(|(s, _)| *s)
-            .collect(),
-        pinned: track.pinned.clone(),
-        view: View::default(),
-        bounds: ((0.0, 0.0), (0.0, 0.0)),
-        particles: topo.num_particles(),
-        first,
-        frames,
-        r,
-        sim,
-    };
-    scene.bounds = scene.view.bounds(
-        scene
-            .sim
-            .frames
-            .iter()
-            .map(|&j| scene.src(j))
-            .chain((0..scene.sim.frames.len()).map(|i| scene.sur(i))),
-    );
+    let scene = RolloutScene::simulate(inputs, test, progress)?;
     scene.write_gif(&dir.join("rollout.gif"))?;
     scene.write_stills(&dir.join("rollout_frames.png"))?;
     let caption = |what: &str| {
@@ -870,7 +910,7 @@ fn rollout_figures(
             }
         )
     };
-    let duration = frames as f64 * scene.r.frame_dt;
+    let duration = scene.frames as f64 * scene.r.frame_dt;
     Ok(vec![
         figure(
             dir,
@@ -909,6 +949,66 @@ struct RolloutScene {
 }
 
 impl RolloutScene {
+    /// The surrogate simulated freely from the first usable frame of the rollout file `test`,
+    /// its pinned particles following the data, keeping the animation's frames.
+    fn simulate(inputs: &Inputs, test: &Path, progress: &Progress) -> Result<Self> {
+        let r = Rollout::load(test)?;
+        if r.segments.len() != 1 {
+            bail!("a test rollout must be stored in full (it has `segments`)");
+        }
+        let topo = &inputs.topology;
+        let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
+        let track = Track::new(&r, &res);
+        let first = r.first_usable_frame();
+        let frames = r.frames - 1 - first;
+        let physics = physics_for(inputs, r.frame_dt);
+        let keep = animation_frames(frames, 80);
+        let bar = progress.bar(frames as u64, "animate");
+        let sim = eval::simulate_track(
+            &inputs.model,
+            &physics,
+            None,
+            &track,
+            first,
+            frames,
+            &keep,
+            &inputs.device,
+            |_| bar.inc(1),
+        )?;
+        bar.finish();
+        let mut scene = RolloutScene {
+            name: test
+                .file_name()
+                .map(|f| f.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            src_edges: source_edges(&r),
+            structural: topo
+                .springs
+                .iter()
+                .zip(&topo.family)
+                .filter(|(_, f)| **f == SpringFamily::Structural)
+                .map(|(s, _)| *s)
+                .collect(),
+            pinned: track.pinned.clone(),
+            view: View::default(),
+            bounds: ((0.0, 0.0), (0.0, 0.0)),
+            particles: topo.num_particles(),
+            first,
+            frames,
+            r,
+            sim,
+        };
+        scene.bounds = scene.view.bounds(
+            scene
+                .sim
+                .frames
+                .iter()
+                .map(|&j| scene.src(j))
+                .chain((0..scene.sim.frames.len()).map(|i| scene.sur(i))),
+        );
+        Ok(scene)
+    }
+
     /// The source's landmarks at simulated frame `j`.
     fn src(&self, j: usize) -> &[f32] {
         let n = self.r.landmarks;
@@ -1160,6 +1260,51 @@ fn html_page(inputs: &Inputs, figures: &[Figure], notes: &[String]) -> Result<St
          pre {{ background: #f6f6f6; padding: 0.8em; overflow-x: auto; }}\n\
          </style>\n</head>\n<body>\n<h1>springtime run <code>{name}</code></h1>"
     )?;
+    h.push_str("<table>\n");
+    for (k, v) in &summary_rows(inputs) {
+        writeln!(h, "<tr><th>{}</th><td>{}</td></tr>", escape(k), escape(v))?;
+    }
+    h.push_str("</table>\n");
+    if let Some((tk, tb)) = &inputs.truth {
+        for (sym, unit, t, l) in [("k", "N/m", tk, &inputs.k), ("b", "N·s/m", tb, &inputs.b)] {
+            level_table(&mut h, sym, unit, &per_level(t, l))?;
+        }
+    }
+    if !notes.is_empty() {
+        h.push_str("<h2>Left out</h2>\n<ul>\n");
+        for n in notes {
+            writeln!(h, "<li>{}</li>", escape(n))?;
+        }
+        h.push_str("</ul>\n");
+    }
+    for f in figures {
+        let file = f
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        writeln!(
+            h,
+            "<h2>{}</h2>\n<figure>\n<img src=\"{}\" alt=\"{}\">\n<figcaption><code>{}</code>: {}</figcaption>\n</figure>",
+            escape(&f.heading),
+            data_uri(&f.path)?,
+            escape(&f.heading),
+            escape(&file),
+            escape(&f.caption)
+        )?;
+    }
+    let config = inputs.config.to_toml();
+    writeln!(
+        h,
+        "<h2>Configuration</h2>\n<pre>{}</pre>\n</body>\n</html>",
+        escape(&config)
+    )?;
+    Ok(h)
+}
+
+/// The report's summary table: status, training, surrogate, the learned values and (where
+/// known) their error and the motion RMSE.
+fn summary_rows(inputs: &Inputs) -> Vec<(String, String)> {
     let s = &inputs.state;
     let topo = &inputs.topology;
     let count = |f: SpringFamily| topo.family.iter().filter(|x| **x == f).count();
@@ -1217,67 +1362,33 @@ fn html_page(inputs: &Inputs, figures: &[Figure], notes: &[String]) -> Result<St
             ),
         ));
     }
-    h.push_str("<table>\n");
-    for (k, v) in &rows {
-        writeln!(h, "<tr><th>{}</th><td>{}</td></tr>", escape(k), escape(v))?;
+    rows
+}
+
+/// The learned `sym` per true level as an HTML table (none for more than 12 levels).
+fn level_table(h: &mut String, sym: &str, unit: &str, levels: &[Level]) -> std::fmt::Result {
+    if levels.len() > 12 {
+        return Ok(());
     }
-    h.push_str("</table>\n");
-    if let Some((tk, tb)) = &inputs.truth {
-        for (sym, unit, t, l) in [("k", "N/m", tk, &inputs.k), ("b", "N·s/m", tb, &inputs.b)] {
-            let levels = per_level(t, l);
-            if levels.len() > 12 {
-                continue;
-            }
-            writeln!(
-                h,
-                "<table>\n<tr><th>true {sym} ({unit})</th><th>springs</th><th>learned mean</th>\
-                 <th>std</th><th>min</th><th>max</th></tr>"
-            )?;
-            for l in levels {
-                writeln!(
-                    h,
-                    "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td></tr>",
-                    plot::tick(l.truth),
-                    l.count,
-                    l.mean,
-                    l.std,
-                    l.min,
-                    l.max
-                )?;
-            }
-            h.push_str("</table>\n");
-        }
-    }
-    if !notes.is_empty() {
-        h.push_str("<h2>Left out</h2>\n<ul>\n");
-        for n in notes {
-            writeln!(h, "<li>{}</li>", escape(n))?;
-        }
-        h.push_str("</ul>\n");
-    }
-    for f in figures {
-        let file = f
-            .path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        writeln!(
-            h,
-            "<h2>{}</h2>\n<figure>\n<img src=\"{}\" alt=\"{}\">\n<figcaption><code>{}</code>: {}</figcaption>\n</figure>",
-            escape(&f.heading),
-            data_uri(&f.path)?,
-            escape(&f.heading),
-            escape(&file),
-            escape(&f.caption)
-        )?;
-    }
-    let config = inputs.config.to_toml();
     writeln!(
         h,
-        "<h2>Configuration</h2>\n<pre>{}</pre>\n</body>\n</html>",
-        escape(&config)
+        "<table>\n<tr><th>true {sym} ({unit})</th><th>springs</th><th>learned mean</th>\
+         <th>std</th><th>min</th><th>max</th></tr>"
     )?;
-    Ok(h)
+    for l in levels {
+        writeln!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td><td>{:.3}</td></tr>",
+            plot::tick(l.truth),
+            l.count,
+            l.mean,
+            l.std,
+            l.min,
+            l.max
+        )?;
+    }
+    h.push_str("</table>\n");
+    Ok(())
 }
 
 fn stats(v: &[f64]) -> String {
