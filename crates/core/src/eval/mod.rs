@@ -455,47 +455,87 @@ pub(crate) fn gnn_motion_curves(
                 downsample
             );
         }
-        tracks.push((t.track, t.first, t.frame_dt));
+        tracks.push(t);
     }
-    let p = topology.num_particles();
-    let frame_at = |t: &Track, j: usize| -> Vec<[f32; 3]> {
-        t.positions[j * p * 3..(j + 1) * p * 3]
+    let eval = GnnEval {
+        model,
+        downsample,
+        particles: topology.num_particles(),
+        tracks: &tracks,
+        device,
+    };
+    let total: usize = (0..tracks.len()).map(|i| eval.steps_of(i)).sum();
+    let bar = progress.bar(total as u64, "eval");
+    let mut out = MotionCurves {
+        curves: vec![Vec::new(); tracks.len()],
+        step_seconds: 0.0,
+        steps: 0,
+    };
+    let order: Vec<usize> = (0..tracks.len()).collect();
+    for chunk in order.chunks(batch.max(1)) {
+        eval.roll_out(chunk, &mut out, &bar)?;
+    }
+    bar.finish();
+    Ok(out)
+}
+
+/// The GNN rolled out autoregressively on test rollouts by [`gnn_motion_curves`].
+struct GnnEval<'a> {
+    model: &'a Gnn,
+    downsample: usize,
+    particles: usize,
+    tracks: &'a [TestTrack],
+    device: &'a Device,
+}
+
+impl GnnEval<'_> {
+    /// The GNN frames predicted on rollout `i`.
+    fn steps_of(&self, i: usize) -> usize {
+        let t = &self.tracks[i];
+        (t.track.frames - 1 - t.first) / self.downsample - self.model.history
+    }
+
+    /// Data frame `j` of rollout `i`.
+    fn frame_at(&self, i: usize, j: usize) -> Vec<[f32; 3]> {
+        let p = self.particles;
+        self.tracks[i].track.positions[j * p * 3..(j + 1) * p * 3]
             .chunks_exact(3)
             .map(|q| [q[0], q[1], q[2]])
             .collect()
-    };
-    let steps_of = |t: &(Track, usize, f64)| (t.0.frames - 1 - t.1) / downsample - c;
-    let total: usize = tracks.iter().map(steps_of).sum();
-    let bar = progress.bar(total as u64, "eval");
-    let mut curves = vec![Vec::new(); tracks.len()];
-    let (mut step_seconds, mut done) = (0.0, 0);
-    let order: Vec<usize> = (0..tracks.len()).collect();
-    for chunk in order.chunks(batch.max(1)) {
+    }
+
+    /// Rolls out the rollouts `chunk` side by side, appending each predicted frame's RMSE.
+    fn roll_out(
+        &self,
+        chunk: &[usize],
+        out: &mut MotionCurves,
+        bar: &crate::progress::Bar,
+    ) -> Result<()> {
+        let (c, downsample) = (self.model.history, self.downsample);
         let mut hist: Vec<Vec<Vec<[f32; 3]>>> = chunk
             .iter()
             .map(|&i| {
-                let (t, first, _) = &tracks[i];
+                let first = self.tracks[i].first;
                 (0..=c)
-                    .map(|k| frame_at(t, first + k * downsample))
+                    .map(|k| self.frame_at(i, first + k * downsample))
                     .collect()
             })
             .collect();
-        let pinned: Vec<Vec<bool>> = chunk.iter().map(|&i| tracks[i].0.pinned.clone()).collect();
-        let steps = chunk
+        let pinned: Vec<Vec<bool>> = chunk
             .iter()
-            .map(|&i| steps_of(&tracks[i]))
-            .max()
-            .unwrap_or(0);
+            .map(|&i| self.tracks[i].track.pinned.clone())
+            .collect();
+        let steps = chunk.iter().map(|&i| self.steps_of(i)).max().unwrap_or(0);
         for k in 0..steps {
             // Rollouts of different lengths: the shorter ones stop, the rest go on.
             let live: Vec<usize> = (0..chunk.len())
-                .filter(|&s| k < steps_of(&tracks[chunk[s]]))
+                .filter(|&s| k < self.steps_of(chunk[s]))
                 .collect();
             let targets: Vec<Vec<[f32; 3]>> = live
                 .iter()
                 .map(|&s| {
-                    let (t, first, _) = &tracks[chunk[s]];
-                    frame_at(t, first + (c + 1 + k) * downsample)
+                    let first = self.tracks[chunk[s]].first;
+                    self.frame_at(chunk[s], first + (c + 1 + k) * downsample)
                 })
                 .collect();
             let live_hist: Vec<Vec<Vec<[f32; 3]>>> =
@@ -503,40 +543,51 @@ pub(crate) fn gnn_motion_curves(
             let live_pins: Vec<Vec<bool>> = live.iter().map(|&s| pinned[s].clone()).collect();
             let target_refs: Vec<&[[f32; 3]]> = targets.iter().map(|t| t.as_slice()).collect();
             let clock = Instant::now();
-            let next = model.step(&live_hist, &live_pins, &target_refs, device);
-            step_seconds += clock.elapsed().as_secs_f64();
-            done += live.len();
+            let next = self
+                .model
+                .step(&live_hist, &live_pins, &target_refs, self.device);
+            out.step_seconds += clock.elapsed().as_secs_f64();
+            out.steps += live.len();
             for ((&s, x), target) in live.iter().zip(next).zip(&targets) {
                 let i = chunk[s];
-                let (_, first, dt) = tracks[i];
-                let frame = first + (c + 1 + k) * downsample;
-                let err = (x
-                    .iter()
-                    .zip(target)
-                    .map(|(a, b)| (0..3).map(|d| ((a[d] - b[d]) as f64).powi(2)).sum::<f64>())
-                    .sum::<f64>()
-                    / p as f64)
-                    .sqrt();
-                if !err.is_finite() {
-                    bail!(
-                        "{}: the GNN's rollout diverged at frame {frame} (t = {:.3} s)",
-                        files[i].display(),
-                        frame as f64 * dt
-                    );
-                }
-                curves[i].push(((frame - first) as f64 * dt, err));
+                self.record(i, (c + 1 + k) * downsample, &x, target, &mut out.curves[i])?;
                 hist[s].remove(0);
                 hist[s].push(x);
             }
             bar.inc(live.len() as u64);
         }
+        Ok(())
     }
-    bar.finish();
-    Ok(MotionCurves {
-        curves,
-        step_seconds,
-        steps: done,
-    })
+
+    /// Appends the RMSE of prediction `x` against `target`, `after` data frames past rollout
+    /// `i`'s first; a non-finite one is refused naming the rollout and frame.
+    fn record(
+        &self,
+        i: usize,
+        after: usize,
+        x: &[[f32; 3]],
+        target: &[[f32; 3]],
+        curve: &mut Curve,
+    ) -> Result<()> {
+        let (first, dt) = (self.tracks[i].first, self.tracks[i].frame_dt);
+        let frame = first + after;
+        let err = (x
+            .iter()
+            .zip(target)
+            .map(|(a, b)| (0..3).map(|d| ((a[d] - b[d]) as f64).powi(2)).sum::<f64>())
+            .sum::<f64>()
+            / self.particles as f64)
+            .sqrt();
+        if !err.is_finite() {
+            bail!(
+                "{}: the GNN's rollout diverged at frame {frame} (t = {:.3} s)",
+                self.tracks[i].path.display(),
+                frame as f64 * dt
+            );
+        }
+        curve.push(((frame - first) as f64 * dt, err));
+        Ok(())
+    }
 }
 
 /// Per-rollout motion curves and what simulating them cost.
