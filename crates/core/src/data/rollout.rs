@@ -407,7 +407,11 @@ fn springs_of(npz: &Npz, n: usize) -> Result<Option<SpringTruth>> {
 
 /// The source's triangles and their stiffness map, when stored; a degenerate triangle (zero
 /// rest area relative to the `[width, height]` rectangle) is refused.
-fn mesh_of(npz: &Npz, rest_uv: &[[f64; 2]], [width, height]: [f64; 2]) -> Result<Option<MeshTruth>> {
+fn mesh_of(
+    npz: &Npz,
+    rest_uv: &[[f64; 2]],
+    [width, height]: [f64; 2],
+) -> Result<Option<MeshTruth>> {
     let shown = npz.path.display();
     if npz.has("tri_stiffness") && !npz.has("triangles") {
         bail!("{shown}: key `tri_stiffness` needs the key `triangles` it maps");
@@ -466,7 +470,10 @@ fn rayleigh_of(npz: &Npz) -> Result<Option<f64>> {
     }
     let c = npz.scalar("rayleigh")?;
     if !(c >= 0.0) {
-        bail!("{}: key `rayleigh` must be non-negative, is {c}", npz.path.display());
+        bail!(
+            "{}: key `rayleigh` must be non-negative, is {c}",
+            npz.path.display()
+        );
     }
     Ok(Some(c))
 }

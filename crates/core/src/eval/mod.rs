@@ -324,7 +324,10 @@ impl EvalBatch<'_> {
         let mut here = self.frame(first, false);
         let mut errs: Vec<Tensor<1>> = Vec::new();
         // Tracked markers: each frame's RMSE over the particles seen in it.
-        let masked = self.chunk.iter().any(|&i| self.tracks[i].track.visible.is_some());
+        let masked = self
+            .chunk
+            .iter()
+            .any(|&i| self.tracks[i].track.visible.is_some());
         for j in first..frames - 1 {
             let next = self.frame(j + 1, false);
             let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);

@@ -666,23 +666,25 @@ fn substeps_for(
     stability: &UniformStability,
 ) -> Result<(usize, &'static str)> {
     let (k, b) = (start.k, start.b);
-    Ok(match (config.sim.substeps.value(), start.searched_substeps) {
-        (Some(n), _) => (n, "config"),
-        (None, Some(n)) => (n, "auto"),
-        (None, None) => {
-            let mut n = 1;
-            while stability.number(k, b, n) > AUTO_SUBSTEPS_TARGET {
-                n += 1;
-                if n > 10_000 {
-                    bail!(
-                        "sim.substeps = \"auto\": even 10000 substeps per {:.3e} s frame leave \
+    Ok(
+        match (config.sim.substeps.value(), start.searched_substeps) {
+            (Some(n), _) => (n, "config"),
+            (None, Some(n)) => (n, "auto"),
+            (None, None) => {
+                let mut n = 1;
+                while stability.number(k, b, n) > AUTO_SUBSTEPS_TARGET {
+                    n += 1;
+                    if n > 10_000 {
+                        bail!(
+                            "sim.substeps = \"auto\": even 10000 substeps per {:.3e} s frame leave \
                          the initial surrogate unstable (k = {k:.4e}, b = {b:.4e}); set \
                          `sim.substeps`, `model.k_init` and `model.b_init`",
-                        stability.frame_dt
-                    );
+                            stability.frame_dt
+                        );
+                    }
                 }
+                (n, "auto")
             }
-            (n, "auto")
-        }
-    })
+        },
+    )
 }
