@@ -461,68 +461,9 @@ fn fit_with(
             2 * w
         );
     }
-    // Every centre frame whose stencil lies inside a training clip, once.
-    let mut centres = BTreeSet::new();
-    let pool = match config.clips {
-        super::ClipPool::All => clips.all_clips(),
-        super::ClipPool::LowVelocity => clips.low_velocity.clone(),
-        super::ClipPool::Regular => clips.regular.clone(),
-    };
-    if pool.is_empty() {
-        bail!(
-            "`train.least_squares.clips = {:?}`: the training data has no such clips",
-            config.clips
-        );
-    }
-    for clip in pool {
-        centres.extend((clip.offset + w..=clip.offset + t - w).map(|j| (clip.rollout, j)));
-    }
-    let stride = centres.len().div_ceil(config.frames).max(1);
-    let centres: Vec<(usize, usize)> = centres.into_iter().step_by(stride).collect();
-    let mut by_rollout: Vec<(usize, Vec<usize>)> = Vec::new();
-    for (r, j) in centres {
-        match by_rollout.last_mut() {
-            Some((last, js)) if *last == r => js.push(j),
-            _ => by_rollout.push((r, vec![j])),
-        }
-    }
-    let bar = progress.bar(by_rollout.len() as u64, "least squares");
-    let mut sums = pattern.empty_sums();
-    let mut velocity_frames = 0;
-    for (rollout, js) in &by_rollout {
-        let track = clips.track(*rollout)?;
-        let velocities = match config.target {
-            Target::Auto => track.stored_velocities,
-            Target::Positions => false,
-            Target::Velocities if track.stored_velocities => true,
-            Target::Velocities => bail!(
-                "`train.least_squares.target = \"velocities\"`: training rollout {} stores no \
-                 `velocities` (use \"positions\" or \"auto\")",
-                clips.name(*rollout)
-            ),
-        };
-        if velocities {
-            velocity_frames += js.len();
-        }
-        let stencil = Stencil { w, velocities };
-        // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
-        // on every run and machine.
-        let parts: Vec<Sums> = js
-            .par_chunks(js.len().div_ceil(PARTIALS).max(1))
-            .map(|chunk| {
-                let mut acc = pattern.empty_sums();
-                for &j in chunk {
-                    accumulate(&mut acc, pattern, topo, &track, physics, j, stencil);
-                }
-                acc
-            })
-            .collect();
-        for part in &parts {
-            sums.add(part);
-        }
-        bar.inc(1);
-    }
-    bar.finish();
+    let by_rollout = centres_by_rollout(config, clips, w)?;
+    let (sums, velocity_frames) =
+        accumulate_centres(config, clips, pattern, physics, w, &by_rollout, progress)?;
     if sums.samples == 0 {
         bail!("`train.least_squares`: the training clips have no free particle to fit");
     }
@@ -532,16 +473,8 @@ fn fit_with(
         .map(|i| if i % 2 == 0 { k_init } else { b_init })
         .collect();
     let residual_initial = normal.relative_residual(&initial);
-    // Tikhonov weights per kind, relative to that kind's mean diagonal (the other kind's where a
-    // kind has none: static data stretches springs but moves none).
     let diag = normal.diagonal();
-    let mean = |d: usize| diag.iter().map(|m| m[d]).sum::<f64>() / diag.len().max(1) as f64;
-    let (mean_k, mean_b) = match (mean(0), mean(3)) {
-        (k, b) if k > 0.0 && b > 0.0 => (k, b),
-        (k, _) if k > 0.0 => (k, k),
-        (_, b) if b > 0.0 => (b, b),
-        _ => (1.0, 1.0),
-    };
+    let (mean_k, mean_b) = kind_means(&diag);
     let shift: Vec<f64> = (0..n)
         .map(|i| config.prior * if i % 2 == 0 { mean_k } else { mean_b })
         .collect();
@@ -594,6 +527,106 @@ fn fit_with(
         b: theta.iter().skip(1).step_by(2).copied().collect(),
         record,
     })
+}
+
+/// The centre frames of the fit, per training rollout in order: every frame whose stencil of
+/// half-width `w` lies inside a clip of `config.clips`, once, thinned to about `config.frames`.
+fn centres_by_rollout(
+    config: &LeastSquaresConfig,
+    clips: &ClipSet,
+    w: usize,
+) -> Result<Vec<(usize, Vec<usize>)>> {
+    let t = clips.steps;
+    // Every centre frame whose stencil lies inside a training clip, once.
+    let mut centres = BTreeSet::new();
+    let pool = match config.clips {
+        super::ClipPool::All => clips.all_clips(),
+        super::ClipPool::LowVelocity => clips.low_velocity.clone(),
+        super::ClipPool::Regular => clips.regular.clone(),
+    };
+    if pool.is_empty() {
+        bail!(
+            "`train.least_squares.clips = {:?}`: the training data has no such clips",
+            config.clips
+        );
+    }
+    for clip in pool {
+        centres.extend((clip.offset + w..=clip.offset + t - w).map(|j| (clip.rollout, j)));
+    }
+    let stride = centres.len().div_ceil(config.frames).max(1);
+    let centres: Vec<(usize, usize)> = centres.into_iter().step_by(stride).collect();
+    let mut by_rollout: Vec<(usize, Vec<usize>)> = Vec::new();
+    for (r, j) in centres {
+        match by_rollout.last_mut() {
+            Some((last, js)) if *last == r => js.push(j),
+            _ => by_rollout.push((r, vec![j])),
+        }
+    }
+    Ok(by_rollout)
+}
+
+/// The normal equations' sums over the centre frames `by_rollout`, and how many of the frames
+/// took their target from stored velocities.
+fn accumulate_centres(
+    config: &LeastSquaresConfig,
+    clips: &ClipSet,
+    pattern: &Pattern,
+    physics: &Physics,
+    w: usize,
+    by_rollout: &[(usize, Vec<usize>)],
+    progress: &Progress,
+) -> Result<(Sums, usize)> {
+    let topo = &clips.topology;
+    let bar = progress.bar(by_rollout.len() as u64, "least squares");
+    let mut sums = pattern.empty_sums();
+    let mut velocity_frames = 0;
+    for (rollout, js) in by_rollout {
+        let track = clips.track(*rollout)?;
+        let velocities = match config.target {
+            Target::Auto => track.stored_velocities,
+            Target::Positions => false,
+            Target::Velocities if track.stored_velocities => true,
+            Target::Velocities => bail!(
+                "`train.least_squares.target = \"velocities\"`: training rollout {} stores no \
+                 `velocities` (use \"positions\" or \"auto\")",
+                clips.name(*rollout)
+            ),
+        };
+        if velocities {
+            velocity_frames += js.len();
+        }
+        let stencil = Stencil { w, velocities };
+        // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
+        // on every run and machine.
+        let parts: Vec<Sums> = js
+            .par_chunks(js.len().div_ceil(PARTIALS).max(1))
+            .map(|chunk| {
+                let mut acc = pattern.empty_sums();
+                for &j in chunk {
+                    accumulate(&mut acc, pattern, topo, &track, physics, j, stencil);
+                }
+                acc
+            })
+            .collect();
+        for part in &parts {
+            sums.add(part);
+        }
+        bar.inc(1);
+    }
+    bar.finish();
+    Ok((sums, velocity_frames))
+}
+
+/// Tikhonov weights per kind, relative to that kind's mean diagonal (the other kind's where a
+/// kind has none: static data stretches springs but moves none): the means for `k` and `b`.
+fn kind_means(diag: &[[f64; 4]]) -> (f64, f64) {
+    let mean = |d: usize| diag.iter().map(|m| m[d]).sum::<f64>() / diag.len().max(1) as f64;
+    match (mean(0), mean(3)) {
+        (k, b) if k > 0.0 && b > 0.0 => (k, b),
+        (k, _) if k > 0.0 => (k, k),
+        (_, b) if b > 0.0 => (b, b),
+        _ => (1.0, 1.0),
+    }
 }
 
 /// The half-width of the stencil and where its target comes from.
