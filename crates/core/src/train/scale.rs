@@ -124,7 +124,7 @@ pub(crate) fn blend_search(
     progress: &Progress,
 ) -> Result<(SpringNet, Physics, BlendSearch)> {
     let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
-    let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
+    let (k, b) = (model.k_values(), model.b_values());
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
     let k_mean = mean(&k);
     if !(k_mean > 0.0) {
@@ -135,59 +135,22 @@ pub(crate) fn blend_search(
         m if m > 0.0 => m,
         _ => 0.1 * (2.0 * k_mean * physics.mass).sqrt(),
     };
-    let blended = |alpha: f64, fk: f64, fb: f64| {
-        let mix = |v: &[f64], m: f64, f: f64| -> Vec<f64> {
-            v.iter()
-                .map(|x| f * ((1.0 - alpha) * m + alpha * x))
-                .collect()
-        };
-        let kappa: Vec<f64> = kappa.iter().map(|x| x * fk).collect();
-        SpringNet::new(topology, &mix(&k, k_mean, fk), &mix(&b, b_mean, fb), device)
-            .with_kernel(model.graph.kernel)
-            .with_curvature(&kappa)
+    let mut search = Blender {
+        model,
+        kappa: model.curvature_values(),
+        k,
+        b,
+        k_mean,
+        b_mean,
+        topology,
+        physics,
+        files: &files,
+        batch,
+        device,
+        tried: Vec::new(),
+        bar: progress.bar(BLEND_CANDIDATES as u64, "blend search"),
     };
-    type Candidate = (f64, f64, f64, usize, f64);
-    let mut tried: Vec<((f64, f64, f64), Scored)> = Vec::new();
-    let mut score = |alpha: f64, fk: f64, fb: f64| -> Scored {
-        if let Some(&(_, known)) = tried.iter().find(|t| t.0 == (alpha, fk, fb)) {
-            return known;
-        }
-        let net = blended(alpha, fk, fb);
-        let found = score_network(&net, topology, physics, &files, batch, device);
-        tried.push(((alpha, fk, fb), found));
-        found
-    };
-    let bar = progress.bar(BLEND_CANDIDATES as u64, "blend search");
-    let before = score(1.0, 1.0, 1.0).map(|(_, r)| r);
-    // One share's search: a row of stiffness factors, a row of damping factors at the best,
-    // then the stiffness a quarter octave either side; returns the share's best.
-    let mut row_search = |alpha: f64,
-                          (fk0, fb0): (f64, f64),
-                          k_steps: std::ops::RangeInclusive<i32>,
-                          b_steps: std::ops::RangeInclusive<i32>|
-     -> Option<Candidate> {
-        let mut best: Option<Candidate> = None;
-        let mut consider = |fk: f64, fb: f64, best: &mut Option<Candidate>| {
-            if let Some((n, r)) = score(alpha, fk, fb)
-                && best.is_none_or(|b| r < b.4)
-            {
-                *best = Some((alpha, fk, fb, n, r));
-            }
-            bar.inc(1);
-        };
-        for i in k_steps {
-            consider(fk0 * 2f64.powf(i as f64 / 2.0), fb0, &mut best);
-        }
-        let fk = best.map_or(fk0, |b| b.1);
-        for i in b_steps {
-            consider(fk, fb0 * 2f64.powi(i), &mut best);
-        }
-        let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
-        for f in [-0.25, 0.25] {
-            consider(fk * 2f64.powf(f), fb, &mut best);
-        }
-        best
-    };
+    let before = search.score(1.0, 1.0, 1.0).map(|(_, r)| r);
     // Both ends first: the uniform network (α = 0) and the learned map (α = 1), each from a
     // wide search; the shares between from the geometric mean of the ends' factors.
     // The uniform end starts from the run's initial uniform network (derived from the data);
@@ -196,34 +159,25 @@ pub(crate) fn blend_search(
         k_init / k_mean,
         if b_init > 0.0 { b_init / b_mean } else { 1.0 },
     );
-    let Some(uniform) = row_search(0.0, start, WIDE_K_STEPS, WIDE_B_STEPS) else {
+    let Some(uniform) = search.row_search(0.0, start, WIDE_K_STEPS, WIDE_B_STEPS) else {
         bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
     };
     let mut rows = vec![uniform];
-    let learned = row_search(1.0, (uniform.1, uniform.2), WIDE_K_STEPS, WIDE_B_STEPS);
+    let learned = search.row_search(1.0, (uniform.1, uniform.2), WIDE_K_STEPS, WIDE_B_STEPS);
     let far = learned.unwrap_or(uniform);
     rows.extend(learned);
     for alpha in ALPHAS {
         let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
         let centre = (at(uniform.1, far.1), at(uniform.2, far.2));
-        rows.extend(row_search(alpha, centre, NARROW_K_STEPS, NARROW_B_STEPS));
+        rows.extend(search.row_search(alpha, centre, NARROW_K_STEPS, NARROW_B_STEPS));
     }
     let best = rows
         .iter()
         .copied()
         .min_by(|a, b| a.4.total_cmp(&b.4))
         .expect("the uniform network is a candidate");
-    bar.finish();
+    search.bar.finish();
     let (alpha, fk, fb, substeps, after) = best;
-    let mut candidates: Vec<Candidate> = tried
-        .into_iter()
-        .filter_map(|((a, fk, fb), found)| found.map(|(n, r)| (a, fk, fb, n, r)))
-        .collect();
-    candidates.sort_by(|x, y| {
-        x.0.total_cmp(&y.0)
-            .then(x.1.total_cmp(&y.1))
-            .then(x.2.total_cmp(&y.2))
-    });
     let record = BlendSearch {
         map: "trained".into(),
         alpha,
@@ -235,14 +189,112 @@ pub(crate) fn blend_search(
         uniform: (uniform.1 * k_mean, uniform.2 * b_mean, uniform.4),
         before,
         after,
-        candidates,
+        candidates: search.candidates(),
         rollouts: files.len(),
     };
     let physics = Physics {
         substeps,
         ..*physics
     };
-    Ok((blended(alpha, fk, fb), physics, record))
+    Ok((search.blended(alpha, fk, fb), physics, record))
+}
+
+/// A blend search's candidate: `(α, k factor, b factor, substeps, mean motion RMSE)`.
+type Candidate = (f64, f64, f64, usize, f64);
+
+/// The blend search's state: the learned map, its means, and every candidate scored so far.
+struct Blender<'a> {
+    model: &'a SpringNet,
+    k: Vec<f64>,
+    b: Vec<f64>,
+    kappa: Vec<f64>,
+    k_mean: f64,
+    b_mean: f64,
+    topology: &'a Topology,
+    physics: &'a Physics,
+    files: &'a [PathBuf],
+    batch: usize,
+    device: &'a Device,
+    tried: Vec<((f64, f64, f64), Scored)>,
+    bar: crate::progress::Bar,
+}
+
+impl Blender<'_> {
+    /// The network keeping the share `alpha` of the learned map (the rest uniform at the
+    /// means), its `k` scaled by `fk` and its `b` by `fb`.
+    fn blended(&self, alpha: f64, fk: f64, fb: f64) -> SpringNet {
+        let mix = |v: &[f64], m: f64, f: f64| -> Vec<f64> {
+            v.iter()
+                .map(|x| f * ((1.0 - alpha) * m + alpha * x))
+                .collect()
+        };
+        let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
+        let (k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
+        SpringNet::new(self.topology, &k, &b, self.device)
+            .with_kernel(self.model.graph.kernel)
+            .with_curvature(&kappa)
+    }
+
+    /// A candidate's score, simulated once.
+    fn score(&mut self, alpha: f64, fk: f64, fb: f64) -> Scored {
+        if let Some(&(_, known)) = self.tried.iter().find(|t| t.0 == (alpha, fk, fb)) {
+            return known;
+        }
+        let net = self.blended(alpha, fk, fb);
+        let (topology, physics) = (self.topology, self.physics);
+        let found = score_network(&net, topology, physics, self.files, self.batch, self.device);
+        self.tried.push(((alpha, fk, fb), found));
+        found
+    }
+
+    /// `candidate` if it scores and beats `best`.
+    fn consider(&mut self, alpha: f64, fk: f64, fb: f64, best: &mut Option<Candidate>) {
+        if let Some((n, r)) = self.score(alpha, fk, fb)
+            && best.is_none_or(|b| r < b.4)
+        {
+            *best = Some((alpha, fk, fb, n, r));
+        }
+        self.bar.inc(1);
+    }
+
+    /// One share's search: a row of stiffness factors, a row of damping factors at the best,
+    /// then the stiffness a quarter octave either side; returns the share's best.
+    fn row_search(
+        &mut self,
+        alpha: f64,
+        (fk0, fb0): (f64, f64),
+        k_steps: std::ops::RangeInclusive<i32>,
+        b_steps: std::ops::RangeInclusive<i32>,
+    ) -> Option<Candidate> {
+        let mut best: Option<Candidate> = None;
+        for i in k_steps {
+            self.consider(alpha, fk0 * 2f64.powf(i as f64 / 2.0), fb0, &mut best);
+        }
+        let fk = best.map_or(fk0, |b| b.1);
+        for i in b_steps {
+            self.consider(alpha, fk, fb0 * 2f64.powi(i), &mut best);
+        }
+        let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
+        for f in [-0.25, 0.25] {
+            self.consider(alpha, fk * 2f64.powf(f), fb, &mut best);
+        }
+        best
+    }
+
+    /// Every stable candidate tried, sorted by share and factors.
+    fn candidates(&self) -> Vec<Candidate> {
+        let mut candidates: Vec<Candidate> = self
+            .tried
+            .iter()
+            .filter_map(|&((a, fk, fb), found)| found.map(|(n, r)| (a, fk, fb, n, r)))
+            .collect();
+        candidates.sort_by(|x, y| {
+            x.0.total_cmp(&y.0)
+                .then(x.1.total_cmp(&y.1))
+                .then(x.2.total_cmp(&y.2))
+        });
+        candidates
+    }
 }
 
 /// A candidate's fewest stable substeps ([`stable_substeps`]) and its mean motion RMSE on
