@@ -462,13 +462,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     let _lock = run.lock()?;
     let previous = previous_state(&run, options)?;
     let (clips, truth) = open_training_clips(config, progress)?;
-    if config.train.force_on == ForceOn::Frames && clips.steps < 3 {
-        bail!(
-            "`train.force_on = \"frames\"` differences positions over clips of at least 3 \
-             steps; `data.clips.steps` is {}",
-            clips.steps
-        );
-    }
+    check_frame_forces(config, &clips)?;
     let clips = Arc::new(clips);
     let requested = config;
     let split = config.data.split()?;
@@ -541,6 +535,18 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     state.status = Status::Finished;
     run.write_state(&state)?;
     Ok(summary)
+}
+
+/// Refuses frame-difference forces on clips too short to difference.
+fn check_frame_forces(config: &Config, clips: &ClipSet) -> Result<()> {
+    if config.train.force_on == ForceOn::Frames && clips.steps < 3 {
+        bail!(
+            "`train.force_on = \"frames\"` differences positions over clips of at least 3 \
+             steps; `data.clips.steps` is {}",
+            clips.steps
+        );
+    }
+    Ok(())
 }
 
 /// The state of the run `--resume` goes on from (`None` without it), after checking that there
@@ -1230,28 +1236,7 @@ impl Fit<'_> {
         }
         let fit = least_squares::fit(config, self.clips, &job.physics, (k0, b0), self.progress)?;
         let r = &fit.record;
-        let mut line = format!(
-            "least squares: stencil ±{} over {} frames ({} samples): force residual {:.3} of \
-             the target (uniform start {:.3}); {} CG iterations; {} of {} unknowns fixed at 0, \
-             {} unconstrained",
-            r.stencil,
-            r.frames,
-            r.samples,
-            r.residual_fitted,
-            r.residual_initial,
-            r.iterations,
-            r.fixed_at_zero,
-            r.unknowns,
-            r.unconstrained
-        );
-        if let Some((k, b)) = job.truth {
-            line += &format!(
-                "; rmse_k {:.3e}, rmse_b {:.3e}",
-                rmse(&fit.k, k),
-                rmse(&fit.b, b)
-            );
-        }
-        self.progress.note(&line);
+        self.progress.note(&fit_summary(&fit, job.truth));
         if r.residual_fitted > UNRELIABLE_RESIDUAL {
             self.progress.note(&format!(
                 "least squares: the springs explain only {:.1} % of the data's force (mean \
@@ -1722,6 +1707,33 @@ impl Rates {
         };
         steps.into_iter().chain(own_step).collect()
     }
+}
+
+/// The log line of a least-squares fit, with its parameter errors where the truth is known.
+fn fit_summary(fit: &least_squares::LeastSquaresFit, truth: Option<&Truth>) -> String {
+    let r = &fit.record;
+    let mut line = format!(
+        "least squares: stencil ±{} over {} frames ({} samples): force residual {:.3} of \
+         the target (uniform start {:.3}); {} CG iterations; {} of {} unknowns fixed at 0, \
+         {} unconstrained",
+        r.stencil,
+        r.frames,
+        r.samples,
+        r.residual_fitted,
+        r.residual_initial,
+        r.iterations,
+        r.fixed_at_zero,
+        r.unknowns,
+        r.unconstrained
+    );
+    if let Some((k, b)) = truth {
+        line += &format!(
+            "; rmse_k {:.3e}, rmse_b {:.3e}",
+            rmse(&fit.k, k),
+            rmse(&fit.b, b)
+        );
+    }
+    line
 }
 
 /// The batch a prefetch thread assembled.
