@@ -408,15 +408,7 @@ impl ClipSet {
         };
         for (i, path) in paths.iter().enumerate() {
             let rollout = Rollout::load(path)?;
-            let this = SetInfo {
-                frame_dt: rollout.frame_dt,
-                total_mass: rollout.total_mass,
-                width: rollout.width,
-                height: rollout.height,
-                landmarks: rollout.landmarks,
-                gravity: rollout.gravity,
-                rayleigh: rollout.rayleigh,
-            };
+            let this = SetInfo::of(&rollout);
             match info {
                 None => {
                     let topo = topology_of(&rollout)?;
@@ -430,38 +422,11 @@ impl ClipSet {
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
-            let first = rollout.first_usable_frame();
-            let plan = clips.plan(&name, rollout.timeline_frames(), this.frame_dt, first);
-            for c in plan {
-                let steps = clips.steps_for(this.frame_dt);
-                let Some(offset) = stored_offset(&rollout, c.start, steps, first) else {
-                    continue;
-                };
-                let r = ClipRef {
-                    rollout: i,
-                    offset,
-                    start: c.start,
-                };
-                if c.low_velocity {
-                    low_velocity.push(r);
-                } else {
-                    regular.push(r);
-                }
-            }
+            let (plain, slow) = clip_refs(clips, &rollout, i, &name);
+            regular.extend(plain);
+            low_velocity.extend(slow);
             let resampler_ref = resampler.as_ref().expect("set on the first file");
-            if let Some(set) = &shape {
-                check_same_landmarks(&set.rest_uv, &rollout.rest_uv, path, &paths[0])?;
-                check_same_mesh(
-                    set.triangles.as_ref(),
-                    rollout.mesh.as_ref(),
-                    path,
-                    &paths[0],
-                )?;
-            }
-            shape.get_or_insert_with(|| SetShape {
-                rest_uv: rollout.rest_uv.clone(),
-                triangles: rollout.mesh.as_ref().map(|m| m.triangles.clone()),
-            });
+            SetShape::check(&mut shape, &rollout, path, &paths[0])?;
             if cache.bytes < cache.limit {
                 cache.insert(i, &Arc::new(Track::from_rollout(rollout, resampler_ref)));
             }
@@ -758,6 +723,67 @@ impl Sampler {
         }
         out
     }
+}
+
+impl SetInfo {
+    /// The constants of `rollout`.
+    fn of(rollout: &Rollout) -> Self {
+        Self {
+            frame_dt: rollout.frame_dt,
+            total_mass: rollout.total_mass,
+            width: rollout.width,
+            height: rollout.height,
+            landmarks: rollout.landmarks,
+            gravity: rollout.gravity,
+            rayleigh: rollout.rayleigh,
+        }
+    }
+}
+
+impl SetShape {
+    /// Takes the first rollout's shape into `shape`, or refuses one of the set whose landmarks
+    /// or mesh differ from it (`first` is the first rollout's file).
+    fn check(shape: &mut Option<Self>, rollout: &Rollout, path: &Path, first: &Path) -> Result<()> {
+        if let Some(set) = shape {
+            check_same_landmarks(&set.rest_uv, &rollout.rest_uv, path, first)?;
+            check_same_mesh(set.triangles.as_ref(), rollout.mesh.as_ref(), path, first)?;
+        }
+        shape.get_or_insert_with(|| Self {
+            rest_uv: rollout.rest_uv.clone(),
+            triangles: rollout.mesh.as_ref().map(|m| m.triangles.clone()),
+        });
+        Ok(())
+    }
+}
+
+/// The clips of rollout `i` (file name `name`) that the clip plan keeps and its stored frames
+/// hold: the regular ones and the low-velocity ones.
+fn clip_refs(
+    clips: &ClipConfig,
+    rollout: &Rollout,
+    i: usize,
+    name: &str,
+) -> (Vec<ClipRef>, Vec<ClipRef>) {
+    let (mut regular, mut low_velocity) = (Vec::new(), Vec::new());
+    let first = rollout.first_usable_frame();
+    let plan = clips.plan(name, rollout.timeline_frames(), rollout.frame_dt, first);
+    for c in plan {
+        let steps = clips.steps_for(rollout.frame_dt);
+        let Some(offset) = stored_offset(rollout, c.start, steps, first) else {
+            continue;
+        };
+        let r = ClipRef {
+            rollout: i,
+            offset,
+            start: c.start,
+        };
+        if c.low_velocity {
+            low_velocity.push(r);
+        } else {
+            regular.push(r);
+        }
+    }
+    (regular, low_velocity)
 }
 
 /// Stored index of timeline frame `start` if frames `start..=start + steps` lie in one stored
