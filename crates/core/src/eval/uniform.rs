@@ -112,53 +112,13 @@ pub fn search(
         (2 * SPAN + 5) as u64 + 2 * DAMPING_RATIOS.len() as u64,
         "uniform search",
     );
-    let best = |s: &[(f64, f64)]| {
-        s.iter()
-            .copied()
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-            .ok_or_else(|| anyhow::anyhow!("no uniform stiffness around {k0} N/m is stable"))
-    };
-    let mut search: Vec<(f64, f64)> = Vec::new();
-    for i in -SPAN..=SPAN {
-        let k = k0 * 2f64.powf(i as f64 / 2.0);
-        if let Some(r) = score(k, b0) {
-            search.push((k, r));
-        }
-        bar.inc(1);
-    }
-    let (mut k, mut k_rmse) = best(&search)?;
-    // Coordinate descent: the damping at the best stiffness, the stiffness around it at the best
-    // damping, then the damping once more.
-    let mut b_search = vec![(b0, k_rmse)];
-    let mut b = b0;
-    for round in 0..2 {
-        let mut candidates = vec![(b, k_rmse)];
-        for ratio in DAMPING_RATIOS {
-            let c = ratio * (2.0 * k * physics.mass).sqrt();
-            if let Some(r) = score(k, c) {
-                candidates.push((c, r));
-            }
-            bar.inc(1);
-        }
-        (b, k_rmse) = best(&candidates)?;
-        b_search.extend(candidates.into_iter().skip(1));
-        if round == 1 {
-            break;
-        }
-        let mut around = vec![(k, k_rmse)];
-        for f in [-1.0, -0.5, 0.5, 1.0] {
-            let c = k * 2f64.powf(f);
-            if let Some(r) = score(c, b) {
-                around.push((c, r));
-            }
-            bar.inc(1);
-        }
-        (k, k_rmse) = best(&around)?;
-        search.extend(around.into_iter().skip(1));
-    }
+    let Descent {
+        k,
+        b,
+        search,
+        b_search,
+    } = descend(&score, (k0, b0), physics.mass, &bar)?;
     bar.finish();
-    b_search.sort_by(|a, b| a.0.total_cmp(&b.0));
-    search.sort_by(|a, b| a.0.total_cmp(&b.0));
     let model = SpringNet::uniform(topology, k, b, device);
     let curves = eval::motion_curves(
         &model,
@@ -184,5 +144,76 @@ pub fn search(
         search,
         search_rollouts: train.len(),
         test,
+    })
+}
+
+/// The uniform network a coordinate descent found, and every `(k, RMSE)` and `(b, RMSE)` it
+/// tried, sorted.
+struct Descent {
+    k: f64,
+    b: f64,
+    search: Vec<(f64, f64)>,
+    b_search: Vec<(f64, f64)>,
+}
+
+/// Searches `k` on a row around `k0`, then by coordinate descent: the damping at the best
+/// stiffness, the stiffness around it at the best damping, then the damping once more.
+fn descend(
+    score: &dyn Fn(f64, f64) -> Option<f64>,
+    (k0, b0): (f64, f64),
+    mass: f64,
+    bar: &crate::progress::Bar,
+) -> Result<Descent> {
+    let best = |s: &[(f64, f64)]| {
+        s.iter()
+            .copied()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .ok_or_else(|| anyhow::anyhow!("no uniform stiffness around {k0} N/m is stable"))
+    };
+    let mut search: Vec<(f64, f64)> = Vec::new();
+    for i in -SPAN..=SPAN {
+        let k = k0 * 2f64.powf(i as f64 / 2.0);
+        if let Some(r) = score(k, b0) {
+            search.push((k, r));
+        }
+        bar.inc(1);
+    }
+    let (mut k, mut k_rmse) = best(&search)?;
+    // Coordinate descent: the damping at the best stiffness, the stiffness around it at the best
+    // damping, then the damping once more.
+    let mut b_search = vec![(b0, k_rmse)];
+    let mut b = b0;
+    for round in 0..2 {
+        let mut candidates = vec![(b, k_rmse)];
+        for ratio in DAMPING_RATIOS {
+            let c = ratio * (2.0 * k * mass).sqrt();
+            if let Some(r) = score(k, c) {
+                candidates.push((c, r));
+            }
+            bar.inc(1);
+        }
+        (b, k_rmse) = best(&candidates)?;
+        b_search.extend(candidates.into_iter().skip(1));
+        if round == 1 {
+            break;
+        }
+        let mut around = vec![(k, k_rmse)];
+        for f in [-1.0, -0.5, 0.5, 1.0] {
+            let c = k * 2f64.powf(f);
+            if let Some(r) = score(c, b) {
+                around.push((c, r));
+            }
+            bar.inc(1);
+        }
+        (k, k_rmse) = best(&around)?;
+        search.extend(around.into_iter().skip(1));
+    }
+    b_search.sort_by(|a, b| a.0.total_cmp(&b.0));
+    search.sort_by(|a, b| a.0.total_cmp(&b.0));
+    Ok(Descent {
+        k,
+        b,
+        search,
+        b_search,
     })
 }
