@@ -786,12 +786,6 @@ pub fn simulate_track(
         let j = (first + j).min(track.frames - 1);
         &track.positions[j * p * 3..(j + 1) * p * 3]
     };
-    let host = |t: &Tensor<3>| -> Result<Vec<f32>> {
-        t.clone()
-            .into_data()
-            .try_into_vec_as::<f32>()
-            .map_err(|e| anyhow::anyhow!("{e:?}"))
-    };
     let pinned: Vec<f32> = track.pinned.iter().map(|&x| x as u8 as f32).collect();
     let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [1, p, 1]), device);
     let v0 = &track.velocities[first * p * 3..(first + 1) * p * 3];
@@ -805,20 +799,8 @@ pub fn simulate_track(
         velocities: Vec::new(),
     };
     let mut keep = keep.iter().copied().filter(|&j| j <= frames).peekable();
-    let record = |j: usize, x: Vec<f32>, v: Vec<f32>, out: &mut FreeRollout| -> Result<()> {
-        if x.iter().chain(&v).any(|c| !c.is_finite()) {
-            bail!(
-                "the surrogate diverged by frame {j} (t = {:.3} s)",
-                j as f64 * physics.frame_dt
-            );
-        }
-        out.frames.push(j);
-        out.positions.extend_from_slice(&x);
-        out.velocities.extend_from_slice(&v);
-        Ok(())
-    };
     if keep.next_if_eq(&0).is_some() {
-        record(0, observed(0).to_vec(), v0.to_vec(), &mut out)?;
+        out.record(0, observed(0).to_vec(), v0.to_vec(), physics.frame_dt)?;
     }
     for j in 0..frames {
         let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
@@ -829,7 +811,7 @@ pub fn simulate_track(
         let (s, _) = sim::step_frame(model, physics, at, state, &pinned, &here, &next);
         state = s;
         if keep.next_if_eq(&(j + 1)).is_some() {
-            record(j + 1, host(&state.x)?, host(&state.v)?, &mut out)?;
+            out.record(j + 1, host(&state.x)?, host(&state.v)?, physics.frame_dt)?;
         }
         on_frame(j + 1);
     }
@@ -844,6 +826,30 @@ pub fn simulate_track(
         }
     }
     Ok(out)
+}
+
+/// A tensor's values on the host.
+fn host(t: &Tensor<3>) -> Result<Vec<f32>> {
+    t.clone()
+        .into_data()
+        .try_into_vec_as::<f32>()
+        .map_err(|e| anyhow::anyhow!("{e:?}"))
+}
+
+impl FreeRollout {
+    /// Keeps frame `j`'s state (frames `frame_dt` apart); a non-finite one is refused.
+    fn record(&mut self, j: usize, x: Vec<f32>, v: Vec<f32>, frame_dt: f64) -> Result<()> {
+        if x.iter().chain(&v).any(|c| !c.is_finite()) {
+            bail!(
+                "the surrogate diverged by frame {j} (t = {:.3} s)",
+                j as f64 * frame_dt
+            );
+        }
+        self.frames.push(j);
+        self.positions.extend_from_slice(&x);
+        self.velocities.extend_from_slice(&v);
+        Ok(())
+    }
 }
 
 /// Writes per-rollout motion RMSE curves as CSV: `time,rollout_0,…` (empty where a rollout
