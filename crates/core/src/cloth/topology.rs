@@ -270,32 +270,7 @@ impl Topology {
         height: f64,
         hinges: bool,
     ) -> Result<Self, String> {
-        let n = rest_uv.len();
-        let mut used = vec![false; n];
-        let mut ccw = Vec::with_capacity(triangles.len());
-        let mut seen = std::collections::BTreeSet::new();
-        for (i, &t) in triangles.iter().enumerate() {
-            if t.iter().any(|&v| v >= n) {
-                return Err(format!(
-                    "triangle {i} {t:?} names a vertex beyond the {n} landmarks"
-                ));
-            }
-            let area2 = twice_area(rest_uv, t);
-            if area2.abs() <= 1e-12 * width * height {
-                return Err(format!("triangle {i} {t:?} is degenerate (zero rest area)"));
-            }
-            t.iter().for_each(|&v| used[v] = true);
-            let mut key = t;
-            key.sort_unstable();
-            if seen.insert(key) {
-                ccw.push(if area2 > 0.0 { t } else { [t[0], t[2], t[1]] });
-            }
-        }
-        if let Some(v) = used.iter().position(|u| !u) {
-            return Err(format!(
-                "landmark {v} is in no triangle: the data mesh would leave it without springs"
-            ));
-        }
+        let ccw = counter_clockwise(rest_uv, triangles, [width, height])?;
         // Each undirected edge with the vertices opposite it (one on the border, two inside).
         let opposite: std::collections::BTreeMap<[usize; 2], Vec<usize>> =
             crate::cloth::triangles::edges_with_opposites(&ccw)
@@ -325,14 +300,7 @@ impl Topology {
                 "landmarks {a} and {b} share a rest position: a spring between them has no length"
             ));
         }
-        // Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
-        let mut area = vec![0.0; n];
-        for &t in &ccw {
-            let third = twice_area(rest_uv, t) / 6.0;
-            t.iter().for_each(|&v| area[v] += third);
-        }
-        let mean = area.iter().sum::<f64>() / n as f64;
-        let mass_weight = Some(area.iter().map(|a| a / mean).collect());
+        let mass_weight = Some(lumped_mass_weights(rest_uv, &ccw));
         Ok(Self {
             grid: None,
             triangles: ccw,
@@ -503,6 +471,55 @@ impl Topology {
         }
         lambda
     }
+}
+
+/// The data mesh's triangles counter-clockwise in the rest plane, duplicates dropped; refuses a
+/// vertex index beyond the landmarks, a degenerate triangle (zero rest area relative to the
+/// `[width, height]` rectangle) and a landmark in no triangle.
+fn counter_clockwise(
+    rest_uv: &[[f64; 2]],
+    triangles: &[[usize; 3]],
+    [width, height]: [f64; 2],
+) -> Result<Vec<[usize; 3]>, String> {
+    let n = rest_uv.len();
+    let mut used = vec![false; n];
+    let mut ccw = Vec::with_capacity(triangles.len());
+    let mut seen = std::collections::BTreeSet::new();
+    for (i, &t) in triangles.iter().enumerate() {
+        if t.iter().any(|&v| v >= n) {
+            return Err(format!(
+                "triangle {i} {t:?} names a vertex beyond the {n} landmarks"
+            ));
+        }
+        let area2 = twice_area(rest_uv, t);
+        if area2.abs() <= 1e-12 * width * height {
+            return Err(format!("triangle {i} {t:?} is degenerate (zero rest area)"));
+        }
+        t.iter().for_each(|&v| used[v] = true);
+        let mut key = t;
+        key.sort_unstable();
+        if seen.insert(key) {
+            ccw.push(if area2 > 0.0 { t } else { [t[0], t[2], t[1]] });
+        }
+    }
+    if let Some(v) = used.iter().position(|u| !u) {
+        return Err(format!(
+            "landmark {v} is in no triangle: the data mesh would leave it without springs"
+        ));
+    }
+    Ok(ccw)
+}
+
+/// Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
+fn lumped_mass_weights(rest_uv: &[[f64; 2]], ccw: &[[usize; 3]]) -> Vec<f64> {
+    let n = rest_uv.len();
+    let mut area = vec![0.0; n];
+    for &t in ccw {
+        let third = twice_area(rest_uv, t) / 6.0;
+        t.iter().for_each(|&v| area[v] += third);
+    }
+    let mean = area.iter().sum::<f64>() / n as f64;
+    area.iter().map(|a| a / mean).collect()
 }
 
 fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
