@@ -17,6 +17,8 @@ use std::sync::OnceLock;
 use anyhow::{Result, anyhow, bail};
 use plotters::chart::MeshStyle;
 use plotters::coord::Shift;
+use plotters::coord::ranged1d::ValueFormatter;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
 
@@ -777,90 +779,120 @@ pub fn draw_curves(
         .margin(10)
         .x_label_area_size(38)
         .y_label_area_size(if log_y { 62 } else { 70 });
-    let line = |i: usize| {
-        series[i]
-            .color
-            .unwrap_or(PALETTE[i % PALETTE.len()])
-            .stroke_width(series[i].width)
+    let panel = CurvesPanel {
+        x_label,
+        y_label,
+        series,
+        pts,
+        log_y,
+        marks,
     };
-    macro_rules! finish {
-        ($chart:expr) => {{
-            let mut chart = $chart;
-            house_mesh(
-                chart
-                    .configure_mesh()
-                    .x_desc(x_label)
-                    .y_desc(y_label)
-                    .x_labels(6)
-                    .y_labels(8)
-                    .x_label_formatter(&|v| tick(*v))
-                    .y_label_formatter(&|v| tick(*v)),
-            )
-            .draw()
-            .map_err(err)?;
-            let yr = chart.y_range();
-            for &(x, name) in marks {
-                chart
-                    .draw_series(std::iter::once(PathElement::new(
-                        vec![(x, yr.start), (x, yr.end)],
-                        RGBColor(120, 120, 120).stroke_width(1),
-                    )))
-                    .map_err(err)?;
-                chart
-                    .draw_series(std::iter::once(
-                        EmptyElement::at((x, yr.start))
-                            + Text::new(
-                                name.to_string(),
-                                (4, -18),
-                                text(12).color(&RGBColor(90, 90, 90)),
-                            ),
-                    ))
-                    .map_err(err)?;
-            }
-            for (i, (s, p)) in series.iter().zip(&pts).enumerate() {
-                // A series with nothing to draw keeps its legend entry, saying so.
-                let label = if p.is_empty() {
-                    format!(
-                        "{} (no {}values: not drawn)",
-                        s.label,
-                        if log_y { "positive " } else { "" }
-                    )
-                } else {
-                    s.label.clone()
-                };
-                chart
-                    .draw_series(LineSeries::new(p.iter().copied(), line(i)))
-                    .map_err(err)?
-                    .label(label)
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], line(i)));
-            }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
-                .label_font(text(12))
-                .background_style(WHITE.mix(0.85))
-                .border_style(RGBColor(180, 180, 180))
-                .draw()
-                .map_err(err)?;
-        }};
-    }
     if log_y {
         let (lo, hi) = (y0 / 1.5, y1 * 1.5);
-        finish!(
+        panel.finish(
             builder
                 .build_cartesian_2d(x0..x1, (lo..hi).log_scale())
-                .map_err(err)?
-        );
+                .map_err(err)?,
+        )
     } else {
         let (lo, hi) = widen((y0.min(0.0), y1));
         let pad = 0.05 * (hi - lo);
-        finish!(
+        panel.finish(
             builder
                 .build_cartesian_2d(x0..x1, lo..hi + pad)
-                .map_err(err)?
-        );
+                .map_err(err)?,
+        )
     }
-    Ok(())
+}
+
+/// What [`draw_curves`] draws once its chart is built: axis descriptions, the series with
+/// their drawable points, and the vertical marks.
+struct CurvesPanel<'s> {
+    x_label: &'s str,
+    y_label: &'s str,
+    series: &'s [Series],
+    /// The points of each series that can be drawn (finite, and positive on a log scale).
+    pts: Vec<Vec<(f64, f64)>>,
+    log_y: bool,
+    marks: &'s [(f64, &'s str)],
+}
+
+impl CurvesPanel<'_> {
+    /// The line style of series `i`.
+    fn line(&self, i: usize) -> ShapeStyle {
+        self.series[i]
+            .color
+            .unwrap_or(PALETTE[i % PALETTE.len()])
+            .stroke_width(self.series[i].width)
+    }
+
+    /// Draws the grid, the marks, the series and the legend on `chart` (linear or log y).
+    fn finish<'a: 'b, 'b, Y>(
+        &self,
+        mut chart: ChartContext<'b, BitMapBackend<'a>, Cartesian2d<RangedCoordf64, Y>>,
+    ) -> Result<()>
+    where
+        Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+    {
+        house_mesh(
+            chart
+                .configure_mesh()
+                .x_desc(self.x_label)
+                .y_desc(self.y_label)
+                .x_labels(6)
+                .y_labels(8)
+                .x_label_formatter(&|v| tick(*v))
+                .y_label_formatter(&|v| tick(*v)),
+        )
+        .draw()
+        .map_err(err)?;
+        let yr = chart.y_range();
+        for &(x, name) in self.marks {
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(x, yr.start), (x, yr.end)],
+                    RGBColor(120, 120, 120).stroke_width(1),
+                )))
+                .map_err(err)?;
+            chart
+                .draw_series(std::iter::once(
+                    EmptyElement::at((x, yr.start))
+                        + Text::new(
+                            name.to_string(),
+                            (4, -18),
+                            text(12).color(&RGBColor(90, 90, 90)),
+                        ),
+                ))
+                .map_err(err)?;
+        }
+        for (i, (s, p)) in self.series.iter().zip(&self.pts).enumerate() {
+            // A series with nothing to draw keeps its legend entry, saying so.
+            let label = if p.is_empty() {
+                format!(
+                    "{} (no {}values: not drawn)",
+                    s.label,
+                    if self.log_y { "positive " } else { "" }
+                )
+            } else {
+                s.label.clone()
+            };
+            let line = self.line(i);
+            chart
+                .draw_series(LineSeries::new(p.iter().copied(), line))
+                .map_err(err)?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], line));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(text(12))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(180, 180, 180))
+            .draw()
+            .map_err(err)?;
+        Ok(())
+    }
 }
 
 /// Writes a line plot of several curves with a legend ([`PLOT_PANEL`] pixels).
