@@ -326,23 +326,7 @@ pub fn simulate_rollout(
     let steps = cfg.steps();
     let stride = cfg.frame_stride;
     let timeline = steps / stride + 1;
-    let segments: Vec<Segment> = match keep {
-        None => vec![Segment {
-            start: 0,
-            offset: 0,
-            len: timeline,
-        }],
-        Some(w) => {
-            let mut offset = 0;
-            w.iter()
-                .map(|&(start, len)| {
-                    let s = Segment { start, offset, len };
-                    offset += len;
-                    s
-                })
-                .collect()
-        }
-    };
+    let segments = stored_segments(keep, timeline);
     let stored: usize = segments.iter().map(|s| s.len).sum();
     let mut positions = Vec::with_capacity(stored * n * 3);
     let mut velocities = Vec::with_capacity(if cfg.save_velocities {
@@ -400,6 +384,28 @@ pub fn simulate_rollout(
         rayleigh: Some(cfg.rayleigh),
         visible: None,
     })
+}
+
+/// The stored windows of a rollout of `timeline` frames that keeps the frame windows `keep`
+/// (`(first, count)`; all frames when `None`), in order in the stored arrays.
+fn stored_segments(keep: Option<&[(usize, usize)]>, timeline: usize) -> Vec<Segment> {
+    match keep {
+        None => vec![Segment {
+            start: 0,
+            offset: 0,
+            len: timeline,
+        }],
+        Some(w) => {
+            let mut offset = 0;
+            w.iter()
+                .map(|&(start, len)| {
+                    let s = Segment { start, offset, len };
+                    offset += len;
+                    s
+                })
+                .collect()
+        }
+    }
 }
 
 /// Builds the simulator of a source config.
