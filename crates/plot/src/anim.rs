@@ -4,7 +4,7 @@
 use anyhow::Result;
 use plotters::prelude::*;
 
-use crate::{Area, text};
+use crate::{Area, Chart, text};
 
 /// A fixed oblique orthographic view: the scene turned by `azimuth` about the vertical (z)
 /// axis, then tilted by `elevation` towards the viewer. Angles in radians.
@@ -87,7 +87,25 @@ pub fn draw_cloth(
     bounds: ((f64, f64), (f64, f64)),
     layers: &[Layer],
 ) -> Result<()> {
-    let (w, h) = area.dim_in_pixel();
+    let ((cx0, cx1), (cy0, cy1)) = window(area.dim_in_pixel(), bounds);
+    let mut chart = ChartBuilder::on(area)
+        .caption(caption, text(14))
+        .margin(8)
+        .build_cartesian_2d(cx0..cx1, cy0..cy1)
+        .map_err(|e| anyhow::anyhow!("drawing failed: {e}"))?;
+    chart
+        .plotting_area()
+        .fill(&RGBColor(250, 250, 250))
+        .map_err(failed)?;
+    for layer in layers {
+        draw_layer(&mut chart, view, layer)?;
+    }
+    draw_triad(&mut chart, view, (cx0, cx1), (cy0, cy1))
+}
+
+/// The chart range `((x0, x1), (y0, y1))` that shows screen `bounds` with a margin and equal
+/// aspect in a panel of `(w, h)` pixels.
+fn window((w, h): (u32, u32), bounds: ((f64, f64), (f64, f64))) -> ((f64, f64), (f64, f64)) {
     let ((x0, x1), (y0, y1)) = bounds;
     let span = (x1 - x0).max(y1 - y0).max(1e-9);
     let pad = 0.05 * span;
@@ -97,48 +115,56 @@ pub fn draw_cloth(
     let (ex, ey) = (scale * px - wx, scale * py - wy);
     let (cx0, cx1) = (x0 - pad - ex / 2.0, x1 + pad + ex / 2.0);
     let (cy0, cy1) = (y0 - pad - ey / 2.0, y1 + pad + ey / 2.0);
-    let mut chart = ChartBuilder::on(area)
-        .caption(caption, text(14))
-        .margin(8)
-        .build_cartesian_2d(cx0..cx1, cy0..cy1)
-        .map_err(|e| anyhow::anyhow!("drawing failed: {e}"))?;
-    let e = |e: plotters::drawing::DrawingAreaErrorKind<_>| anyhow::anyhow!("drawing failed: {e}");
+    ((cx0, cx1), (cy0, cy1))
+}
+
+/// A drawing error as [`draw_cloth`] reports it.
+fn failed<E: std::error::Error + Send + Sync>(
+    e: plotters::drawing::DrawingAreaErrorKind<E>,
+) -> anyhow::Error {
+    anyhow::anyhow!("drawing failed: {e}")
+}
+
+/// Draws one layer's edges, then its points (pinned ones red and a pixel larger).
+fn draw_layer(chart: &mut Chart, view: &View, layer: &Layer) -> Result<()> {
+    let pt = |i: usize| {
+        let p = &layer.positions[i * 3..i * 3 + 3];
+        view.project([p[0], p[1], p[2]])
+    };
+    let n = layer.positions.len() / 3;
     chart
-        .plotting_area()
-        .fill(&RGBColor(250, 250, 250))
-        .map_err(e)?;
-    for layer in layers {
-        let pt = |i: usize| {
-            let p = &layer.positions[i * 3..i * 3 + 3];
-            view.project([p[0], p[1], p[2]])
-        };
-        let n = layer.positions.len() / 3;
+        .draw_series(
+            layer
+                .edges
+                .iter()
+                .filter(|[a, b]| *a < n && *b < n)
+                .map(|&[a, b]| PathElement::new(vec![pt(a), pt(b)], layer.color.stroke_width(1))),
+        )
+        .map_err(failed)?;
+    if layer.radius > 0 {
         chart
-            .draw_series(
-                layer
-                    .edges
-                    .iter()
-                    .filter(|[a, b]| *a < n && *b < n)
-                    .map(|&[a, b]| {
-                        PathElement::new(vec![pt(a), pt(b)], layer.color.stroke_width(1))
-                    }),
-            )
-            .map_err(e)?;
-        if layer.radius > 0 {
-            chart
-                .draw_series((0..n).map(|i| {
-                    let pinned = layer.pinned.get(i).copied().unwrap_or(false);
-                    let (c, r) = if pinned {
-                        (RGBColor(215, 25, 28), layer.radius + 1)
-                    } else {
-                        (layer.color, layer.radius)
-                    };
-                    Circle::new(pt(i), r, c.filled())
-                }))
-                .map_err(e)?;
-        }
+            .draw_series((0..n).map(|i| {
+                let pinned = layer.pinned.get(i).copied().unwrap_or(false);
+                let (c, r) = if pinned {
+                    (RGBColor(215, 25, 28), layer.radius + 1)
+                } else {
+                    (layer.color, layer.radius)
+                };
+                Circle::new(pt(i), r, c.filled())
+            }))
+            .map_err(failed)?;
     }
-    // Axis triad: unit directions projected, fixed length on screen.
+    Ok(())
+}
+
+/// Draws the axis triad in the lower left corner of the chart range `(cx0, cx1) × (cy0, cy1)`:
+/// unit directions projected, fixed length on screen.
+fn draw_triad(
+    chart: &mut Chart,
+    view: &View,
+    (cx0, cx1): (f64, f64),
+    (cy0, cy1): (f64, f64),
+) -> Result<()> {
     let origin = (cx0 + 0.09 * (cx1 - cx0), cy0 + 0.09 * (cy1 - cy0));
     let len = 0.08 * (cx1 - cx0).min(cy1 - cy0);
     for (axis, name, color) in [
@@ -153,14 +179,14 @@ pub fn draw_cloth(
                 vec![origin, end],
                 color.stroke_width(2),
             )))
-            .map_err(e)?;
+            .map_err(failed)?;
         chart
             .draw_series(std::iter::once(Text::new(
                 name,
                 (origin.0 + 1.25 * len * dx, origin.1 + 1.25 * len * dy),
                 text(12).color(&color),
             )))
-            .map_err(e)?;
+            .map_err(failed)?;
     }
     Ok(())
 }

@@ -17,6 +17,8 @@ use std::sync::OnceLock;
 use anyhow::{Result, anyhow, bail};
 use plotters::chart::MeshStyle;
 use plotters::coord::Shift;
+use plotters::coord::ranged1d::ValueFormatter;
+use plotters::coord::types::RangedCoordf64;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::ViridisRGB;
 
@@ -26,6 +28,10 @@ pub mod anim;
 
 /// A drawing area on an RGB bitmap: one panel of a figure.
 pub type Area<'a> = DrawingArea<BitMapBackend<'a>, Shift>;
+
+/// A chart with linear axes on a panel.
+type Chart<'b, 'a> =
+    ChartContext<'b, BitMapBackend<'a>, Cartesian2d<RangedCoordf64, RangedCoordf64>>;
 
 /// Size of one map panel, pixels.
 pub const MAP_PANEL: (u32, u32) = (360, 360);
@@ -777,90 +783,120 @@ pub fn draw_curves(
         .margin(10)
         .x_label_area_size(38)
         .y_label_area_size(if log_y { 62 } else { 70 });
-    let line = |i: usize| {
-        series[i]
-            .color
-            .unwrap_or(PALETTE[i % PALETTE.len()])
-            .stroke_width(series[i].width)
+    let panel = CurvesPanel {
+        x_label,
+        y_label,
+        series,
+        pts,
+        log_y,
+        marks,
     };
-    macro_rules! finish {
-        ($chart:expr) => {{
-            let mut chart = $chart;
-            house_mesh(
-                chart
-                    .configure_mesh()
-                    .x_desc(x_label)
-                    .y_desc(y_label)
-                    .x_labels(6)
-                    .y_labels(8)
-                    .x_label_formatter(&|v| tick(*v))
-                    .y_label_formatter(&|v| tick(*v)),
-            )
-            .draw()
-            .map_err(err)?;
-            let yr = chart.y_range();
-            for &(x, name) in marks {
-                chart
-                    .draw_series(std::iter::once(PathElement::new(
-                        vec![(x, yr.start), (x, yr.end)],
-                        RGBColor(120, 120, 120).stroke_width(1),
-                    )))
-                    .map_err(err)?;
-                chart
-                    .draw_series(std::iter::once(
-                        EmptyElement::at((x, yr.start))
-                            + Text::new(
-                                name.to_string(),
-                                (4, -18),
-                                text(12).color(&RGBColor(90, 90, 90)),
-                            ),
-                    ))
-                    .map_err(err)?;
-            }
-            for (i, (s, p)) in series.iter().zip(&pts).enumerate() {
-                // A series with nothing to draw keeps its legend entry, saying so.
-                let label = if p.is_empty() {
-                    format!(
-                        "{} (no {}values: not drawn)",
-                        s.label,
-                        if log_y { "positive " } else { "" }
-                    )
-                } else {
-                    s.label.clone()
-                };
-                chart
-                    .draw_series(LineSeries::new(p.iter().copied(), line(i)))
-                    .map_err(err)?
-                    .label(label)
-                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], line(i)));
-            }
-            chart
-                .configure_series_labels()
-                .position(SeriesLabelPosition::UpperRight)
-                .label_font(text(12))
-                .background_style(WHITE.mix(0.85))
-                .border_style(RGBColor(180, 180, 180))
-                .draw()
-                .map_err(err)?;
-        }};
-    }
     if log_y {
         let (lo, hi) = (y0 / 1.5, y1 * 1.5);
-        finish!(
+        panel.finish(
             builder
                 .build_cartesian_2d(x0..x1, (lo..hi).log_scale())
-                .map_err(err)?
-        );
+                .map_err(err)?,
+        )
     } else {
         let (lo, hi) = widen((y0.min(0.0), y1));
         let pad = 0.05 * (hi - lo);
-        finish!(
+        panel.finish(
             builder
                 .build_cartesian_2d(x0..x1, lo..hi + pad)
-                .map_err(err)?
-        );
+                .map_err(err)?,
+        )
     }
-    Ok(())
+}
+
+/// What [`draw_curves`] draws once its chart is built: axis descriptions, the series with
+/// their drawable points, and the vertical marks.
+struct CurvesPanel<'s> {
+    x_label: &'s str,
+    y_label: &'s str,
+    series: &'s [Series],
+    /// The points of each series that can be drawn (finite, and positive on a log scale).
+    pts: Vec<Vec<(f64, f64)>>,
+    log_y: bool,
+    marks: &'s [(f64, &'s str)],
+}
+
+impl CurvesPanel<'_> {
+    /// The line style of series `i`.
+    fn line(&self, i: usize) -> ShapeStyle {
+        self.series[i]
+            .color
+            .unwrap_or(PALETTE[i % PALETTE.len()])
+            .stroke_width(self.series[i].width)
+    }
+
+    /// Draws the grid, the marks, the series and the legend on `chart` (linear or log y).
+    fn finish<'a: 'b, 'b, Y>(
+        &self,
+        mut chart: ChartContext<'b, BitMapBackend<'a>, Cartesian2d<RangedCoordf64, Y>>,
+    ) -> Result<()>
+    where
+        Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+    {
+        house_mesh(
+            chart
+                .configure_mesh()
+                .x_desc(self.x_label)
+                .y_desc(self.y_label)
+                .x_labels(6)
+                .y_labels(8)
+                .x_label_formatter(&|v| tick(*v))
+                .y_label_formatter(&|v| tick(*v)),
+        )
+        .draw()
+        .map_err(err)?;
+        let yr = chart.y_range();
+        for &(x, name) in self.marks {
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(x, yr.start), (x, yr.end)],
+                    RGBColor(120, 120, 120).stroke_width(1),
+                )))
+                .map_err(err)?;
+            chart
+                .draw_series(std::iter::once(
+                    EmptyElement::at((x, yr.start))
+                        + Text::new(
+                            name.to_string(),
+                            (4, -18),
+                            text(12).color(&RGBColor(90, 90, 90)),
+                        ),
+                ))
+                .map_err(err)?;
+        }
+        for (i, (s, p)) in self.series.iter().zip(&self.pts).enumerate() {
+            // A series with nothing to draw keeps its legend entry, saying so.
+            let label = if p.is_empty() {
+                format!(
+                    "{} (no {}values: not drawn)",
+                    s.label,
+                    if self.log_y { "positive " } else { "" }
+                )
+            } else {
+                s.label.clone()
+            };
+            let line = self.line(i);
+            chart
+                .draw_series(LineSeries::new(p.iter().copied(), line))
+                .map_err(err)?
+                .label(label)
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], line));
+        }
+        chart
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .label_font(text(12))
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(180, 180, 180))
+            .draw()
+            .map_err(err)?;
+        Ok(())
+    }
 }
 
 /// Writes a line plot of several curves with a legend ([`PLOT_PANEL`] pixels).
@@ -1139,20 +1175,8 @@ pub fn draw_level_strips(
     groups: &[usize],
     group_names: &[&str],
 ) -> Result<()> {
-    let lv = levels(truth);
-    let level_of = |t: f64| {
-        lv.iter()
-            .position(|l| (l - t).abs() <= 1e-6 * l.abs().max(t.abs()))
-            .unwrap_or(0)
-    };
-    let present: Vec<usize> = (0..group_names.len())
-        .filter(|g| groups.contains(g))
-        .collect();
-    let slot = |g: usize| {
-        let i = present.iter().position(|&p| p == g).unwrap_or(0) as f64;
-        (i - (present.len() as f64 - 1.0) / 2.0) * 0.8 / present.len().max(1) as f64
-    };
-    let half = 0.32 / present.len().max(1) as f64;
+    let layout = StripLayout::new(truth, groups, group_names.len());
+    let lv = &layout.levels;
     let (lo, hi) = value_range(&[truth, learned]);
     let pad = 0.06 * (hi - lo);
     let n = lv.len().max(1);
@@ -1187,26 +1211,13 @@ pub fn draw_level_strips(
         .bold_line_style(RGBColor(220, 220, 220))
         .draw()
         .map_err(err)?;
-    // A fixed pseudo-random spread per spring (no dependence on the run or the platform).
-    let spread = |i: usize| {
-        let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11;
-        (h as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * half
+    let strips = LevelStrips {
+        layout: &layout,
+        truth,
+        learned,
+        groups,
     };
-    for &g in &present {
-        let color = PALETTE[g % PALETTE.len()];
-        let pts: Vec<(f64, f64)> = (0..truth.len().min(learned.len()))
-            .filter(|&i| groups.get(i) == Some(&g) && learned[i].is_finite())
-            .map(|i| (level_of(truth[i]) as f64 + slot(g) + spread(i), learned[i]))
-            .collect();
-        chart
-            .draw_series(
-                pts.iter()
-                    .map(|&p| Circle::new(p, 2, color.mix(0.5).filled())),
-            )
-            .map_err(err)?
-            .label(group_names[g])
-            .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
-    }
+    strips.draw_points(&mut chart, group_names)?;
     let red = RGBColor(215, 25, 28).stroke_width(2);
     chart
         .draw_series(
@@ -1217,26 +1228,8 @@ pub fn draw_level_strips(
         .map_err(err)?
         .label("true value")
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], red));
-    let mut means = Vec::new();
-    for li in 0..lv.len() {
-        for &g in &present {
-            let v: Vec<f64> = (0..truth.len().min(learned.len()))
-                .filter(|&i| groups.get(i) == Some(&g) && level_of(truth[i]) == li)
-                .map(|i| learned[i])
-                .filter(|x| x.is_finite())
-                .collect();
-            if !v.is_empty() {
-                let m = v.iter().sum::<f64>() / v.len() as f64;
-                let x = li as f64 + slot(g);
-                means.push(PathElement::new(
-                    vec![(x - half * 1.3, m), (x + half * 1.3, m)],
-                    BLACK.stroke_width(2),
-                ));
-            }
-        }
-    }
     chart
-        .draw_series(means)
+        .draw_series(strips.means())
         .map_err(err)?
         .label("mean of the column")
         .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2)));
@@ -1249,6 +1242,112 @@ pub fn draw_level_strips(
         .draw()
         .map_err(err)?;
     Ok(())
+}
+
+/// The columns of [`draw_level_strips`]: the true levels, the groups present, and where each
+/// level's column for each group sits.
+struct StripLayout {
+    /// Distinct true values, sorted (see [`levels`]).
+    levels: Vec<f64>,
+    /// Groups with at least one value, in order.
+    present: Vec<usize>,
+    /// Half the width of one column.
+    half: f64,
+}
+
+impl StripLayout {
+    fn new(truth: &[f64], groups: &[usize], n_groups: usize) -> Self {
+        let levels = levels(truth);
+        let present: Vec<usize> = (0..n_groups).filter(|g| groups.contains(g)).collect();
+        let half = 0.32 / present.len().max(1) as f64;
+        Self {
+            levels,
+            present,
+            half,
+        }
+    }
+
+    /// The index of the level that true value `t` belongs to.
+    fn level_of(&self, t: f64) -> usize {
+        self.levels
+            .iter()
+            .position(|l| (l - t).abs() <= 1e-6 * l.abs().max(t.abs()))
+            .unwrap_or(0)
+    }
+
+    /// The sideways offset of group `g`'s column from its level.
+    fn slot(&self, g: usize) -> f64 {
+        let present = &self.present;
+        let i = present.iter().position(|&p| p == g).unwrap_or(0) as f64;
+        (i - (present.len() as f64 - 1.0) / 2.0) * 0.8 / present.len().max(1) as f64
+    }
+
+    /// A fixed pseudo-random spread per spring (no dependence on the run or the platform).
+    fn spread(&self, i: usize) -> f64 {
+        let h = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 11;
+        (h as f64 / (1u64 << 53) as f64 - 0.5) * 2.0 * self.half
+    }
+}
+
+/// The values that [`draw_level_strips`] draws, laid out in columns.
+struct LevelStrips<'s> {
+    layout: &'s StripLayout,
+    truth: &'s [f64],
+    learned: &'s [f64],
+    groups: &'s [usize],
+}
+
+impl LevelStrips<'_> {
+    /// Draws one column of points per level and group, each group with its legend entry.
+    fn draw_points(&self, chart: &mut Chart, group_names: &[&str]) -> Result<()> {
+        let (layout, truth, learned) = (self.layout, self.truth, self.learned);
+        for &g in &layout.present {
+            let color = PALETTE[g % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = (0..truth.len().min(learned.len()))
+                .filter(|&i| self.groups.get(i) == Some(&g) && learned[i].is_finite())
+                .map(|i| {
+                    (
+                        layout.level_of(truth[i]) as f64 + layout.slot(g) + layout.spread(i),
+                        learned[i],
+                    )
+                })
+                .collect();
+            chart
+                .draw_series(
+                    pts.iter()
+                        .map(|&p| Circle::new(p, 2, color.mix(0.5).filled())),
+                )
+                .map_err(err)?
+                .label(group_names[g])
+                .legend(move |(x, y)| Circle::new((x + 10, y), 4, color.filled()));
+        }
+        Ok(())
+    }
+
+    /// A black tick at the mean of each non-empty column.
+    fn means(&self) -> Vec<PathElement<(f64, f64)>> {
+        let (layout, truth, learned) = (self.layout, self.truth, self.learned);
+        let half = layout.half;
+        let mut means = Vec::new();
+        for li in 0..layout.levels.len() {
+            for &g in &layout.present {
+                let v: Vec<f64> = (0..truth.len().min(learned.len()))
+                    .filter(|&i| self.groups.get(i) == Some(&g) && layout.level_of(truth[i]) == li)
+                    .map(|i| learned[i])
+                    .filter(|x| x.is_finite())
+                    .collect();
+                if !v.is_empty() {
+                    let m = v.iter().sum::<f64>() / v.len() as f64;
+                    let x = li as f64 + layout.slot(g);
+                    means.push(PathElement::new(
+                        vec![(x - half * 1.3, m), (x + half * 1.3, m)],
+                        BLACK.stroke_width(2),
+                    ));
+                }
+            }
+        }
+        means
+    }
 }
 
 #[cfg(test)]

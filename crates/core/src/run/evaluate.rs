@@ -1,15 +1,17 @@
 //! Evaluating a finished run of any model family: `eval.json` and `motion_rmse.csv`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Result, bail};
 
 use crate::backend::Backend;
-use crate::cloth::Resampler;
-use crate::data::Rollout;
-use crate::eval::{self, EvalReport};
+use crate::cloth::{Resampler, Topology};
+use crate::data::{Rollout, Split};
+use crate::eval::{self, EvalReport, MotionCurves};
+use crate::model::SpringNet;
 use crate::progress::Progress;
+use crate::sim::Physics;
 use crate::train::{self, Trained};
 
 /// Evaluates a run and writes its `eval.json`.
@@ -32,72 +34,20 @@ pub fn evaluate(
         &loaded.dir,
     );
     let split = config.data.split()?;
-    let mut files = split.test.clone();
-    if files.is_empty() {
-        bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
-    }
-    if config.eval.max_rollouts > 0 {
-        files.truncate(config.eval.max_rollouts);
-    }
+    let files = test_files(&split, config.eval.max_rollouts)?;
     let first = Rollout::load(&files[0])?;
     let physics = loaded.physics(first.frame_dt);
-    let (curves, frame_dt) = match &loaded.model {
-        Trained::Springs(_) | Trained::NeuralOde(_) => {
-            let model: &dyn crate::model::ForceModel = match &loaded.model {
-                Trained::Springs(springs) => {
-                    physics
-                        .stability_of(topo, springs)
-                        .check("the trained surrogate", config.sim.allow_unstable)?;
-                    springs
-                }
-                Trained::NeuralOde(ode) => ode,
-                Trained::Gnn(_) => unreachable!("matched above"),
-            };
-            let c = eval::motion_curves(
-                model,
-                &physics,
-                topo,
-                &files,
-                config.eval.batch,
-                device,
-                progress,
-            )?;
-            (c, first.frame_dt)
-        }
-        Trained::Gnn(model) => {
-            let ds = config.model.gnn.downsample;
-            let c = eval::gnn_motion_curves(
-                model,
-                ds,
-                topo,
-                &files,
-                config.eval.batch,
-                device,
-                progress,
-            )?;
-            (c, first.frame_dt * ds as f64)
-        }
-    };
+    let (curves, frame_dt) = motion_curves(&loaded, &physics, &first, &files, progress)?;
     let motion = eval::summarize(
         &curves.curves,
         frame_dt,
         config.eval.short_seconds,
         config.eval.long_seconds,
     );
-    let (mut rmse_k, mut rmse_b, mut stiffness_map_corr) = (None, None, None);
-    if let Trained::Springs(model) = &loaded.model {
-        let truth = first.springs.as_ref().and_then(|t| {
-            let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
-            train::matching_truth(t, topo, &res)
-        });
-        if let Some((k, b)) = truth {
-            rmse_k = Some(train::rmse(&model.k_values(), &k));
-            rmse_b = Some(train::rmse(&model.b_values(), &b));
-        }
-        stiffness_map_corr = first.mesh.as_ref().and_then(|mesh| {
-            eval::stiffness_map_corr(topo, &model.k_values(), &first.rest_uv, mesh)
-        });
-    }
+    let (rmse_k, rmse_b, stiffness_map_corr) = match &loaded.model {
+        Trained::Springs(model) => truth_metrics(model, topo, &first),
+        _ => (None, None, None),
+    };
     let uniform_baseline = match &loaded.model {
         Trained::Springs(_) if config.eval.uniform_baseline => Some(eval::uniform::search(
             topo,
@@ -134,4 +84,89 @@ pub fn evaluate(
     crate::io::write_json(&run.eval(), &report)?;
     eval::write_curves_csv(&run.motion_curves(), &curves.curves)?;
     Ok(report)
+}
+
+/// The test rollouts to evaluate on: the split's, at most `max_rollouts` of them (0: all).
+fn test_files(split: &Split, max_rollouts: usize) -> Result<Vec<PathBuf>> {
+    let mut files = split.test.clone();
+    if files.is_empty() {
+        bail!("no test rollouts: the data's index lists none; pass --data DIR with test rollouts");
+    }
+    if max_rollouts > 0 {
+        files.truncate(max_rollouts);
+    }
+    Ok(files)
+}
+
+/// The loaded model's motion error curves over `files` and the time step between their
+/// points (a trained surrogate is first checked for stability).
+fn motion_curves(
+    loaded: &super::Run,
+    physics: &Physics,
+    first: &Rollout,
+    files: &[PathBuf],
+    progress: &Progress,
+) -> Result<(MotionCurves, f64)> {
+    let (config, topo, device) = (&loaded.config, &loaded.topology, &loaded.device);
+    Ok(match &loaded.model {
+        Trained::Springs(_) | Trained::NeuralOde(_) => {
+            let model: &dyn crate::model::ForceModel = match &loaded.model {
+                Trained::Springs(springs) => {
+                    physics
+                        .stability_of(topo, springs)
+                        .check("the trained surrogate", config.sim.allow_unstable)?;
+                    springs
+                }
+                Trained::NeuralOde(ode) => ode,
+                Trained::Gnn(_) => unreachable!("matched above"),
+            };
+            let c = eval::motion_curves(
+                model,
+                physics,
+                topo,
+                files,
+                config.eval.batch,
+                device,
+                progress,
+            )?;
+            (c, first.frame_dt)
+        }
+        Trained::Gnn(model) => {
+            let ds = config.model.gnn.downsample;
+            let c = eval::gnn_motion_curves(
+                model,
+                ds,
+                topo,
+                files,
+                config.eval.batch,
+                device,
+                progress,
+            )?;
+            (c, first.frame_dt * ds as f64)
+        }
+    })
+}
+
+/// A spring surrogate against the ground truth of the first test rollout: the RMSE of `k` and
+/// of `b` (where the rollout has true springs) and the stiffness map correlation (where it
+/// has a mesh).
+fn truth_metrics(
+    model: &SpringNet,
+    topo: &Topology,
+    first: &Rollout,
+) -> (Option<f64>, Option<f64>, Option<f64>) {
+    let (mut rmse_k, mut rmse_b) = (None, None);
+    let truth = first.springs.as_ref().and_then(|t| {
+        let res = Resampler::new(&first.rest_uv, &topo.rest_uv);
+        train::matching_truth(t, topo, &res)
+    });
+    if let Some((k, b)) = truth {
+        rmse_k = Some(train::rmse(&model.k_values(), &k));
+        rmse_b = Some(train::rmse(&model.b_values(), &b));
+    }
+    let stiffness_map_corr = first
+        .mesh
+        .as_ref()
+        .and_then(|mesh| eval::stiffness_map_corr(topo, &model.k_values(), &first.rest_uv, mesh));
+    (rmse_k, rmse_b, stiffness_map_corr)
 }

@@ -144,6 +144,16 @@ impl SurrogateJson {
 
     /// Checks the format tag and that the per-particle and per-spring arrays agree.
     pub fn validate(&self) -> Result<()> {
+        let p = self.validate_sheet()?;
+        self.validate_springs(p)?;
+        self.validate_curvature(p)?;
+        self.validate_values(p)?;
+        self.validate_rest_state()
+    }
+
+    /// Checks the format tag, the sheet's size and the per-particle arrays; returns the number
+    /// of particles.
+    fn validate_sheet(&self) -> Result<usize> {
         let expected = if self.curvature.is_empty() {
             FORMAT
         } else {
@@ -178,6 +188,12 @@ impl SurrogateJson {
         if let Some(t) = self.triangles.iter().find(|t| t.iter().any(|&v| v >= p)) {
             bail!("key `triangles` has a triangle {t:?} past the {p} particles");
         }
+        Ok(p)
+    }
+
+    /// Checks that the per-spring arrays agree and every spring joins particles of the sheet
+    /// (`p` of them).
+    fn validate_springs(&self, p: usize) -> Result<()> {
         let s = self.springs.len();
         for (key, len) in [
             ("family", self.family.len()),
@@ -192,6 +208,11 @@ impl SurrogateJson {
         if let Some(&[a, b]) = self.springs.iter().find(|&&[a, b]| a >= p || b >= p) {
             bail!("key `springs` has a spring ({a}, {b}) past the {p} particles");
         }
+        Ok(())
+    }
+
+    /// Checks the curvature elements (on the `p` particles) and their stiffnesses.
+    fn validate_curvature(&self, p: usize) -> Result<()> {
         if self.curvature_k.len() != self.curvature.len() {
             bail!(
                 "key `curvature_k` has {} entries, key `curvature` has {}",
@@ -209,6 +230,11 @@ impl SurrogateJson {
         {
             bail!("key `curvature_k` holds {v}: every value must be finite and non-negative");
         }
+        Ok(())
+    }
+
+    /// Checks the pinned particles (of `p`) and the ranges of masses, `k`, `b` and `rayleigh`.
+    fn validate_values(&self, p: usize) -> Result<()> {
         if let Some(i) = self.pinned.iter().find(|&&i| i >= p) {
             bail!("key `pinned` has particle {i}, past the {p} particles");
         }
@@ -226,8 +252,12 @@ impl SurrogateJson {
                 self.rayleigh
             );
         }
-        // The rest state is the grid (a run's rest rectangle), and every rest length the
-        // distance between its ends there.
+        Ok(())
+    }
+
+    /// Checks the rest state: the grid (a run's rest rectangle), and every rest length the
+    /// distance between its ends there.
+    fn validate_rest_state(&self) -> Result<()> {
         let tol = 1e-5 * self.width.max(self.height);
         for (i, q) in self.rest_positions.iter().enumerate() {
             let Some([nx, ny]) = self.grid else { break };

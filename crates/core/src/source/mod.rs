@@ -326,23 +326,7 @@ pub fn simulate_rollout(
     let steps = cfg.steps();
     let stride = cfg.frame_stride;
     let timeline = steps / stride + 1;
-    let segments: Vec<Segment> = match keep {
-        None => vec![Segment {
-            start: 0,
-            offset: 0,
-            len: timeline,
-        }],
-        Some(w) => {
-            let mut offset = 0;
-            w.iter()
-                .map(|&(start, len)| {
-                    let s = Segment { start, offset, len };
-                    offset += len;
-                    s
-                })
-                .collect()
-        }
-    };
+    let segments = stored_segments(keep, timeline);
     let stored: usize = segments.iter().map(|s| s.len).sum();
     let mut positions = Vec::with_capacity(stored * n * 3);
     let mut velocities = Vec::with_capacity(if cfg.save_velocities {
@@ -400,6 +384,28 @@ pub fn simulate_rollout(
         rayleigh: Some(cfg.rayleigh),
         visible: None,
     })
+}
+
+/// The stored windows of a rollout of `timeline` frames that keeps the frame windows `keep`
+/// (`(first, count)`; all frames when `None`), in order in the stored arrays.
+fn stored_segments(keep: Option<&[(usize, usize)]>, timeline: usize) -> Vec<Segment> {
+    match keep {
+        None => vec![Segment {
+            start: 0,
+            offset: 0,
+            len: timeline,
+        }],
+        Some(w) => {
+            let mut offset = 0;
+            w.iter()
+                .map(|&(start, len)| {
+                    let s = Segment { start, offset, len };
+                    offset += len;
+                    s
+                })
+                .collect()
+        }
+    }
 }
 
 /// Builds the simulator of a source config.
@@ -568,67 +574,13 @@ pub fn generate(
         .filter(|(j, _)| shard.owns(*j))
         .map(|(_, job)| job)
         .collect();
-    let next = AtomicUsize::new(0);
-    let done = AtomicUsize::new(0);
-    let error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
-    let workers = std::thread::available_parallelism()
-        .map_or(1, |n| n.get())
-        .min(jobs.len().max(1));
-    std::thread::scope(|scope| {
-        for _ in 0..workers {
-            scope.spawn(|| {
-                loop {
-                    let i = next.fetch_add(1, Ordering::SeqCst);
-                    if i >= jobs.len() || error.lock().expect("lock").is_some() {
-                        break;
-                    }
-                    let (name, train, id) = jobs[i];
-                    let path = dir.join(name);
-                    if !path.exists() {
-                        let result = (|| -> Result<()> {
-                            let mut rng = StdRng::seed_from_u64(
-                                cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ id,
-                            );
-                            let scenario =
-                                Scenario::random(sim.rest_uv(), cfg.anchor_radius, &mut rng);
-                            let first = if cfg.save_velocities { 0 } else { 1 };
-                            let timeline = cfg.steps() / cfg.frame_stride + 1;
-                            let keep = (*train && cfg.storage == Storage::Clips).then(|| {
-                                let w = windows(
-                                    &clips.plan(name, timeline, cfg.frame_dt(), first),
-                                    clips.steps_for(cfg.frame_dt()),
-                                    first,
-                                );
-                                // A rollout none of whose clips is kept still stores its last
-                                // two frames, so that the file is a valid rollout.
-                                if w.is_empty() {
-                                    vec![(timeline - 2, 2)]
-                                } else {
-                                    w
-                                }
-                            });
-                            let rollout = simulate_rollout(
-                                sim.as_ref(),
-                                cfg,
-                                &scenario,
-                                keep.as_deref(),
-                                name,
-                            )?;
-                            rollout.save(&path)
-                        })();
-                        if let Err(e) = result {
-                            *error.lock().expect("lock") = Some(e);
-                            break;
-                        }
-                    }
-                    progress(done.fetch_add(1, Ordering::SeqCst) + 1);
-                }
-            });
-        }
-    });
-    if let Some(e) = error.into_inner().expect("lock") {
-        return Err(e);
-    }
+    let generator = Generator {
+        cfg,
+        clips,
+        dir,
+        sim: sim.as_ref(),
+    };
+    generator.run(&jobs, progress)?;
     let missing = all.iter().filter(|j| !dir.join(&j.0).exists()).count();
     if missing > 0 {
         return Ok(Generation {
@@ -656,4 +608,78 @@ pub fn generate(
         owned: jobs.len(),
         missing: 0,
     })
+}
+
+/// What [`generate`] writes rollouts with: the source, its simulator, the clip plan and the
+/// data folder.
+struct Generator<'a> {
+    cfg: &'a SourceConfig,
+    clips: &'a ClipConfig,
+    dir: &'a Path,
+    sim: &'a dyn ClothSim,
+}
+
+impl Generator<'_> {
+    /// Writes the rollouts `jobs` (file name, training or not, seed id) that do not exist yet,
+    /// on as many threads as there are cores; `progress` is called with the number finished.
+    /// The first error stops the workers and is returned.
+    fn run(&self, jobs: &[&(String, bool, u64)], progress: impl Fn(usize) + Sync) -> Result<()> {
+        let next = AtomicUsize::new(0);
+        let done = AtomicUsize::new(0);
+        let error: Mutex<Option<anyhow::Error>> = Mutex::new(None);
+        let workers = std::thread::available_parallelism()
+            .map_or(1, |n| n.get())
+            .min(jobs.len().max(1));
+        std::thread::scope(|scope| {
+            for _ in 0..workers {
+                scope.spawn(|| {
+                    loop {
+                        let i = next.fetch_add(1, Ordering::SeqCst);
+                        if i >= jobs.len() || error.lock().expect("lock").is_some() {
+                            break;
+                        }
+                        let (name, train, id) = jobs[i];
+                        let path = self.dir.join(name);
+                        if !path.exists()
+                            && let Err(e) = self.write_rollout(name, *train, *id, &path)
+                        {
+                            *error.lock().expect("lock") = Some(e);
+                            break;
+                        }
+                        progress(done.fetch_add(1, Ordering::SeqCst) + 1);
+                    }
+                });
+            }
+        });
+        match error.into_inner().expect("lock") {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// Simulates rollout `name` (a training one when `train`) from seed id `id` and saves it
+    /// to `path`.
+    fn write_rollout(&self, name: &str, train: bool, id: u64, path: &Path) -> Result<()> {
+        let cfg = self.cfg;
+        let mut rng = StdRng::seed_from_u64(cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ id);
+        let scenario = Scenario::random(self.sim.rest_uv(), cfg.anchor_radius, &mut rng);
+        let first = if cfg.save_velocities { 0 } else { 1 };
+        let timeline = cfg.steps() / cfg.frame_stride + 1;
+        let keep = (train && cfg.storage == Storage::Clips).then(|| {
+            let w = windows(
+                &self.clips.plan(name, timeline, cfg.frame_dt(), first),
+                self.clips.steps_for(cfg.frame_dt()),
+                first,
+            );
+            // A rollout none of whose clips is kept still stores its last
+            // two frames, so that the file is a valid rollout.
+            if w.is_empty() {
+                vec![(timeline - 2, 2)]
+            } else {
+                w
+            }
+        });
+        let rollout = simulate_rollout(self.sim, cfg, &scenario, keep.as_deref(), name)?;
+        rollout.save(path)
+    }
 }

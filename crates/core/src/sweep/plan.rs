@@ -158,57 +158,7 @@ impl Plan {
         spanned.sort_by_key(|(_, v)| v.span().start);
         let mut axes = Vec::with_capacity(spanned.len());
         for (key, value) in spanned {
-            let values = match value.into_inner() {
-                toml::Value::Array(values) => values,
-                toml::Value::Table(_) => bail!(
-                    "`axes.{key}` is a table: quote a dotted key, e.g. \"{key}.seed\" = [0, 1]"
-                ),
-                other => bail!(
-                    "`axes.\"{key}\"` must be a list of values, e.g. [{other}], is {} ",
-                    other.type_str()
-                ),
-            };
-            if values.is_empty() {
-                bail!("`axes.\"{key}\"` lists no values: the sweep would have no jobs");
-            }
-            let keys: Vec<String> = key.split(',').map(|k| k.trim().to_string()).collect();
-            if keys.iter().any(|k| k.split('.').any(str::is_empty)) {
-                bail!(
-                    "`axes.\"{key}\"` is not a config key (section.key, or keys joined by commas)"
-                );
-            }
-            for v in &values {
-                let scalars: &[toml::Value] = match v {
-                    toml::Value::Array(items) if keys.len() > 1 => {
-                        if items.len() != keys.len() {
-                            bail!(
-                                "`axes.\"{key}\"` links {} keys: every value must be a list of {} \
-                                 (one per key), {v} is not",
-                                keys.len(),
-                                keys.len()
-                            );
-                        }
-                        items
-                    }
-                    _ if keys.len() > 1 => bail!(
-                        "`axes.\"{key}\"` links {} keys: every value must be a list of {}, {v} \
-                         is not",
-                        keys.len(),
-                        keys.len()
-                    ),
-                    scalar => std::slice::from_ref(scalar),
-                };
-                if let Some(v) = scalars
-                    .iter()
-                    .find(|v| matches!(v, toml::Value::Table(_) | toml::Value::Array(_)))
-                {
-                    bail!(
-                        "`axes.\"{key}\"`: a value must be a number, string or boolean, not a {}",
-                        v.type_str()
-                    );
-                }
-            }
-            axes.push(Axis { key, keys, values });
+            axes.push(parse_axis(key, value.into_inner())?);
         }
         for s in &file.set {
             if !s.contains('=') {
@@ -344,6 +294,67 @@ impl Plan {
         }
         Ok(table)
     }
+}
+
+/// One axis of a plan file: `key` (one config key, or several joined by commas that move
+/// together) and its list of values.
+fn parse_axis(key: String, value: toml::Value) -> Result<Axis> {
+    let values = match value {
+        toml::Value::Array(values) => values,
+        toml::Value::Table(_) => {
+            bail!("`axes.{key}` is a table: quote a dotted key, e.g. \"{key}.seed\" = [0, 1]")
+        }
+        other => bail!(
+            "`axes.\"{key}\"` must be a list of values, e.g. [{other}], is {} ",
+            other.type_str()
+        ),
+    };
+    if values.is_empty() {
+        bail!("`axes.\"{key}\"` lists no values: the sweep would have no jobs");
+    }
+    let keys: Vec<String> = key.split(',').map(|k| k.trim().to_string()).collect();
+    if keys.iter().any(|k| k.split('.').any(str::is_empty)) {
+        bail!("`axes.\"{key}\"` is not a config key (section.key, or keys joined by commas)");
+    }
+    for v in &values {
+        check_axis_value(&key, &keys, v)?;
+    }
+    Ok(Axis { key, keys, values })
+}
+
+/// Checks one value of the axis `key` over `keys`: a scalar, or for linked keys a list of one
+/// scalar per key.
+fn check_axis_value(key: &str, keys: &[String], v: &toml::Value) -> Result<()> {
+    let scalars: &[toml::Value] = match v {
+        toml::Value::Array(items) if keys.len() > 1 => {
+            if items.len() != keys.len() {
+                bail!(
+                    "`axes.\"{key}\"` links {} keys: every value must be a list of {} \
+                     (one per key), {v} is not",
+                    keys.len(),
+                    keys.len()
+                );
+            }
+            items
+        }
+        _ if keys.len() > 1 => bail!(
+            "`axes.\"{key}\"` links {} keys: every value must be a list of {}, {v} \
+             is not",
+            keys.len(),
+            keys.len()
+        ),
+        scalar => std::slice::from_ref(scalar),
+    };
+    if let Some(v) = scalars
+        .iter()
+        .find(|v| matches!(v, toml::Value::Table(_) | toml::Value::Array(_)))
+    {
+        bail!(
+            "`axes.\"{key}\"`: a value must be a number, string or boolean, not a {}",
+            v.type_str()
+        );
+    }
+    Ok(())
 }
 
 /// `base` relative to the plan's folder when it exists there, else to the working directory.
