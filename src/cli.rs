@@ -719,8 +719,8 @@ impl ImportArgs {
 }
 
 /// Runs a parsed command line: the data, config and study commands here, the commands that
-/// train and evaluate a run in [`train_or_evaluate`], those that put a trained run to use in
-/// [`use_trained`].
+/// train and evaluate a run in `train_or_evaluate`, those that put a trained run to use in
+/// `use_trained`.
 pub fn run(cli: Cli) -> Result<()> {
     let progress = Progress::auto();
     match cli.command {

@@ -453,14 +453,6 @@ fn fit_with(
     let start = Instant::now();
     let topo = &clips.topology;
     let w = stencil;
-    let t = clips.steps;
-    if 2 * w > t {
-        bail!(
-            "`train.least_squares.stencil` = {w} needs clips of at least {} steps; \
-             `data.clips.steps` is {t}",
-            2 * w
-        );
-    }
     let by_rollout = centres_by_rollout(config, clips, w)?;
     let (sums, velocity_frames) =
         accumulate_centres(config, clips, pattern, physics, w, &by_rollout, progress)?;
@@ -537,6 +529,13 @@ fn centres_by_rollout(
     w: usize,
 ) -> Result<Vec<(usize, Vec<usize>)>> {
     let t = clips.steps;
+    if 2 * w > t {
+        bail!(
+            "`train.least_squares.stencil` = {w} needs clips of at least {} steps; \
+             `data.clips.steps` is {t}",
+            2 * w
+        );
+    }
     // Every centre frame whose stencil lies inside a training clip, once.
     let mut centres = BTreeSet::new();
     let pool = match config.clips {

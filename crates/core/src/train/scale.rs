@@ -125,16 +125,7 @@ pub(crate) fn blend_search(
 ) -> Result<(SpringNet, Physics, BlendSearch)> {
     let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
     let (k, b) = (model.k_values(), model.b_values());
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let k_mean = mean(&k);
-    if !(k_mean > 0.0) {
-        bail!("the blend search needs a network with some stiffness; every learned k is 0");
-    }
-    // A network without damping blends towards a tenth of a mean spring's critical damping.
-    let b_mean = match mean(&b) {
-        m if m > 0.0 => m,
-        _ => 0.1 * (2.0 * k_mean * physics.mass).sqrt(),
-    };
+    let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
     let mut search = Blender {
         model,
         kappa: model.curvature_values(),
@@ -197,6 +188,21 @@ pub(crate) fn blend_search(
         ..*physics
     };
     Ok((search.blended(alpha, fk, fb), physics, record))
+}
+
+/// The means the blend search blends towards: the learned `k`'s (which must be positive) and
+/// `b`'s, or for a network without damping a tenth of a mean spring's critical damping.
+fn blend_means(k: &[f64], b: &[f64], mass: f64) -> Result<(f64, f64)> {
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let k_mean = mean(k);
+    if !(k_mean > 0.0) {
+        bail!("the blend search needs a network with some stiffness; every learned k is 0");
+    }
+    let b_mean = match mean(b) {
+        m if m > 0.0 => m,
+        _ => 0.1 * (2.0 * k_mean * mass).sqrt(),
+    };
+    Ok((k_mean, b_mean))
 }
 
 /// A blend search's candidate: `(α, k factor, b factor, substeps, mean motion RMSE)`.
