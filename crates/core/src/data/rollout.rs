@@ -495,16 +495,7 @@ fn fill_hidden(
 ) -> Result<()> {
     let n = rest_uv.len();
     let frames = seen.len() / n;
-    for (at, chunk) in values.chunks_exact(3).enumerate() {
-        if seen[at] && chunk.iter().any(|c| !c.is_finite()) {
-            bail!(
-                "{shown}: key `{key}`: landmark {} of frame {} is {chunk:?}, but `visible` says it \
-                 was seen (a hidden landmark is marked false in `visible`)",
-                at % n,
-                at / n
-            );
-        }
-    }
+    check_seen_finite(shown, key, values, seen, n)?;
     let source: Vec<f32> = values.to_vec();
     let at = |f: usize, i: usize| -> [f64; 3] {
         let o = (f * n + i) * 3;
@@ -521,21 +512,7 @@ fn fill_hidden(
         if known.len() == frames {
             continue;
         }
-        // Nearest landmarks in the rest rectangle, nearest first.
-        let mut near: Vec<(f64, usize)> = (0..n)
-            .filter(|&j| j != i)
-            .map(|j| {
-                let d = (rest_uv[j][0] - rest_uv[i][0]).powi(2)
-                    + (rest_uv[j][1] - rest_uv[i][1]).powi(2);
-                (d, j)
-            })
-            .collect();
-        let keep = FILL_CANDIDATES.min(near.len());
-        if keep < near.len() {
-            near.select_nth_unstable_by(keep, |a, b| a.0.total_cmp(&b.0));
-            near.truncate(keep);
-        }
-        near.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let near = nearest_landmarks(rest_uv, i);
         // Landmark i at hidden frame f carried from its seen frame r by its neighbours.
         let carried = |f: usize, r: usize| -> [f64; 3] {
             let mut x = at(r, i);
@@ -579,6 +556,47 @@ fn fill_hidden(
         }
     }
     Ok(())
+}
+
+/// Refuses a non-finite value of `key` (`[F, N, 3]`) where `seen` says its landmark was seen.
+fn check_seen_finite(
+    shown: &std::path::Display<'_>,
+    key: &str,
+    values: &[f32],
+    seen: &[bool],
+    n: usize,
+) -> Result<()> {
+    for (at, chunk) in values.chunks_exact(3).enumerate() {
+        if seen[at] && chunk.iter().any(|c| !c.is_finite()) {
+            bail!(
+                "{shown}: key `{key}`: landmark {} of frame {} is {chunk:?}, but `visible` says it \
+                 was seen (a hidden landmark is marked false in `visible`)",
+                at % n,
+                at / n
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The [`FILL_CANDIDATES`] landmarks nearest to landmark `i` in the rest rectangle, nearest
+/// first, as (squared distance, index).
+fn nearest_landmarks(rest_uv: &[[f64; 2]], i: usize) -> Vec<(f64, usize)> {
+    let mut near: Vec<(f64, usize)> = (0..rest_uv.len())
+        .filter(|&j| j != i)
+        .map(|j| {
+            let d =
+                (rest_uv[j][0] - rest_uv[i][0]).powi(2) + (rest_uv[j][1] - rest_uv[i][1]).powi(2);
+            (d, j)
+        })
+        .collect();
+    let keep = FILL_CANDIDATES.min(near.len());
+    if keep < near.len() {
+        near.select_nth_unstable_by(keep, |a, b| a.0.total_cmp(&b.0));
+        near.truncate(keep);
+    }
+    near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    near
 }
 
 fn check_indices(shown: &std::path::Display<'_>, key: &str, idx: &[i64], n: usize) -> Result<()> {

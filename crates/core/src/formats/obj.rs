@@ -41,6 +41,99 @@ pub struct ObjMesh {
     pub faces: Vec<Face>,
 }
 
+/// One non-empty line of an OBJ file: its number (from 1), text and first word, for parsing
+/// and for messages that name the file and line.
+struct ObjLine<'a> {
+    shown: &'a std::path::Display<'a>,
+    number: usize,
+    line: &'a str,
+    tag: &'a str,
+}
+
+impl ObjLine<'_> {
+    /// The first `count` words as finite numbers.
+    fn floats(&self, words: std::str::SplitWhitespace<'_>, count: usize) -> Result<Vec<f64>> {
+        let Self {
+            shown,
+            number,
+            line,
+            tag,
+        } = self;
+        let values: Vec<f64> = words
+            .take(count)
+            .map(|w| w.parse::<f64>())
+            .collect::<std::result::Result<_, _>>()
+            .map_err(|_| anyhow::anyhow!("{shown}, line {number}: malformed `{line}`"))?;
+        if values.len() < count {
+            bail!("{shown}, line {number}: `{tag}` needs {count} numbers: `{line}`");
+        }
+        if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+            bail!("{shown}, line {number}: non-finite coordinate {v} in `{line}`");
+        }
+        Ok(values)
+    }
+
+    /// A face of at least 3 corners, each `v`, `v/vt`, `v//vn` or `v/vt/vn` (negative indices
+    /// count back from the last defined), given how many vertices and texture coordinates are
+    /// defined above it.
+    fn face(
+        &self,
+        words: std::str::SplitWhitespace<'_>,
+        vertices: usize,
+        uvs: usize,
+    ) -> Result<Face> {
+        let Self {
+            shown,
+            number,
+            line,
+            ..
+        } = self;
+        let mut corners = Vec::new();
+        for w in words {
+            let mut parts = w.split('/');
+            let vertex = self
+                .corner_index(w, parts.next(), vertices, "vertex")?
+                .ok_or_else(|| {
+                    anyhow::anyhow!("{shown}, line {number}: face corner `{w}` has no vertex")
+                })?;
+            let uv = self.corner_index(w, parts.next(), uvs, "texture coordinate")?;
+            corners.push(Corner { vertex, uv });
+        }
+        if corners.len() < 3 {
+            bail!("{shown}, line {number}: a face needs at least 3 corners: `{line}`");
+        }
+        Ok(Face {
+            corners,
+            line: *number,
+        })
+    }
+
+    /// One index `s` of face corner `w` into `count` defined items (`None` where empty).
+    fn corner_index(
+        &self,
+        w: &str,
+        s: Option<&str>,
+        count: usize,
+        what: &str,
+    ) -> Result<Option<usize>> {
+        let Self { shown, number, .. } = self;
+        let Some(s) = s.filter(|s| !s.is_empty()) else {
+            return Ok(None);
+        };
+        let k: i64 = s
+            .parse()
+            .map_err(|_| anyhow::anyhow!("{shown}, line {number}: malformed face corner `{w}`"))?;
+        let idx = if k > 0 { k - 1 } else { count as i64 + k };
+        if k == 0 || idx < 0 || idx as usize >= count {
+            bail!(
+                "{shown}, line {number}: face corner `{w}` refers to {what} {k}, \
+                 but {count} are defined above it"
+            );
+        }
+        Ok(Some(idx as usize))
+    }
+}
+
 impl ObjMesh {
     /// Reads an OBJ file; errors name the file and the line. Vertex coordinates must be finite.
     pub fn read(path: &Path) -> Result<Self> {
@@ -60,74 +153,27 @@ impl ObjMesh {
             faces: Vec::new(),
         };
         for (i, line) in text.lines().enumerate() {
-            let number = i + 1;
             let mut words = line.split_whitespace();
             let Some(tag) = words.next() else { continue };
-            let floats = |words: std::str::SplitWhitespace<'_>, count: usize| -> Result<Vec<f64>> {
-                let values: Vec<f64> = words
-                    .take(count)
-                    .map(|w| w.parse::<f64>())
-                    .collect::<std::result::Result<_, _>>()
-                    .map_err(|_| anyhow::anyhow!("{shown}, line {number}: malformed `{line}`"))?;
-                if values.len() < count {
-                    bail!("{shown}, line {number}: `{tag}` needs {count} numbers: `{line}`");
-                }
-                if let Some(v) = values.iter().find(|v| !v.is_finite()) {
-                    bail!("{shown}, line {number}: non-finite coordinate {v} in `{line}`");
-                }
-                Ok(values)
+            let at = ObjLine {
+                shown: &shown,
+                number: i + 1,
+                line,
+                tag,
             };
             match tag {
                 "v" => {
-                    let v = floats(words, 3)?;
+                    let v = at.floats(words, 3)?;
                     mesh.vertices.push([v[0], v[1], v[2]]);
-                    mesh.vertex_lines.push(number);
+                    mesh.vertex_lines.push(at.number);
                 }
                 "vt" => {
-                    let v = floats(words, 2)?;
+                    let v = at.floats(words, 2)?;
                     mesh.uvs.push([v[0], v[1]]);
                 }
                 "f" => {
-                    let mut corners = Vec::new();
-                    for w in words {
-                        let mut parts = w.split('/');
-                        let resolve = |s: Option<&str>,
-                                       count: usize,
-                                       what: &str|
-                         -> Result<Option<usize>> {
-                            let Some(s) = s.filter(|s| !s.is_empty()) else {
-                                return Ok(None);
-                            };
-                            let k: i64 = s.parse().map_err(|_| {
-                                anyhow::anyhow!(
-                                    "{shown}, line {number}: malformed face corner `{w}`"
-                                )
-                            })?;
-                            let idx = if k > 0 { k - 1 } else { count as i64 + k };
-                            if k == 0 || idx < 0 || idx as usize >= count {
-                                bail!(
-                                    "{shown}, line {number}: face corner `{w}` refers to {what} {k}, \
-                                     but {count} are defined above it"
-                                );
-                            }
-                            Ok(Some(idx as usize))
-                        };
-                        let vertex = resolve(parts.next(), mesh.vertices.len(), "vertex")?
-                            .ok_or_else(|| {
-                                anyhow::anyhow!(
-                                    "{shown}, line {number}: face corner `{w}` has no vertex"
-                                )
-                            })?;
-                        let uv = resolve(parts.next(), mesh.uvs.len(), "texture coordinate")?;
-                        corners.push(Corner { vertex, uv });
-                    }
-                    if corners.len() < 3 {
-                        bail!("{shown}, line {number}: a face needs at least 3 corners: `{line}`");
-                    }
-                    mesh.faces.push(Face {
-                        corners,
-                        line: number,
-                    });
+                    let face = at.face(words, mesh.vertices.len(), mesh.uvs.len())?;
+                    mesh.faces.push(face);
                 }
                 _ => {}
             }

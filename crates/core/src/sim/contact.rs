@@ -395,9 +395,40 @@ fn closed_mesh(path: &Path, scale: f64) -> Result<TriMesh> {
             path.display()
         );
     }
-    // Every undirected edge must be used by exactly two triangles, once in each direction.
+    check_closed(path, &triangles)?;
+    let vertices: Vec<Vector> = obj
+        .vertices
+        .iter()
+        .map(|p| Vector::new(p[0] * scale, p[1] * scale, p[2] * scale))
+        .collect();
+    // Signed volume: negative for a mesh whose faces point inwards.
+    let volume: f64 = triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| vertices[i as usize]);
+            a.dot(b.cross(c)) / 6.0
+        })
+        .sum();
+    if volume.abs() < 1e-15 {
+        bail!("{} encloses no volume", path.display());
+    }
+    if volume < 0.0 {
+        for t in &mut triangles {
+            t.swap(1, 2);
+        }
+    }
+    let mut mesh = TriMesh::new(vertices, triangles)
+        .map_err(|e| anyhow::anyhow!("{}: {e:?}", path.display()))?;
+    mesh.set_flags(TriMeshFlags::ORIENTED | TriMeshFlags::HALF_EDGE_TOPOLOGY)
+        .map_err(|e| anyhow::anyhow!("{}: bad topology: {e:?}", path.display()))?;
+    Ok(mesh)
+}
+
+/// Every undirected edge of `triangles` must be used by exactly two of them, once in each
+/// direction; the error names the first edge (in vertex order) that is not.
+fn check_closed(path: &Path, triangles: &[[u32; 3]]) -> Result<()> {
     let mut edges: std::collections::HashMap<(u32, u32), (usize, usize)> = Default::default();
-    for t in &triangles {
+    for t in triangles {
         for (a, b) in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
             let e = edges.entry((a.min(b), a.max(b))).or_default();
             if a < b {
@@ -429,32 +460,7 @@ fn closed_mesh(path: &Path, scale: f64) -> Result<TriMesh> {
             ),
         }
     }
-    let vertices: Vec<Vector> = obj
-        .vertices
-        .iter()
-        .map(|p| Vector::new(p[0] * scale, p[1] * scale, p[2] * scale))
-        .collect();
-    // Signed volume: negative for a mesh whose faces point inwards.
-    let volume: f64 = triangles
-        .iter()
-        .map(|t| {
-            let [a, b, c] = t.map(|i| vertices[i as usize]);
-            a.dot(b.cross(c)) / 6.0
-        })
-        .sum();
-    if volume.abs() < 1e-15 {
-        bail!("{} encloses no volume", path.display());
-    }
-    if volume < 0.0 {
-        for t in &mut triangles {
-            t.swap(1, 2);
-        }
-    }
-    let mut mesh = TriMesh::new(vertices, triangles)
-        .map_err(|e| anyhow::anyhow!("{}: {e:?}", path.display()))?;
-    mesh.set_flags(TriMeshFlags::ORIENTED | TriMeshFlags::HALF_EDGE_TOPOLOGY)
-        .map_err(|e| anyhow::anyhow!("{}: bad topology: {e:?}", path.display()))?;
-    Ok(mesh)
+    Ok(())
 }
 
 impl Collider {

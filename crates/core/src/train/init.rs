@@ -17,7 +17,7 @@ use serde::Serialize;
 
 use crate::cloth::Topology;
 use crate::config::Config;
-use crate::data::{ClipRef, ClipSet};
+use crate::data::{ClipRef, ClipSet, Track};
 use crate::settings::Auto;
 use crate::sim::{GRAVITY, Stability};
 
@@ -141,104 +141,24 @@ impl UniformFit {
     /// Fits `k`, `b` (and `c`, unless `rayleigh` gives it) to clips of `clips`, with particles
     /// of mass `mass` under `gravity`.
     pub fn fit(clips: &ClipSet, gravity: [f64; 3], rayleigh: Option<f64>) -> Result<Self> {
-        let topo = &clips.topology;
-        let mass = clips.particle_mass();
-        let dt = clips.info.frame_dt;
         let pool: Vec<ClipRef> = clips.all_clips();
         if pool.is_empty() {
             bail!("no clips to fit the initial stiffness to");
         }
         let stride = pool.len().div_ceil(FIT_CLIPS).max(1);
-        let unknowns = if rayleigh.is_some() { 2 } else { 3 };
+        let rows = StencilRows::new(clips, gravity, rayleigh);
         let t = clips.steps;
         let stencils: Vec<usize> = STENCILS.iter().copied().filter(|&w| 2 * w < t).collect();
         let mut systems = vec![Normal::default(); stencils.len()];
-        let p = topo.num_particles();
-        let mut cols = vec![[[0f64; 3]; 2]; p];
-        let mut neighbours = vec![Vec::new(); p];
-        for &[a, b] in &topo.springs {
-            neighbours[a].push(b);
-            neighbours[b].push(a);
-        }
         for clip in pool.iter().step_by(stride) {
             let track = clips.track(clip.rollout)?;
-            let x = |j: usize, i: usize| -> [f64; 3] {
-                let o = ((clip.offset + j) * p + i) * 3;
-                let x = &track.positions[o..o + 3];
-                [x[0] as f64, x[1] as f64, x[2] as f64]
-            };
-            // Unit columns and central-difference velocities at frames 1..t−1 of the clip.
-            let mut frames: Vec<Vec<[[f64; 3]; 3]>> = vec![Vec::new(); t + 1];
-            for (j, slot) in frames.iter_mut().enumerate().take(t).skip(1) {
-                let xs: Vec<[f64; 3]> = (0..p).map(|i| x(j, i)).collect();
-                let vs: Vec<[f64; 3]> = (0..p)
-                    .map(|i| {
-                        let (a, c) = (x(j - 1, i), x(j + 1, i));
-                        [0, 1, 2].map(|d| (c[d] - a[d]) / (2.0 * dt))
-                    })
-                    .collect();
-                unit_columns(topo, &xs, &vs, &mut cols);
-                *slot = (0..p)
-                    .map(|i| [0, 1, 2].map(|d| [cols[i][0][d], cols[i][1][d], -vs[i][d]]))
-                    .collect();
-            }
+            let clip = ClipFrames::new(&track, clip.offset, rows.p);
+            let frames = rows.columns(&clip, t);
             for (system, &w) in systems.iter_mut().zip(&stencils) {
-                // m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² is the tent-weighted mean of the net
-                // force over (j − w, j + w): weights (w − |i − j|)/w² on the frames between.
-                let h2 = (w as f64 * dt).powi(2);
-                // Frames j − w + 1 … j + w − 1 all lie in 1 … t − 1, where `frames` is filled.
-                for j in w..=t - w {
-                    // With hidden particles, a row counts where the particle and its springs'
-                    // far ends are seen over the stencil and its velocities' frames.
-                    let window = (clip.offset + j).saturating_sub(w + 1)..=clip.offset + j + w + 1;
-                    let seen = |i: usize| track.seen_throughout(i, window.clone());
-                    let row_seen = |i: usize| {
-                        track.visible.is_none()
-                            || (seen(i) && neighbours[i].iter().all(|&e| seen(e)))
-                    };
-                    for i in (0..p).filter(|&i| !track.pinned[i] && row_seen(i)) {
-                        let (a, b, c) = (x(j - w, i), x(j, i), x(j + w, i));
-                        for d in 0..3 {
-                            let mut row = [0f64; 3];
-                            for q in j + 1 - w..j + w {
-                                let weight = (w - q.abs_diff(j)) as f64 / (w * w) as f64;
-                                for (r, v) in row.iter_mut().zip(frames[q][i][d]) {
-                                    *r += weight * v;
-                                }
-                            }
-                            let mut y = mass * ((c[d] - 2.0 * b[d] + a[d]) / h2 - gravity[d]);
-                            if let Some(c) = rayleigh {
-                                y -= c * row[2]; // the known Rayleigh force, −c v̄
-                            }
-                            system.add(&row, y, unknowns);
-                        }
-                        system.samples += 1;
-                    }
-                }
+                rows.add(system, w, &clip, &frames, t);
             }
         }
-        let best = systems
-            .iter()
-            .zip(&stencils)
-            .filter(|(s, _)| s.samples > 0)
-            .map(|(s, &w)| (s.solve(unknowns), w))
-            .inspect(|(s, w)| {
-                if std::env::var_os("SPRINGTIME_DEBUG_FIT").is_some() {
-                    eprintln!(
-                        "fit ±{w}: k {:.4e} b {:.4e} c {:.4e} explained {:.4} (target {:.3e})",
-                        s.x[0],
-                        s.x[1],
-                        s.x[2],
-                        s.explained(),
-                        s.target_rms
-                    );
-                }
-            })
-            .max_by(|a, b| a.0.explained().total_cmp(&b.0.explained()))
-            .ok_or_else(|| {
-                anyhow::anyhow!("the data has no free particle to fit the initial stiffness to")
-            })?;
-        let (solution, stencil) = best;
+        let (solution, stencil) = best_stencil(&systems, &stencils, rows.unknowns)?;
         Ok(Self {
             k: solution.x[0],
             b: solution.x[1],
@@ -249,6 +169,154 @@ impl UniformFit {
             target_rms: solution.target_rms,
             residual_rms: solution.residual_rms,
         })
+    }
+}
+
+/// The fit's solution of the stencil whose fit explains the largest share of the target force.
+fn best_stencil(
+    systems: &[Normal],
+    stencils: &[usize],
+    unknowns: usize,
+) -> Result<(Solved, usize)> {
+    systems
+        .iter()
+        .zip(stencils)
+        .filter(|(s, _)| s.samples > 0)
+        .map(|(s, &w)| (s.solve(unknowns), w))
+        .inspect(|(s, w)| {
+            if std::env::var_os("SPRINGTIME_DEBUG_FIT").is_some() {
+                eprintln!(
+                    "fit ±{w}: k {:.4e} b {:.4e} c {:.4e} explained {:.4} (target {:.3e})",
+                    s.x[0],
+                    s.x[1],
+                    s.x[2],
+                    s.explained(),
+                    s.target_rms
+                );
+            }
+        })
+        .max_by(|a, b| a.0.explained().total_cmp(&b.0.explained()))
+        .ok_or_else(|| {
+            anyhow::anyhow!("the data has no free particle to fit the initial stiffness to")
+        })
+}
+
+/// One clip's positions in double precision.
+struct ClipFrames<'a> {
+    track: &'a Track,
+    offset: usize,
+    p: usize,
+}
+
+impl<'a> ClipFrames<'a> {
+    fn new(track: &'a Track, offset: usize, p: usize) -> Self {
+        Self { track, offset, p }
+    }
+
+    /// Particle `i` at frame `j` of the clip.
+    fn x(&self, j: usize, i: usize) -> [f64; 3] {
+        let o = ((self.offset + j) * self.p + i) * 3;
+        let x = &self.track.positions[o..o + 3];
+        [x[0] as f64, x[1] as f64, x[2] as f64]
+    }
+}
+
+/// The rows of the uniform fit: each free particle's net force over a stencil against the
+/// unit-`k`, unit-`b` and unit-Rayleigh forces averaged over the same frames.
+struct StencilRows<'a> {
+    topo: &'a Topology,
+    neighbours: Vec<Vec<usize>>,
+    p: usize,
+    mass: f64,
+    dt: f64,
+    gravity: [f64; 3],
+    rayleigh: Option<f64>,
+    unknowns: usize,
+}
+
+impl<'a> StencilRows<'a> {
+    fn new(clips: &'a ClipSet, gravity: [f64; 3], rayleigh: Option<f64>) -> Self {
+        let topo = &clips.topology;
+        let p = topo.num_particles();
+        let mut neighbours = vec![Vec::new(); p];
+        for &[a, b] in &topo.springs {
+            neighbours[a].push(b);
+            neighbours[b].push(a);
+        }
+        Self {
+            topo,
+            neighbours,
+            p,
+            mass: clips.particle_mass(),
+            dt: clips.info.frame_dt,
+            gravity,
+            rayleigh,
+            unknowns: if rayleigh.is_some() { 2 } else { 3 },
+        }
+    }
+
+    /// Unit columns and central-difference velocities at frames 1..t−1 of the clip.
+    fn columns(&self, clip: &ClipFrames, t: usize) -> Vec<Vec<[[f64; 3]; 3]>> {
+        let (p, dt) = (self.p, self.dt);
+        let mut cols = vec![[[0f64; 3]; 2]; p];
+        let mut frames: Vec<Vec<[[f64; 3]; 3]>> = vec![Vec::new(); t + 1];
+        for (j, slot) in frames.iter_mut().enumerate().take(t).skip(1) {
+            let xs: Vec<[f64; 3]> = (0..p).map(|i| clip.x(j, i)).collect();
+            let vs: Vec<[f64; 3]> = (0..p)
+                .map(|i| {
+                    let (a, c) = (clip.x(j - 1, i), clip.x(j + 1, i));
+                    [0, 1, 2].map(|d| (c[d] - a[d]) / (2.0 * dt))
+                })
+                .collect();
+            unit_columns(self.topo, &xs, &vs, &mut cols);
+            *slot = (0..p)
+                .map(|i| [0, 1, 2].map(|d| [cols[i][0][d], cols[i][1][d], -vs[i][d]]))
+                .collect();
+        }
+        frames
+    }
+
+    /// Adds the clip's rows of stencil half-width `w` to `system`.
+    fn add(
+        &self,
+        system: &mut Normal,
+        w: usize,
+        clip: &ClipFrames,
+        frames: &[Vec<[[f64; 3]; 3]>],
+        t: usize,
+    ) {
+        let track = clip.track;
+        // m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² is the tent-weighted mean of the net
+        // force over (j − w, j + w): weights (w − |i − j|)/w² on the frames between.
+        let h2 = (w as f64 * self.dt).powi(2);
+        // Frames j − w + 1 … j + w − 1 all lie in 1 … t − 1, where `frames` is filled.
+        for j in w..=t - w {
+            // With hidden particles, a row counts where the particle and its springs'
+            // far ends are seen over the stencil and its velocities' frames.
+            let window = (clip.offset + j).saturating_sub(w + 1)..=clip.offset + j + w + 1;
+            let seen = |i: usize| track.seen_throughout(i, window.clone());
+            let row_seen = |i: usize| {
+                track.visible.is_none() || (seen(i) && self.neighbours[i].iter().all(|&e| seen(e)))
+            };
+            for i in (0..self.p).filter(|&i| !track.pinned[i] && row_seen(i)) {
+                let (a, b, c) = (clip.x(j - w, i), clip.x(j, i), clip.x(j + w, i));
+                for d in 0..3 {
+                    let mut row = [0f64; 3];
+                    for q in j + 1 - w..j + w {
+                        let weight = (w - q.abs_diff(j)) as f64 / (w * w) as f64;
+                        for (r, v) in row.iter_mut().zip(frames[q][i][d]) {
+                            *r += weight * v;
+                        }
+                    }
+                    let mut y = self.mass * ((c[d] - 2.0 * b[d] + a[d]) / h2 - self.gravity[d]);
+                    if let Some(c) = self.rayleigh {
+                        y -= c * row[2]; // the known Rayleigh force, −c v̄
+                    }
+                    system.add(&row, y, self.unknowns);
+                }
+                system.samples += 1;
+            }
+        }
     }
 }
 

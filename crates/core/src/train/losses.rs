@@ -213,8 +213,7 @@ pub fn motion_loss(
     weights: &LossWeights,
     on: ForceOn,
 ) -> LossTerms {
-    let [b, frames, p, _] = batch.positions.dims();
-    let t = frames - 1;
+    let [b, _, p, _] = batch.positions.dims();
     let device = batch.positions.device();
     let free = batch
         .pinned
@@ -233,56 +232,15 @@ pub fn motion_loss(
             let traj = free_rollout(model, physics, batch);
             (frame_force_error(&traj, batch, physics), Some(traj))
         }
-        ForceOn::Target => {
-            let x = batch
-                .positions
-                .clone()
-                .slice([0..b, 0..t, 0..p, 0..3])
-                .reshape([b * t, p, 3]);
-            let v = batch
-                .velocities
-                .clone()
-                .slice([0..b, 0..t, 0..p, 0..3])
-                .reshape([b * t, p, 3]);
-            let pinned = batch
-                .pinned
-                .clone()
-                .reshape([b, 1, p, 1])
-                .repeat_dim(1, t)
-                .reshape([b * t, p, 1]);
-            let forces = physics
-                .net_force(model, x, v, &pinned)
-                .reshape([b, t, p, 3]);
-            (forces - batch.forces.clone(), None)
-        }
+        ForceOn::Target => (target_force_error(model, physics, batch), None),
     };
+    let Masked {
+        error,
+        force_count,
+        position_mask,
+        position_count,
+    } = Masked::of(error, &free, batch);
     let n = error.dims()[1];
-    // Where the targets rest on seen positions (all of them without a mask), and how many
-    // terms that leaves per sum.
-    let (error, force_count, position_mask, position_count) = match &batch.seen {
-        None => (
-            error * free.clone(),
-            (b * n * p) as f64,
-            None,
-            (b * t * p) as f64,
-        ),
-        Some(seen) => {
-            let forces = if n == t {
-                seen.forces.clone()
-            } else {
-                // The frame-difference force of frame j (1..=T−2) rests on positions j−1..=j+2:
-                // seen where the target forces of frames j−1, j and j+1 are.
-                let f = |from: usize, to: usize| {
-                    seen.forces.clone().slice([0..b, from..to, 0..p, 0..1])
-                };
-                f(0, t - 2) * f(1, t - 1) * f(2, t)
-            };
-            let positions = seen.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..1]);
-            let count = |m: &Tensor<4>| (m.clone().sum().into_scalar::<f32>() as f64).max(1.0);
-            let (fc, pc) = (count(&forces), count(&positions));
-            (error * free.clone() * forces, fc, Some(positions), pc)
-        }
-    };
     let force = (error.clone() * error.clone())
         .sum()
         .div_scalar(force_count);
@@ -292,15 +250,7 @@ pub fn motion_loss(
     let dj = (error.sum_dim(1) - ends.mul_scalar(0.5)).mul_scalar(physics.frame_dt);
     let impulse = (dj.clone() * dj).sum().div_scalar((b * p) as f64);
     let position = match &trajectory {
-        Some(traj) => {
-            let mut dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
-                - batch.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3]))
-                * free;
-            if let Some(mask) = position_mask {
-                dx = dx * mask;
-            }
-            (dx.clone() * dx).sum().div_scalar(position_count)
-        }
+        Some(traj) => position_error(traj, batch, free, position_mask, position_count),
         None => zero(),
     };
     let mut total =
@@ -316,6 +266,96 @@ pub fn motion_loss(
         k_neg: zero(),
         b_neg: zero(),
     }
+}
+
+/// The force error of teacher forcing (`ForceOn::Target`): the model's forces on the data's own
+/// states of every frame but the last, against the target forces.
+fn target_force_error(model: &dyn ForceModel, physics: &Physics, batch: &ClipBatch) -> Tensor<4> {
+    let [b, frames, p, _] = batch.positions.dims();
+    let t = frames - 1;
+    let x = batch
+        .positions
+        .clone()
+        .slice([0..b, 0..t, 0..p, 0..3])
+        .reshape([b * t, p, 3]);
+    let v = batch
+        .velocities
+        .clone()
+        .slice([0..b, 0..t, 0..p, 0..3])
+        .reshape([b * t, p, 3]);
+    let pinned = batch
+        .pinned
+        .clone()
+        .reshape([b, 1, p, 1])
+        .repeat_dim(1, t)
+        .reshape([b * t, p, 1]);
+    let forces = physics
+        .net_force(model, x, v, &pinned)
+        .reshape([b, t, p, 3]);
+    forces - batch.forces.clone()
+}
+
+/// The force error on free particles where the targets rest on seen positions (all of them
+/// without a mask), and how many terms that leaves per sum.
+struct Masked {
+    error: Tensor<4>,
+    force_count: f64,
+    /// Which simulated frames' positions are compared (`None`: all).
+    position_mask: Option<Tensor<4>>,
+    position_count: f64,
+}
+
+impl Masked {
+    fn of(error: Tensor<4>, free: &Tensor<4>, batch: &ClipBatch) -> Masked {
+        let [b, frames, p, _] = batch.positions.dims();
+        let t = frames - 1;
+        let n = error.dims()[1];
+        let Some(seen) = &batch.seen else {
+            return Masked {
+                error: error * free.clone(),
+                force_count: (b * n * p) as f64,
+                position_mask: None,
+                position_count: (b * t * p) as f64,
+            };
+        };
+        let forces = if n == t {
+            seen.forces.clone()
+        } else {
+            // The frame-difference force of frame j (1..=T−2) rests on positions j−1..=j+2:
+            // seen where the target forces of frames j−1, j and j+1 are.
+            let f =
+                |from: usize, to: usize| seen.forces.clone().slice([0..b, from..to, 0..p, 0..1]);
+            f(0, t - 2) * f(1, t - 1) * f(2, t)
+        };
+        let positions = seen.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..1]);
+        let count = |m: &Tensor<4>| (m.clone().sum().into_scalar::<f32>() as f64).max(1.0);
+        let (force_count, position_count) = (count(&forces), count(&positions));
+        Masked {
+            error: error * free.clone() * forces,
+            force_count,
+            position_mask: Some(positions),
+            position_count,
+        }
+    }
+}
+
+/// The mean square position error of the simulated frames 1..=T on free (and seen) particles.
+fn position_error(
+    traj: &sim::Trajectory,
+    batch: &ClipBatch,
+    free: Tensor<4>,
+    mask: Option<Tensor<4>>,
+    count: f64,
+) -> Tensor<1> {
+    let [b, frames, p, _] = batch.positions.dims();
+    let t = frames - 1;
+    let mut dx = (traj.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3])
+        - batch.positions.clone().slice([0..b, 1..t + 1, 0..p, 0..3]))
+        * free;
+    if let Some(mask) = mask {
+        dx = dx * mask;
+    }
+    (dx.clone() * dx).sum().div_scalar(count)
 }
 
 fn fused_loss(
