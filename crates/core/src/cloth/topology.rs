@@ -430,24 +430,11 @@ impl Topology {
                 [(pb[0] - pa[0]) / l, (pb[1] - pa[1]) / l, 0.0]
             })
             .collect();
-        // Deterministic start vector with components in every direction.
-        let mut y: Vec<[f64; 3]> = (0..p)
-            .map(|i| {
-                let t = i as f64;
-                [
-                    (t * 0.7548).sin() + 0.3,
-                    (t * 1.3247).cos() - 0.2,
-                    (t * 0.5698).sin(),
-                ]
-            })
-            .collect();
         let scale: Vec<f64> = match &self.mass_weight {
             Some(w) => w.iter().map(|w| 1.0 / w.sqrt()).collect(),
             None => vec![1.0; p],
         };
-        let mut lambda = 0.0;
-        for _ in 0..300 {
-            let mut z = vec![[0.0f64; 3]; p];
+        super::power_iteration(p, 300, |y, z| {
             for (s, &[a, b]) in self.springs.iter().enumerate() {
                 let u = dirs[s];
                 let (ya, yb) = (y[a].map(|c| c * scale[a]), y[b].map(|c| c * scale[b]));
@@ -458,18 +445,7 @@ impl Topology {
                     z[a][i] -= proj * u[i] * scale[a];
                 }
             }
-            let norm_z = z.iter().flatten().map(|v| v * v).sum::<f64>().sqrt();
-            let norm_y = y.iter().flatten().map(|v| v * v).sum::<f64>().sqrt();
-            if norm_z == 0.0 || norm_y == 0.0 {
-                return 0.0;
-            }
-            lambda = norm_z / norm_y;
-            y = z
-                .iter()
-                .map(|v| [v[0] / norm_z, v[1] / norm_z, v[2] / norm_z])
-                .collect();
-        }
-        lambda
+        })
     }
 }
 

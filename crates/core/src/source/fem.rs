@@ -409,39 +409,16 @@ impl FemCloth {
     fn mass_weighted_max(&self, apply: impl Fn(&[V3], &mut [V3])) -> f64 {
         let n = self.rest_uv.len();
         let inv_sqrt: Vec<f64> = self.mass.iter().map(|m| 1.0 / m.sqrt()).collect();
-        let mut y: Vec<V3> = (0..n)
-            .map(|i| {
-                let t = i as f64;
-                [
-                    (t * 0.7548).sin() + 0.3,
-                    (t * 1.3247).cos() - 0.2,
-                    (t * 0.5698).sin(),
-                ]
-            })
-            .collect();
-        let mut lambda = 0.0;
         let mut scaled = vec![[0.0; 3]; n];
-        let mut z = vec![[0.0; 3]; n];
-        for _ in 0..200 {
+        crate::cloth::power_iteration(n, 200, |y, z| {
             for i in 0..n {
                 scaled[i] = scale(y[i], inv_sqrt[i]);
             }
-            z.iter_mut().for_each(|v| *v = [0.0; 3]);
-            apply(&scaled, &mut z);
+            apply(&scaled, z);
             for i in 0..n {
                 z[i] = scale(z[i], inv_sqrt[i]);
             }
-            let nz = z.iter().map(|v| dot(*v, *v)).sum::<f64>().sqrt();
-            let ny = y.iter().map(|v| dot(*v, *v)).sum::<f64>().sqrt();
-            if nz == 0.0 || ny == 0.0 {
-                return 0.0;
-            }
-            lambda = nz / ny;
-            for i in 0..n {
-                y[i] = scale(z[i], 1.0 / nz);
-            }
-        }
-        lambda
+        })
     }
 }
 
