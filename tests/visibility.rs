@@ -159,11 +159,13 @@ fn the_motion_rmse_skips_hidden_landmarks() {
     let curves = eval::motion_curves(
         &model,
         &physics,
-        &topo,
-        &[clean, masked],
-        1,
-        &device,
-        &Progress::quiet(),
+        &eval::Takes {
+            topology: &topo,
+            files: &[clean, masked],
+            batch: 1,
+            device: &device,
+            progress: &Progress::quiet(),
+        },
     )
     .unwrap()
     .curves;

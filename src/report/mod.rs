@@ -361,11 +361,13 @@ fn simulate_curves(inputs: &Inputs, progress: &Progress) -> Result<Vec<Curve>> {
     eval::motion_curves(
         &inputs.model,
         &physics_for(inputs, first.frame_dt),
-        &inputs.topology,
-        &inputs.test,
-        inputs.config.eval.batch,
-        &inputs.device,
-        progress,
+        &eval::Takes {
+            topology: &inputs.topology,
+            files: &inputs.test,
+            batch: inputs.config.eval.batch,
+            device: &inputs.device,
+            progress,
+        },
     )
     .map(|m| m.curves)
 }

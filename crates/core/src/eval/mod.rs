@@ -240,18 +240,38 @@ pub fn frame_rmse(x: &[f32], target: &[f32]) -> f64 {
     (sum / (x.len() / 3).max(1) as f64).sqrt()
 }
 
+/// Rollouts of the data to simulate from their own starts: the files, read onto `topology`,
+/// simulated `batch` at a time on `device` (the motion curves, the searches over free
+/// rollouts).
+#[derive(Clone, Copy)]
+pub struct Takes<'a> {
+    /// The surrogate's particles and springs the files are read onto.
+    pub topology: &'a Topology,
+    /// The rollouts (`.npz`).
+    pub files: &'a [PathBuf],
+    /// Rollouts simulated together.
+    pub batch: usize,
+    /// Where they are simulated.
+    pub device: &'a Device,
+    /// Where the progress bars go.
+    pub progress: &'a Progress,
+}
+
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
 /// particles following the data, and returns the per-frame motion RMSE of each (over the
 /// particles seen in that frame, where the rollout has a `visible` mask).
 pub fn motion_curves(
     model: &dyn ForceModel,
     physics_template: &Physics,
-    topology: &Topology,
-    files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-    progress: &Progress,
+    takes: &Takes,
 ) -> Result<MotionCurves> {
+    let Takes {
+        topology,
+        files,
+        batch,
+        device,
+        progress,
+    } = *takes;
     let tracks = files
         .iter()
         .map(|f| TestTrack::load(f, topology))
@@ -439,12 +459,15 @@ impl EvalBatch<'_> {
 pub(crate) fn gnn_motion_curves(
     model: &Gnn,
     downsample: usize,
-    topology: &Topology,
-    files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-    progress: &Progress,
+    takes: &Takes,
 ) -> Result<MotionCurves> {
+    let Takes {
+        topology,
+        files,
+        batch,
+        device,
+        progress,
+    } = *takes;
     let c = model.history;
     let mut tracks = Vec::new();
     for f in files {

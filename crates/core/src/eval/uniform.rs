@@ -56,11 +56,13 @@ pub(crate) fn network_rollout_rmse(
     let curves = eval::motion_curves(
         model,
         physics,
-        topology,
-        files,
-        batch,
-        device,
-        &Progress::quiet(),
+        &eval::Takes {
+            topology,
+            files,
+            batch,
+            device,
+            progress: &Progress::quiet(),
+        },
     )
     .ok()?;
     let mean = eval::summarize(&curves.curves, physics.frame_dt, 0.0, 0.0).mean;
@@ -123,11 +125,13 @@ pub fn search(
     let curves = eval::motion_curves(
         &model,
         physics,
-        topology,
-        test_files,
-        eval_config.batch,
-        device,
-        progress,
+        &eval::Takes {
+            topology,
+            files: test_files,
+            batch: eval_config.batch,
+            device,
+            progress,
+        },
     )?;
     let test = eval::summarize(
         &curves.curves,

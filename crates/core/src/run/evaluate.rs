@@ -108,6 +108,13 @@ fn motion_curves(
     progress: &Progress,
 ) -> Result<(MotionCurves, f64)> {
     let (config, topo, device) = (&loaded.config, &loaded.topology, &loaded.device);
+    let takes = eval::Takes {
+        topology: topo,
+        files,
+        batch: config.eval.batch,
+        device,
+        progress,
+    };
     Ok(match &loaded.model {
         Trained::Springs(_) | Trained::NeuralOde(_) => {
             let model: &dyn crate::model::ForceModel = match &loaded.model {
@@ -120,28 +127,12 @@ fn motion_curves(
                 Trained::NeuralOde(ode) => ode,
                 Trained::Gnn(_) => unreachable!("matched above"),
             };
-            let c = eval::motion_curves(
-                model,
-                physics,
-                topo,
-                files,
-                config.eval.batch,
-                device,
-                progress,
-            )?;
+            let c = eval::motion_curves(model, physics, &takes)?;
             (c, first.frame_dt)
         }
         Trained::Gnn(model) => {
             let ds = config.model.gnn.downsample;
-            let c = eval::gnn_motion_curves(
-                model,
-                ds,
-                topo,
-                files,
-                config.eval.batch,
-                device,
-                progress,
-            )?;
+            let c = eval::gnn_motion_curves(model, ds, &takes)?;
             (c, first.frame_dt * ds as f64)
         }
     })

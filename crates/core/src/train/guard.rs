@@ -38,11 +38,13 @@ pub fn validate(
     let curves = eval::motion_curves(
         model,
         physics,
-        topology,
-        validation_files,
-        config.batch,
-        device,
-        progress,
+        &eval::Takes {
+            topology,
+            files: validation_files,
+            batch: config.batch,
+            device,
+            progress,
+        },
     )?;
     let trained = eval::summarize(
         &curves.curves,

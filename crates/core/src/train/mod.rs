@@ -31,6 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::cloth::{Resampler, SpringLayout, Topology};
 use crate::config::Config;
 use crate::data::{ClipBatch, ClipRef, ClipSet, HostBatch, Rollout, Sampler, Split, SpringTruth};
+use crate::eval::Takes;
 use crate::model::neural_ode::OdeScales;
 use crate::model::{Gnn, GnnConfig, ModelKind, NeuralOde, SpringNet, gnn};
 use crate::progress::Progress;
@@ -661,12 +662,14 @@ impl AfterFit<'_> {
             let (net, p, mut record) = scale::blend_search(
                 map,
                 (self.resolution.k_init, self.resolution.b_init),
-                job.topology,
                 &job.physics,
-                &self.split.train,
-                config.eval.batch,
-                self.device,
-                progress,
+                &Takes {
+                    topology: job.topology,
+                    files: &self.split.train,
+                    batch: config.eval.batch,
+                    device: self.device,
+                    progress,
+                },
             )?;
             record.map = name.to_string();
             if maps.len() > 1 {
@@ -722,12 +725,14 @@ impl AfterFit<'_> {
         let config = job.config;
         let (scaled, scaled_physics, record) = scale::search(
             model,
-            job.topology,
             &job.physics,
-            &self.split.train,
-            config.eval.batch,
-            self.device,
-            self.fit.progress,
+            &Takes {
+                topology: job.topology,
+                files: &self.split.train,
+                batch: config.eval.batch,
+                device: self.device,
+                progress: self.fit.progress,
+            },
         )?;
         self.fit.progress.note(&format!(
             "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion RMSE on \

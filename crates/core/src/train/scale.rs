@@ -30,9 +30,9 @@ use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::cloth::Topology;
+use crate::eval::Takes;
 use crate::eval::uniform::network_rollout_rmse;
 use crate::model::SpringNet;
-use crate::progress::Progress;
 use crate::sim::Physics;
 use crate::train::init::AUTO_SUBSTEPS_TARGET;
 
@@ -109,20 +109,22 @@ const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
 /// Candidates the search considers (some twice, simulated once).
 const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2);
 
-/// Searches the best uniform network around `model`'s means on `train_files`, then the share of
+/// Searches the best uniform network around `model`'s means on the training takes `train`, then the share of
 /// `model`'s map blended into it and the factors around the best; returns the kept network, the
 /// physics it runs at (substeps possibly raised) and the record.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn blend_search(
     model: &SpringNet,
     (k_init, b_init): (f64, f64),
-    topology: &Topology,
     physics: &Physics,
-    train_files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-    progress: &Progress,
+    train: &Takes,
 ) -> Result<(SpringNet, Physics, BlendSearch)> {
+    let Takes {
+        topology,
+        files: train_files,
+        batch,
+        device,
+        progress,
+    } = *train;
     let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
     let (k, b) = (model.k_values(), model.b_values());
     let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
@@ -332,17 +334,20 @@ fn stable_substeps(topology: &Topology, physics: &Physics, model: &SpringNet) ->
     })
 }
 
-/// Searches the factors of `model`'s `k` and `b` on `train_files`; returns the scaled network,
+/// Searches the factors of `model`'s `k` and `b` on the training takes `train`; returns the scaled network,
 /// the physics it runs at (substeps possibly raised) and the record.
 pub fn search(
     model: &SpringNet,
-    topology: &Topology,
     physics: &Physics,
-    train_files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-    progress: &Progress,
+    train: &Takes,
 ) -> Result<(SpringNet, Physics, ScaleSearch)> {
+    let Takes {
+        topology,
+        files: train_files,
+        batch,
+        device,
+        progress,
+    } = *train;
     let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
     let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
     // The curvature elements are stiffnesses: they scale with `k`.
