@@ -29,15 +29,7 @@ fn main() -> Result<()> {
         force: true,
     };
     let summary = obj::import_sequence(&dir, &options)?;
-    println!(
-        "{}: {} frames of {} points, rest {:.3} × {:.3} m (from {})",
-        summary.path.display(),
-        summary.frames,
-        summary.points,
-        summary.width,
-        summary.height,
-        summary.rest_from
-    );
+    println!("{summary}");
     // The file is an ordinary rollout: `springtime data check` and training read it as is.
     let rollout = Rollout::load(&summary.path)?;
     println!(

@@ -1012,15 +1012,7 @@ fn import(source: &ImportCommand) -> Result<()> {
             crate::import::csv::import_tracks(file, &args.options()?)?
         }
     };
-    println!(
-        "wrote {}: {} frames of {} points, rest rectangle {:.6} m × {:.6} m from {}",
-        summary.path.display(),
-        summary.frames,
-        summary.points,
-        summary.width,
-        summary.height,
-        summary.rest_from
-    );
+    println!("wrote {summary}");
     Ok(())
 }
 
@@ -1400,6 +1392,13 @@ fn train_command(
     Ok(())
 }
 
+/// A command's notes, on standard error.
+fn print_notes(notes: &[String]) {
+    for note in notes {
+        eprintln!("note: {note}");
+    }
+}
+
 /// `springtime diagnose`.
 fn diagnose(
     run_dir: &Path,
@@ -1407,9 +1406,7 @@ fn diagnose(
     progress: &Progress,
 ) -> Result<()> {
     let s = crate::diagnose::diagnose(run_dir, options, progress)?;
-    for note in &s.notes {
-        eprintln!("note: {note}");
-    }
+    print_notes(&s.notes);
     print!("{}", s.table);
     println!("diagnosis: {}", s.dir.display());
     Ok(())
@@ -1463,9 +1460,7 @@ fn report(
 ) -> Result<()> {
     let options = crate::report::ReportOptions { data, backend };
     let summary = crate::report::build(run_dir, &options, progress)?;
-    for note in &summary.notes {
-        eprintln!("note: {note}");
-    }
+    print_notes(&summary.notes);
     println!("report: {}", summary.html.display());
     Ok(())
 }

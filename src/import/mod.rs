@@ -121,6 +121,23 @@ pub struct ImportSummary {
     pub rest_from: String,
 }
 
+impl std::fmt::Display for ImportSummary {
+    /// `path: F frames of N points, rest rectangle W m × H m from …`, as `springtime import`
+    /// prints it.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{}: {} frames of {} points, rest rectangle {:.6} m × {:.6} m from {}",
+            self.path.display(),
+            self.frames,
+            self.points,
+            self.width,
+            self.height,
+            self.rest_from
+        )
+    }
+}
+
 /// Whether triangle `t` has no area in the rest rectangle (of area `area`): such a mesh is not
 /// stored (rollout loading refuses it), the points alone are.
 fn degenerate(rest_uv: &[[f64; 2]], t: &[usize; 3], area: f64) -> bool {

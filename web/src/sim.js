@@ -236,6 +236,20 @@
     };
   }
 
+  /** The axis of the face of the box of half sizes `half` nearest to `q` (inside or on it). */
+  function nearestFace(half, q) {
+    let axis = 2;
+    let best = Infinity;
+    for (let c = 0; c < 3; c++) {
+      const gap = half[c] - Math.abs(q[c]);
+      if (gap < best) {
+        best = gap;
+        axis = c;
+      }
+    }
+    return axis;
+  }
+
   /** An axis-aligned box of inner half sizes `half` rounded by `radius` (the drape table). */
   function roundedBox(center, half, radius, friction) {
     return {
@@ -255,14 +269,7 @@
         let axis = 2;
         if (inside) {
           // Inside the inner box: the nearest face.
-          let best = Infinity;
-          for (let c = 0; c < 3; c++) {
-            const gap = half[c] - Math.abs(q[c]);
-            if (gap < best) {
-              best = gap;
-              axis = c;
-            }
-          }
+          axis = nearestFace(half, q);
           p[axis] = q[axis] >= 0 ? half[axis] : -half[axis];
         }
         const d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
@@ -274,14 +281,7 @@
           n = [0, 0, 0];
           if (!inside) {
             // On the inner box's surface: the face's normal.
-            let best = Infinity;
-            for (let c = 0; c < 3; c++) {
-              const gap = half[c] - Math.abs(q[c]);
-              if (gap < best) {
-                best = gap;
-                axis = c;
-              }
-            }
+            axis = nearestFace(half, q);
           }
           n[axis] = q[axis] >= 0 ? 1 : -1;
         }

@@ -17,6 +17,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 
+/// The dtypes a float key converts from, for messages.
+const NUMERIC: &str = "a float or integer type";
 /// Element type of a numeric array.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Dtype {
@@ -732,21 +734,23 @@ impl Npz {
         key: &str,
         shape: &[Option<usize>],
     ) -> Result<(Vec<f32>, Vec<usize>)> {
-        self.converted(key, shape, Array::to_f32)
+        self.converted(key, shape, Array::to_f32, NUMERIC)
     }
 
-    /// `key` converted by `convert`, checked against `shape`.
+    /// `key` converted by `convert`, checked against `shape`; `expected` says what dtypes
+    /// convert.
     fn converted<T>(
         &self,
         key: &str,
         shape: &[Option<usize>],
         convert: fn(&Array) -> Option<Vec<T>>,
+        expected: &str,
     ) -> Result<(Vec<T>, Vec<usize>)> {
         let a = self.get(key)?;
         self.check_shape(key, a, shape)?;
         let v = convert(a).ok_or_else(|| {
             anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected a float or integer type",
+                "{}: key `{key}` has dtype {}, expected {expected}",
                 self.path.display(),
                 a.dtype.name()
             )
@@ -761,7 +765,7 @@ impl Npz {
         shape: &[Option<usize>],
         convert: fn(&Array) -> Option<Vec<T>>,
     ) -> Result<(Vec<T>, Vec<usize>)> {
-        let (v, shape) = self.converted(key, shape, convert)?;
+        let (v, shape) = self.converted(key, shape, convert, NUMERIC)?;
         if let Some(i) = v.iter().position(|x| !(*x).into().is_finite()) {
             bail!(
                 "{}: key `{key}` holds a non-finite value ({}) at flat index {i}{}",
@@ -798,16 +802,12 @@ impl Npz {
 
     /// An integer array, checked against `shape`.
     pub fn int(&self, key: &str, shape: &[Option<usize>]) -> Result<(Vec<i64>, Vec<usize>)> {
-        let a = self.get(key)?;
-        self.check_shape(key, a, shape)?;
-        let v = a.to_i64().ok_or_else(|| {
-            anyhow::anyhow!(
-                "{}: key `{key}` has dtype {}, expected integers (an integer type, or whole floats)",
-                self.path.display(),
-                a.dtype.name()
-            )
-        })?;
-        Ok((v, a.shape.clone()))
+        self.converted(
+            key,
+            shape,
+            Array::to_i64,
+            "integers (an integer type, or whole floats)",
+        )
     }
 
     /// A boolean array, checked against `shape`.

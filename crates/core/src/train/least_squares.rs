@@ -920,15 +920,7 @@ mod tests {
             .map(|c| (c + noise(0.4)) as f32)
             .collect();
         let velocities: Vec<f32> = (0..frames * p * 3).map(|_| noise(2.0) as f32).collect();
-        let track = Track {
-            frames,
-            particles: p,
-            positions,
-            velocities,
-            stored_velocities: false,
-            pinned: vec![false; p],
-            visible: None,
-        };
+        let track = free_track(frames, p, positions, velocities, None);
         let physics = test_physics();
         let pattern = Pattern::new(&topo);
         let mut sums = pattern.empty_sums();
@@ -984,6 +976,25 @@ mod tests {
 
     /// With particle 0 of a 4 × 4 sheet hidden in frames 5 and 6, moving it there changes no
     /// sum, and the rows whose stencil would read it (its own and its neighbours') are gone.
+    /// A track of `p` free particles over `frames` frames, its velocities not stored.
+    fn free_track(
+        frames: usize,
+        p: usize,
+        positions: Vec<f32>,
+        velocities: Vec<f32>,
+        visible: Option<Vec<bool>>,
+    ) -> Track {
+        Track {
+            frames,
+            particles: p,
+            positions,
+            velocities,
+            stored_velocities: false,
+            pinned: vec![false; p],
+            visible,
+        }
+    }
+
     #[test]
     fn hidden_particles_add_no_rows() {
         let points: Vec<[f64; 2]> = (0..4)
@@ -1006,15 +1017,7 @@ mod tests {
                         (positions[(f + 1) * p * 3 + i] - positions[(f - 1) * p * 3 + i]) / 0.2;
                 }
             }
-            Track {
-                frames,
-                particles: p,
-                positions,
-                velocities,
-                stored_velocities: false,
-                pinned: vec![false; p],
-                visible,
-            }
+            free_track(frames, p, positions, velocities, visible)
         };
         let mut seen = vec![true; frames * p];
         seen[5 * p] = false;
