@@ -265,20 +265,14 @@ pub fn motion_curves(
     physics_template: &Physics,
     takes: &Takes,
 ) -> Result<MotionCurves> {
-    let Takes {
-        topology,
-        files,
-        batch,
-        device,
-        progress,
-    } = *takes;
-    let tracks = files
+    let tracks = takes
+        .files
         .iter()
-        .map(|f| TestTrack::load(f, topology))
+        .map(|f| TestTrack::load(f, takes.topology))
         .collect::<Result<Vec<_>>>()?;
     // Every rollout is stepped from its first usable frame to its last.
     let total_frames: usize = tracks.iter().map(|t| t.track.frames - 1 - t.first).sum();
-    let bar = progress.bar(total_frames as u64, "eval");
+    let bar = takes.progress.bar(total_frames as u64, "eval");
     let mut out = MotionCurves {
         curves: vec![Vec::new(); tracks.len()],
         step_seconds: 0.0,
@@ -290,16 +284,16 @@ pub fn motion_curves(
         tracks[*a].track.frames == tracks[*b].track.frames && tracks[*a].first == tracks[*b].first
     };
     for group in order.chunk_by(alike) {
-        for chunk in group.chunks(batch.max(1)) {
+        for chunk in group.chunks(takes.batch.max(1)) {
             let lead = &tracks[chunk[0]];
             let batch = EvalBatch {
                 tracks: &tracks,
                 chunk,
-                particles: topology.num_particles(),
+                particles: takes.topology.num_particles(),
                 frames: lead.track.frames,
                 first: lead.first,
                 frame_dt: lead.frame_dt,
-                device,
+                device: takes.device,
             };
             batch.simulate(model, physics_template, &mut out, &bar)?;
         }
@@ -461,17 +455,10 @@ pub(crate) fn gnn_motion_curves(
     downsample: usize,
     takes: &Takes,
 ) -> Result<MotionCurves> {
-    let Takes {
-        topology,
-        files,
-        batch,
-        device,
-        progress,
-    } = *takes;
     let c = model.history;
     let mut tracks = Vec::new();
-    for f in files {
-        let t = TestTrack::load(f, topology)?;
+    for f in takes.files {
+        let t = TestTrack::load(f, takes.topology)?;
         if t.track.frames <= t.first + (c + 1) * downsample {
             bail!(
                 "{}: {} frames are too few for the GNN's {} input frames {} apart",
@@ -486,19 +473,19 @@ pub(crate) fn gnn_motion_curves(
     let eval = GnnEval {
         model,
         downsample,
-        particles: topology.num_particles(),
+        particles: takes.topology.num_particles(),
         tracks: &tracks,
-        device,
+        device: takes.device,
     };
     let total: usize = (0..tracks.len()).map(|i| eval.steps_of(i)).sum();
-    let bar = progress.bar(total as u64, "eval");
+    let bar = takes.progress.bar(total as u64, "eval");
     let mut out = MotionCurves {
         curves: vec![Vec::new(); tracks.len()],
         step_seconds: 0.0,
         steps: 0,
     };
     let order: Vec<usize> = (0..tracks.len()).collect();
-    for chunk in order.chunks(batch.max(1)) {
+    for chunk in order.chunks(takes.batch.max(1)) {
         eval.roll_out(chunk, &mut out, &bar)?;
     }
     bar.finish();

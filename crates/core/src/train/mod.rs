@@ -647,6 +647,17 @@ impl AfterFit<'_> {
         Ok(())
     }
 
+    /// The fitted training rollouts, for the searches.
+    fn train_takes(&self) -> Takes<'_> {
+        Takes {
+            topology: self.fit.job.topology,
+            files: &self.split.train,
+            batch: self.fit.job.config.eval.batch,
+            device: self.device,
+            progress: self.fit.progress,
+        }
+    }
+
     /// The blend search on the maps to blend: the trained network, and with both starts on
     /// the compliance map too; the one whose blend moves closest to the training rollouts is
     /// kept.
@@ -663,13 +674,7 @@ impl AfterFit<'_> {
                 map,
                 (self.resolution.k_init, self.resolution.b_init),
                 &job.physics,
-                &Takes {
-                    topology: job.topology,
-                    files: &self.split.train,
-                    batch: config.eval.batch,
-                    device: self.device,
-                    progress,
-                },
+                &self.train_takes(),
             )?;
             record.map = name.to_string();
             if maps.len() > 1 {
@@ -723,17 +728,8 @@ impl AfterFit<'_> {
     fn scale(&self, model: &SpringNet) -> Result<(SpringNet, Physics)> {
         let job = self.fit.job;
         let config = job.config;
-        let (scaled, scaled_physics, record) = scale::search(
-            model,
-            &job.physics,
-            &Takes {
-                topology: job.topology,
-                files: &self.split.train,
-                batch: config.eval.batch,
-                device: self.device,
-                progress: self.fit.progress,
-            },
-        )?;
+        let (scaled, scaled_physics, record) =
+            scale::search(model, &job.physics, &self.train_takes())?;
         self.fit.progress.note(&format!(
             "scale search: k × {:.3}, b × {:.3} at {} substep(s) per frame: mean motion RMSE on \
              {} training rollouts {} -> {:.4e} m",

@@ -26,7 +26,6 @@
 use std::path::PathBuf;
 
 use anyhow::{Result, bail};
-use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use crate::cloth::Topology;
@@ -118,14 +117,7 @@ pub(crate) fn blend_search(
     physics: &Physics,
     train: &Takes,
 ) -> Result<(SpringNet, Physics, BlendSearch)> {
-    let Takes {
-        topology,
-        files: train_files,
-        batch,
-        device,
-        progress,
-    } = *train;
-    let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
+    let files = search_files(train);
     let (k, b) = (model.k_values(), model.b_values());
     let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
     let mut search = Blender {
@@ -135,13 +127,13 @@ pub(crate) fn blend_search(
         b,
         k_mean,
         b_mean,
-        topology,
         physics,
-        files: &files,
-        batch,
-        device,
+        takes: Takes {
+            files: &files,
+            ..*train
+        },
         tried: Vec::new(),
-        bar: progress.bar(BLEND_CANDIDATES as u64, "blend search"),
+        bar: train.progress.bar(BLEND_CANDIDATES as u64, "blend search"),
     };
     let before = search.score(1.0, 1.0, 1.0).map(|(_, r)| r);
     // Both ends first: the uniform network (α = 0) and the learned map (α = 1), each from a
@@ -218,11 +210,9 @@ struct Blender<'a> {
     kappa: Vec<f64>,
     k_mean: f64,
     b_mean: f64,
-    topology: &'a Topology,
     physics: &'a Physics,
-    files: &'a [PathBuf],
-    batch: usize,
-    device: &'a Device,
+    /// The training takes of the search ([`search_files`]).
+    takes: Takes<'a>,
     tried: Vec<((f64, f64, f64), Scored)>,
     bar: crate::progress::Bar,
 }
@@ -238,7 +228,7 @@ impl Blender<'_> {
         };
         let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
         let (k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
-        SpringNet::new(self.topology, &k, &b, self.device)
+        SpringNet::new(self.takes.topology, &k, &b, self.takes.device)
             .with_kernel(self.model.graph.kernel)
             .with_curvature(&kappa)
     }
@@ -249,8 +239,7 @@ impl Blender<'_> {
             return known;
         }
         let net = self.blended(alpha, fk, fb);
-        let (topology, physics) = (self.topology, self.physics);
-        let found = score_network(&net, topology, physics, self.files, self.batch, self.device);
+        let found = score_network(&net, self.physics, &self.takes);
         self.tried.push(((alpha, fk, fb), found));
         found
     }
@@ -306,22 +295,28 @@ impl Blender<'_> {
 }
 
 /// A candidate's fewest stable substeps ([`stable_substeps`]) and its mean motion RMSE on
-/// `files` there; `None` when no substeps within the cap keep it stable or a rollout diverged.
-fn score_network(
-    net: &SpringNet,
-    topology: &Topology,
-    physics: &Physics,
-    files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-) -> Scored {
-    stable_substeps(topology, physics, net).and_then(|n| {
+/// `takes` there; `None` when no substeps within the cap keep it stable or a rollout diverged.
+fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Scored {
+    stable_substeps(takes.topology, physics, net).and_then(|n| {
         let p = Physics {
             substeps: n,
             ..*physics
         };
-        network_rollout_rmse(net, topology, &p, files, batch, device).map(|r| (n, r))
+        network_rollout_rmse(
+            net,
+            takes.topology,
+            &p,
+            takes.files,
+            takes.batch,
+            takes.device,
+        )
+        .map(|r| (n, r))
     })
+}
+
+/// The training takes a search simulates: the first [`SEARCH_ROLLOUTS`].
+fn search_files(train: &Takes) -> Vec<PathBuf> {
+    train.files.iter().take(SEARCH_ROLLOUTS).cloned().collect()
 }
 
 /// The fewest substeps from `physics.substeps` up that start `model` at
@@ -341,19 +336,16 @@ pub fn search(
     physics: &Physics,
     train: &Takes,
 ) -> Result<(SpringNet, Physics, ScaleSearch)> {
-    let Takes {
-        topology,
-        files: train_files,
-        batch,
-        device,
-        progress,
-    } = *train;
-    let files: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
+    let files = search_files(train);
+    let takes = Takes {
+        files: &files,
+        ..*train
+    };
     let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
     // The curvature elements are stiffnesses: they scale with `k`.
     let scaled = |fk: f64, fb: f64| {
         let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
-        SpringNet::new(topology, &times(&k, fk), &times(&b, fb), device)
+        SpringNet::new(train.topology, &times(&k, fk), &times(&b, fb), train.device)
             .with_kernel(model.graph.kernel)
             .with_curvature(&times(&kappa, fk))
     };
@@ -364,11 +356,11 @@ pub fn search(
         if let Some(&(_, _, known)) = tried.iter().find(|t| t.0 == fk && t.1 == fb) {
             return known;
         }
-        let found = score_network(&scaled(fk, fb), topology, physics, &files, batch, device);
+        let found = score_network(&scaled(fk, fb), physics, &takes);
         tried.push((fk, fb, found));
         found
     };
-    let bar = progress.bar(
+    let bar = train.progress.bar(
         (K_STEPS.count() + B_STEPS.count() + 2) as u64,
         "scale search",
     );
