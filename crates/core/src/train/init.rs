@@ -147,15 +147,22 @@ impl UniformFit {
         }
         let stride = pool.len().div_ceil(FIT_CLIPS).max(1);
         let rows = StencilRows::new(clips, gravity, rayleigh);
-        let t = clips.steps;
-        let stencils: Vec<usize> = STENCILS.iter().copied().filter(|&w| 2 * w < t).collect();
+        let stencils: Vec<usize> = STENCILS
+            .iter()
+            .copied()
+            .filter(|&w| 2 * w < rows.t)
+            .collect();
         let mut systems = vec![Normal::default(); stencils.len()];
         for clip in pool.iter().step_by(stride) {
             let track = clips.track(clip.rollout)?;
-            let clip = ClipFrames::new(&track, clip.offset, rows.p);
-            let frames = rows.columns(&clip, t);
+            let clip = ClipFrames {
+                track: &track,
+                offset: clip.offset,
+                p: rows.p,
+            };
+            let frames = rows.columns(&clip);
             for (system, &w) in systems.iter_mut().zip(&stencils) {
-                rows.add(system, w, &clip, &frames, t);
+                rows.add(system, w, &clip, &frames);
             }
         }
         let (solution, stencil) = best_stencil(&systems, &stencils, rows.unknowns)?;
@@ -208,11 +215,7 @@ struct ClipFrames<'a> {
     p: usize,
 }
 
-impl<'a> ClipFrames<'a> {
-    fn new(track: &'a Track, offset: usize, p: usize) -> Self {
-        Self { track, offset, p }
-    }
-
+impl ClipFrames<'_> {
     /// Particle `i` at frame `j` of the clip.
     fn x(&self, j: usize, i: usize) -> [f64; 3] {
         let o = ((self.offset + j) * self.p + i) * 3;
@@ -227,6 +230,8 @@ struct StencilRows<'a> {
     topo: &'a Topology,
     neighbours: Vec<Vec<usize>>,
     p: usize,
+    /// Steps per clip: a clip holds frames 0..=t.
+    t: usize,
     mass: f64,
     dt: f64,
     gravity: [f64; 3],
@@ -247,6 +252,7 @@ impl<'a> StencilRows<'a> {
             topo,
             neighbours,
             p,
+            t: clips.steps,
             mass: clips.particle_mass(),
             dt: clips.info.frame_dt,
             gravity,
@@ -256,8 +262,8 @@ impl<'a> StencilRows<'a> {
     }
 
     /// Unit columns and central-difference velocities at frames 1..t−1 of the clip.
-    fn columns(&self, clip: &ClipFrames, t: usize) -> Vec<Vec<[[f64; 3]; 3]>> {
-        let (p, dt) = (self.p, self.dt);
+    fn columns(&self, clip: &ClipFrames) -> Vec<Vec<[[f64; 3]; 3]>> {
+        let (p, t, dt) = (self.p, self.t, self.dt);
         let mut cols = vec![[[0f64; 3]; 2]; p];
         let mut frames: Vec<Vec<[[f64; 3]; 3]>> = vec![Vec::new(); t + 1];
         for (j, slot) in frames.iter_mut().enumerate().take(t).skip(1) {
@@ -277,15 +283,8 @@ impl<'a> StencilRows<'a> {
     }
 
     /// Adds the clip's rows of stencil half-width `w` to `system`.
-    fn add(
-        &self,
-        system: &mut Normal,
-        w: usize,
-        clip: &ClipFrames,
-        frames: &[Vec<[[f64; 3]; 3]>],
-        t: usize,
-    ) {
-        let track = clip.track;
+    fn add(&self, system: &mut Normal, w: usize, clip: &ClipFrames, frames: &[Vec<[[f64; 3]; 3]>]) {
+        let (track, t) = (clip.track, self.t);
         // m (x_{j+w} − 2x_j + x_{j−w}) / (wΔt)² is the tent-weighted mean of the net
         // force over (j − w, j + w): weights (w − |i − j|)/w² on the frames between.
         let h2 = (w as f64 * self.dt).powi(2);
