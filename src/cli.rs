@@ -781,7 +781,15 @@ pub fn run(cli: Cli) -> Result<()> {
             kernel,
             n,
         }),
-        command => train_or_evaluate(command, &progress),
+        // Listed by name, so that a new command fails to compile here instead of reaching an
+        // `unreachable!` below.
+        command @ (Command::Train { .. }
+        | Command::Eval { .. }
+        | Command::Report { .. }
+        | Command::Diagnose { .. }
+        | Command::Export { .. }
+        | Command::Simulate { .. }
+        | Command::Drape { .. }) => train_or_evaluate(command, &progress),
     }
 }
 
@@ -845,7 +853,10 @@ fn train_or_evaluate(command: Command, progress: &Progress) -> Result<()> {
             },
             progress,
         ),
-        command => use_trained(command, progress),
+        command @ (Command::Export { .. } | Command::Simulate { .. } | Command::Drape { .. }) => {
+            use_trained(command, progress)
+        }
+        _ => unreachable!("run dispatches every other command"),
     }
 }
 
