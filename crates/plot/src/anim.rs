@@ -92,11 +92,11 @@ pub fn draw_cloth(
         .caption(caption, text(14))
         .margin(8)
         .build_cartesian_2d(cx0..cx1, cy0..cy1)
-        .map_err(|e| anyhow::anyhow!("drawing failed: {e}"))?;
+        .map_err(crate::err)?;
     chart
         .plotting_area()
         .fill(&RGBColor(250, 250, 250))
-        .map_err(failed)?;
+        .map_err(crate::err)?;
     for layer in layers {
         draw_layer(&mut chart, view, layer)?;
     }
@@ -118,13 +118,6 @@ fn window((w, h): (u32, u32), bounds: ((f64, f64), (f64, f64))) -> ((f64, f64), 
     ((cx0, cx1), (cy0, cy1))
 }
 
-/// A drawing error as [`draw_cloth`] reports it.
-fn failed<E: std::error::Error + Send + Sync>(
-    e: plotters::drawing::DrawingAreaErrorKind<E>,
-) -> anyhow::Error {
-    anyhow::anyhow!("drawing failed: {e}")
-}
-
 /// Draws one layer's edges, then its points (pinned ones red and a pixel larger).
 fn draw_layer(chart: &mut Chart, view: &View, layer: &Layer) -> Result<()> {
     let pt = |i: usize| {
@@ -140,7 +133,7 @@ fn draw_layer(chart: &mut Chart, view: &View, layer: &Layer) -> Result<()> {
                 .filter(|[a, b]| *a < n && *b < n)
                 .map(|&[a, b]| PathElement::new(vec![pt(a), pt(b)], layer.color.stroke_width(1))),
         )
-        .map_err(failed)?;
+        .map_err(crate::err)?;
     if layer.radius > 0 {
         chart
             .draw_series((0..n).map(|i| {
@@ -152,7 +145,7 @@ fn draw_layer(chart: &mut Chart, view: &View, layer: &Layer) -> Result<()> {
                 };
                 Circle::new(pt(i), r, c.filled())
             }))
-            .map_err(failed)?;
+            .map_err(crate::err)?;
     }
     Ok(())
 }
@@ -179,14 +172,14 @@ fn draw_triad(
                 vec![origin, end],
                 color.stroke_width(2),
             )))
-            .map_err(failed)?;
+            .map_err(crate::err)?;
         chart
             .draw_series(std::iter::once(Text::new(
                 name,
                 (origin.0 + 1.25 * len * dx, origin.1 + 1.25 * len * dy),
                 text(12).color(&color),
             )))
-            .map_err(failed)?;
+            .map_err(crate::err)?;
     }
     Ok(())
 }
