@@ -8,6 +8,7 @@ pub mod guard;
 pub mod init;
 pub mod least_squares;
 pub mod losses;
+pub mod refine;
 pub mod run;
 pub mod scale;
 
@@ -162,6 +163,9 @@ pub struct TrainConfig {
     /// Start a spring network from the per-spring least-squares fit of the data's forces
     /// (ours; off: the paper's uniform start).
     pub least_squares: least_squares::LeastSquaresConfig,
+    /// After the searches, refine a spring network per spring by Adam on `log k` of a
+    /// multiple-shooting position loss (ours; PhysTwin's second stage; off by default).
+    pub refine: refine::RefineConfig,
     /// The stiffness pass.
     pub stiffness: PassConfig,
     /// The damping pass.
@@ -187,6 +191,7 @@ impl Default for TrainConfig {
             blend_search: false,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
+            refine: refine::RefineConfig::default(),
             stiffness: PassConfig {
                 lr: 2.0,
                 clips: ClipPool::LowVelocity,
@@ -282,6 +287,7 @@ impl TrainConfig {
                  candidates include the scale search's (α = 1); keep one"
             );
         }
+        self.refine.validate()?;
         self.least_squares.validate()
     }
 
@@ -514,6 +520,12 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
             config.model.kind.name()
         ));
     }
+    if config.train.refine.iterations > 0 && config.model.kind != ModelKind::Springs {
+        progress.note(&format!(
+            "`train.refine` refines a spring network; `model.kind = \"{}\"` trains without it",
+            config.model.kind.name()
+        ));
+    }
     let summary = match config.model.kind {
         ModelKind::Springs => {
             let model = fit
@@ -635,6 +647,9 @@ impl AfterFit<'_> {
         if config.train.scale_search {
             (model, final_physics) = self.scale(&model)?;
         }
+        if config.train.refine.iterations > 0 {
+            (model, final_physics) = self.refine(&model, &final_physics)?;
+        }
         run::write_springs(
             &self.fit.run.springs(),
             job.topology,
@@ -743,6 +758,49 @@ impl AfterFit<'_> {
         let run = self.fit.run;
         keep_searched(run, config, &scaled, &scaled_physics, "scale.json", &record)?;
         Ok((scaled, scaled_physics))
+    }
+
+    /// The per-spring refinement of the searched `model` (`train.refine`), kept where it moves
+    /// closer to the searches' training takes.
+    fn refine(&self, model: &SpringNet, physics: &Physics) -> Result<(SpringNet, Physics)> {
+        let (job, progress) = (self.fit.job, self.fit.progress);
+        let config = job.config;
+        let train = self.train_takes();
+        let files = scale::search_files(&train);
+        let takes = Takes {
+            files: &files,
+            ..train
+        };
+        let refiner = refine::Refiner {
+            config: &config.train.refine,
+            clips: self.fit.clips,
+            takes: &takes,
+            device: job.device,
+            seed: config.train.seed,
+            state_budget_mib: config.train.state_budget_mib,
+            progress,
+        };
+        let (net, p, record) = refiner.refine(model, physics)?;
+        let (first, last) = record.loss_change();
+        progress.note(&format!(
+            "refine: {} Adam steps on log k, position loss {first:.4e} -> {last:.4e} m² (the \
+             first and last eighth of the steps), RMS change of log k {:.3}; mean motion RMSE \
+             on {} training rollouts {:.4e} -> {} m ({})",
+            record.iterations,
+            record.log_k_change,
+            files.len(),
+            record.before,
+            record
+                .after
+                .map_or("(diverged)".into(), |r| format!("{r:.4e}")),
+            if record.kept {
+                "kept"
+            } else {
+                "not kept: the searched network stays"
+            }
+        ));
+        keep_searched(self.fit.run, config, &net, &p, "refine.json", &record)?;
+        Ok((net, p))
     }
 
     /// The learned network against the best uniform one on the held-out training rollouts,

@@ -296,7 +296,7 @@ impl Blender<'_> {
 
 /// A candidate's fewest stable substeps ([`stable_substeps`]) and its mean motion RMSE on
 /// `takes` there; `None` when no substeps within the cap keep it stable or a rollout diverged.
-fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Scored {
+pub(crate) fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Scored {
     stable_substeps(takes.topology, physics, net).and_then(|n| {
         let p = Physics {
             substeps: n,
@@ -315,13 +315,17 @@ fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Scored {
 }
 
 /// The training takes a search simulates: the first [`SEARCH_ROLLOUTS`].
-fn search_files(train: &Takes) -> Vec<PathBuf> {
+pub(crate) fn search_files(train: &Takes) -> Vec<PathBuf> {
     train.files.iter().take(SEARCH_ROLLOUTS).cloned().collect()
 }
 
 /// The fewest substeps from `physics.substeps` up that start `model` at
 /// `dt²ω² + 2·dt·γ ≤ 1`, or `None` beyond [`MAX_SUBSTEP_FACTOR`] times the run's.
-fn stable_substeps(topology: &Topology, physics: &Physics, model: &SpringNet) -> Option<usize> {
+pub(crate) fn stable_substeps(
+    topology: &Topology,
+    physics: &Physics,
+    model: &SpringNet,
+) -> Option<usize> {
     let mut p = *physics;
     (physics.substeps..=physics.substeps * MAX_SUBSTEP_FACTOR).find(|&n| {
         p.substeps = n;
