@@ -912,7 +912,6 @@ fn relaxable(
 }
 
 /// One scene's drapes started at rest from a reference's settled drape.
-#[derive(Default)]
 struct Relaxations {
     /// Every model from the source's drape (none where it cannot relax).
     from_source: Vec<Draped>,
