@@ -513,19 +513,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         previous: previous.as_ref(),
         progress,
     };
-    if config.train.least_squares.enabled && config.model.kind != ModelKind::Springs {
-        progress.note(&format!(
-            "`train.least_squares` starts a spring network; `model.kind = \"{}\"` starts as \
-             it would without it",
-            config.model.kind.name()
-        ));
-    }
-    if config.train.refine.iterations > 0 && config.model.kind != ModelKind::Springs {
-        progress.note(&format!(
-            "`train.refine` refines a spring network; `model.kind = \"{}\"` trains without it",
-            config.model.kind.name()
-        ));
-    }
+    note_spring_only(config, progress);
     let summary = match config.model.kind {
         ModelKind::Springs => {
             let model = fit
@@ -548,6 +536,25 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     state.status = Status::Finished;
     run.write_state(&state)?;
     Ok(summary)
+}
+
+/// Says which of the config's spring-network stages a baseline family trains without.
+fn note_spring_only(config: &Config, progress: &Progress) {
+    if config.model.kind == ModelKind::Springs {
+        return;
+    }
+    let kind = config.model.kind.name();
+    if config.train.least_squares.enabled {
+        progress.note(&format!(
+            "`train.least_squares` starts a spring network; `model.kind = \"{kind}\"` starts as \
+             it would without it"
+        ));
+    }
+    if config.train.refine.iterations > 0 {
+        progress.note(&format!(
+            "`train.refine` refines a spring network; `model.kind = \"{kind}\"` trains without it"
+        ));
+    }
 }
 
 /// Refuses frame-difference forces on clips too short to difference.

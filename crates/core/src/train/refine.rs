@@ -13,6 +13,9 @@ use std::sync::Arc;
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
+use burn::tensor::{Device, Tensor};
+
+use crate::cloth::Topology;
 use crate::data::{ClipSet, Sampler};
 use crate::eval::Takes;
 use crate::model::SpringNet;
@@ -164,6 +167,85 @@ pub(crate) struct Refiner<'a> {
     pub progress: &'a Progress,
 }
 
+/// The refined parameters: `θ = log(k + c)` per spring (and `log b` with `train_b`), each with
+/// its Adam moments.
+struct LogParams {
+    log_k: Vec<f64>,
+    log_b: Option<Vec<f64>>,
+    /// The untrained `b` (without `train_b`).
+    b: Vec<f64>,
+    /// `c`: springs at zero start exactly there and can rise (`k = max(e^θ − c, 0)`).
+    shift: f64,
+    adam_k: Adam,
+    adam_b: Adam,
+}
+
+impl LogParams {
+    fn new(k: &[f64], b: &[f64], train_b: bool) -> Result<Self> {
+        let mean = k.iter().sum::<f64>() / k.len().max(1) as f64;
+        if !(mean > 0.0) {
+            bail!("`train.refine` steps log k; every k of the searched network is 0");
+        }
+        let shift = SHIFT_SHARE * mean;
+        let train_b = train_b && b.iter().all(|&x| x > 0.0);
+        Ok(Self {
+            log_k: k.iter().map(|k| (k.max(0.0) + shift).ln()).collect(),
+            log_b: train_b.then(|| b.iter().map(|b| b.ln()).collect()),
+            b: b.to_vec(),
+            shift,
+            adam_k: Adam::new(k.len()),
+            adam_b: Adam::new(b.len()),
+        })
+    }
+
+    fn k(&self) -> Vec<f64> {
+        self.log_k
+            .iter()
+            .map(|t| (t.exp() - self.shift).max(0.0))
+            .collect()
+    }
+
+    fn b(&self) -> Vec<f64> {
+        match &self.log_b {
+            Some(log_b) => log_b.iter().map(|t| t.exp()).collect(),
+            None => self.b.clone(),
+        }
+    }
+
+    /// One Adam step of rate `lr` from the gradients with respect to `k` and `b` (a gradient
+    /// that is missing or not finite steps nothing).
+    fn step(&mut self, g_k: Option<Tensor<1>>, g_b: Option<Tensor<1>>, lr: f64) {
+        // dk/dθ = e^θ for both parameters.
+        let chain = |g: Option<Tensor<1>>, theta: &[f64]| -> Option<Vec<f64>> {
+            let g: Vec<f64> = to_f64(g?)
+                .iter()
+                .zip(theta)
+                .map(|(g, t)| g * t.exp())
+                .collect();
+            g.iter().all(|v| v.is_finite()).then_some(g)
+        };
+        if let Some(g) = chain(g_k, &self.log_k) {
+            self.adam_k.step(&mut self.log_k, &g, lr);
+        }
+        if let Some(log_b) = &mut self.log_b
+            && let Some(g) = chain(g_b, log_b)
+        {
+            self.adam_b.step(log_b, &g, lr);
+        }
+    }
+
+    /// The RMS change of `θ` from the network `k`.
+    fn change_from(&self, k: &[f64]) -> f64 {
+        let sum: f64 = self
+            .log_k
+            .iter()
+            .zip(k)
+            .map(|(t, k)| (t - (k.max(0.0) + self.shift).ln()).powi(2))
+            .sum();
+        (sum / k.len().max(1) as f64).sqrt()
+    }
+}
+
 impl Refiner<'_> {
     /// Refines `net` (running at `physics`); returns the kept network, its physics and the
     /// record.
@@ -172,31 +254,52 @@ impl Refiner<'_> {
         net: &SpringNet,
         physics: &Physics,
     ) -> Result<(SpringNet, Physics, Refinement)> {
-        let config = self.config;
-        let topology = self.takes.topology;
-        let kappa = net.curvature_values();
-        let kernel = net.graph.kernel;
         let k0 = net.k_values();
-        let b0 = net.b_values();
-        let train_b = config.train_b && b0.iter().all(|&x| x > 0.0);
-        // The steps are on log(k + c) with c a small share of the mean, so that springs the
-        // fit fixed at zero start exactly there and can rise (k = max(e^θ − c, 0)).
-        let mean = k0.iter().sum::<f64>() / k0.len().max(1) as f64;
-        if !(mean > 0.0) {
-            bail!("`train.refine` steps log k; every k of the searched network is 0");
-        }
-        let shift = SHIFT_SHARE * mean;
-        let mut log_k: Vec<f64> = k0.iter().map(|k| (k.max(0.0) + shift).ln()).collect();
-        let k_of = |theta: &[f64]| -> Vec<f64> {
-            theta.iter().map(|t| (t.exp() - shift).max(0.0)).collect()
+        let mut params = LogParams::new(&k0, &net.b_values(), self.config.train_b)?;
+        let losses = self.steps(net, physics, &mut params)?;
+        let refined = like(
+            net,
+            self.takes.topology,
+            &params.k(),
+            &params.b(),
+            self.takes.device,
+        );
+        let before = scale::score_network(net, physics, self.takes)
+            .map(|(_, r)| r)
+            .ok_or_else(|| anyhow::anyhow!("refine: the searched network does not roll out"))?;
+        let scored = scale::score_network(&refined, physics, self.takes);
+        let kept = scored.is_some_and(|(_, r)| r < before);
+        let record = Refinement {
+            iterations: losses.len(),
+            losses,
+            before,
+            after: scored.map(|(_, r)| r),
+            substeps: scored.map_or(physics.substeps, |(n, _)| n),
+            kept,
+            log_k_change: params.change_from(&k0),
         };
-        let mut log_b: Vec<f64> = b0.iter().map(|b| b.max(f64::MIN_POSITIVE).ln()).collect();
-        let exp = |v: &[f64]| v.iter().map(|x| x.exp()).collect::<Vec<f64>>();
-        let network = |k: &[f64], b: &[f64], device| {
-            SpringNet::new(topology, k, b, device)
-                .with_kernel(kernel)
-                .with_curvature(&kappa)
-        };
+        Ok(match scored {
+            Some((substeps, _)) if kept => (
+                refined,
+                Physics {
+                    substeps,
+                    ..*physics
+                },
+                record,
+            ),
+            _ => (net.clone(), *physics, record),
+        })
+    }
+
+    /// The Adam steps on `params` from `net`'s shape; returns each step's position loss (they
+    /// stop early where it is not finite).
+    fn steps(
+        &self,
+        net: &SpringNet,
+        physics: &Physics,
+        params: &mut LogParams,
+    ) -> Result<Vec<f64>> {
+        let config = self.config;
         let weights = LossWeights {
             force: 0.0,
             impulse: 0.0,
@@ -209,8 +312,7 @@ impl Refiner<'_> {
             bail!("`train.refine`: the training data has no clips");
         }
         let mut sampler = Sampler::new(pool.len(), self.seed ^ 0x2545_F491_4F6C_DD1D);
-        let (mut adam_k, mut adam_b) = (Adam::new(log_k.len()), Adam::new(log_b.len()));
-        let mut step_physics = *physics;
+        let mut at = *physics;
         let mut losses = Vec::with_capacity(config.iterations);
         let bar = self.progress.bar(config.iterations as u64, "refine");
         for it in 0..config.iterations {
@@ -223,14 +325,19 @@ impl Refiner<'_> {
                 .clips
                 .host_batch_of(&refs, self.clips.steps)?
                 .to_device(self.device)?;
-            let b = if train_b { exp(&log_b) } else { b0.clone() };
-            let model = network(&k_of(&log_k), &b, self.device);
-            if let Some(n) = scale::stable_substeps(topology, &step_physics, &model) {
-                step_physics.substeps = n;
+            let model = like(
+                net,
+                self.takes.topology,
+                &params.k(),
+                &params.b(),
+                self.device,
+            );
+            if let Some(n) = scale::stable_substeps(self.takes.topology, &at, &model) {
+                at.substeps = n;
             }
             let terms = loss_with_budget(
                 &model,
-                &step_physics,
+                &at,
                 &batch,
                 &weights,
                 ForceOn::Simulated,
@@ -246,57 +353,24 @@ impl Refiner<'_> {
             }
             losses.push(loss);
             let grads = terms.total.backward();
-            let lr = config.lr_at(it);
-            let chain = |g: Option<burn::tensor::Tensor<1>>, x: &[f64]| -> Option<Vec<f64>> {
-                let g = to_f64(g?);
-                let out: Vec<f64> = g.iter().zip(x).map(|(g, x)| g * x.exp()).collect();
-                out.iter().all(|v| v.is_finite()).then_some(out)
-            };
-            if let Some(g) = chain(model.k.val().grad(&grads), &log_k) {
-                adam_k.step(&mut log_k, &g, lr);
-            }
-            if train_b && let Some(g) = chain(model.b.val().grad(&grads), &log_b) {
-                adam_b.step(&mut log_b, &g, lr);
-            }
+            params.step(
+                model.k.val().grad(&grads),
+                model.b.val().grad(&grads),
+                config.lr_at(it),
+            );
             bar.set_message(format!("position loss {loss:.3e} m²"));
             bar.inc(1);
         }
         bar.finish();
-        let b = if train_b { exp(&log_b) } else { b0 };
-        let refined = network(&k_of(&log_k), &b, self.takes.device);
-        let before = scale::score_network(net, physics, self.takes)
-            .map(|(_, r)| r)
-            .ok_or_else(|| anyhow::anyhow!("refine: the searched network does not roll out"))?;
-        let scored = scale::score_network(&refined, physics, self.takes);
-        let kept = scored.is_some_and(|(_, r)| r < before);
-        let change = (log_k
-            .iter()
-            .zip(&k0)
-            .map(|(l, k)| (l - (k.max(0.0) + shift).ln()).powi(2))
-            .sum::<f64>()
-            / k0.len() as f64)
-            .sqrt();
-        let record = Refinement {
-            iterations: losses.len(),
-            losses,
-            before,
-            after: scored.map(|(_, r)| r),
-            substeps: scored.map_or(physics.substeps, |(n, _)| n),
-            kept,
-            log_k_change: change,
-        };
-        Ok(match (kept, scored) {
-            (true, Some((n, _))) => (
-                refined,
-                Physics {
-                    substeps: n,
-                    ..*physics
-                },
-                record,
-            ),
-            _ => (net.clone(), *physics, record),
-        })
+        Ok(losses)
     }
+}
+
+/// A network of `net`'s springs (`topology`'s), kernel and curvature elements with the values `k`, `b`.
+fn like(net: &SpringNet, topology: &Topology, k: &[f64], b: &[f64], device: &Device) -> SpringNet {
+    SpringNet::new(topology, k, b, device)
+        .with_kernel(net.graph.kernel)
+        .with_curvature(&net.curvature_values())
 }
 
 #[cfg(test)]
@@ -356,6 +430,9 @@ mod tests {
                 .collect();
             adam.step(&mut x, &g, 0.01);
         }
-        assert!((x[0] - 1.0).abs() < 0.02 && (x[1] + 2.0).abs() < 0.02, "{x:?}");
+        assert!(
+            (x[0] - 1.0).abs() < 0.02 && (x[1] + 2.0).abs() < 0.02,
+            "{x:?}"
+        );
     }
 }
