@@ -87,12 +87,33 @@ impl PassConfig {
         self.lr_b.map(|lr_b| lr_b * self.schedule(i))
     }
 
-    /// The schedule's factor at iteration `i`: 1 while held, then down to `lr_decay`.
+    /// The schedule's factor at iteration `i`.
     fn schedule(&self, i: usize) -> f64 {
-        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
-        let decayed = ((f - self.lr_hold) / (1.0 - self.lr_hold)).clamp(0.0, 1.0);
-        self.lr_decay.powf(decayed)
+        decay_factor(i, self.iterations, self.lr_decay, self.lr_hold)
     }
+}
+
+/// A learning rate's factor at step `i` of `iterations`: 1 for the first `hold` of them, then
+/// decayed geometrically to `decay` at the last.
+pub(crate) fn decay_factor(i: usize, iterations: usize, decay: f64, hold: f64) -> f64 {
+    let f = i as f64 / (iterations.max(2) - 1) as f64;
+    let decayed = ((f - hold) / (1.0 - hold)).clamp(0.0, 1.0);
+    decay.powf(decayed)
+}
+
+/// Checks the clips per step, the learning rate and its decay of the steps `train.{name}`;
+/// errors name the key.
+pub(crate) fn check_steps(name: &str, batch: usize, lr: f64, lr_decay: f64) -> Result<()> {
+    if batch == 0 {
+        bail!("`train.{name}.batch` must be at least 1");
+    }
+    if !(lr >= 0.0 && lr.is_finite()) {
+        bail!("`train.{name}.lr` must be a non-negative number, is {lr}");
+    }
+    if !(lr_decay > 0.0 && lr_decay <= 1.0) {
+        bail!("`train.{name}.lr_decay` must be in (0, 1], is {lr_decay}");
+    }
+    Ok(())
 }
 
 impl Default for PassConfig {
@@ -226,21 +247,7 @@ impl TrainConfig {
             ("single", &self.single),
             ("gnn", &self.gnn),
         ] {
-            if p.batch == 0 {
-                bail!("`train.{name}.batch` must be at least 1");
-            }
-            if !(p.lr >= 0.0 && p.lr.is_finite()) {
-                bail!(
-                    "`train.{name}.lr` must be a non-negative number, is {}",
-                    p.lr
-                );
-            }
-            if !(p.lr_decay > 0.0 && p.lr_decay <= 1.0) {
-                bail!(
-                    "`train.{name}.lr_decay` must be in (0, 1], is {}",
-                    p.lr_decay
-                );
-            }
+            check_steps(name, p.batch, p.lr, p.lr_decay)?;
             if !(0.0..1.0).contains(&p.lr_hold) {
                 bail!("`train.{name}.lr_hold` must be in [0, 1), is {}", p.lr_hold);
             }
@@ -784,6 +791,7 @@ impl AfterFit<'_> {
             takes: &takes,
             device: job.device,
             seed: config.train.seed,
+            adam_epsilon: config.train.adam_epsilon,
             state_budget_mib: config.train.state_budget_mib,
             progress,
         };

@@ -3,7 +3,7 @@
 //! PhysTwin's order: the global parameters by a zero-order search first (the blend or scale
 //! search), then per-spring first-order steps of a multi-step *position* loss over short windows
 //! of the training takes (multiple shooting: every clip starts from the data's own state). The
-//! steps are Adam's on `log k` (and with `train_b` on `log b`), so a spring moves by a share of
+//! steps are Burn's Adam on `log k` (and with `train_b` on `log b`), so a spring moves by a share of
 //! its own size whatever the material's scale, and no value crosses zero. The substeps rise as
 //! the refined network needs (within the searches' cap). The refined network is kept only where
 //! its free rollouts of the searches' training takes move closer than the searched one's.
@@ -13,7 +13,9 @@ use std::sync::Arc;
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
-use burn::tensor::{Device, Tensor};
+use burn::module::{Module, Param, ParamId};
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::cloth::Topology;
 use crate::data::{ClipSet, Sampler};
@@ -59,28 +61,12 @@ impl Default for RefineConfig {
 impl RefineConfig {
     /// Checks ranges; errors name the key.
     pub fn validate(&self) -> Result<()> {
-        if self.batch == 0 {
-            bail!("`train.refine.batch` must be at least 1");
-        }
-        if !(self.lr >= 0.0 && self.lr.is_finite()) {
-            bail!(
-                "`train.refine.lr` must be a non-negative number, is {}",
-                self.lr
-            );
-        }
-        if !(self.lr_decay > 0.0 && self.lr_decay <= 1.0) {
-            bail!(
-                "`train.refine.lr_decay` must be in (0, 1], is {}",
-                self.lr_decay
-            );
-        }
-        Ok(())
+        super::check_steps("refine", self.batch, self.lr, self.lr_decay)
     }
 
     /// The step of iteration `i` (from 0).
     fn lr_at(&self, i: usize) -> f64 {
-        let f = i as f64 / (self.iterations.max(2) - 1) as f64;
-        self.lr * self.lr_decay.powf(f)
+        self.lr * super::decay_factor(i, self.iterations, self.lr_decay, 0.0)
     }
 }
 
@@ -118,41 +104,6 @@ impl Refinement {
     }
 }
 
-/// Adam's moments of a vector of log-parameters.
-struct Adam {
-    m: Vec<f64>,
-    v: Vec<f64>,
-    t: i32,
-}
-
-impl Adam {
-    const BETA1: f64 = 0.9;
-    const BETA2: f64 = 0.999;
-    const EPS: f64 = 1e-12;
-
-    fn new(n: usize) -> Self {
-        Self {
-            m: vec![0.0; n],
-            v: vec![0.0; n],
-            t: 0,
-        }
-    }
-
-    /// One step of `x` down the gradient `g` at rate `lr`.
-    fn step(&mut self, x: &mut [f64], g: &[f64], lr: f64) {
-        self.t += 1;
-        let (c1, c2) = (
-            1.0 - Self::BETA1.powi(self.t),
-            1.0 - Self::BETA2.powi(self.t),
-        );
-        for i in 0..x.len() {
-            self.m[i] = Self::BETA1 * self.m[i] + (1.0 - Self::BETA1) * g[i];
-            self.v[i] = Self::BETA2 * self.v[i] + (1.0 - Self::BETA2) * g[i] * g[i];
-            x[i] -= lr * (self.m[i] / c1) / ((self.v[i] / c2).sqrt() + Self::EPS);
-        }
-    }
-}
-
 /// What the refinement works on.
 pub(crate) struct Refiner<'a> {
     pub config: &'a RefineConfig,
@@ -163,86 +114,50 @@ pub(crate) struct Refiner<'a> {
     /// The autodiff device of the steps.
     pub device: &'a burn::tensor::Device,
     pub seed: u64,
+    /// Adam's ε (`train.adam_epsilon`).
+    pub adam_epsilon: f64,
     pub state_budget_mib: usize,
     pub progress: &'a Progress,
 }
 
-/// The refined parameters: `θ = log(k + c)` per spring (and `log b` with `train_b`), each with
-/// its Adam moments.
-struct LogParams {
-    log_k: Vec<f64>,
-    log_b: Option<Vec<f64>>,
-    /// The untrained `b` (without `train_b`).
-    b: Vec<f64>,
-    /// `c`: springs at zero start exactly there and can rise (`k = max(e^θ − c, 0)`).
-    shift: f64,
-    adam_k: Adam,
-    adam_b: Adam,
+/// The refined parameters, which Burn's Adam steps: `θ_k = log(k + c)` per spring (`c` a share
+/// of the mean `k`, so that springs at zero start exactly there and can rise:
+/// `k = max(e^θ − c, 0)`), and with `train_b` `θ_b = log b`.
+#[derive(Module, Debug)]
+struct LogSprings {
+    k: Param<Tensor<1>>,
+    b: Option<Param<Tensor<1>>>,
 }
 
-impl LogParams {
-    fn new(k: &[f64], b: &[f64], train_b: bool) -> Result<Self> {
+impl LogSprings {
+    /// `θ` of the network `k`, `b` on `device`, and the shift `c`.
+    fn new(k: &[f64], b: &[f64], train_b: bool, device: &Device) -> Result<(Self, f64)> {
         let mean = k.iter().sum::<f64>() / k.len().max(1) as f64;
         if !(mean > 0.0) {
             bail!("`train.refine` steps log k; every k of the searched network is 0");
         }
         let shift = SHIFT_SHARE * mean;
-        let train_b = train_b && b.iter().all(|&x| x > 0.0);
-        Ok(Self {
-            log_k: k.iter().map(|k| (k.max(0.0) + shift).ln()).collect(),
-            log_b: train_b.then(|| b.iter().map(|b| b.ln()).collect()),
-            b: b.to_vec(),
-            shift,
-            adam_k: Adam::new(k.len()),
-            adam_b: Adam::new(b.len()),
-        })
-    }
-
-    fn k(&self) -> Vec<f64> {
-        self.log_k
-            .iter()
-            .map(|t| (t.exp() - self.shift).max(0.0))
-            .collect()
-    }
-
-    fn b(&self) -> Vec<f64> {
-        match &self.log_b {
-            Some(log_b) => log_b.iter().map(|t| t.exp()).collect(),
-            None => self.b.clone(),
-        }
-    }
-
-    /// One Adam step of rate `lr` from the gradients with respect to `k` and `b` (a gradient
-    /// that is missing or not finite steps nothing).
-    fn step(&mut self, g_k: Option<Tensor<1>>, g_b: Option<Tensor<1>>, lr: f64) {
-        // dk/dθ = e^θ for both parameters.
-        let chain = |g: Option<Tensor<1>>, theta: &[f64]| -> Option<Vec<f64>> {
-            let g: Vec<f64> = to_f64(g?)
-                .iter()
-                .zip(theta)
-                .map(|(g, t)| g * t.exp())
-                .collect();
-            g.iter().all(|v| v.is_finite()).then_some(g)
+        let param = |v: Vec<f64>| {
+            let n = v.len();
+            Param::from_tensor(Tensor::<1>::from_data(TensorData::new(v, [n]), device))
         };
-        if let Some(g) = chain(g_k, &self.log_k) {
-            self.adam_k.step(&mut self.log_k, &g, lr);
-        }
-        if let Some(log_b) = &mut self.log_b
-            && let Some(g) = chain(g_b, log_b)
-        {
-            self.adam_b.step(log_b, &g, lr);
-        }
+        let theta = Self {
+            k: param(k.iter().map(|k| (k.max(0.0) + shift).ln()).collect()),
+            b: (train_b && b.iter().all(|&x| x > 0.0))
+                .then(|| param(b.iter().map(|b| b.ln()).collect())),
+        };
+        Ok((theta, shift))
     }
 
-    /// The RMS change of `θ` from the network `k`.
-    fn change_from(&self, k: &[f64]) -> f64 {
-        let sum: f64 = self
-            .log_k
-            .iter()
-            .zip(k)
-            .map(|(t, k)| (t - (k.max(0.0) + self.shift).ln()).powi(2))
-            .sum();
-        (sum / k.len().max(1) as f64).sqrt()
+    /// `base` with the springs' `k` (and with `train_b` their `b`) of `θ`, as functions of it.
+    fn network(&self, base: &SpringNet, shift: f64) -> SpringNet {
+        let mut net = base.clone();
+        let k = (self.k.val().exp() - shift).clamp_min(0.0);
+        net.k = Param::initialized(ParamId::new(), k);
+        if let Some(b) = &self.b {
+            net.b = Param::initialized(ParamId::new(), b.val().exp());
+        }
+        net
     }
 }
 
@@ -254,14 +169,17 @@ impl Refiner<'_> {
         net: &SpringNet,
         physics: &Physics,
     ) -> Result<(SpringNet, Physics, Refinement)> {
-        let k0 = net.k_values();
-        let mut params = LogParams::new(&k0, &net.b_values(), self.config.train_b)?;
-        let losses = self.steps(net, physics, &mut params)?;
+        let (k0, b0) = (net.k_values(), net.b_values());
+        let base = like(net, self.takes.topology, &k0, &b0, self.device);
+        let (theta, shift) = LogSprings::new(&k0, &b0, self.config.train_b, self.device)?;
+        let theta0 = to_f64(theta.k.val());
+        let (theta, losses) = self.steps(&base, theta, shift, physics)?;
+        let stepped = theta.network(&base, shift);
         let refined = like(
             net,
             self.takes.topology,
-            &params.k(),
-            &params.b(),
+            &stepped.k_values(),
+            &stepped.b_values(),
             self.takes.device,
         );
         let before = scale::score_network(net, physics, self.takes)
@@ -269,6 +187,12 @@ impl Refiner<'_> {
             .ok_or_else(|| anyhow::anyhow!("refine: the searched network does not roll out"))?;
         let scored = scale::score_network(&refined, physics, self.takes);
         let kept = scored.is_some_and(|(_, r)| r < before);
+        let change = to_f64(theta.k.val())
+            .iter()
+            .zip(&theta0)
+            .map(|(t, t0)| (t - t0).powi(2))
+            .sum::<f64>()
+            / theta0.len().max(1) as f64;
         let record = Refinement {
             iterations: losses.len(),
             losses,
@@ -276,7 +200,7 @@ impl Refiner<'_> {
             after: scored.map(|(_, r)| r),
             substeps: scored.map_or(physics.substeps, |(n, _)| n),
             kept,
-            log_k_change: params.change_from(&k0),
+            log_k_change: change.sqrt(),
         };
         Ok(match scored {
             Some((substeps, _)) if kept => (
@@ -291,14 +215,16 @@ impl Refiner<'_> {
         })
     }
 
-    /// The Adam steps on `params` from `net`'s shape; returns each step's position loss (they
-    /// stop early where it is not finite).
+    /// Adam's steps on `theta` from the network `base`; returns `θ` and each step's position
+    /// loss (they stop early where it is not finite; a step whose gradient is not finite is
+    /// skipped).
     fn steps(
         &self,
-        net: &SpringNet,
+        base: &SpringNet,
+        mut theta: LogSprings,
+        shift: f64,
         physics: &Physics,
-        params: &mut LogParams,
-    ) -> Result<Vec<f64>> {
+    ) -> Result<(LogSprings, Vec<f64>)> {
         let config = self.config;
         let weights = LossWeights {
             force: 0.0,
@@ -312,6 +238,9 @@ impl Refiner<'_> {
             bail!("`train.refine`: the training data has no clips");
         }
         let mut sampler = Sampler::new(pool.len(), self.seed ^ 0x2545_F491_4F6C_DD1D);
+        let mut optim = AdamConfig::new()
+            .with_epsilon(self.adam_epsilon as f32)
+            .init();
         let mut at = *physics;
         let mut losses = Vec::with_capacity(config.iterations);
         let bar = self.progress.bar(config.iterations as u64, "refine");
@@ -325,13 +254,7 @@ impl Refiner<'_> {
                 .clips
                 .host_batch_of(&refs, self.clips.steps)?
                 .to_device(self.device)?;
-            let model = like(
-                net,
-                self.takes.topology,
-                &params.k(),
-                &params.b(),
-                self.device,
-            );
+            let model = theta.network(base, shift);
             if let Some(n) = scale::stable_substeps(self.takes.topology, &at, &model) {
                 at.substeps = n;
             }
@@ -352,21 +275,28 @@ impl Refiner<'_> {
                 break;
             }
             losses.push(loss);
-            let grads = terms.total.backward();
-            params.step(
-                model.k.val().grad(&grads),
-                model.b.val().grad(&grads),
-                config.lr_at(it),
-            );
+            let grads = GradientsParams::from_grads(terms.total.backward(), &theta);
+            let finite = [Some(theta.k.id), theta.b.as_ref().map(|b| b.id)]
+                .into_iter()
+                .flatten()
+                .all(|id| {
+                    grads
+                        .get::<1>(id)
+                        .is_none_or(|g| to_f64(g).iter().all(|x| x.is_finite()))
+                });
+            if finite {
+                theta = optim.step(config.lr_at(it), theta, grads);
+            }
             bar.set_message(format!("position loss {loss:.3e} m²"));
             bar.inc(1);
         }
         bar.finish();
-        Ok(losses)
+        Ok((theta, losses))
     }
 }
 
-/// A network of `net`'s springs (`topology`'s), kernel and curvature elements with the values `k`, `b`.
+/// A network of `net`'s springs (`topology`'s), kernel and curvature elements with the values
+/// `k`, `b`.
 fn like(net: &SpringNet, topology: &Topology, k: &[f64], b: &[f64], device: &Device) -> SpringNet {
     SpringNet::new(topology, k, b, device)
         .with_kernel(net.graph.kernel)
@@ -414,25 +344,57 @@ mod tests {
         assert!((c.lr_at(10) - 0.001).abs() < 1e-15);
     }
 
-    /// Adam reaches the bottom of a bowl whose coordinates' gradients differ by 10⁹ in scale:
-    /// each coordinate steps by about `lr`, whatever its gradient's size.
+    /// `θ` maps back to the searched network (springs at zero stay there, `b` kept without
+    /// `train_b`), and the gradient with respect to `θ` is autodiff's chain rule through the map:
+    /// `∂L/∂θ_k = ∂L/∂k · e^θ` for `L = Σ w_s k_s + Σ v_s b_s`.
     #[test]
-    fn adam_steps_each_coordinate_by_about_lr() {
-        let mut adam = Adam::new(2);
-        let mut x = vec![0.0, 0.0];
-        let target = [1.0, -2.0];
-        for _ in 0..2000 {
-            let g: Vec<f64> = x
+    fn the_log_parameters_map_back_to_the_network_and_carry_its_gradient() {
+        use crate::cloth::{GridSpec, Topology};
+        let device = Device::flex().autodiff();
+        let spec = GridSpec {
+            nx: 3,
+            ny: 3,
+            ..GridSpec::default()
+        };
+        let topology = Topology::grid(&spec, 1.0, 1.0);
+        let s = topology.num_springs();
+        let k: Vec<f64> = (0..s)
+            .map(|i| if i % 4 == 0 { 0.0 } else { 10.0 + i as f64 })
+            .collect();
+        let b: Vec<f64> = (0..s).map(|i| 0.5 + 0.1 * i as f64).collect();
+        let base = SpringNet::new(&topology, &k, &b, &device);
+        for train_b in [false, true] {
+            let (theta, shift) = LogSprings::new(&k, &b, train_b, &device).unwrap();
+            let net = theta.network(&base, shift);
+            for (x, y) in net
+                .k_values()
                 .iter()
-                .zip(target)
-                .zip([1e-6, 1e3])
-                .map(|((x, t), scale)| scale * (x - t))
-                .collect();
-            adam.step(&mut x, &g, 0.01);
+                .zip(&k)
+                .chain(net.b_values().iter().zip(&b))
+            {
+                assert!((x - y).abs() <= 1e-5 * y.max(1.0), "{x} against {y}");
+            }
+            let w: Vec<f64> = (0..s).map(|i| 1.0 + (i % 3) as f64).collect();
+            let v: Vec<f64> = (0..s).map(|i| 2.0 - (i % 2) as f64).collect();
+            let row = |x: &[f64]| Tensor::<1>::from_data(TensorData::new(x.to_vec(), [s]), &device);
+            let loss = (net.k.val() * row(&w)).sum() + (net.b.val() * row(&v)).sum();
+            let grads = loss.backward();
+            let g_k = to_f64(theta.k.val().grad(&grads).expect("θ_k has a gradient"));
+            let theta_k = to_f64(theta.k.val());
+            for i in 0..s {
+                let expected = w[i] * theta_k[i].exp();
+                assert!((g_k[i] - expected).abs() <= 1e-4 * expected, "spring {i}");
+            }
+            assert_eq!(theta.b.is_some(), train_b);
+            if let Some(theta_b) = &theta.b {
+                let g_b = to_f64(theta_b.val().grad(&grads).expect("θ_b has a gradient"));
+                for i in 0..s {
+                    assert!(
+                        (g_b[i] - v[i] * b[i]).abs() <= 1e-4 * v[i] * b[i],
+                        "spring {i}"
+                    );
+                }
+            }
         }
-        assert!(
-            (x[0] - 1.0).abs() < 0.02 && (x[1] + 2.0).abs() < 0.02,
-            "{x:?}"
-        );
     }
 }
