@@ -198,7 +198,9 @@ pub enum Command {
         backend: Option<Backend>,
     },
     /// Diagnose a finished run before tuning it: the chaos floor, the observability of every
-    /// spring, and where the motion error lives; writes <run-dir>/diagnose/ and prints a table.
+    /// spring, where the motion error lives, and (where the data carries its source's stiffness
+    /// map) what that map is worth as the surrogate's k; writes <run-dir>/diagnose/ and prints a
+    /// table.
     Diagnose {
         /// Run directory.
         run_dir: PathBuf,

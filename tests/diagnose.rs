@@ -106,8 +106,10 @@ fn diagnose_end_to_end_and_refuses_to_overwrite() {
     );
     let diag = dir.join("runs/tiny/diagnose");
     for f in diagnose::FILES {
-        assert!(diag.join(f).exists(), "missing {f}");
+        // The mass-spring source writes no stiffness map: no source-map reference, and a note.
+        assert_eq!(diag.join(f).exists(), f != "source_map.json", "{f}");
     }
+    assert!(out.contains("no source-map reference"), "{out}");
     let json = |f: &str| -> serde_json::Value {
         serde_json::from_str(&std::fs::read_to_string(diag.join(f)).unwrap()).unwrap()
     };
@@ -185,6 +187,47 @@ fn diagnose_end_to_end_and_refuses_to_overwrite() {
     fails(
         &springtime(&["diagnose", "runs/none"], &dir),
         &["runs/none"],
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_sources_own_map_beats_the_best_uniform_network_on_a_striped_fem_sheet() {
+    // An FEM sheet of three stripes 1 : 4 : 10, learned by no pass at all (the surrogate is the
+    // initial uniform network): `diagnose` sizes the source's own map on the structural springs.
+    let dir = common::temp_dir("diagnose-source-map");
+    let job = common::FEM_4X4
+        .replace("nx = 4\nny = 4", "nx = 7\nny = 7")
+        .replace("stiffness_levels = [300.0]", "stiffness_levels = [100.0, 400.0, 1000.0]")
+        .replace("layout = \"uniform\"", "layout = \"stripes\"")
+        .replace("seconds = 0.3", "seconds = 0.6")
+        .replace("train_rollouts = 3\ntest_rollouts = 1", "train_rollouts = 4\ntest_rollouts = 2")
+        .replace("iterations = 4", "iterations = 0")
+        .replace("iterations = 2", "iterations = 0");
+    let job = format!(
+        "name = \"fem\"\n{job}\n[data]\ndir = \"data\"\n[eval]\nuniform_baseline = true\nshort_seconds = 0.2\nlong_seconds = 0.6\n"
+    );
+    assert_eq!(job.matches("nx = 7").count(), 2, "{job}");
+    std::fs::write(dir.join("fem.toml"), job).unwrap();
+    ok(&springtime(&["train", "fem.toml", "--no-report"], &dir));
+    let out = ok(&springtime(&["diagnose", "runs/fem"], &dir));
+    assert!(out.contains("the source's own stiffness map, sized"), "{out}");
+    let text = std::fs::read_to_string(dir.join("runs/fem/diagnose/source_map.json")).unwrap();
+    let c: diagnose::SourceMap = serde_json::from_str(&text).unwrap();
+    assert_eq!(c.start, "uniform_baseline");
+    // Every structural spring of the 7 × 7 grid follows the map.
+    assert_eq!(c.springs, 2 * 7 * 6);
+    // The search keeps the best it tried: never worse than where it started.
+    assert!(c.search.after <= c.search.before.unwrap(), "{:?}", c.search);
+    assert!(c.bending_search.iter().any(|&(f, _)| f == c.bending_factor));
+    // The right map, sized, moves closer to the sheet than any one stiffness does.
+    assert!(
+        c.gain_short > 0.0 && c.gain_long > 0.0,
+        "{} / {}: map {:?}, uniform {:?}",
+        c.gain_short,
+        c.gain_long,
+        c.map.long.mean,
+        c.uniform.test.long.mean
     );
     std::fs::remove_dir_all(&dir).ok();
 }

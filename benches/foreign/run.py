@@ -14,6 +14,12 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py --sims mujoco,warp --materials soft --quick
     python3 benches/foreign/run.py --set train.scale_search=false --tag noscale
     python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
+    python3 benches/foreign/run.py --source-map             # + what the source's own map wins
+
+`--source-map` runs `springtime diagnose` on each finished run and adds its source-map
+reference to the table: the source's own stiffness map on the structural springs, sized on the
+training takes, against the best uniform network at its step on the test takes — what a
+perfectly ranked map wins with this surrogate (the book, "What the source's own map is worth").
 
 Each simulator runs in a virtual environment of its own, made on first use under
 `--venvs` (default `~/.cache/springtime-foreign`) from PyPI with the pinned packages below;
@@ -180,7 +186,24 @@ def train(sim, material, data: Path, a):
         "validation_wins": (ev.get("validation") or {}).get("wins"),
         "source": {k: source.get(k) for k in ("simulator", "version", "material") if k in source},
     })
+    if a.source_map:
+        row.update(source_map(run, a))
     return row
+
+
+def source_map(run: Path, a):
+    """`springtime diagnose RUN`'s source-map reference: the gains of the source's own map, sized."""
+    log = run.parent / f"{run.name}-diagnose.log"
+    cmd = [str(a.springtime), "diagnose", str(run), "--force"]
+    t0 = time.time()
+    with open(log, "w") as fh:
+        done = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT)
+    found = run / "diagnose" / "source_map.json"
+    if done.returncode != 0 or not found.exists():
+        return {"source_map_error": " / ".join(log.read_text().strip().splitlines()[-2:])}
+    c = json.loads(found.read_text())
+    return {"source_map_short": c["gain_short"], "source_map_long": c["gain_long"],
+            "source_map_k_factor": c["search"]["k_factor"], "source_map_wall_s": time.time() - t0}
 
 
 def substeps_of(run: Path):
@@ -192,19 +215,28 @@ def substeps_of(run: Path):
 
 def table(rows, a):
     head = ("| data | trained: short / whole take (m) | best uniform (m) | gain short / long | "
-            "Spearman | substeps | wall |\n|---|---|---|---|---|---|---|\n")
+            "Spearman | substeps | wall |" + (" source's map short / long |" if a.source_map else "")
+            + "\n|---|---|---|---|---|---|---|" + ("---|" if a.source_map else "") + "\n")
     lines = []
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | {r['wall_s']:.0f} s |")
+            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | {r['wall_s']:.0f} s |"
+                         + (" |" if a.source_map else ""))
             continue
         sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
         lines.append(
             f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
             f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "
             f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {sp} | "
-            f"{r['substeps']} | {r['wall_s']:.0f} s |")
+            f"{r['substeps']} | {r['wall_s']:.0f} s |" + (cell(r) if a.source_map else ""))
     return head + "\n".join(lines) + "\n"
+
+
+def cell(r):
+    """The source-map reference's cell of a row."""
+    if "source_map_short" in r:
+        return f" {100 * r['source_map_short']:+.1f} % / {100 * r['source_map_long']:+.1f} % |"
+    return f" {r.get('source_map_error', '—')} |"
 
 
 def main():
@@ -225,6 +257,9 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="6 + 2 takes of 2 s (a smoke test)")
     ap.add_argument("--generate-only", action="store_true")
+    ap.add_argument("--source-map", action="store_true",
+                    help="also run `springtime diagnose` on each run and add its source-map "
+                         "reference (the source's own stiffness map, sized) to the table")
     ap.add_argument("--capture", metavar="NOISE,MISSING",
                     help="train and test on capture-grade copies of each set: NOISE m of position "
                          "noise and a MISSING share of markers hidden (capture.py), e.g. 0.002,0.1")

@@ -6,12 +6,14 @@
 //! | `chaos.json`, `chaos_floor.png` | the chaos floor: motion RMSE between a reference spring network and itself with every `k`, `b` perturbed by a relative `ε` ([`chaos`]) |
 //! | `observability.json`, `observability.png` | per spring, how strongly the training data constrains `k` and `b` (the Fisher diagonal of the force loss, [`observability`]) |
 //! | `error_map.json`, `error_map.png` | the run's free rollouts: per-rollout RMSE and the per-particle time-averaged error ([`error_map`]) |
+//! | `source_map.json` | where the rollouts carry their source's stiffness map: that map on the structural springs, sized on the training takes, against the best uniform network at its step ([`source_map`]) |
 //! | `diagnose.md` | the headline numbers, also printed |
 //!
 //! The run is opened as every command opens it ([`crate::run::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
 
 pub mod chaos;
 pub mod error_map;
+pub mod source_map;
 pub mod observability;
 
 use std::fmt::Write as _;
@@ -34,16 +36,18 @@ use springtime_plot as plot;
 
 pub use chaos::ChaosFloor;
 pub use error_map::ErrorMap;
+pub use source_map::SourceMap;
 pub use observability::ObservabilityReport;
 
 /// The files a diagnosis writes, in its output directory.
-pub const FILES: [&str; 7] = [
+pub const FILES: [&str; 8] = [
     "chaos.json",
     "chaos_floor.png",
     "observability.json",
     "observability.png",
     "error_map.json",
     "error_map.png",
+    "source_map.json",
     "diagnose.md",
 ];
 
@@ -279,7 +283,24 @@ pub fn diagnose(
         }
     };
 
-    let table = headline(&floor, obs.as_ref(), &errors);
+    let train_files = report::data_files(&inputs.config, options.data.as_deref())
+        .map(|f| f.train)
+        .unwrap_or_default();
+    let source = match source_map::source_map(&inputs, run_dir, &train_files, progress)? {
+        source_map::Outcome::Measured(c) => {
+            files.push(c.write(&dir)?);
+            Some(c)
+        }
+        source_map::Outcome::Skipped(why) => {
+            notes.push(why);
+            None
+        }
+    };
+
+    let mut table = headline(&floor, obs.as_ref(), &errors);
+    if let Some(c) = &source {
+        table.push_str(&source_map_row(c, &floor));
+    }
     let md = dir.join("diagnose.md");
     let mut text = format!("# Diagnosis of {}\n\n{table}", run_dir.display());
     for n in &notes {
@@ -293,6 +314,25 @@ pub fn diagnose(
         table,
         notes,
     })
+}
+
+/// The source-map reference's row of the headline table.
+fn source_map_row(c: &SourceMap, floor: &ChaosFloor) -> String {
+    let percent = |g: f64| format!("{:+.1} %", 100.0 * g);
+    let run = c.run_gain.map_or(String::new(), |[s, l]| {
+        format!("; the run: {} / {}", percent(s), percent(l))
+    });
+    format!(
+        "| the source's own stiffness map, sized: mean ≤ {} s / ≤ {} s (best uniform) | {:.3e} / {:.3e} m ({:.3e} / {:.3e}): {} / {}{run} |\n",
+        floor.short_seconds,
+        floor.long_seconds,
+        c.map.short.mean,
+        c.map.long.mean,
+        c.uniform.test.short.mean,
+        c.uniform.test.long.mean,
+        percent(c.gain_short),
+        percent(c.gain_long),
+    )
 }
 
 /// The headline numbers as a Markdown table.

@@ -195,7 +195,7 @@ impl Inputs {
 }
 
 /// The run's `eval.json`, when there is one.
-fn read_eval(run: &train::RunDir) -> Result<Option<EvalReport>> {
+pub(crate) fn read_eval(run: &train::RunDir) -> Result<Option<EvalReport>> {
     Ok(match std::fs::read_to_string(run.eval()) {
         Ok(text) => Some(
             serde_json::from_str(&text)

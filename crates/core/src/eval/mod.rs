@@ -671,7 +671,7 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
 /// index: the value of the mesh triangle that contains the midpoint (the nearest triangle
 /// centroid when none does, e.g. on the boundary in floating point). `None` when the mesh
 /// carries no stiffness map.
-pub(crate) fn map_at_structural_springs(
+pub fn map_at_structural_springs(
     topology: &Topology,
     rest_uv: &[[f64; 2]],
     mesh: &MeshTruth,

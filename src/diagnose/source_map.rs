@@ -1,0 +1,219 @@
+//! What the source's own stiffness map is worth as this surrogate's `k`.
+//!
+//! When the rollouts carry the source's stiffness map (`tri_stiffness`, as the cross-simulator
+//! bench and the FEM source write it), a network is built whose structural springs follow that
+//! map exactly — `k_s = k̄ · m_s / m̄`, with `m_s` the map at the spring's rest midpoint (as
+//! `stiffness_map_corr` reads it) and `m̄` its mean; the hinge springs at `k̄`, every `b` at
+//! `b̄`, `(k̄, b̄)` the best uniform network of `eval.json` — and sized on the training takes: the
+//! scale search ([`train::scale::search`]: one factor for every `k`, one for every `b`), a row of
+//! factors for the hinge springs alone, and the scale search again at the best of them. The best
+//! uniform network is searched again at the sized network's step (a finer explicit step alone
+//! moves a network closer), and both are simulated on the test takes as `eval` does.
+//!
+//! Its gain over the best uniform network is what a perfectly ranked map (Spearman 1) wins when
+//! sized like the recipe's maps. It is a reference, not a bound: a learned map may beat it (on an
+//! irregular FEM mesh the right spring `k` depends on the triangles' shapes as well as on the
+//! material, and a learned map can absorb some of the model's mismatch). Where the source's own
+//! map wins little, the motion the surrogate misses is not in `k`'s spatial variation.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use serde::{Deserialize, Serialize};
+
+use super::Inputs;
+use crate::data::Rollout;
+use crate::eval::{self, MotionRmse, Takes};
+use crate::cloth::SpringFamily;
+use crate::model::SpringNet;
+use crate::progress::Progress;
+use crate::train::{self, scale::ScaleSearch};
+
+/// `source_map.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SourceMap {
+    /// Where `(k̄, b̄)` came from: `"uniform_baseline"` (eval.json's best uniform network) or
+    /// `"learned_mean"` (the learned network's means, when eval.json has no uniform baseline).
+    pub start: String,
+    /// `k̄`, N/m.
+    pub k_uniform: f64,
+    /// `b̄`, N·s/m.
+    pub b_uniform: f64,
+    /// The scale search of the map network on the training takes (the second one, at the best
+    /// hinge share, when that is not 1).
+    pub search: ScaleSearch,
+    /// The factor of the hinge springs' stiffness kept, after the first scale search.
+    pub bending_factor: f64,
+    /// `(factor, mean motion RMSE on the training takes)` of every stable hinge factor tried.
+    pub bending_search: Vec<(f64, f64)>,
+    /// The best uniform network at the map network's step, searched on the training takes
+    /// from `(k̄, b̄)`, and its test figures.
+    pub uniform: eval::uniform::UniformBaseline,
+    /// The map network on the test takes.
+    pub map: MotionRmse,
+    /// `1 − map / uniform` at the short horizon.
+    pub gain_short: f64,
+    /// The same over the long horizon.
+    pub gain_long: f64,
+    /// The run's own gains over the best uniform network (eval.json), short and long.
+    pub run_gain: Option<[f64; 2]>,
+    /// Structural springs that follow the map.
+    pub springs: usize,
+}
+
+/// The reference, or why it could not be measured.
+pub enum Outcome {
+    /// The reference.
+    Measured(Box<SourceMap>),
+    /// Why not (a note for `diagnose.md`).
+    Skipped(String),
+}
+
+/// Sizes the source's own stiffness map on a run's surrogate and measures it against the best
+/// uniform network; skipped (with the reason) where the rollouts carry no map.
+pub fn source_map(
+    inputs: &Inputs,
+    run_dir: &Path,
+    train_files: &[PathBuf],
+    progress: &Progress,
+) -> Result<Outcome> {
+    let Some(first) = inputs.tests.first() else {
+        return Ok(Outcome::Skipped("no test rollouts".into()));
+    };
+    let rollout = Rollout::load(&first.path)?;
+    let Some(map) = rollout.mesh.as_ref().and_then(|mesh| {
+        eval::map_at_structural_springs(&inputs.topology, &rollout.rest_uv, mesh)
+    }) else {
+        return Ok(Outcome::Skipped(
+            "no source-map reference: the rollouts carry no stiffness map of their source (tri_stiffness)"
+                .into(),
+        ));
+    };
+    if train_files.is_empty() {
+        return Ok(Outcome::Skipped(
+            "no source-map reference: the run's training rollouts are gone".into(),
+        ));
+    }
+    let report = crate::report::read_eval(&train::RunDir {
+        dir: run_dir.to_path_buf(),
+    })?;
+    let (start, k_uniform, b_uniform) = match report.as_ref().and_then(|r| r.uniform_baseline.as_ref()) {
+        Some(u) => ("uniform_baseline", u.k, u.b),
+        None => {
+            let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            ("learned_mean", mean(inputs.model.k_values()), mean(inputs.model.b_values()))
+        }
+    };
+    let physics = inputs.physics(first.frame_dt);
+    let batch = inputs.config.eval.batch;
+    let takes = |files| Takes {
+        topology: &inputs.topology,
+        files,
+        batch,
+        device: &inputs.device,
+        progress,
+    };
+    let model = map_network(inputs, &map, k_uniform, b_uniform);
+    let train_takes = takes(train_files);
+    let (sized, sized_physics, search) = train::scale::search(&model, &physics, &train_takes)
+        .context("the source map's scale search")?;
+    // The hinge springs are the surrogate's own (the source bends by other means): their share
+    // is searched too, then the sizes again at the best share.
+    let mut bending = vec![(1.0, search.after)];
+    for f in BENDING_FACTORS {
+        let net = with_bending(inputs, &sized, f);
+        if let Some((_, r)) = train::scale::score_network(&net, &sized_physics, &train_takes) {
+            bending.push((f, r));
+        }
+    }
+    let best = bending.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1));
+    let bending_factor = best.map_or(1.0, |b| b.0);
+    let (sized, sized_physics, search) = if bending_factor == 1.0 {
+        (sized, sized_physics, search)
+    } else {
+        let net = with_bending(inputs, &sized, bending_factor);
+        train::scale::search(&net, &sized_physics, &train_takes)
+            .context("the source map's second scale search")?
+    };
+    let test_files: Vec<PathBuf> = inputs.tests.iter().map(|t| t.path.clone()).collect();
+    let curves = eval::motion_curves(&sized, &sized_physics, &takes(&test_files))
+        .context("the map network on the test takes")?;
+    let eval_config = &inputs.config.eval;
+    let mapped = eval::summarize(
+        &curves.curves,
+        sized_physics.frame_dt,
+        eval_config.short_seconds,
+        eval_config.long_seconds,
+    );
+    // The best uniform network at the map network's step: a finer step alone moves an explicit
+    // network closer (less numerical damping), so both are compared at the same one.
+    let uniform = eval::uniform::search(
+        &inputs.topology,
+        &sized_physics,
+        k_uniform,
+        b_uniform,
+        train_files,
+        &test_files,
+        &mapped,
+        eval_config,
+        &inputs.device,
+        progress,
+    )
+    .context("the best uniform network at the map network's step")?;
+    let run_gain = report
+        .and_then(|r| r.uniform_baseline)
+        .map(|u| [u.improvement_short, u.improvement_long]);
+    Ok(Outcome::Measured(Box::new(SourceMap {
+        start: start.into(),
+        k_uniform,
+        b_uniform,
+        gain_short: uniform.improvement_short,
+        gain_long: uniform.improvement_long,
+        search,
+        bending_factor,
+        bending_search: bending,
+        uniform,
+        map: mapped,
+        run_gain,
+        springs: map.len(),
+    })))
+}
+
+/// Factors of the hinge springs' stiffness tried after the first scale search (1 is its result).
+const BENDING_FACTORS: [f64; 4] = [1.0 / 64.0, 1.0 / 16.0, 0.25, 4.0];
+
+/// `net` with the stiffness of its hinge (bending-family) springs multiplied by `f`.
+fn with_bending(inputs: &Inputs, net: &SpringNet, f: f64) -> SpringNet {
+    let family = &inputs.topology.family;
+    let k: Vec<f64> = net
+        .k_values()
+        .iter()
+        .zip(family)
+        .map(|(k, fam)| if *fam == SpringFamily::Bending { k * f } else { *k })
+        .collect();
+    SpringNet::new(&inputs.topology, &k, &net.b_values(), &inputs.device)
+        .with_kernel(inputs.config.model.kernel)
+}
+
+/// The network whose structural springs follow `map` (`(spring, value)`) about `k`, the other
+/// springs at `k`, every damping `b`; the run's kernel.
+fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64) -> SpringNet {
+    let n = inputs.topology.num_springs();
+    let mean = map.iter().map(|m| m.1).sum::<f64>() / map.len() as f64;
+    let mut ks = vec![k; n];
+    for &(s, v) in map {
+        ks[s] = k * v / mean;
+    }
+    SpringNet::new(&inputs.topology, &ks, &vec![b; n], &inputs.device)
+        .with_kernel(inputs.config.model.kernel)
+}
+
+/// `source_map.json`.
+impl SourceMap {
+    /// Writes `source_map.json` into `dir`.
+    pub fn write(&self, dir: &Path) -> Result<PathBuf> {
+        let json = dir.join("source_map.json");
+        crate::io::write_json(&json, self)?;
+        Ok(json)
+    }
+}
