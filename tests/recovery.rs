@@ -215,3 +215,59 @@ fn the_refinement_moves_a_uniform_network_towards_the_levels() {
     assert!(refined < 0.7 * start, "rmse_k {start} -> {refined}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
+/// others: takes of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a
+/// sixteenth of that, learned from a uniform network over every spring by no fit at all.
+#[test]
+fn the_blend_search_finds_the_bending_springs_share() {
+    use rand::{SeedableRng, rngs::StdRng};
+    use springtime::cloth::SpringFamily;
+    use springtime::source::mass_spring::SpringCloth;
+    use springtime::source::{Scenario, simulate_rollout};
+
+    let dir = common::temp_dir("bending-share");
+    let mut source = common::source(8, &[50.0], 2.0);
+    source.frame_stride = 10;
+    source.save_velocities = false;
+    let mut cloth = SpringCloth::from_config(&source);
+    for (k, family) in cloth.k.iter_mut().zip(&cloth.topology.family) {
+        if *family == SpringFamily::Bending {
+            *k /= 16.0;
+        }
+    }
+    for (split, seeds) in [("train", 0..8u64), ("test", 100..102u64)] {
+        std::fs::create_dir_all(dir.join(split)).unwrap();
+        for seed in seeds {
+            let scenario = Scenario::random(
+                &cloth.topology.rest_uv,
+                source.anchor_radius,
+                &mut StdRng::seed_from_u64(seed),
+            );
+            let path = dir.join(split).join(format!("take_{seed:03}.npz"));
+            simulate_rollout(&cloth, &source, &scenario, None, &path.to_string_lossy())
+                .unwrap()
+                .save(&path)
+                .unwrap();
+        }
+    }
+    let text = "name = \"bending\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 50.0\nb_init = 6.0\n\
+                [train]\nblend_search = true\n[train.stiffness]\niterations = 0\n\
+                [train.damping]\niterations = 0\n";
+    let mut config = Config::parse(text, &[]).unwrap();
+    config.data.dir = dir.join("train");
+    config.data.test_dir = Some(dir.join("test"));
+    config.runs_dir = dir.join("runs");
+    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let record: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap(),
+    )
+    .unwrap();
+    let factor = record["bending_factor"].as_f64().unwrap();
+    eprintln!(
+        "bending factor {factor}; candidates {}",
+        record["bending_candidates"]
+    );
+    assert_eq!(factor, 1.0 / 16.0, "{record}");
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -3,12 +3,14 @@
 //! When the rollouts carry the source's stiffness map (`tri_stiffness`, as the cross-simulator
 //! bench and the FEM source write it), a network is built whose structural springs follow that
 //! map exactly — `k_s = k̄ · m_s / m̄`, with `m_s` the map at the spring's rest midpoint (as
-//! `stiffness_map_corr` reads it) and `m̄` its mean; the hinge springs at `k̄`, every `b` at
-//! `b̄`, `(k̄, b̄)` the best uniform network of `eval.json` — and sized on the training takes: the
-//! scale search ([`train::scale::search`]: one factor for every `k`, one for every `b`), a row of
-//! factors for the hinge springs alone, and the scale search again at the best of them. The best
-//! uniform network is searched again at the sized network's step (a finer explicit step alone
-//! moves a network closer), and both are simulated on the test takes as `eval` does.
+//! `stiffness_map_corr` reads it) and `m̄` its mean; the shear springs at `k̄`, the bending
+//! springs at a share of it, every `b` at `b̄`, `(k̄, b̄)` the best uniform network of
+//! `eval.json` — and sized on the training takes: the scale search ([`train::scale::search`]:
+//! one factor for every `k`, one for every `b`), then a row of shares of the bending springs
+//! ([`train::scale::BENDING_FACTORS`]) and the scale search again, in turn until the share stays,
+//! as the blend search does. The best uniform network is searched again at the sized network's
+//! step (a finer explicit step alone moves a network closer), and both are simulated on the
+//! test takes as `eval` does.
 //!
 //! Its gain over the best uniform network is what a perfectly ranked map (Spearman 1) wins when
 //! sized like the recipe's maps. It is a reference, not a bound: a learned map may beat it (on an
@@ -39,12 +41,12 @@ pub struct SourceMap {
     pub k_uniform: f64,
     /// `b̄`, N·s/m.
     pub b_uniform: f64,
-    /// The scale search of the map network on the training takes (the second one, at the best
-    /// hinge share, when that is not 1).
+    /// The last scale search of the map network on the training takes (at the kept share).
     pub search: ScaleSearch,
-    /// The factor of the hinge springs' stiffness kept, after the first scale search.
+    /// The share of the bending springs' stiffness kept (their `k` over the shear springs').
     pub bending_factor: f64,
-    /// `(factor, mean motion RMSE on the training takes)` of every stable hinge factor tried.
+    /// `(share, mean motion RMSE on the training takes)` of every stable share tried, in the
+    /// order tried (each row at the sizes then kept).
     pub bending_search: Vec<(f64, f64)>,
     /// The best uniform network at the map network's step, searched on the training takes
     /// from `(k̄, b̄)`, and its test figures.
@@ -113,28 +115,42 @@ pub fn source_map(
         device: &inputs.device,
         progress,
     };
-    let model = map_network(inputs, &map, k_uniform, b_uniform);
     let train_takes = takes(train_files);
-    let (sized, sized_physics, search) = train::scale::search(&model, &physics, &train_takes)
-        .context("the source map's scale search")?;
-    // The hinge springs are the surrogate's own (the source bends by other means): their share
-    // is searched too, then the sizes again at the best share.
-    let mut bending = vec![(1.0, search.after)];
-    for f in BENDING_FACTORS {
-        let net = with_bending(inputs, &sized, f);
-        if let Some((_, r)) = train::scale::score_network(&net, &sized_physics, &train_takes) {
-            bending.push((f, r));
+    // The sizes, then the bending springs' share (the surrogate's own: no source has them),
+    // in turn until the share stays, as the blend search does.
+    let (mut k, mut b, mut share) = (k_uniform, b_uniform, 1.0);
+    let mut bending = Vec::new();
+    let mut sized = train::scale::search(
+        &map_network(inputs, &map, k, b, share),
+        &physics,
+        &train_takes,
+    )
+    .context("the source map's scale search")?;
+    for _ in 0..train::scale::BENDING_ROUNDS {
+        let (k_now, b_now) = (k * sized.2.k_factor, b * sized.2.b_factor);
+        let mut best = (share, sized.2.after);
+        for f in train::scale::BENDING_FACTORS.into_iter().chain([1.0]) {
+            let net = map_network(inputs, &map, k_now, b_now, f);
+            if let Some((_, r)) = train::scale::score_network(&net, &sized.1, &train_takes) {
+                bending.push((f, r));
+                if r < best.1 {
+                    best = (f, r);
+                }
+            }
         }
+        if best.0 == share {
+            break;
+        }
+        (k, b, share) = (k_now, b_now, best.0);
+        sized = train::scale::search(
+            &map_network(inputs, &map, k, b, share),
+            &sized.1,
+            &train_takes,
+        )
+        .context("the source map's scale search")?;
     }
-    let best = bending.iter().copied().min_by(|a, b| a.1.total_cmp(&b.1));
-    let bending_factor = best.map_or(1.0, |b| b.0);
-    let (sized, sized_physics, search) = if bending_factor == 1.0 {
-        (sized, sized_physics, search)
-    } else {
-        let net = with_bending(inputs, &sized, bending_factor);
-        train::scale::search(&net, &sized_physics, &train_takes)
-            .context("the source map's second scale search")?
-    };
+    let (sized, sized_physics, search) = sized;
+    let bending_factor = share;
     let test_files: Vec<PathBuf> = inputs.tests.iter().map(|t| t.path.clone()).collect();
     let curves = eval::motion_curves(&sized, &sized_physics, &takes(&test_files))
         .context("the map network on the test takes")?;
@@ -179,28 +195,17 @@ pub fn source_map(
     })))
 }
 
-/// Factors of the hinge springs' stiffness tried after the first scale search (1 is its result).
-const BENDING_FACTORS: [f64; 4] = [1.0 / 64.0, 1.0 / 16.0, 0.25, 4.0];
-
-/// `net` with the stiffness of its hinge (bending-family) springs multiplied by `f`.
-fn with_bending(inputs: &Inputs, net: &SpringNet, f: f64) -> SpringNet {
-    let family = &inputs.topology.family;
-    let k: Vec<f64> = net
-        .k_values()
-        .iter()
-        .zip(family)
-        .map(|(k, fam)| if *fam == SpringFamily::Bending { k * f } else { *k })
-        .collect();
-    SpringNet::new(&inputs.topology, &k, &net.b_values(), &inputs.device)
-        .with_kernel(inputs.config.model.kernel)
-}
-
-/// The network whose structural springs follow `map` (`(spring, value)`) about `k`, the other
-/// springs at `k`, every damping `b`; the run's kernel.
-fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64) -> SpringNet {
+/// The network whose structural springs follow `map` (`(spring, value)`) about `k`, the shear
+/// springs at `k`, the bending springs at `k · share`, every damping `b`; the run's kernel.
+fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64, share: f64) -> SpringNet {
     let n = inputs.topology.num_springs();
     let mean = map.iter().map(|m| m.1).sum::<f64>() / map.len() as f64;
-    let mut ks = vec![k; n];
+    let mut ks: Vec<f64> = inputs
+        .topology
+        .family
+        .iter()
+        .map(|f| if *f == SpringFamily::Bending { k * share } else { k })
+        .collect();
     for &(s, v) in map {
         ks[s] = k * v / mean;
     }

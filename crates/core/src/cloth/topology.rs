@@ -114,9 +114,11 @@ pub fn grid_triangles(nx: usize, ny: usize, diagonal: Diagonal) -> Vec<[usize; 3
 pub enum SpringFamily {
     /// Grid edges (horizontal and vertical).
     Structural,
-    /// Cell diagonals.
+    /// Cell diagonals (on a data mesh: the hinge springs that are a quad cell's other
+    /// diagonal, see [`Topology::mesh`]).
     Shear,
-    /// Stride-`n` horizontal and vertical springs that resist bending.
+    /// Stride-`n` horizontal and vertical springs that resist bending (on a data mesh: the other
+    /// hinge springs).
     Bending,
 }
 
@@ -258,7 +260,9 @@ impl Topology {
 
     /// The network on a triangle mesh over a `width × height` rest rectangle (`layout =
     /// "data"`): particles at `rest_uv`, structural springs on the triangles' edges and, with
-    /// `hinges`, a bending spring between the two vertices opposite each interior edge.
+    /// `hinges`, a hinge spring between the two vertices opposite each interior edge: a shear
+    /// spring where that edge is the longest side of both its triangles (the hinge spring is
+    /// then the other diagonal of the quad cell they form), else a bending spring.
     ///
     /// A triangle listed twice (e.g. both sides of a double-sided mesh) counts once. Errors (the
     /// caller names the file) on an index out of range, a degenerate triangle, a vertex in no
@@ -282,11 +286,11 @@ impl Topology {
         if hinges {
             let mut seen: std::collections::BTreeSet<[usize; 2]> =
                 opposite.keys().copied().collect();
-            for far in opposite.values().filter(|o| o.len() == 2 && o[0] != o[1]) {
+            for (edge, far) in opposite.iter().filter(|(_, o)| o.len() == 2 && o[0] != o[1]) {
                 let pair = [far[0].min(far[1]), far[0].max(far[1])];
                 if seen.insert(pair) {
                     springs.push(pair);
-                    family.push(SpringFamily::Bending);
+                    family.push(hinge_family(rest_uv, *edge, pair));
                 }
             }
         }
@@ -486,6 +490,24 @@ fn counter_clockwise(
     Ok(ccw)
 }
 
+/// The family of the hinge spring `far` across the interior `edge`: [`SpringFamily::Shear`] when
+/// `edge` is the longest side of both triangles on it — the two triangles then form a quad cell
+/// whose diagonal it is, and the hinge spring is the cell's other diagonal (a triangulated
+/// grid's cut diagonals, where a mass-spring cloth has its shear springs) — else
+/// [`SpringFamily::Bending`] (across a cell's side: it spans two cells and resists bending).
+fn hinge_family(rest_uv: &[[f64; 2]], edge: [usize; 2], far: [usize; 2]) -> SpringFamily {
+    let shared = distance(rest_uv[edge[0]], rest_uv[edge[1]]);
+    let longest = far.iter().all(|&c| {
+        edge.iter()
+            .all(|&a| distance(rest_uv[a], rest_uv[c]) <= shared * (1.0 + 1e-9))
+    });
+    if longest {
+        SpringFamily::Shear
+    } else {
+        SpringFamily::Bending
+    }
+}
+
 /// Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
 fn lumped_mass_weights(rest_uv: &[[f64; 2]], ccw: &[[usize; 3]]) -> Vec<f64> {
     let n = rest_uv.len();
@@ -561,12 +583,17 @@ mod tests {
             structural,
             vec![[0, 1], [0, 2], [0, 3], [1, 2], [1, 4], [2, 3], [2, 4]]
         );
-        let bending: Vec<[usize; 2]> = (0..topo.num_springs())
-            .filter(|&s| topo.family[s] == SpringFamily::Bending)
-            .map(|s| topo.springs[s])
-            .collect();
-        // Across 0–2: vertices 1 and 3; across 1–2: vertices 0 and 4.
-        assert_eq!(bending, vec![[1, 3], [0, 4]]);
+        let hinges = |family| -> Vec<[usize; 2]> {
+            (0..topo.num_springs())
+                .filter(|&s| topo.family[s] == family)
+                .map(|s| topo.springs[s])
+                .collect()
+        };
+        // Across 0–2, the square's diagonal and the longest side of both its triangles:
+        // vertices 1 and 3, the square's other diagonal, a shear spring. Across 1–2, a side of
+        // the square: vertices 0 and 4, a bending spring.
+        assert_eq!(hinges(SpringFamily::Shear), vec![[1, 3]]);
+        assert_eq!(hinges(SpringFamily::Bending), vec![[0, 4]]);
         assert!((topo.rest_length[topo.num_springs() - 1] - 2.0615528128088303).abs() < 1e-12);
         // Every triangle counter-clockwise.
         for t in &topo.triangles {

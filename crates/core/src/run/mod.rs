@@ -163,11 +163,13 @@ fn read_mesh_topology(path: &Path) -> Result<Topology> {
         npz.scalar("width").map_err(at)?,
         npz.scalar("height").map_err(at)?,
     );
+    // A data mesh's hinge springs are shear or bending springs; its edges are structural.
     let hinges = npz
         .int("family", &[None])
         .map_err(at)?
         .0
-        .contains(&SpringFamily::Bending.code().into());
+        .iter()
+        .any(|&f| f != i64::from(SpringFamily::Structural.code()));
     let topo = Topology::mesh(&rest_uv, &triangles, width, height, hinges)
         .map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let (ends, _) = npz.int("springs", &[None, Some(2)]).map_err(at)?;

@@ -721,8 +721,9 @@ impl AfterFit<'_> {
             .expect("one map at least");
         progress.note(&format!(
             "blend search: the best uniform network on {} training rollouts is k {:.4} N/m, b \
-             {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3}, b × {:.3} at {} \
-             substep(s) per frame: mean motion RMSE {} (as trained) -> {:.4e} m",
+             {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3} (bending springs' \
+             × {:.3} more), b × {:.3} at {} substep(s) per frame: mean motion RMSE {} (as \
+             trained) -> {:.4e} m",
             record.rollouts,
             record.uniform.0,
             record.uniform.1,
@@ -730,6 +731,7 @@ impl AfterFit<'_> {
             100.0 * record.alpha,
             record.map,
             record.k_factor,
+            record.bending_factor,
             record.b_factor,
             record.substeps,
             before_text(record.before),

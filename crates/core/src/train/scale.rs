@@ -28,7 +28,7 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::Topology;
+use crate::cloth::{SpringFamily, Topology};
 use crate::eval::Takes;
 use crate::eval::uniform::network_rollout_rmse;
 use crate::model::SpringNet;
@@ -91,11 +91,30 @@ pub(crate) struct BlendSearch {
     pub before: Option<f64>,
     /// Mean motion RMSE of the kept network, m.
     pub after: f64,
-    /// `(α, k factor, b factor, substeps, mean motion RMSE)` of every stable candidate.
+    /// `(α, k factor, b factor, substeps, mean motion RMSE)` of every stable candidate at the
+    /// bending springs' factor 1.
     pub candidates: Vec<(f64, f64, f64, usize, f64)>,
+    /// The factor of the bending springs' `k` kept (1 when the network has none, or none moves
+    /// closer).
+    #[serde(default = "one")]
+    pub bending_factor: f64,
+    /// `(bending factor, k factor, b factor, substeps, mean motion RMSE)` of every stable
+    /// candidate of the bending springs' search, at the kept share.
+    #[serde(default)]
+    pub bending_candidates: Vec<(f64, f64, f64, usize, f64)>,
     /// Training rollouts simulated per candidate.
     pub rollouts: usize,
 }
+
+/// The default of a factor a record written before it existed lacks.
+fn one() -> f64 {
+    1.0
+}
+
+/// Factors of the bending springs' `k` tried at the best share (1 is the share's own).
+pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
+/// Rounds of the bending springs' row and the sizes at most.
+pub const BENDING_ROUNDS: usize = 4;
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
@@ -106,7 +125,7 @@ const WIDE_B_STEPS: std::ops::RangeInclusive<i32> = -6..=4;
 const NARROW_K_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
 const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
 /// Candidates the search considers (some twice, simulated once).
-const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2);
+const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2) + 6 + 3 + 3 + 2;
 
 /// Searches the best uniform network around `model`'s means on the training takes `train`, then the share of
 /// `model`'s map blended into it and the factors around the best; returns the kept network, the
@@ -135,7 +154,7 @@ pub(crate) fn blend_search(
         tried: Vec::new(),
         bar: train.progress.bar(BLEND_CANDIDATES as u64, "blend search"),
     };
-    let before = search.score(1.0, 1.0, 1.0).map(|(_, r)| r);
+    let before = search.score(1.0, 1.0, 1.0, 1.0).map(|(_, r)| r);
     // Both ends first: the uniform network (α = 0) and the learned map (α = 1), each from a
     // wide search; the shares between from the geometric mean of the ends' factors.
     // The uniform end starts from the run's initial uniform network (derived from the data);
@@ -161,6 +180,7 @@ pub(crate) fn blend_search(
         .copied()
         .min_by(|a, b| a.4.total_cmp(&b.4))
         .expect("the uniform network is a candidate");
+    let (bending_factor, best) = search.bending_search(best);
     search.bar.finish();
     let (alpha, fk, fb, substeps, after) = best;
     let record = BlendSearch {
@@ -174,14 +194,25 @@ pub(crate) fn blend_search(
         uniform: (uniform.1 * k_mean, uniform.2 * b_mean, uniform.4),
         before,
         after,
-        candidates: search.candidates(),
+        candidates: search.candidates(1.0),
+        bending_candidates: BENDING_FACTORS
+            .iter()
+            .flat_map(|&fh| {
+                search
+                    .candidates(fh)
+                    .into_iter()
+                    .filter(|c| c.0 == alpha)
+                    .map(move |c| (fh, c.1, c.2, c.3, c.4))
+            })
+            .collect(),
+        bending_factor,
         rollouts: files.len(),
     };
     let physics = Physics {
         substeps,
         ..*physics
     };
-    Ok((search.blended(alpha, fk, fb), physics, record))
+    Ok((search.blended(alpha, fk, fb, bending_factor), physics, record))
 }
 
 /// The means the blend search blends towards: the learned `k`'s (which must be positive) and
@@ -213,40 +244,47 @@ struct Blender<'a> {
     physics: &'a Physics,
     /// The training takes of the search ([`search_files`]).
     takes: Takes<'a>,
-    tried: Vec<((f64, f64, f64), Scored)>,
+    /// `((α, k factor, b factor, bending factor), score)` of every candidate simulated.
+    tried: Vec<((f64, f64, f64, f64), Scored)>,
     bar: crate::progress::Bar,
 }
 
 impl Blender<'_> {
     /// The network keeping the share `alpha` of the learned map (the rest uniform at the
-    /// means), its `k` scaled by `fk` and its `b` by `fb`.
-    fn blended(&self, alpha: f64, fk: f64, fb: f64) -> SpringNet {
+    /// means), its `k` scaled by `fk` (the bending springs' by `fk · fh`) and its `b` by `fb`.
+    fn blended(&self, alpha: f64, fk: f64, fb: f64, fh: f64) -> SpringNet {
         let mix = |v: &[f64], m: f64, f: f64| -> Vec<f64> {
             v.iter()
                 .map(|x| f * ((1.0 - alpha) * m + alpha * x))
                 .collect()
         };
         let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
-        let (k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
+        let (mut k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
+        for (k, family) in k.iter_mut().zip(&self.takes.topology.family) {
+            if *family == SpringFamily::Bending {
+                *k *= fh;
+            }
+        }
         SpringNet::new(self.takes.topology, &k, &b, self.takes.device)
             .with_kernel(self.model.graph.kernel)
             .with_curvature(&kappa)
     }
 
     /// A candidate's score, simulated once.
-    fn score(&mut self, alpha: f64, fk: f64, fb: f64) -> Scored {
-        if let Some(&(_, known)) = self.tried.iter().find(|t| t.0 == (alpha, fk, fb)) {
+    fn score(&mut self, alpha: f64, fk: f64, fb: f64, fh: f64) -> Scored {
+        let key = (alpha, fk, fb, fh);
+        if let Some(&(_, known)) = self.tried.iter().find(|t| t.0 == key) {
             return known;
         }
-        let net = self.blended(alpha, fk, fb);
+        let net = self.blended(alpha, fk, fb, fh);
         let found = score_network(&net, self.physics, &self.takes);
-        self.tried.push(((alpha, fk, fb), found));
+        self.tried.push((key, found));
         found
     }
 
     /// `candidate` if it scores and beats `best`.
-    fn consider(&mut self, alpha: f64, fk: f64, fb: f64, best: &mut Option<Candidate>) {
-        if let Some((n, r)) = self.score(alpha, fk, fb)
+    fn consider(&mut self, alpha: f64, fk: f64, fb: f64, fh: f64, best: &mut Option<Candidate>) {
+        if let Some((n, r)) = self.score(alpha, fk, fb, fh)
             && best.is_none_or(|b| r < b.4)
         {
             *best = Some((alpha, fk, fb, n, r));
@@ -263,27 +301,80 @@ impl Blender<'_> {
         k_steps: std::ops::RangeInclusive<i32>,
         b_steps: std::ops::RangeInclusive<i32>,
     ) -> Option<Candidate> {
+        self.rows(alpha, (fk0, fb0), 1.0, k_steps, b_steps)
+    }
+
+    /// [`Self::row_search`] with the bending springs' factor `fh`.
+    fn rows(
+        &mut self,
+        alpha: f64,
+        (fk0, fb0): (f64, f64),
+        fh: f64,
+        k_steps: std::ops::RangeInclusive<i32>,
+        b_steps: std::ops::RangeInclusive<i32>,
+    ) -> Option<Candidate> {
         let mut best: Option<Candidate> = None;
         for i in k_steps {
-            self.consider(alpha, fk0 * 2f64.powf(i as f64 / 2.0), fb0, &mut best);
+            self.consider(alpha, fk0 * 2f64.powf(i as f64 / 2.0), fb0, fh, &mut best);
         }
         let fk = best.map_or(fk0, |b| b.1);
         for i in b_steps {
-            self.consider(alpha, fk, fb0 * 2f64.powi(i), &mut best);
+            self.consider(alpha, fk, fb0 * 2f64.powi(i), fh, &mut best);
         }
         let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
         for f in [-0.25, 0.25] {
-            self.consider(alpha, fk * 2f64.powf(f), fb, &mut best);
+            self.consider(alpha, fk * 2f64.powf(f), fb, fh, &mut best);
         }
         best
     }
 
-    /// Every stable candidate tried, sorted by share and factors.
-    fn candidates(&self) -> Vec<Candidate> {
+    /// The bending springs' share, after the blend (ours): they are the surrogate's own
+    /// construct — hinge springs across a cell's side, or a grid's stride springs — that no
+    /// other simulator has as such, so how stiff they are beside the mesh's edges is a global
+    /// parameter of the fit like the size. A row of factors of their `k` at `best`, then, at
+    /// the best factor, the size rows again (narrow), in turn until the factor stays (at most
+    /// [`BENDING_ROUNDS`] rows); returns the factor and the candidate kept (`best` and 1 when
+    /// the network has no bending springs or no factor moves closer).
+    fn bending_search(&mut self, best: Candidate) -> (f64, Candidate) {
+        let family = &self.takes.topology.family;
+        if !family.contains(&SpringFamily::Bending) {
+            return (1.0, best);
+        }
+        let mut kept = (1.0, best);
+        // Coordinate descent: the size found for one share of the bending springs is not the
+        // size for another (a uniform network softens everything to make up for stiff
+        // bending springs), so the row and the sizes alternate until the share stays.
+        for _ in 0..BENDING_ROUNDS {
+            let (alpha, fk, fb, ..) = kept.1;
+            let share = kept.0;
+            for fh in BENDING_FACTORS.into_iter().chain([1.0]) {
+                if let Some((n, r)) = self.score(alpha, fk, fb, fh)
+                    && r < kept.1.4
+                {
+                    kept = (fh, (alpha, fk, fb, n, r));
+                }
+                self.bar.inc(1);
+            }
+            if kept.0 == share {
+                break;
+            }
+            if let Some(c) = self.rows(alpha, (fk, fb), kept.0, -1..=1, -1..=1)
+                && c.4 < kept.1.4
+            {
+                kept.1 = c;
+            }
+        }
+        kept
+    }
+
+    /// Every stable candidate tried at the bending springs' factor `fh`, sorted by share and
+    /// factors.
+    fn candidates(&self, fh: f64) -> Vec<Candidate> {
         let mut candidates: Vec<Candidate> = self
             .tried
             .iter()
-            .filter_map(|&((a, fk, fb), found)| found.map(|(n, r)| (a, fk, fb, n, r)))
+            .filter(|t| t.0.3 == fh)
+            .filter_map(|&((a, fk, fb, _), found)| found.map(|(n, r)| (a, fk, fb, n, r)))
             .collect();
         candidates.sort_by(|x, y| {
             x.0.total_cmp(&y.0)
