@@ -198,10 +198,16 @@ fn the_sources_own_map_beats_the_best_uniform_network_on_a_striped_fem_sheet() {
     let dir = common::temp_dir("diagnose-source-map");
     let job = common::FEM_4X4
         .replace("nx = 4\nny = 4", "nx = 7\nny = 7")
-        .replace("stiffness_levels = [300.0]", "stiffness_levels = [100.0, 400.0, 1000.0]")
+        .replace(
+            "stiffness_levels = [300.0]",
+            "stiffness_levels = [100.0, 400.0, 1000.0]",
+        )
         .replace("layout = \"uniform\"", "layout = \"stripes\"")
         .replace("seconds = 0.3", "seconds = 0.6")
-        .replace("train_rollouts = 3\ntest_rollouts = 1", "train_rollouts = 4\ntest_rollouts = 2")
+        .replace(
+            "train_rollouts = 3\ntest_rollouts = 1",
+            "train_rollouts = 4\ntest_rollouts = 2",
+        )
         .replace("iterations = 4", "iterations = 0")
         .replace("iterations = 2", "iterations = 0");
     let job = format!(
@@ -211,7 +217,10 @@ fn the_sources_own_map_beats_the_best_uniform_network_on_a_striped_fem_sheet() {
     std::fs::write(dir.join("fem.toml"), job).unwrap();
     ok(&springtime(&["train", "fem.toml", "--no-report"], &dir));
     let out = ok(&springtime(&["diagnose", "runs/fem"], &dir));
-    assert!(out.contains("the source's own stiffness map, sized"), "{out}");
+    assert!(
+        out.contains("the source's own stiffness map, sized"),
+        "{out}"
+    );
     let text = std::fs::read_to_string(dir.join("runs/fem/diagnose/source_map.json")).unwrap();
     let c: diagnose::SourceMap = serde_json::from_str(&text).unwrap();
     assert_eq!(c.start, "uniform_baseline");

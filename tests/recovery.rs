@@ -259,10 +259,9 @@ fn the_blend_search_finds_the_bending_springs_share() {
     config.data.test_dir = Some(dir.join("test"));
     config.runs_dir = dir.join("runs");
     let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
-    let record: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap(),
-    )
-    .unwrap();
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
+            .unwrap();
     let factor = record["bending_factor"].as_f64().unwrap();
     eprintln!(
         "bending factor {factor}; candidates {}",

@@ -13,8 +13,8 @@
 
 pub mod chaos;
 pub mod error_map;
-pub mod source_map;
 pub mod observability;
+pub mod source_map;
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -36,8 +36,8 @@ use springtime_plot as plot;
 
 pub use chaos::ChaosFloor;
 pub use error_map::ErrorMap;
-pub use source_map::SourceMap;
 pub use observability::ObservabilityReport;
+pub use source_map::SourceMap;
 
 /// The files a diagnosis writes, in its output directory.
 pub const FILES: [&str; 8] = [

@@ -24,9 +24,9 @@ use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
 use super::Inputs;
+use crate::cloth::SpringFamily;
 use crate::data::Rollout;
 use crate::eval::{self, MotionRmse, Takes};
-use crate::cloth::SpringFamily;
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::train::{self, scale::ScaleSearch};
@@ -83,9 +83,11 @@ pub fn source_map(
         return Ok(Outcome::Skipped("no test rollouts".into()));
     };
     let rollout = Rollout::load(&first.path)?;
-    let Some(map) = rollout.mesh.as_ref().and_then(|mesh| {
-        eval::map_at_structural_springs(&inputs.topology, &rollout.rest_uv, mesh)
-    }) else {
+    let Some(map) = rollout
+        .mesh
+        .as_ref()
+        .and_then(|mesh| eval::map_at_structural_springs(&inputs.topology, &rollout.rest_uv, mesh))
+    else {
         return Ok(Outcome::Skipped(
             "no source-map reference: the rollouts carry no stiffness map of their source (tri_stiffness)"
                 .into(),
@@ -99,13 +101,18 @@ pub fn source_map(
     let report = crate::report::read_eval(&train::RunDir {
         dir: run_dir.to_path_buf(),
     })?;
-    let (start, k_uniform, b_uniform) = match report.as_ref().and_then(|r| r.uniform_baseline.as_ref()) {
-        Some(u) => ("uniform_baseline", u.k, u.b),
-        None => {
-            let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len().max(1) as f64;
-            ("learned_mean", mean(inputs.model.k_values()), mean(inputs.model.b_values()))
-        }
-    };
+    let (start, k_uniform, b_uniform) =
+        match report.as_ref().and_then(|r| r.uniform_baseline.as_ref()) {
+            Some(u) => ("uniform_baseline", u.k, u.b),
+            None => {
+                let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len().max(1) as f64;
+                (
+                    "learned_mean",
+                    mean(inputs.model.k_values()),
+                    mean(inputs.model.b_values()),
+                )
+            }
+        };
     let physics = inputs.physics(first.frame_dt);
     let batch = inputs.config.eval.batch;
     let takes = |files| Takes {
@@ -204,7 +211,13 @@ fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64, share: f64
         .topology
         .family
         .iter()
-        .map(|f| if *f == SpringFamily::Bending { k * share } else { k })
+        .map(|f| {
+            if *f == SpringFamily::Bending {
+                k * share
+            } else {
+                k
+            }
+        })
         .collect();
     for &(s, v) in map {
         ks[s] = k * v / mean;

@@ -286,7 +286,10 @@ impl Topology {
         if hinges {
             let mut seen: std::collections::BTreeSet<[usize; 2]> =
                 opposite.keys().copied().collect();
-            for (edge, far) in opposite.iter().filter(|(_, o)| o.len() == 2 && o[0] != o[1]) {
+            for (edge, far) in opposite
+                .iter()
+                .filter(|(_, o)| o.len() == 2 && o[0] != o[1])
+            {
                 let pair = [far[0].min(far[1]), far[0].max(far[1])];
                 if seen.insert(pair) {
                     springs.push(pair);

@@ -212,7 +212,11 @@ pub(crate) fn blend_search(
         substeps,
         ..*physics
     };
-    Ok((search.blended(alpha, fk, fb, bending_factor), physics, record))
+    Ok((
+        search.blended(alpha, fk, fb, bending_factor),
+        physics,
+        record,
+    ))
 }
 
 /// The means the blend search blends towards: the learned `k`'s (which must be positive) and
