@@ -224,8 +224,8 @@ fn the_sources_own_map_beats_the_best_uniform_network_on_a_striped_fem_sheet() {
     let text = std::fs::read_to_string(dir.join("runs/fem/diagnose/source_map.json")).unwrap();
     let c: diagnose::SourceMap = serde_json::from_str(&text).unwrap();
     assert_eq!(c.start, "uniform_baseline");
-    // Every structural spring of the 7 × 7 grid follows the map.
-    assert_eq!(c.springs, 2 * 7 * 6);
+    // Every structural and shear spring of the 7 × 7 grid follows the map.
+    assert_eq!(c.springs, 2 * 7 * 6 + 2 * 6 * 6);
     // The search keeps the best it tried: never worse than where it started.
     assert!(c.search.after <= c.search.before.unwrap(), "{:?}", c.search);
     assert!(c.bending_search.iter().any(|&(f, _)| f == c.bending_factor));

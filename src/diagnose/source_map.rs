@@ -2,9 +2,9 @@
 //!
 //! When the rollouts carry the source's stiffness map (`tri_stiffness`, as the cross-simulator
 //! bench and the FEM source write it), a network is built whose structural springs follow that
-//! map exactly — `k_s = k̄ · m_s / m̄`, with `m_s` the map at the spring's rest midpoint (as
-//! `stiffness_map_corr` reads it) and `m̄` its mean; the shear springs at `k̄`, the bending
-//! springs at a share of it, every `b` at `b̄`, `(k̄, b̄)` the best uniform network of
+//! map exactly, and so do its shear springs — `k_s = k̄ · m_s / m̄`, with `m_s` the map at the
+//! spring's rest midpoint (as `stiffness_map_corr` reads it) and `m̄` its mean; the bending
+//! springs at a share of `k̄`, every `b` at `b̄`, `(k̄, b̄)` the best uniform network of
 //! `eval.json` — and sized on the training takes: the scale search ([`train::scale::search`]:
 //! one factor for every `k`, one for every `b`), then a row of shares of the bending springs
 //! ([`train::scale::BENDING_FACTORS`]) and the scale search again, in turn until the share stays,
@@ -59,7 +59,7 @@ pub struct SourceMap {
     pub gain_long: f64,
     /// The run's own gains over the best uniform network (eval.json), short and long.
     pub run_gain: Option<[f64; 2]>,
-    /// Structural springs that follow the map.
+    /// Springs that follow the map (the structural and shear ones).
     pub springs: usize,
 }
 
@@ -83,11 +83,14 @@ pub fn source_map(
         return Ok(Outcome::Skipped("no test rollouts".into()));
     };
     let rollout = Rollout::load(&first.path)?;
-    let Some(map) = rollout
-        .mesh
-        .as_ref()
-        .and_then(|mesh| eval::map_at_structural_springs(&inputs.topology, &rollout.rest_uv, mesh))
-    else {
+    let Some(map) = rollout.mesh.as_ref().and_then(|mesh| {
+        eval::map_at_springs(
+            &inputs.topology,
+            &rollout.rest_uv,
+            mesh,
+            &[SpringFamily::Structural, SpringFamily::Shear],
+        )
+    }) else {
         return Ok(Outcome::Skipped(
             "no source-map reference: the rollouts carry no stiffness map of their source (tri_stiffness)"
                 .into(),
@@ -202,8 +205,8 @@ pub fn source_map(
     })))
 }
 
-/// The network whose structural springs follow `map` (`(spring, value)`) about `k`, the shear
-/// springs at `k`, the bending springs at `k · share`, every damping `b`; the run's kernel.
+/// The network whose springs in `map` (`(spring, value)`: the structural and shear ones)
+/// follow it about `k`, the bending springs at `k · share`, every damping `b`; the run's kernel.
 fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64, share: f64) -> SpringNet {
     let n = inputs.topology.num_springs();
     let mean = map.iter().map(|m| m.1).sum::<f64>() / map.len() as f64;

@@ -676,6 +676,16 @@ pub fn map_at_structural_springs(
     rest_uv: &[[f64; 2]],
     mesh: &MeshTruth,
 ) -> Option<Vec<(usize, f64)>> {
+    map_at_springs(topology, rest_uv, mesh, &[SpringFamily::Structural])
+}
+
+/// [`map_at_structural_springs`] for the springs of `families`.
+pub fn map_at_springs(
+    topology: &Topology,
+    rest_uv: &[[f64; 2]],
+    mesh: &MeshTruth,
+    families: &[SpringFamily],
+) -> Option<Vec<(usize, f64)>> {
     let stiffness = mesh.stiffness.as_ref()?;
     let corners = |t: &[usize; 3]| t.map(|i| rest_uv[i]);
     let contains = |t: &[usize; 3], p: [f64; 2]| {
@@ -692,7 +702,7 @@ pub fn map_at_structural_springs(
     };
     Some(
         (0..topology.num_springs())
-            .filter(|&s| topology.family[s] == SpringFamily::Structural)
+            .filter(|&s| families.contains(&topology.family[s]))
             .map(|s| {
                 let m = topology.midpoint(s);
                 let tri = mesh

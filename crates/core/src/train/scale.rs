@@ -389,8 +389,9 @@ impl Blender<'_> {
     }
 }
 
-/// A candidate's fewest stable substeps ([`stable_substeps`]) and its mean motion RMSE on
-/// `takes` there; `None` when no substeps within the cap keep it stable or a rollout diverged.
+/// A candidate's fewest stable substeps (from `physics.substeps` up, at a stability number of
+/// 1 or less) and its mean motion RMSE on `takes` there; `None` when no substeps within the cap
+/// keep it stable or a rollout diverged.
 pub fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Option<(usize, f64)> {
     stable_substeps(takes.topology, physics, net).and_then(|n| {
         let p = Physics {
