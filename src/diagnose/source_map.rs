@@ -143,7 +143,7 @@ pub fn source_map(
             let net = map_network(inputs, &map, k_now, b_now, f);
             if let Some((_, r)) = train::scale::score_network(&net, &sized.1, &train_takes) {
                 bending.push((f, r));
-                if r < best.1 {
+                if r < best.1 * (1.0 - train::scale::BENDING_MARGIN) {
                     best = (f, r);
                 }
             }

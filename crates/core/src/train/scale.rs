@@ -113,6 +113,9 @@ fn one() -> f64 {
 
 /// Factors of the bending springs' `k` tried at the best share (1 is the share's own).
 pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
+/// The share of the bending springs moves only for a candidate this much closer (relative) to
+/// the training takes: a share chosen on less is chosen by chance.
+pub const BENDING_MARGIN: f64 = 0.01;
 /// Rounds of the bending springs' row and the sizes at most.
 pub const BENDING_ROUNDS: usize = 4;
 
@@ -337,7 +340,7 @@ impl Blender<'_> {
     /// other simulator has as such, so how stiff they are beside the mesh's edges is a global
     /// parameter of the fit like the size. A row of factors of their `k` at `best`, then, at
     /// the best factor, the size rows again (narrow), in turn until the factor stays (at most
-    /// [`BENDING_ROUNDS`] rows); returns the factor and the candidate kept (`best` and 1 when
+    /// [`BENDING_ROUNDS`] rows; a factor moves only for [`BENDING_MARGIN`] closer); returns the factor and the candidate kept (`best` and 1 when
     /// the network has no bending springs or no factor moves closer).
     fn bending_search(&mut self, best: Candidate) -> (f64, Candidate) {
         let family = &self.takes.topology.family;
@@ -353,7 +356,7 @@ impl Blender<'_> {
             let share = kept.0;
             for fh in BENDING_FACTORS.into_iter().chain([1.0]) {
                 if let Some((n, r)) = self.score(alpha, fk, fb, fh)
-                    && r < kept.1.4
+                    && r < kept.1.4 * (1.0 - BENDING_MARGIN)
                 {
                     kept = (fh, (alpha, fk, fb, n, r));
                 }
