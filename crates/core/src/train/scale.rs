@@ -340,8 +340,9 @@ impl Blender<'_> {
     /// other simulator has as such, so how stiff they are beside the mesh's edges is a global
     /// parameter of the fit like the size. A row of factors of their `k` at `best`, then, at
     /// the best factor, the size rows again (narrow), in turn until the factor stays (at most
-    /// [`BENDING_ROUNDS`] rows; a factor moves only for [`BENDING_MARGIN`] closer); returns the factor and the candidate kept (`best` and 1 when
-    /// the network has no bending springs or no factor moves closer).
+    /// [`BENDING_ROUNDS`] rows; a factor moves only for [`BENDING_MARGIN`] closer); returns the
+    /// factor and the candidate kept (`best` and 1 when the network has no bending springs or
+    /// no factor moves closer).
     fn bending_search(&mut self, best: Candidate) -> (f64, Candidate) {
         let family = &self.takes.topology.family;
         if !family.contains(&SpringFamily::Bending) {
