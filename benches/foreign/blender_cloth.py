@@ -66,7 +66,7 @@ except ImportError:
     sys.exit("blender_cloth.py needs numpy (and bpy): run it with the venv's python, see its docstring")
 
 from foreign_common import (DENSITY, GRAVITY, PIN_MOTION, PinPath, add_common_args, check_common_args,
-                            frame_count, grid_uv, host_facts, pick_pins, prepare_out, stiffness_regions,
+                            frame_count, grid_uv, pick_pins, prepare_out, stiffness_regions,
                             take_plan, write_source)
 
 BLENDER_DEFAULT_MASS = 0.3  # kg per vertex: the material values below are quoted for this mass
@@ -100,6 +100,18 @@ def stiffness_weights(u, v, width, height):
     they cross)."""
     stripe, band = stiffness_regions(u, v, width, height)
     return np.maximum(np.where(stripe, W_STRIPE, 0.0), np.where(band, W_BAND, 0.0))
+
+
+# Blender's cloth settings and the key of `scaled_settings` each takes: compression follows
+# tension, the bending stiffness is uniform (min = max).
+CLOTH_SETTINGS = {
+    "tension_stiffness": "tension", "tension_stiffness_max": "tension_max",
+    "compression_stiffness": "tension", "compression_stiffness_max": "tension_max",
+    "shear_stiffness": "shear", "shear_stiffness_max": "shear_max",
+    "bending_stiffness": "bending", "bending_stiffness_max": "bending",
+    "tension_damping": "tension_damping", "compression_damping": "tension_damping",
+    "shear_damping": "shear_damping", "bending_damping": "bending_damping",
+}
 
 
 def scaled_settings(mat, vertex_mass):
@@ -181,19 +193,9 @@ def build_scene(bpy, args, mat, pins, path, frames):
     cs.time_scale = math.sqrt(1000.0) / args.fps
     cs.air_damping = s["air_damping"]
     cs.bending_model = "ANGULAR"
-    # min before max: Blender keeps max >= min
-    cs.tension_stiffness = s["tension"]
-    cs.tension_stiffness_max = s["tension_max"]
-    cs.compression_stiffness = s["tension"]
-    cs.compression_stiffness_max = s["tension_max"]
-    cs.shear_stiffness = s["shear"]
-    cs.shear_stiffness_max = s["shear_max"]
-    cs.bending_stiffness = s["bending"]
-    cs.bending_stiffness_max = s["bending"]
-    cs.tension_damping = s["tension_damping"]
-    cs.compression_damping = s["tension_damping"]
-    cs.shear_damping = s["shear_damping"]
-    cs.bending_damping = s["bending_damping"]
+    # min before max (the table's order): Blender keeps max >= min
+    for name, key in CLOTH_SETTINGS.items():
+        setattr(cs, name, s[key])
     cs.vertex_group_structural_stiffness = "stiffness"
     cs.vertex_group_shear_stiffness = "stiffness"
     cs.vertex_group_mass = "pin"
@@ -210,22 +212,15 @@ def build_scene(bpy, args, mat, pins, path, frames):
     cloth.point_cache.frame_start = 1
     cloth.point_cache.frame_end = frames
 
-    checks = dict(tension_stiffness=s["tension"], tension_stiffness_max=s["tension_max"],
-                  compression_stiffness=s["tension"], compression_stiffness_max=s["tension_max"],
-                  shear_stiffness=s["shear"], shear_stiffness_max=s["shear_max"])
+    checks = {name: s[key] for name, key in CLOTH_SETTINGS.items() if name.endswith(("_stiffness", "_max"))}
     for name, want in checks.items():
         got = getattr(cs, name)
         if abs(got - want) > 1e-6 * max(1.0, abs(want)):
             raise RuntimeError(f"Blender set cloth.settings.{name} to {got}, asked for {want}")
     record = dict(
         quality=cs.quality, mass=cs.mass, time_scale=cs.time_scale, air_damping=cs.air_damping,
-        tension_stiffness=cs.tension_stiffness, tension_stiffness_max=cs.tension_stiffness_max,
-        compression_stiffness=cs.compression_stiffness, compression_stiffness_max=cs.compression_stiffness_max,
-        shear_stiffness=cs.shear_stiffness, shear_stiffness_max=cs.shear_stiffness_max,
-        bending_stiffness=cs.bending_stiffness, bending_stiffness_max=cs.bending_stiffness_max,
-        bending_model=cs.bending_model, tension_damping=cs.tension_damping,
-        compression_damping=cs.compression_damping, shear_damping=cs.shear_damping,
-        bending_damping=cs.bending_damping, pin_stiffness=cs.pin_stiffness,
+        **{name: getattr(cs, name) for name in CLOTH_SETTINGS},
+        bending_model=cs.bending_model, pin_stiffness=cs.pin_stiffness,
         vertex_group_structural_stiffness=cs.vertex_group_structural_stiffness,
         vertex_group_shear_stiffness=cs.vertex_group_shear_stiffness,
         vertex_group_mass=cs.vertex_group_mass, use_collision=cloth.collision_settings.use_collision,
@@ -430,15 +425,14 @@ def main():
         shutil.rmtree(os.path.join(args.out, "obj"), ignore_errors=True)
     wall = time.time() - start
     s = scaled_settings(mat, vertex_mass)
-    source = dict(
-        complete=True,
+    write_source(
+        args, takes, wall,
         simulator="blender",
-        description="Blender cloth modifier (implicit mass-spring solver), run headless through bpy; "
-                    "frames written by bpy.ops.wm.obj_export, converted by springtime import obj",
         package="bpy",
         version=bpy.app.version_string,
-        **host_facts(device=None),
-        material=args.material,
+        device=None,
+        description="Blender cloth modifier (implicit mass-spring solver), run headless through bpy; "
+                    "frames written by bpy.ops.wm.obj_export, converted by springtime import obj",
         material_values_at_vertex_mass_0_3=mat,
         cloth_settings=record,
         parameters=dict(
@@ -472,8 +466,8 @@ def main():
         seconds=args.seconds,
         frames=frames,
         quality_steps_per_frame=mat["quality"],
+        import_command_example=import_cmd,
     )
-    write_source(args.out, source, args, takes, wall, import_command_example=import_cmd)
 
 
 if __name__ == "__main__":

@@ -257,10 +257,14 @@ def check_common_args(ap, args, fps_lo, fps_hi, counts=False):
         ap.error("need --res >= 3, --size > 0, --seconds > 0")
 
 
+OUT_RULE = ("OUT must be empty or new, or hold an earlier output of this script (its source.json), "
+            "which is then overwritten.")
+
+
 def setup(doc, script, materials, fps_lo, fps_hi, counts=False):
     """Parse and check the common arguments (the description: doc's first paragraph) and prepare
     the output folder for script. Returns the arguments."""
-    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0], epilog=OUT_RULE)
     add_common_args(ap, materials)
     args = ap.parse_args()
     check_common_args(ap, args, fps_lo, fps_hi, counts=counts)
@@ -297,15 +301,56 @@ def host_facts(device="cpu"):
     return facts
 
 
-def grid_cloth_parameters(args, mat, particle_mass, gravity, beta):
-    """source.json parameters of a Warp-style cloth grid (add_cloth_grid, tri_ke/ka/kd, edges)."""
+def add_cloth_grid(wp, builder, args, mat, beta, pos, rot, active_flag, rng):
+    """Add the res x res sheet of `mat` through a Warp-style builder's add_cloth_grid (Warp's and
+    Newton's take the same arguments) and pin 2-4 of its boundary vertices (drawn from `rng`).
+    Returns (uv, pins, particle mass)."""
+    res, size = args.res, args.size
+    cell = size / (res - 1)
+    particle_mass = DENSITY * size * size / (res * res)
+    ke = mat["tri_ke"]
+    builder.add_cloth_grid(
+        pos=pos, rot=rot, vel=wp.vec3(0.0, 0.0, 0.0),
+        dim_x=res - 1, dim_y=res - 1, cell_x=cell, cell_y=cell, mass=particle_mass,
+        tri_ke=ke, tri_ka=ke * mat["ka_over_ke"], tri_kd=ke * beta,
+        edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
+    )
+    uv = grid_uv(res, size)
+    pins = pick_pins(rng, res, size, uv)
+    pin_particles(builder, pins, active_flag)
+    return uv, pins, particle_mass
+
+
+def grid_take(positions, uv, pins, args, particle_mass, gravity, tris, mats, mat, seed, hint=""):
+    """The rollout of a Warp-style grid's take (`mats`: its tri_materials rows, the map applied);
+    refused, naming the seed, where it blew up."""
+    if not np.isfinite(positions).all():
+        raise RuntimeError(f"take with seed {seed} blew up (non-finite positions){hint}")
+    return rollout(positions, uv, pins, 1.0 / args.fps, particle_mass * len(uv), args.size, gravity, tris,
+                   mats[:, 0].astype(np.float32), **tri_material_keys(mats, mat["edge_ke"], pins, seed))
+
+
+def grid_cloth_parameters(args, mat, info, gravity, beta, pins, start):
+    """source.json parameters of a Warp-style cloth grid (add_cloth_grid, tri_ke/ka/kd, edges, the
+    x8 map on all three) whose takes returned `info` (None: no take ran); `pins` and `start` say
+    how the pins are held and how a take starts."""
+    particle_mass = info["particle_mass"] if info else DENSITY * args.size**2 / args.res**2
     return dict(
         res=args.res, size_m=args.size, density_kg_m2=DENSITY,
         particle_mass_kg=particle_mass, total_mass_kg=DENSITY * args.size**2, gravity_m_s2=gravity,
         tri_ke_base_N_m=mat["tri_ke"], tri_ka_base=mat["tri_ke"] * mat["ka_over_ke"],
         tri_kd_base=mat["tri_ke"] * beta, tri_drag=0.0, tri_lift=0.0,
         edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
+        stiffness_map=f"tri_ke, tri_ka, tri_kd x8 where {MAP_REGIONS}",
+        map_ratio=MAP_RATIO,
+        pins=f"2-4 boundary vertices >= 0.25 size apart, {pins}; {PIN_MOTION}",
+        start=start,
     )
+
+
+def substep_facts(info):
+    """source.json: the substeps per frame and their length, from the takes' `info`."""
+    return dict(substeps_per_frame=info["substeps"] if info else None, substep_dt_s=info["dt"] if info else None)
 
 
 def take_facts(args):
@@ -313,10 +358,13 @@ def take_facts(args):
     return dict(fps=args.fps, seconds=args.seconds, frames=frame_count(args))
 
 
-def write_source(out, source, args, takes, wall, **more):
-    """Write the finished source.json (source, the base seed and SEED_RULE, more, then the takes
-    and the wall time) and say so."""
-    source = dict(source, seed=args.seed, seed_rule=SEED_RULE, **more, takes=takes, wall_time_s=round(wall, 3))
-    with open(os.path.join(out, "source.json"), "w") as fh:
+def write_source(args, takes, wall, simulator, package, version, parameters, device="cpu", **more):
+    """Write the finished OUT/source.json (the simulator and its package's version, the host, the
+    material, the parameters, more, the base seed and SEED_RULE, then the takes and the wall time)
+    and say so."""
+    source = dict(complete=True, simulator=simulator, package=package, version=version, **host_facts(device),
+                  material=args.material, parameters=parameters, **more, seed=args.seed, seed_rule=SEED_RULE,
+                  takes=takes, wall_time_s=round(wall, 3))
+    with open(os.path.join(args.out, "source.json"), "w") as fh:
         json.dump(source, fh, indent=2)
-    print(f"wrote {len(takes)} takes to {out} in {wall:.1f} s")
+    print(f"wrote {len(takes)} takes to {args.out} in {wall:.1f} s")

@@ -47,9 +47,6 @@ softer for the same young: the nominal `tri_stiffness` is the same, the motion i
     /work/venvs/mujoco/bin/python benches/foreign/mujoco_cloth.py OUT --train 16 --test 4 \\
         --seconds 4 --fps 50 --res 25 --size 2.0 --material soft --seed 0
     springtime data check OUT/train
-
-OUT must be empty or new, or hold an earlier output of this script (its source.json), which is
-then overwritten.
 """
 
 import math
@@ -58,7 +55,7 @@ import time
 import numpy as np
 
 from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, choose_pins,
-                            frame_count, host_facts, rollout, setup, stiffness_map, take_facts, write_source,
+                            frame_count, rollout, setup, stiffness_map, take_facts, write_source,
                             write_takes)
 
 PIN_MASS_FACTOR = 1.0e6  # driven vertices: inert inside MuJoCo's implicit step
@@ -174,7 +171,7 @@ def build(mujoco, args, mat):
 
 def run_take(mujoco, model, facts, args, seed):
     rng = np.random.default_rng(seed)
-    size, n = args.size, facts["n"]
+    size = args.size
     rest, uv = facts["rest"], facts["uv"]
     pins = pick_pins(rng, uv, size)
     path = PinPath(rng, rest[pins], size, 0.5 * args.seconds)
@@ -257,13 +254,11 @@ def main():
     takes, _ = write_takes(args, lambda seed: (run_take(mujoco, model, facts, args, seed), None), digits=2)
     wall = time.time() - start
     ke = mat_ke(args)
-    source = dict(
-        complete=True,
+    write_source(
+        args, takes, wall,
         simulator="MuJoCo flexcomp grid (dim 2, dof full), built-in 2-D flex elasticity, mj_step",
         package="mujoco",
         version=mujoco.__version__,
-        **host_facts(),
-        material=args.material,
         parameters=dict(
             res=args.res, size_m=args.size, density_kg_m2=DENSITY,
             vertex_mass_kg=facts["total_mass"] / facts["n"], total_mass_kg=facts["total_mass"],
@@ -284,7 +279,6 @@ def main():
         steps_per_frame=facts["steps"],
         **take_facts(args),
     )
-    write_source(args.out, source, args, takes, wall)
 
 
 if __name__ == "__main__":

@@ -36,9 +36,6 @@ Install and run (PyPI package `newton`, which pulls in a matching `warp-lang`):
     /work/venvs/newton/bin/python benches/foreign/newton_cloth.py OUT --train 16 --test 4 \\
         --seconds 4 --fps 50 --res 25 --size 2.0 --material soft --seed 0
     springtime data check OUT/train
-
-OUT must be empty or new, or hold an earlier output of this script (its source.json), which is
-then overwritten.
 """
 
 import math
@@ -46,10 +43,8 @@ import time
 
 import numpy as np
 
-from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, drive_pins,
-                            frame_count, grid_cloth_parameters, grid_uv, host_facts, map_tri_materials,
-                            pick_pins, pin_particles, rollout, setup, take_facts, tri_material_keys,
-                            write_source, write_takes)
+from foreign_common import (GRAVITY, PinPath, add_cloth_grid, drive_pins, frame_count, grid_cloth_parameters, grid_take,
+                            map_tri_materials, setup, substep_facts, take_facts, write_source, write_takes)
 
 # Per material: base membrane stiffness ke (N/m: the Lame mu times thickness), area stiffness
 # ka = lambda as a multiple of ke, damping kd = beta * ke (the map scales all three), bending
@@ -68,20 +63,11 @@ def run_take(wp, newton, args, mat, seed):
     rng = np.random.default_rng(seed)
     res, size = args.res, args.size
     n = res * res
-    cell = size / (res - 1)
-    particle_mass = DENSITY * size * size / n
     builder = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=(0.0, 0.0, -GRAVITY))
     ke = mat["tri_ke"]
     # grid (x, y, 0) is already horizontal in z-up; centred on the origin
-    builder.add_cloth_grid(
-        pos=wp.vec3(-size / 2, -size / 2, 0.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
-        dim_x=res - 1, dim_y=res - 1, cell_x=cell, cell_y=cell, mass=particle_mass,
-        tri_ke=ke, tri_ka=ke * mat["ka_over_ke"], tri_kd=ke * mat["beta"],
-        edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
-    )
-    uv = grid_uv(res, size)
-    pins = pick_pins(rng, res, size, uv)
-    pin_particles(builder, pins, newton.ParticleFlags.ACTIVE)
+    uv, pins, particle_mass = add_cloth_grid(wp, builder, args, mat, mat["beta"], wp.vec3(-size / 2, -size / 2, 0.0),
+                                             wp.quat_identity(), newton.ParticleFlags.ACTIVE, rng)
     builder.color(include_bending=True)
     model = builder.finalize(device="cpu")
     tris = model.tri_indices.numpy().astype(np.int32)
@@ -112,10 +98,7 @@ def run_take(wp, newton, args, mat, seed):
             s0, s1 = s1, s0
             drive_pins(s0, pins, path, t1)
         out[f] = s0.particle_q.numpy()
-    if not np.isfinite(out).all():
-        raise RuntimeError(f"take with seed {seed} blew up (non-finite positions)")
-    take = rollout(out, uv, pins, frame_dt, particle_mass * n, size, [0.0, 0.0, -GRAVITY], tris,
-                   mats[:, 0].astype(np.float32), **tri_material_keys(mats, mat["edge_ke"], pins, seed))
+    take = grid_take(out, uv, pins, args, particle_mass, [0.0, 0.0, -GRAVITY], tris, mats, mat, seed)
     return take, dict(substeps=substeps, dt=dt, particle_mass=particle_mass)
 
 
@@ -132,28 +115,21 @@ def main():
     start = time.time()
     takes, info = write_takes(args, lambda seed: run_take(wp, newton, args, mat, seed))
     wall = time.time() - start
-    source = dict(
-        complete=True,
+    write_source(
+        args, takes, wall,
         simulator="NVIDIA Newton (ModelBuilder.add_cloth_grid + SolverVBD, vertex block descent)",
         package="newton",
         version=newton.__version__,
+        parameters=grid_cloth_parameters(
+            args, mat, info, [0.0, 0.0, -GRAVITY], mat["beta"],
+            pins="mass 0, inactive, set to the path at each substep end",
+            start="flat, at rest, horizontal (x-y plane, z-up), falls under gravity; no ground, no collisions, "
+                  "no self contact"),
         warp_lang=wp.__version__,
-        **host_facts(),
-        material=args.material,
-        parameters=dict(
-            **grid_cloth_parameters(args, mat, info["particle_mass"] if info else DENSITY * args.size**2 / args.res**2,
-                                    [0.0, 0.0, -GRAVITY], mat["beta"]),
-            stiffness_map=f"tri_ke, tri_ka, tri_kd x8 where {MAP_REGIONS}",
-            map_ratio=MAP_RATIO,
-            pins=f"2-4 boundary vertices >= 0.25 size apart, mass 0, inactive, set to the path at each substep end; {PIN_MOTION}",
-            start="flat, at rest, horizontal (x-y plane, z-up), falls under gravity; no ground, no collisions, no self contact",
-        ),
         **take_facts(args),
-        substeps_per_frame=info["substeps"] if info else None,
-        substep_dt_s=info["dt"] if info else None,
+        **substep_facts(info),
         vbd_iterations=mat["iterations"],
     )
-    write_source(args.out, source, args, takes, wall)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,6 @@ the table to `--out`/bench-<tag>.md and `.json`. Needs the springtime binary (`c
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys

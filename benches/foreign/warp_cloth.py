@@ -29,9 +29,6 @@ is gone from later releases; run here with 1.7.2 on the CPU):
     /work/venvs/warp/bin/python benches/foreign/warp_cloth.py OUT --train 16 --test 4 \\
         --seconds 4 --fps 50 --res 25 --size 2.0 --material soft --seed 0
     springtime data check OUT/train
-
-OUT must be empty or new, or hold an earlier output of this script (its source.json), which is
-then overwritten.
 """
 
 import math
@@ -39,10 +36,8 @@ import time
 
 import numpy as np
 
-from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, drive_pins,
-                            frame_count, grid_cloth_parameters, grid_uv, host_facts, map_tri_materials,
-                            pick_pins, pin_particles, rollout, setup, take_facts, tri_material_keys,
-                            write_source, write_takes)
+from foreign_common import (GRAVITY, PinPath, add_cloth_grid, drive_pins, frame_count, grid_cloth_parameters, grid_take,
+                            map_tri_materials, setup, substep_facts, take_facts, write_source, write_takes)
 
 # Per material: base membrane stiffness ke (N/m, Warp's tri_ke = Lame mu times thickness),
 # area stiffness ka as a multiple of ke, stiffness-proportional damping kd = beta * ke (beta in s),
@@ -62,8 +57,6 @@ def run_take(wp, sim, args, mat, seed):
     rng = np.random.default_rng(seed)
     res, size = args.res, args.size
     n = res * res
-    cell = size / (res - 1)
-    particle_mass = DENSITY * size * size / n
     builder = sim.ModelBuilder(up_vector=(0.0, 1.0, 0.0), gravity=-GRAVITY)
     # grid (x, y, 0) -> world (x, 0, y): rotate +90 degrees about x; centred on the origin
     rot = wp.quat_from_axis_angle(wp.vec3(1.0, 0.0, 0.0), math.pi / 2)
@@ -72,21 +65,14 @@ def run_take(wp, sim, args, mat, seed):
     # (res - 1) / size, so the substeps grow with it and the damping's beta shrinks with it
     refine = max(1.0, (res - 1) / 24.0 * 2.0 / size)
     beta = mat["beta"] / refine
-    builder.add_cloth_grid(
-        pos=wp.vec3(-size / 2, 0.0, -size / 2), rot=rot, vel=wp.vec3(0.0, 0.0, 0.0),
-        dim_x=res - 1, dim_y=res - 1, cell_x=cell, cell_y=cell, mass=particle_mass,
-        tri_ke=ke, tri_ka=ke * mat["ka_over_ke"], tri_kd=ke * beta,
-        edge_ke=mat["edge_ke"], edge_kd=mat["edge_kd"],
-    )
-    uv = grid_uv(res, size)
-    pins = pick_pins(rng, res, size, uv)
-    pin_particles(builder, pins, sim.model.PARTICLE_FLAG_ACTIVE)
+    uv, pins, particle_mass = add_cloth_grid(wp, builder, args, mat, beta, wp.vec3(-size / 2, 0.0, -size / 2), rot,
+                                             sim.model.PARTICLE_FLAG_ACTIVE, rng)
     model = builder.finalize(device="cpu")
     model.ground = False
     model.particle_max_radius = 0.0  # no particle-particle contact
     tris = model.tri_indices.numpy().astype(np.int32)
     mats = model.tri_materials.numpy()
-    smap = map_tri_materials(mats, uv, tris, size, ke, mat["ka_over_ke"], beta)
+    map_tri_materials(mats, uv, tris, size, ke, mat["ka_over_ke"], beta)
     model.tri_materials = wp.array(mats, dtype=float, device="cpu")
 
     q0 = model.particle_q.numpy().astype(np.float64)
@@ -109,10 +95,8 @@ def run_take(wp, sim, args, mat, seed):
             integ.simulate(model, s0, s1, dt)
             s0, s1 = s1, s0
         out[f] = drive_pins(s0, pins, path, f * frame_dt)
-    if not np.isfinite(out).all():
-        raise RuntimeError(f"take with seed {seed} blew up (non-finite positions); raise the substeps")
-    take = rollout(out, uv, pins, frame_dt, particle_mass * n, size, [0.0, -GRAVITY, 0.0], tris,
-                   mats[:, 0].astype(np.float32), **tri_material_keys(mats, mat["edge_ke"], pins, seed))
+    take = grid_take(out, uv, pins, args, particle_mass, [0.0, -GRAVITY, 0.0], tris, mats, mat, seed,
+                     hint="; raise the substeps")
     return take, dict(substeps=substeps, dt=dt, particle_mass=particle_mass, beta=beta)
 
 
@@ -129,26 +113,18 @@ def main():
     start = time.time()
     takes, info = write_takes(args, lambda seed: run_take(wp, sim, args, mat, seed))
     wall = time.time() - start
-    source = dict(
-        complete=True,
+    write_source(
+        args, takes, wall,
         simulator="NVIDIA Warp warp.sim (ModelBuilder.add_cloth_grid + SemiImplicitIntegrator)",
         package="warp-lang",
         version=wp.__version__,
-        **host_facts(),
-        material=args.material,
-        parameters=dict(
-            **grid_cloth_parameters(args, mat, info["particle_mass"] if info else DENSITY * args.size**2 / args.res**2,
-                                    [0.0, -GRAVITY, 0.0], (info["beta"] if info else mat["beta"])),
-            stiffness_map=f"tri_ke, tri_ka, tri_kd x8 where {MAP_REGIONS}",
-            map_ratio=MAP_RATIO,
-            pins=f"2-4 boundary vertices >= 0.25 size apart, mass 0, inactive; {PIN_MOTION}",
-            start="flat, at rest, horizontal (x-z plane), falls under gravity; no ground, no collisions",
-        ),
+        parameters=grid_cloth_parameters(
+            args, mat, info, [0.0, -GRAVITY, 0.0], info["beta"] if info else mat["beta"],
+            pins="mass 0, inactive",
+            start="flat, at rest, horizontal (x-z plane), falls under gravity; no ground, no collisions"),
         **take_facts(args),
-        substeps_per_frame=info["substeps"] if info else None,
-        substep_dt_s=info["dt"] if info else None,
+        **substep_facts(info),
     )
-    write_source(args.out, source, args, takes, wall)
 
 
 if __name__ == "__main__":
