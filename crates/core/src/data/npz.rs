@@ -48,6 +48,18 @@ pub enum Dtype {
     Bool,
 }
 
+/// Each dtype with the type string springtime writes, NumPy's one-character code for it and
+/// NumPy's name.
+#[rustfmt::skip]
+const DTYPES: [(Dtype, &str, &str, &str); 12] = [
+    (Dtype::F16, "<f2", "e", "float16"), (Dtype::F32, "<f4", "f", "float32"),
+    (Dtype::F64, "<f8", "d", "float64"), (Dtype::I8, "|i1", "b", "int8"),
+    (Dtype::I16, "<i2", "h", "int16"), (Dtype::I32, "<i4", "i", "int32"),
+    (Dtype::I64, "<i8", "q", "int64"), (Dtype::U8, "|u1", "B", "uint8"),
+    (Dtype::U16, "<u2", "H", "uint16"), (Dtype::U32, "<u4", "I", "uint32"),
+    (Dtype::U64, "<u8", "Q", "uint64"), (Dtype::Bool, "|b1", "?", "bool"),
+];
+
 /// What a dtype string names: a numeric type and its byte order, or why it is not one.
 struct Descr {
     dtype: Dtype,
@@ -63,56 +75,40 @@ impl Dtype {
         };
         let big_endian =
             matches!(order, '>' | '!') || (order == '=' && cfg!(target_endian = "big"));
-        let dtype = match body {
-            "f2" | "e" => Dtype::F16,
-            "f4" | "f" => Dtype::F32,
-            "f8" | "d" => Dtype::F64,
-            "i1" | "b" => Dtype::I8,
-            "i2" | "h" => Dtype::I16,
-            "i4" | "i" => Dtype::I32,
-            "i8" | "q" => Dtype::I64,
-            "u1" | "B" => Dtype::U8,
-            "u2" | "H" => Dtype::U16,
-            "u4" | "I" => Dtype::U32,
-            "u8" | "Q" => Dtype::U64,
-            "b1" | "?" => Dtype::Bool,
-            _ => {
-                let what = match body.chars().next() {
-                    Some('U') => "Unicode strings",
-                    Some('S' | 'a') => "byte strings",
-                    Some('O') => "Python objects (pickled)",
-                    Some('c') => "complex numbers",
-                    Some('M') => "datetimes",
-                    Some('m') => "time deltas",
-                    Some('V') => "raw records",
-                    Some('f') => "floats of an unsupported width",
-                    Some('i' | 'u') => "integers of an unsupported width",
-                    _ => "an unknown type",
-                };
-                return Err(format!(
-                    "dtype '{descr}' holds {what}, not numbers springtime can read"
-                ));
-            }
+        let Some(&(dtype, ..)) = DTYPES
+            .iter()
+            .find(|&&(_, written, code, _)| body == &written[1..] || body == code)
+        else {
+            let what = match body.chars().next() {
+                Some('U') => "Unicode strings",
+                Some('S' | 'a') => "byte strings",
+                Some('O') => "Python objects (pickled)",
+                Some('c') => "complex numbers",
+                Some('M') => "datetimes",
+                Some('m') => "time deltas",
+                Some('V') => "raw records",
+                Some('f') => "floats of an unsupported width",
+                Some('i' | 'u') => "integers of an unsupported width",
+                _ => "an unknown type",
+            };
+            return Err(format!(
+                "dtype '{descr}' holds {what}, not numbers springtime can read"
+            ));
         };
         Ok(Descr { dtype, big_endian })
     }
 
+    /// This dtype's row of [`DTYPES`].
+    fn row(self) -> &'static (Dtype, &'static str, &'static str, &'static str) {
+        DTYPES
+            .iter()
+            .find(|row| row.0 == self)
+            .expect("every dtype has a row")
+    }
+
     /// The little-endian type string springtime writes.
     fn descr(self) -> &'static str {
-        match self {
-            Dtype::F16 => "<f2",
-            Dtype::F32 => "<f4",
-            Dtype::F64 => "<f8",
-            Dtype::I8 => "|i1",
-            Dtype::I16 => "<i2",
-            Dtype::I32 => "<i4",
-            Dtype::I64 => "<i8",
-            Dtype::U8 => "|u1",
-            Dtype::U16 => "<u2",
-            Dtype::U32 => "<u4",
-            Dtype::U64 => "<u8",
-            Dtype::Bool => "|b1",
-        }
+        self.row().1
     }
 
     /// Bytes per element.
@@ -127,20 +123,7 @@ impl Dtype {
 
     /// NumPy's name of the dtype, for messages.
     pub fn name(self) -> &'static str {
-        match self {
-            Dtype::F16 => "float16",
-            Dtype::F32 => "float32",
-            Dtype::F64 => "float64",
-            Dtype::I8 => "int8",
-            Dtype::I16 => "int16",
-            Dtype::I32 => "int32",
-            Dtype::I64 => "int64",
-            Dtype::U8 => "uint8",
-            Dtype::U16 => "uint16",
-            Dtype::U32 => "uint32",
-            Dtype::U64 => "uint64",
-            Dtype::Bool => "bool",
-        }
+        self.row().3
     }
 
     fn is_float(self) -> bool {
