@@ -35,8 +35,14 @@ fn bench(c: &mut Criterion) {
         let (x, v) = state(&topo, batch);
         group.throughput(Throughput::Elements(batch as u64));
         let mut out = vec![0f32; x.len()];
+        let inputs = cpu::Inputs {
+            x: &x,
+            v: &v,
+            k: &k,
+            b: &b,
+        };
         group.bench_with_input(BenchmarkId::new("cpu_forward", batch), &batch, |bch, _| {
-            bch.iter(|| cpu::forces(&graph, &x, &v, &k, &b, &mut out))
+            bch.iter(|| cpu::forces(&graph, inputs, &mut out))
         });
         let (mut gx, mut gv, mut gk, mut gb) = (
             vec![0f32; x.len()],
@@ -46,9 +52,13 @@ fn bench(c: &mut Criterion) {
         );
         group.bench_with_input(BenchmarkId::new("cpu_backward", batch), &batch, |bch, _| {
             bch.iter(|| {
-                cpu::forces_backward(
-                    &graph, &x, &v, &k, &b, &out, &mut gx, &mut gv, &mut gk, &mut gb,
-                )
+                let grads = cpu::Grads {
+                    x: &mut gx,
+                    v: &mut gv,
+                    k: &mut gk,
+                    b: &mut gb,
+                };
+                cpu::forces_backward(&graph, inputs, &out, grads)
             })
         });
         let device = Device::flex().autodiff();

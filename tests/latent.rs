@@ -16,7 +16,6 @@ use springtime::latent::subspace::SolveConfig;
 use springtime::latent::surrogate::SpringSheet;
 use springtime::latent::train::{TrainOptions, perturb, train};
 use springtime::latent::{LatentConfig, integrator::LossKind};
-use springtime::model::springs::spring_forces_reference;
 use springtime::progress::Progress;
 use springtime::settings::Job;
 use springtime::source::implicit::{ImplicitEuler, NewtonConfig};
@@ -626,29 +625,14 @@ fn small_surrogate() -> SurrogateJson {
     );
     let s = topo.num_springs();
     SurrogateJson {
-        format: springtime::export::FORMAT.into(),
-        units: "SI".into(),
-        grid: topo.grid,
-        triangles: topo.triangles.clone(),
-        width: topo.width,
-        height: topo.height,
-        masses: vec![0.01; topo.num_particles()],
-        rest_positions: topo.rest_positions(),
-        springs: topo.springs.clone(),
-        family: topo.family.clone(),
-        rest_length: topo.rest_length.clone(),
-        k: (0..s).map(|i| 15.0 + (i % 7) as f32 * 3.0).collect(),
-        b: (0..s).map(|i| 0.02 + (i % 5) as f32 * 0.01).collect(),
-        pinned: vec![],
         rayleigh: 0.05,
-        gravity: [0.0, 0.0, -9.81],
         dt: Some(1e-3),
-        curvature: Vec::new(),
-        curvature_k: Vec::new(),
-        frame_dt: None,
-        substeps: None,
-        mass: None,
-        stability: None,
+        ..SurrogateJson::springs(
+            &topo,
+            vec![0.01; topo.num_particles()],
+            (0..s).map(|i| 15.0 + (i % 7) as f32 * 3.0).collect(),
+            (0..s).map(|i| 0.02 + (i % 5) as f32 * 0.01).collect(),
+        )
     }
 }
 
@@ -706,8 +690,7 @@ fn the_spring_potential_differentiates_to_the_surrogates_forces() {
     let host = |f: Tensor<3>| f.into_data().try_into_vec_as::<f32>().unwrap();
     // −∂E/∂x is the springs' elastic force (Eq. 4 with b = 0) at x.
     let elastic = grad_of(&|x| potential.elastic(x));
-    let f_elastic = host(spring_forces_reference(
-        &net.graph,
+    let f_elastic = host(net.graph.spring_forces_reference(
         t(&x, &device),
         t(&x, &device).zeros_like(),
         net.k.val(),
@@ -722,8 +705,7 @@ fn the_spring_potential_differentiates_to_the_surrogates_forces() {
         .collect();
     let xp = t(&x_prev, &ad);
     let damping = grad_of(&|x| potential.dissipation(x, xp.clone()));
-    let f_damping: Vec<f32> = host(spring_forces_reference(
-        &net.graph,
+    let f_damping: Vec<f32> = host(net.graph.spring_forces_reference(
         t(&x_prev, &device),
         t(&v, &device),
         zeros,

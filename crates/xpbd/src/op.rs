@@ -191,12 +191,7 @@ struct EquilibriumBackward;
 impl<B: EquilibriumBackend> Backward<B, 1> for EquilibriumBackward {
     type State = (FloatTensor<B>, FloatTensor<B>, Arc<StaticProblem>);
 
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         let (gamma, out, problem) = ops.state;
         let d = B::static_equilibrium_backward(gamma, out, grad, problem);

@@ -8,7 +8,7 @@ pub mod springs;
 
 pub use gnn::{Gnn, GnnConfig};
 pub use neural_ode::{NeuralOde, NeuralOdeConfig};
-pub use springs::{Kernel, SpringGraph, SpringNet, spring_forces};
+pub use springs::{Kernel, SpringGraph, SpringNet};
 
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
@@ -147,13 +147,9 @@ impl ForceModel for SpringNet {
         self.graph.fused_curvature().then(|| {
             let (k, b) = self.kernel_params();
             kernels::cloth_step(
-                x,
-                v,
-                k,
-                b,
-                pinned.clone(),
-                pin_x,
-                pin_v,
+                (x, v),
+                (k, b),
+                [pinned.clone(), pin_x, pin_v],
                 &self.graph.host,
                 params,
             )

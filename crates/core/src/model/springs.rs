@@ -18,7 +18,7 @@ pub enum Kernel {
     /// One fused kernel with a hand-written backward ([`kernels::spring_forces`]).
     #[default]
     Fused,
-    /// Burn tensor ops ([`spring_forces_reference`]): gathers, Eq. 4, a scatter-add.
+    /// Burn tensor ops ([`SpringGraph::spring_forces_reference`]): gathers, Eq. 4, a scatter-add.
     Reference,
 }
 
@@ -44,7 +44,7 @@ pub struct SpringGraph {
     /// The same springs on the host, for the fused kernels.
     #[module(skip)]
     pub host: Arc<HostGraph>,
-    /// Which implementation [`spring_forces`] uses.
+    /// Which implementation [`SpringNet::forces`] uses.
     #[module(skip)]
     pub kernel: Kernel,
     /// Where the fused kernels run on this graph's device.
@@ -133,65 +133,46 @@ impl SpringGraph {
     pub(crate) fn fused_rollout(&self) -> bool {
         self.kernel == Kernel::Fused && self.fused_on == FusedOn::Host
     }
-}
 
-/// Internal spring forces on every particle: Eq. 4 for every spring, scattered to the
-/// particles through the signed incidence matrix (Eq. 2).
-///
-/// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
-/// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
-/// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
-/// to zero by construction (Newton's third law). On a graph with particle masses
-/// ([`SpringGraph::force_scale`]) each particle's force is then divided by its relative mass
-/// (the mass-weighted sum, the momentum change, stays zero).
-///
-/// This is the one place the rollout spends its time: it runs the fused kernel, or the tensor-op
-/// reference when `graph.kernel` says so (or the device has no fused kernel). Springs only: on
-/// a graph with curvature elements use [`SpringNet::forces`].
-pub fn spring_forces(
-    graph: &SpringGraph,
-    x: Tensor<3>,
-    v: Tensor<3>,
-    k: Tensor<1>,
-    b: Tensor<1>,
-) -> Tensor<3> {
-    if graph.fused_forces() && (graph.host.num_triples() == 0 || graph.fused_on == FusedOn::Cube) {
-        // (the CubeCL kernels read the springs' `k` and `b` only)
-        kernels::spring_forces(x, v, k, b, &graph.host)
-    } else {
-        spring_forces_reference(graph, x, v, k, b)
-    }
-}
-
-/// [`spring_forces`] as Burn tensor ops: two gathers per state, Eq. 4, one scatter-add. The
-/// reference the fused kernel is tested against.
-pub fn spring_forces_reference(
-    graph: &SpringGraph,
-    x: Tensor<3>,
-    v: Tensor<3>,
-    k: Tensor<1>,
-    b: Tensor<1>,
-) -> Tensor<3> {
-    let [batch, p, _] = x.dims();
-    let s = graph.num_springs;
-    let d = x.clone().select(1, graph.ib.clone()) - x.select(1, graph.ia.clone());
-    let w = v.clone().select(1, graph.ib.clone()) - v.select(1, graph.ia.clone());
-    let len2 = (d.clone() * d.clone()).sum_dim(2); // [B, S, 1]
-    let inv_len = len2.sqrt().recip();
-    let l0 = graph.rest_length.clone().reshape([1, s, 1]);
-    let elastic = k.reshape([1, s, 1]) * (l0 * inv_len.clone()).neg().add_scalar(1.0);
-    let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
-    let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
-    let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
-    let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
-        1,
-        graph.ends.clone(),
-        both,
-        burn::tensor::IndexingUpdateOp::Add,
-    );
-    match &graph.force_scale {
-        Some(scale) => f * scale.clone(),
-        None => f,
+    /// Internal spring forces on every particle as Burn tensor ops (two gathers per state, Eq. 4,
+    /// one scatter-add): the reference the fused kernel is tested against, and what
+    /// [`SpringNet::forces`] runs where the fused kernel does not.
+    ///
+    /// `x`, `v`: positions and velocities `[B, P, 3]`; `k`, `b`: `[S]`. Returns `[B, P, 3]`.
+    /// For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`:
+    /// `f_s = k (|d| − l0) d/|d| + b (w·d) d/|d|²` acts on `a` and `−f_s` on `b`, so the forces sum
+    /// to zero by construction (Newton's third law). On a graph with particle masses
+    /// ([`SpringGraph::force_scale`]) each particle's force is then divided by its relative mass
+    /// (the mass-weighted sum, the momentum change, stays zero).
+    pub fn spring_forces_reference(
+        &self,
+        x: Tensor<3>,
+        v: Tensor<3>,
+        k: Tensor<1>,
+        b: Tensor<1>,
+    ) -> Tensor<3> {
+        let graph = self;
+        let [batch, p, _] = x.dims();
+        let s = graph.num_springs;
+        let d = x.clone().select(1, graph.ib.clone()) - x.select(1, graph.ia.clone());
+        let w = v.clone().select(1, graph.ib.clone()) - v.select(1, graph.ia.clone());
+        let len2 = (d.clone() * d.clone()).sum_dim(2); // [B, S, 1]
+        let inv_len = len2.sqrt().recip();
+        let l0 = graph.rest_length.clone().reshape([1, s, 1]);
+        let elastic = k.reshape([1, s, 1]) * (l0 * inv_len.clone()).neg().add_scalar(1.0);
+        let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
+        let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
+        let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
+        let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
+            1,
+            graph.ends.clone(),
+            both,
+            burn::tensor::IndexingUpdateOp::Add,
+        );
+        match &graph.force_scale {
+            Some(scale) => f * scale.clone(),
+            None => f,
+        }
     }
 }
 
@@ -369,14 +350,23 @@ impl SpringNet {
         Self::new(topology, &vec![k; s], &vec![b; s], device)
     }
 
-    /// Internal forces at state `(x, v)`, `[B, P, 3]` (see [`spring_forces`]), with the
-    /// curvature elements' ([`Curvature::forces`]).
+    /// Internal forces at state `(x, v)`, `[B, P, 3]`: the springs' (Eqs. 2, 4, see
+    /// [`SpringGraph::spring_forces_reference`]) and the curvature elements'
+    /// ([`Curvature::forces`]). This is the one place a rollout spends its time: it runs the
+    /// fused kernel, or the tensor ops where `kernel` says so or the device has none.
     pub fn forces(&self, x: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
-        if self.graph.fused_curvature() {
+        let graph = &self.graph;
+        if graph.fused_curvature() {
             let (k, b) = self.kernel_params();
-            return kernels::spring_forces(x, v, k, b, &self.graph.host);
+            return kernels::spring_forces(x, v, k, b, &graph.host);
         }
-        let f = spring_forces(&self.graph, x.clone(), v, self.k.val(), self.b.val());
+        let (k, b) = (self.k.val(), self.b.val());
+        // The CubeCL kernels take the springs alone; the curvature elements' forces follow.
+        let f = if graph.fused_forces() && graph.fused_on == FusedOn::Cube {
+            kernels::spring_forces(x.clone(), v, k, b, &graph.host)
+        } else {
+            graph.spring_forces_reference(x.clone(), v, k, b)
+        };
         match &self.curvature {
             Some(c) => f + c.forces(x),
             None => f,

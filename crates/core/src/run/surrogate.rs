@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::SpringFamily;
+use crate::cloth::{SpringFamily, Topology};
 use crate::model::SpringNet;
 use crate::run::Run;
 use crate::sim::Physics;
@@ -96,6 +96,34 @@ impl SurrogateJson {
     /// (its frame time, substeps, mass and stability) when known.
     pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], physics: Option<&Physics>) -> Self {
         let (topo, config) = (&run.topology, &run.config);
+        let to_f32 = |values: Vec<f64>| values.iter().map(|&x| x as f32).collect();
+        Self {
+            pinned: pinned.to_vec(),
+            rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
+            gravity: config.sim.gravity.or(crate::sim::GRAVITY),
+            dt: physics.map(Physics::sim_dt),
+            curvature_k: to_f32(model.curvature_values()),
+            frame_dt: physics.map(|p| p.frame_dt),
+            substeps: physics.map(|p| p.substeps),
+            mass: physics.map(|p| p.mass),
+            stability: physics.map(|p| StabilityJson {
+                number: p.stability_of(topo, model).number(),
+                limit: 4.0,
+            }),
+            ..Self::springs(
+                topo,
+                topo.masses(run.particle_mass()),
+                to_f32(model.k_values()),
+                to_f32(model.b_values()),
+            )
+        }
+    }
+
+    /// The springs of `topology` with particle `masses` and per-spring `k`, `b`: nothing
+    /// pinned, springtime's default Rayleigh damping and gravity, no step, no curvature
+    /// stiffness (set `curvature_k` where `topology` has curvature elements).
+    pub fn springs(topology: &Topology, masses: Vec<f64>, k: Vec<f32>, b: Vec<f32>) -> Self {
+        let topo = topology;
         Self {
             format: if topo.curvature.is_empty() {
                 FORMAT
@@ -108,26 +136,23 @@ impl SurrogateJson {
             triangles: topo.triangles.clone(),
             width: topo.width,
             height: topo.height,
-            masses: topo.masses(run.particle_mass()),
+            masses,
             rest_positions: topo.rest_positions(),
             springs: topo.springs.clone(),
             family: topo.family.clone(),
             rest_length: topo.rest_length.clone(),
-            k: model.k_values().iter().map(|&x| x as f32).collect(),
-            b: model.b_values().iter().map(|&x| x as f32).collect(),
-            pinned: pinned.to_vec(),
-            rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
-            gravity: config.sim.gravity.or(crate::sim::GRAVITY),
-            dt: physics.map(Physics::sim_dt),
+            k,
+            b,
+            pinned: Vec::new(),
+            rayleigh: crate::sim::RAYLEIGH,
+            gravity: crate::sim::GRAVITY,
+            dt: None,
             curvature: topo.curvature.clone(),
-            curvature_k: model.curvature_values().iter().map(|&x| x as f32).collect(),
-            frame_dt: physics.map(|p| p.frame_dt),
-            substeps: physics.map(|p| p.substeps),
-            mass: physics.map(|p| p.mass),
-            stability: physics.map(|p| StabilityJson {
-                number: p.stability_of(topo, model).number(),
-                limit: 4.0,
-            }),
+            curvature_k: Vec::new(),
+            frame_dt: None,
+            substeps: None,
+            mass: None,
+            stability: None,
         }
     }
 
@@ -372,30 +397,21 @@ mod tests {
 
     #[test]
     fn surrogate_json_text_parses_back_to_the_same_value() {
+        // A 2 × 2 grid of 1 m cells without diagonals: every value prints exactly.
+        let spec = crate::cloth::GridSpec {
+            nx: 2,
+            ny: 2,
+            shear_main: false,
+            shear_anti: false,
+            bending_stride: 0,
+            ..Default::default()
+        };
+        let topo = Topology::grid(&spec, 1.0, 1.0);
+        let (p, s) = (topo.num_particles(), topo.num_springs());
         let j = SurrogateJson {
-            format: "springtime-surrogate/1".into(),
-            units: "SI".into(),
-            grid: Some([2, 2]),
-            triangles: vec![[0, 1, 3], [0, 3, 2]],
-            width: 1.0,
-            height: 1.0,
-            masses: vec![0.1; 4],
-            rest_positions: vec![[0.0, 0.0, 0.0]; 4],
-            springs: vec![[0, 1], [2, 3]],
-            family: vec![SpringFamily::Structural; 2],
-            rest_length: vec![1.0, 1.0],
-            k: vec![10.0, 20.0],
-            b: vec![1.0, 2.0],
             pinned: vec![0],
-            rayleigh: 0.1,
-            gravity: [0.0, 0.0, -9.81],
-            dt: None,
-            curvature: Vec::new(),
-            curvature_k: Vec::new(),
-            frame_dt: None,
-            substeps: None,
-            mass: None,
-            stability: None,
+            dt: Some(1e-3),
+            ..SurrogateJson::springs(&topo, vec![0.1; p], vec![10.0; s], vec![1.0; s])
         };
         let text = j.to_text().unwrap();
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();

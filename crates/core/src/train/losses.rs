@@ -376,13 +376,10 @@ fn fused_loss(
     };
     let (k, b) = model.kernel_params();
     let terms = kernels::rollout_loss(
-        x0,
-        v0,
-        k,
-        b,
+        (x0, v0),
+        (k, b),
         batch.pinned.clone(),
-        batch.positions.clone(),
-        batch.forces.clone(),
+        (batch.positions.clone(), batch.forces.clone()),
         &model.graph.host,
         params,
     );

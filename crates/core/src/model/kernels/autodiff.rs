@@ -12,7 +12,7 @@ use burn::backend::tensor::FloatTensor;
 
 use super::{
     HostGraph, RolloutInputs, RolloutKernels, RolloutParams, RolloutTape, SpringBackend,
-    SpringGrads, StepParams,
+    SpringGrads, SpringInputs, StepParams, StepPins,
 };
 
 /// Registers the gradients of the tracked parents.
@@ -26,27 +26,28 @@ macro_rules! register {
     };
 }
 
+/// The inner backend's inputs of an autodiff op: its tensors' primitives.
+fn primitives<B: Backend, C: CheckpointStrategy>(
+    s: SpringInputs<Autodiff<B, C>>,
+) -> SpringInputs<B> {
+    SpringInputs {
+        x: s.x.into_primitive(),
+        v: s.v.into_primitive(),
+        k: s.k.into_primitive(),
+        b: s.b.into_primitive(),
+    }
+}
+
 #[derive(Debug)]
 struct SpringForcesBackward;
 
 impl<B: SpringBackend + RolloutKernels> Backward<B, 4> for SpringForcesBackward {
-    type State = (
-        FloatTensor<B>,
-        FloatTensor<B>,
-        FloatTensor<B>,
-        FloatTensor<B>,
-        Arc<HostGraph>,
-    );
+    type State = (SpringInputs<B>, Arc<HostGraph>);
 
-    fn backward(
-        self,
-        ops: Ops<Self::State, 4>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
+    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
-        let (x, v, k, b, graph) = ops.state;
-        let g = B::spring_forces_backward(x, v, k, b, grad, graph);
+        let (s, graph) = ops.state;
+        let g = B::spring_forces_backward(s, grad, graph);
         register!(B, grads, ops.parents, [g.x, g.v, g.k, g.b]);
     }
 }
@@ -54,10 +55,7 @@ impl<B: SpringBackend + RolloutKernels> Backward<B, 4> for SpringForcesBackward 
 /// What the fused step's backward needs.
 #[derive(Debug, Clone)]
 struct StepState<B: Backend> {
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
+    s: SpringInputs<B>,
     pinned: FloatTensor<B>,
     graph: Arc<HostGraph>,
     params: StepParams,
@@ -69,15 +67,10 @@ struct ClothStepBackward;
 impl<B: SpringBackend + RolloutKernels> Backward<B, 4> for ClothStepBackward {
     type State = StepState<B>;
 
-    fn backward(
-        self,
-        ops: Ops<Self::State, 4>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
+    fn backward(self, ops: Ops<Self::State, 4>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         let s = ops.state;
-        let g = B::cloth_step_backward(s.x, s.v, s.k, s.b, s.pinned, grad, s.graph, s.params);
+        let g = B::cloth_step_backward(s.s, s.pinned, grad, s.graph, s.params);
         register!(B, grads, ops.parents, [g.x, g.v, g.k, g.b]);
     }
 }
@@ -97,12 +90,7 @@ struct RolloutBackward;
 impl<B: SpringBackend + RolloutKernels> Backward<B, 2> for RolloutBackward {
     type State = RolloutState<B>;
 
-    fn backward(
-        self,
-        ops: Ops<Self::State, 2>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
+    fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         let data = burn::tensor::read_sync(B::float_into_data(grad)).expect("gradient is readable");
         let w: Vec<f64> = data.try_into_vec_as::<f64>().expect("float gradient");
@@ -114,44 +102,24 @@ impl<B: SpringBackend + RolloutKernels> Backward<B, 2> for RolloutBackward {
 }
 
 impl<B: SpringBackend + RolloutKernels, C: CheckpointStrategy> SpringBackend for Autodiff<B, C> {
-    fn spring_forces(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        graph: Arc<HostGraph>,
-    ) -> FloatTensor<Self> {
+    fn spring_forces(s: SpringInputs<Self>, graph: Arc<HostGraph>) -> FloatTensor<Self> {
+        let parents = [s.x.node(), s.v.node(), s.k.node(), s.b.node()];
+        let s = primitives(s);
         match SpringForcesBackward
-            .prepare::<C>([x.node(), v.node(), k.node(), b.node()])
+            .prepare::<C>(parents)
             .compute_bound()
             .stateful()
         {
             OpsKind::Tracked(prep) => {
-                let (x, v, k, b) = (
-                    x.into_primitive(),
-                    v.into_primitive(),
-                    k.into_primitive(),
-                    b.into_primitive(),
-                );
-                let out =
-                    B::spring_forces(x.clone(), v.clone(), k.clone(), b.clone(), graph.clone());
-                prep.finish((x, v, k, b, graph), out)
+                let out = B::spring_forces(s.clone(), graph.clone());
+                prep.finish((s, graph), out)
             }
-            OpsKind::UnTracked(prep) => prep.finish(B::spring_forces(
-                x.into_primitive(),
-                v.into_primitive(),
-                k.into_primitive(),
-                b.into_primitive(),
-                graph,
-            )),
+            OpsKind::UnTracked(prep) => prep.finish(B::spring_forces(s, graph)),
         }
     }
 
     fn spring_forces_backward(
-        _x: FloatTensor<Self>,
-        _v: FloatTensor<Self>,
-        _k: FloatTensor<Self>,
-        _b: FloatTensor<Self>,
+        _s: SpringInputs<Self>,
         _grad: FloatTensor<Self>,
         _graph: Arc<HostGraph>,
     ) -> SpringGrads<Self> {
@@ -159,74 +127,40 @@ impl<B: SpringBackend + RolloutKernels, C: CheckpointStrategy> SpringBackend for
     }
 
     fn cloth_step(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        pinned: FloatTensor<Self>,
-        pin_x: FloatTensor<Self>,
-        pin_v: FloatTensor<Self>,
+        s: SpringInputs<Self>,
+        pins: StepPins<Self>,
         graph: Arc<HostGraph>,
         params: StepParams,
     ) -> FloatTensor<Self> {
-        let (pinned, pin_x, pin_v) = (
-            pinned.into_primitive(),
-            pin_x.into_primitive(),
-            pin_v.into_primitive(),
-        );
+        let pins: StepPins<B> = StepPins {
+            pinned: pins.pinned.into_primitive(),
+            x: pins.x.into_primitive(),
+            v: pins.v.into_primitive(),
+        };
+        let parents = [s.x.node(), s.v.node(), s.k.node(), s.b.node()];
+        let s = primitives(s);
         match ClothStepBackward
-            .prepare::<C>([x.node(), v.node(), k.node(), b.node()])
+            .prepare::<C>(parents)
             .compute_bound()
             .stateful()
         {
             OpsKind::Tracked(prep) => {
-                let (x, v, k, b) = (
-                    x.into_primitive(),
-                    v.into_primitive(),
-                    k.into_primitive(),
-                    b.into_primitive(),
-                );
-                let out = B::cloth_step(
-                    x.clone(),
-                    v.clone(),
-                    k.clone(),
-                    b.clone(),
-                    pinned.clone(),
-                    pin_x,
-                    pin_v,
-                    graph.clone(),
-                    params,
-                );
+                let pinned = pins.pinned.clone();
+                let out = B::cloth_step(s.clone(), pins, graph.clone(), params);
                 let state = StepState {
-                    x,
-                    v,
-                    k,
-                    b,
+                    s,
                     pinned,
                     graph,
                     params,
                 };
                 prep.finish(state, out)
             }
-            OpsKind::UnTracked(prep) => prep.finish(B::cloth_step(
-                x.into_primitive(),
-                v.into_primitive(),
-                k.into_primitive(),
-                b.into_primitive(),
-                pinned,
-                pin_x,
-                pin_v,
-                graph,
-                params,
-            )),
+            OpsKind::UnTracked(prep) => prep.finish(B::cloth_step(s, pins, graph, params)),
         }
     }
 
     fn cloth_step_backward(
-        _x: FloatTensor<Self>,
-        _v: FloatTensor<Self>,
-        _k: FloatTensor<Self>,
-        _b: FloatTensor<Self>,
+        _s: SpringInputs<Self>,
         _pinned: FloatTensor<Self>,
         _grad: FloatTensor<Self>,
         _graph: Arc<HostGraph>,
@@ -236,31 +170,23 @@ impl<B: SpringBackend + RolloutKernels, C: CheckpointStrategy> SpringBackend for
     }
 
     fn rollout_loss(
-        x0: FloatTensor<Self>,
-        v0: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        pinned: FloatTensor<Self>,
-        path: FloatTensor<Self>,
-        target: FloatTensor<Self>,
+        inputs: RolloutInputs<Self>,
         graph: Arc<HostGraph>,
         params: RolloutParams,
     ) -> FloatTensor<Self> {
-        let data = |t: FloatTensor<Self>| t.into_primitive();
-        let (x0, v0, pinned, path, target) =
-            (data(x0), data(v0), data(pinned), data(path), data(target));
         let prepared = RolloutBackward
-            .prepare::<C>([k.node(), b.node()])
+            .prepare::<C>([inputs.k.node(), inputs.b.node()])
             .compute_bound()
             .stateful();
+        let data = |t: FloatTensor<Self>| t.into_primitive();
         let inputs = RolloutInputs {
-            x0,
-            v0,
-            k: k.into_primitive(),
-            b: b.into_primitive(),
-            pinned,
-            path,
-            target,
+            x0: data(inputs.x0),
+            v0: data(inputs.v0),
+            k: data(inputs.k),
+            b: data(inputs.b),
+            pinned: data(inputs.pinned),
+            path: data(inputs.path),
+            target: data(inputs.target),
         };
         let (losses, tape) = B::rollout_forward(&inputs, &graph, params);
         match prepared {

@@ -68,6 +68,83 @@ impl<'a, T: Float> Springs<'a, T> {
 
 pub(super) type Lane<T, const L: usize> = [T; L];
 
+/// What the spring forces read: positions and velocities `[B, P, 3]` and one `k`, `b` per
+/// spring (then per curvature element).
+#[derive(Clone, Copy)]
+pub struct Inputs<'a, T> {
+    /// Positions.
+    pub x: &'a [T],
+    /// Velocities.
+    pub v: &'a [T],
+    /// Stiffness.
+    pub k: &'a [T],
+    /// Damping.
+    pub b: &'a [T],
+}
+
+/// What the backward kernels write (overwritten): `∂ℓ/∂x`, `∂ℓ/∂v` `[B, P, 3]` and `∂ℓ/∂k`,
+/// `∂ℓ/∂b` `[S]` summed over clips.
+pub struct Grads<'a, T> {
+    /// `∂ℓ/∂x`.
+    pub x: &'a mut [T],
+    /// `∂ℓ/∂v`.
+    pub v: &'a mut [T],
+    /// `∂ℓ/∂k`.
+    pub k: &'a mut [T],
+    /// `∂ℓ/∂b`.
+    pub b: &'a mut [T],
+}
+
+impl<T> Inputs<'_, T> {
+    /// Panics unless `x`, `v` hold `n` values, whole clips of `g` (at least one), and `k`, `b`
+    /// one per parameter of `g`.
+    fn check(&self, g: &HostGraph, n: usize) {
+        assert!(self.x.len() == n && self.v.len() == n);
+        assert!(n.is_multiple_of(g.particles * 3) && n > 0);
+        assert!(self.k.len() == g.num_params() && self.b.len() == g.num_params());
+    }
+}
+
+impl<T> Grads<'_, T> {
+    /// Panics unless `x`, `v` hold `n` values and `k`, `b` one per parameter of `g`.
+    fn check(&self, g: &HostGraph, n: usize) {
+        assert!(self.x.len() == n && self.v.len() == n);
+        assert!(self.k.len() == g.num_params() && self.b.len() == g.num_params());
+    }
+}
+
+/// One chunk of `L` clips as the kernels read it: the springs, the states as lanes `[P·3][L]`
+/// and the per-spring `k`, `b`.
+#[derive(Clone, Copy)]
+pub(super) struct LaneSprings<'a, T, const L: usize> {
+    pub(super) sp: &'a Springs<'a, T>,
+    pub(super) x: &'a [Lane<T, L>],
+    pub(super) v: &'a [Lane<T, L>],
+    pub(super) k: &'a [T],
+    pub(super) b: &'a [T],
+}
+
+impl<'a, T, const L: usize> LaneSprings<'a, T, L> {
+    pub(super) fn new(
+        sp: &'a Springs<'a, T>,
+        x: &'a [Lane<T, L>],
+        v: &'a [Lane<T, L>],
+        k: &'a [T],
+        b: &'a [T],
+    ) -> Self {
+        Self { sp, x, v, k, b }
+    }
+}
+
+/// What the backward of one chunk adds to: `∂ℓ/∂x`, `∂ℓ/∂v` as lanes and the lane sums of
+/// `∂ℓ/∂k`, `∂ℓ/∂b`.
+pub(super) struct LaneGrads<'a, T, const L: usize> {
+    pub(super) x: &'a mut [Lane<T, L>],
+    pub(super) v: &'a mut [Lane<T, L>],
+    pub(super) k: &'a mut [T],
+    pub(super) b: &'a mut [T],
+}
+
 /// `[B, P·3]` rows of clips `first..first + L` as `[P·3][L]` (clips past the batch repeat the
 /// last one, and their results are dropped).
 pub(super) fn interleave<T: Copy, const L: usize>(
@@ -106,14 +183,8 @@ pub(super) fn deinterleave<T: Copy, const L: usize>(
 /// # Safety
 /// `x`, `v` and `out` hold `3 · sp.particles` lanes, `k` and `b` one value per spring.
 #[inline(always)]
-unsafe fn chunk_forces<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
-    out: &mut [Lane<T, L>],
-) {
+unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut [Lane<T, L>]) {
+    let LaneSprings { sp, x, v, k, b } = c;
     for (s, &(a, bb)) in sp.ends.iter().enumerate() {
         let (a, bb) = (3 * a as usize, 3 * bb as usize);
         // SAFETY: endpoints < particles (HostGraph::new) and the caller's length contract.
@@ -162,17 +233,17 @@ unsafe fn chunk_forces<T: Float, const L: usize>(
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 unsafe fn chunk_backward<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
+    c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
-    gx: &mut [Lane<T, L>],
-    gv: &mut [Lane<T, L>],
-    gk: &mut [T],
-    gb: &mut [T],
+    g: &mut LaneGrads<T, L>,
 ) {
+    let LaneSprings { sp, x, v, k, b } = c;
+    let LaneGrads {
+        x: gx,
+        v: gv,
+        k: gk,
+        b: gb,
+    } = g;
     let two = T::one() + T::one();
     for (s, &(a, bb)) in sp.ends.iter().enumerate() {
         let (a, bb) = (3 * a as usize, 3 * bb as usize);
@@ -382,15 +453,11 @@ macro_rules! dispatch_lanes {
 /// As [`chunk_forces`], and the CPU supports AVX2.
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
 unsafe fn chunk_forces_wide<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
+    c: LaneSprings<T, L>,
     out: &mut [Lane<T, L>],
 ) {
     // SAFETY: forwarded contract.
-    unsafe { chunk_forces(sp, x, v, k, b, out) }
+    unsafe { chunk_forces(c, out) }
 }
 
 /// [`chunk_backward`] compiled with AVX2.
@@ -398,21 +465,13 @@ unsafe fn chunk_forces_wide<T: Float, const L: usize>(
 /// # Safety
 /// As [`chunk_backward`], and the CPU supports AVX2.
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
-#[allow(clippy::too_many_arguments)]
 unsafe fn chunk_backward_wide<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
+    c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
-    gx: &mut [Lane<T, L>],
-    gv: &mut [Lane<T, L>],
-    gk: &mut [T],
-    gb: &mut [T],
+    g: &mut LaneGrads<T, L>,
 ) {
     // SAFETY: forwarded contract.
-    unsafe { chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb) }
+    unsafe { chunk_backward(c, gf, g) }
 }
 
 /// Spring forces of one chunk, with the AVX2 build of the loop for 8 lanes.
@@ -420,25 +479,21 @@ unsafe fn chunk_backward_wide<T: Float, const L: usize>(
 /// # Safety
 /// As [`chunk_forces`]; `L == 8` only after `wide()` returned true.
 pub(super) unsafe fn run_forces<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
+    c: LaneSprings<T, L>,
     out: &mut [Lane<T, L>],
 ) {
     // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
     unsafe {
         if L == 8 {
-            chunk_forces_wide(sp, x, v, k, b, out)
+            chunk_forces_wide(c, out)
         } else {
-            chunk_forces(sp, x, v, k, b, out)
+            chunk_forces(c, out)
         }
-        if !sp.triples.is_empty() {
-            chunk_curvature(sp, x, k, out)
+        if !c.sp.triples.is_empty() {
+            chunk_curvature(c.sp, c.x, c.k, out)
         }
     }
-    if let Some(scale) = &sp.scale {
+    if let Some(scale) = &c.sp.scale {
         for (i, f) in out.iter_mut().enumerate() {
             let s = scale[i / 3];
             f.iter_mut().for_each(|f| *f = *f * s);
@@ -450,22 +505,14 @@ pub(super) unsafe fn run_forces<T: Float, const L: usize>(
 ///
 /// # Safety
 /// As [`chunk_backward`]; `L == 8` only after `wide()` returned true.
-#[allow(clippy::too_many_arguments)]
 pub(super) unsafe fn run_backward<T: Float, const L: usize>(
-    sp: &Springs<T>,
-    x: &[Lane<T, L>],
-    v: &[Lane<T, L>],
-    k: &[T],
-    b: &[T],
+    c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
-    gx: &mut [Lane<T, L>],
-    gv: &mut [Lane<T, L>],
-    gk: &mut [T],
-    gb: &mut [T],
+    g: &mut LaneGrads<T, L>,
 ) {
     // The scale multiplies the forces, so it multiplies their upstream gradient.
     let scaled: Vec<Lane<T, L>>;
-    let gf = match &sp.scale {
+    let gf = match &c.sp.scale {
         Some(scale) => {
             scaled = gf
                 .iter()
@@ -479,46 +526,30 @@ pub(super) unsafe fn run_backward<T: Float, const L: usize>(
     // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
     unsafe {
         if L == 8 {
-            chunk_backward_wide(sp, x, v, k, b, gf, gx, gv, gk, gb)
+            chunk_backward_wide(c, gf, g)
         } else {
-            chunk_backward(sp, x, v, k, b, gf, gx, gv, gk, gb)
+            chunk_backward(c, gf, g)
         }
-        if !sp.triples.is_empty() {
-            chunk_curvature_backward(sp, x, k, gf, gx, gk)
+        if !c.sp.triples.is_empty() {
+            chunk_curvature_backward(c.sp, c.x, c.k, gf, g.x, g.k)
         }
     }
 }
 
 /// Spring forces `[B, P, 3]` into `out` (overwritten).
-pub fn forces<T: Float + Send + Sync>(
-    g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
-    out: &mut [T],
-) {
-    let stride = g.particles * 3;
-    assert!(
-        x.len() == out.len()
-            && v.len() == out.len()
-            && out.len().is_multiple_of(stride)
-            && !out.is_empty()
-    );
-    assert!(k.len() == g.num_params() && b.len() == g.num_params());
-    let batch = out.len() / stride;
-    dispatch_lanes!(batch, T, forces_lanes, (g, x, v, k, b, out))
+pub fn forces<T: Float + Send + Sync>(g: &HostGraph, s: Inputs<T>, out: &mut [T]) {
+    s.check(g, out.len());
+    let batch = out.len() / (g.particles * 3);
+    dispatch_lanes!(batch, T, forces_lanes, (g, s, out))
 }
 
 #[inline(always)]
 fn forces_lanes<T: Float + Send + Sync, const L: usize>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     out: &mut [T],
 ) {
+    let Inputs { x, v, k, b } = s;
     let sp = Springs::<T>::new(g);
     let stride = g.particles * 3;
     let batch = out.len() / stride;
@@ -530,45 +561,26 @@ fn forces_lanes<T: Float + Send + Sync, const L: usize>(
             interleave::<T, L>(v, stride, ch * L, batch, &mut vs);
             let mut acc = vec![[T::zero(); L]; stride];
             // SAFETY: every lane buffer holds `stride` = 3P lanes; k, b hold S values (asserted).
-            unsafe { run_forces(&sp, &xs, &vs, k, b, &mut acc) };
+            let chunk = LaneSprings::new(&sp, &xs, &vs, k, b);
+            unsafe { run_forces(chunk, &mut acc) };
             deinterleave(&acc, stride, out);
         });
 }
 
 /// Gradients of the spring forces: `gx`, `gv` `[B, P, 3]` (overwritten) and `gk`, `gb` `[S]`
 /// (overwritten, summed over clips), given `grad = ∂ℓ/∂F` `[B, P, 3]`.
-#[allow(clippy::too_many_arguments)]
 pub fn forces_backward<T: Float + Send + Sync>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     grad: &[T],
-    gx: &mut [T],
-    gv: &mut [T],
-    gk: &mut [T],
-    gb: &mut [T],
+    grads: Grads<T>,
 ) {
+    let n = grad.len();
+    s.check(g, n);
+    grads.check(g, n);
     let stride = g.particles * 3;
-    let n = gx.len();
-    assert!(
-        x.len() == n
-            && v.len() == n
-            && grad.len() == n
-            && gv.len() == n
-            && n.is_multiple_of(stride)
-            && n > 0
-    );
-    assert!(k.len() == g.num_params() && b.len() == g.num_params());
-    assert!(gk.len() == g.num_params() && gb.len() == g.num_params());
     let no_step = None;
-    dispatch_lanes!(
-        n / stride,
-        T,
-        backward_lanes,
-        (g, x, v, k, b, no_step, grad, gx, gv, gk, gb)
-    )
+    dispatch_lanes!(n / stride, T, backward_lanes, (g, s, no_step, grad, grads))
 }
 
 /// Step inputs that are data, not parameters: pin flags `[B, P]` (1 = pinned) and the pinned
@@ -584,28 +596,18 @@ pub struct Pins<'a, T> {
 }
 
 /// One fused semi-implicit Euler step: writes `x'`, `v'` and the net force `f` `[B, P, 3]`.
-#[allow(clippy::too_many_arguments)]
 pub fn step<T: Float + Send + Sync>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     pins: Pins<T>,
     params: StepParams,
     out: &mut [T],
 ) {
-    let stride = g.particles * 3;
-    let n = x.len();
-    assert!(v.len() == n && pins.x.len() == n && pins.v.len() == n && pins.pinned.len() * 3 == n);
-    assert!(out.len() == 3 * n && n.is_multiple_of(stride) && n > 0);
-    assert!(k.len() == g.num_params() && b.len() == g.num_params());
-    dispatch_lanes!(
-        n / stride,
-        T,
-        step_lanes,
-        (g, x, v, k, b, pins, params, out)
-    )
+    let (stride, n) = (g.particles * 3, s.x.len());
+    s.check(g, n);
+    assert!(pins.x.len() == n && pins.v.len() == n && pins.pinned.len() * 3 == n);
+    assert!(out.len() == 3 * n);
+    dispatch_lanes!(n / stride, T, step_lanes, (g, s, pins, params, out))
 }
 
 pub(super) fn cast<T: Float>(v: f64) -> T {
@@ -613,17 +615,14 @@ pub(super) fn cast<T: Float>(v: f64) -> T {
 }
 
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn step_lanes<T: Float + Send + Sync, const L: usize>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     pins: Pins<T>,
     params: StepParams,
     out: &mut [T],
 ) {
+    let Inputs { x, v, k, b } = s;
     let sp = Springs::<T>::new(g);
     let stride = g.particles * 3;
     let n = x.len();
@@ -648,7 +647,8 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
             interleave::<T, L>(v, stride, ch * L, batch, &mut vs);
             let mut f = vec![[T::zero(); L]; stride];
             // SAFETY: lane buffers hold 3P lanes; k, b hold S values (asserted by `step`).
-            unsafe { run_forces(&sp, &xs, &vs, k, b, &mut f) };
+            let chunk = LaneSprings::new(&sp, &xs, &vs, k, b);
+            unsafe { run_forces(chunk, &mut f) };
             let clips = ox.len() / stride;
             for l in 0..clips {
                 let clip = ch * L + l;
@@ -674,40 +674,20 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
 
 /// Gradients of [`step`]: given `gout = (∂ℓ/∂x', ∂ℓ/∂v', ∂ℓ/∂f)` stacked `[3, B, P, 3]`, writes
 /// `∂ℓ/∂x`, `∂ℓ/∂v` `[B, P, 3]` and `∂ℓ/∂k`, `∂ℓ/∂b` `[S]`.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn step_backward<T: Float + Send + Sync>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     pinned: &[T],
     params: StepParams,
     gout: &[T],
-    gx: &mut [T],
-    gv: &mut [T],
-    gk: &mut [T],
-    gb: &mut [T],
+    grads: Grads<T>,
 ) {
-    let stride = g.particles * 3;
-    let n = x.len();
-    assert!(
-        v.len() == n
-            && gx.len() == n
-            && gv.len() == n
-            && pinned.len() * 3 == n
-            && gout.len() == 3 * n
-    );
-    assert!(n.is_multiple_of(stride) && n > 0);
-    assert!(k.len() == g.num_params() && b.len() == g.num_params());
-    assert!(gk.len() == g.num_params() && gb.len() == g.num_params());
+    let (stride, n) = (g.particles * 3, s.x.len());
+    s.check(g, n);
+    grads.check(g, n);
+    assert!(pinned.len() * 3 == n && gout.len() == 3 * n);
     let step = Some((pinned, params));
-    dispatch_lanes!(
-        n / stride,
-        T,
-        backward_lanes,
-        (g, x, v, k, b, step, gout, gx, gv, gk, gb)
-    )
+    dispatch_lanes!(n / stride, T, backward_lanes, (g, s, step, gout, grads))
 }
 
 type StepInfo<'a, T> = Option<(&'a [T], StepParams)>;
@@ -715,20 +695,15 @@ type StepInfo<'a, T> = Option<(&'a [T], StepParams)>;
 /// The backward of the spring forces (`step = None`, `grad` = `∂ℓ/∂F` `[B, P, 3]`) or of a
 /// whole step (`step = Some((pinned, params))`, `grad` = `[3, B, P, 3]`).
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn backward_lanes<T: Float + Send + Sync, const L: usize>(
     g: &HostGraph,
-    x: &[T],
-    v: &[T],
-    k: &[T],
-    b: &[T],
+    s: Inputs<T>,
     step: StepInfo<T>,
     grad: &[T],
-    gx: &mut [T],
-    gv: &mut [T],
-    gk: &mut [T],
-    gb: &mut [T],
+    grads: Grads<T>,
 ) {
+    let Inputs { x, v, k, b } = s;
+    let (gx, gv, gk, gb) = (grads.x, grads.v, grads.k, grads.b);
     let sp = Springs::<T>::new(g);
     let stride = g.particles * 3;
     let n = x.len();
@@ -782,11 +757,14 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
                 }
             }
             // SAFETY: lane buffers hold 3P lanes; k, b, pk_k, pk_b hold S values.
-            unsafe {
-                run_backward(
-                    &sp, &xs, &vs, k, b, &gfs, &mut acc_x, &mut acc_v, pk_k, pk_b,
-                )
+            let chunk = LaneSprings::new(&sp, &xs, &vs, k, b);
+            let mut g = LaneGrads {
+                x: &mut acc_x,
+                v: &mut acc_v,
+                k: pk_k,
+                b: pk_b,
             };
+            unsafe { run_backward(chunk, &gfs, &mut g) };
             if let Some((_, params)) = step {
                 // ∂ℓ/∂v gets −c G from the Rayleigh force.
                 let c = cast::<T>(params.rayleigh);

@@ -31,7 +31,7 @@ use cubecl::{CubeDim, calculate_cube_count_elemwise};
 use super::segment::{SegmentBackend, Segments, select_rows, sum_by_select_assign};
 use super::{
     HostGraph, RolloutInputs, RolloutKernels, RolloutParams, RolloutTape, SpringBackend,
-    SpringGrads, StepParams,
+    SpringGrads, SpringInputs, StepParams, StepPins,
 };
 
 /// Clips summed by one thread of the parameter-gradient kernel.
@@ -583,23 +583,19 @@ fn launch_dims(t: &CubeTensor, units: usize) -> (CubeCount, CubeDim) {
     (calculate_cube_count_elemwise(&t.client, units, dim), dim)
 }
 
-/// The forward kernel: forces `[B, P, 3]`, or with `step` the stacked `[3, B, P, 3]`.
-#[allow(clippy::too_many_arguments)]
+/// The forward kernel: forces `[B, P, 3]`, or with `pins` (a step) the stacked `[3, B, P, 3]`.
 fn forward(
-    x: CubeTensor,
-    v: CubeTensor,
-    k: CubeTensor,
-    b: CubeTensor,
-    pins: Option<(CubeTensor, CubeTensor, CubeTensor, StepParams)>,
+    s: SpringInputs<CubeBackend>,
+    pins: Option<(StepPins<CubeBackend>, StepParams)>,
     graph: &HostGraph,
 ) -> CubeTensor {
-    let (x, v) = (prepare(x, "x"), prepare(v, "v"));
-    let (k, b) = (prepare(k, "k"), prepare(b, "b"));
-    let pins = pins.map(|(pinned, pin_x, pin_v, params)| {
+    let (x, v) = (prepare(s.x, "x"), prepare(s.v, "v"));
+    let (k, b) = (prepare(s.k, "k"), prepare(s.b, "b"));
+    let pins = pins.map(|(pins, params)| {
         (
-            prepare(pinned, "pinned"),
-            prepare(pin_x, "pin_x"),
-            prepare(pin_v, "pin_v"),
+            prepare(pins.pinned, "pinned"),
+            prepare(pins.x, "pin_x"),
+            prepare(pins.v, "pin_v"),
             params,
         )
     });
@@ -660,18 +656,14 @@ fn forward(
 }
 
 /// The backward of [`forward`]: `∂ℓ/∂x`, `∂ℓ/∂v`, `∂ℓ/∂k`, `∂ℓ/∂b`.
-#[allow(clippy::too_many_arguments)]
 fn backward(
-    x: CubeTensor,
-    v: CubeTensor,
-    k: CubeTensor,
-    b: CubeTensor,
+    s: SpringInputs<CubeBackend>,
     grad: CubeTensor,
     step: Option<(CubeTensor, StepParams)>,
     graph: &HostGraph,
 ) -> SpringGrads<CubeBackend> {
-    let (x, v) = (prepare(x, "x"), prepare(v, "v"));
-    let (k, b) = (prepare(k, "k"), prepare(b, "b"));
+    let (x, v) = (prepare(s.x, "x"), prepare(s.v, "v"));
+    let (k, b) = (prepare(s.k, "k"), prepare(s.b, "b"));
     let grad = prepare(grad, "the upstream gradient");
     let step = step.map(|(pinned, params)| (prepare(pinned, "pinned"), params));
     let mut per_item = vec![(&v, 3, "v")];
@@ -788,62 +780,39 @@ fn backward(
 }
 
 impl SpringBackend for CubeBackend {
-    fn spring_forces(
-        x: CubeTensor,
-        v: CubeTensor,
-        k: CubeTensor,
-        b: CubeTensor,
-        graph: Arc<HostGraph>,
-    ) -> CubeTensor {
-        forward(x, v, k, b, None, &graph)
+    fn spring_forces(s: SpringInputs<Self>, graph: Arc<HostGraph>) -> CubeTensor {
+        forward(s, None, &graph)
     }
 
     fn spring_forces_backward(
-        x: CubeTensor,
-        v: CubeTensor,
-        k: CubeTensor,
-        b: CubeTensor,
+        s: SpringInputs<Self>,
         grad: CubeTensor,
         graph: Arc<HostGraph>,
     ) -> SpringGrads<Self> {
-        backward(x, v, k, b, grad, None, &graph)
+        backward(s, grad, None, &graph)
     }
 
     fn cloth_step(
-        x: CubeTensor,
-        v: CubeTensor,
-        k: CubeTensor,
-        b: CubeTensor,
-        pinned: CubeTensor,
-        pin_x: CubeTensor,
-        pin_v: CubeTensor,
+        s: SpringInputs<Self>,
+        pins: StepPins<Self>,
         graph: Arc<HostGraph>,
         params: StepParams,
     ) -> CubeTensor {
-        forward(x, v, k, b, Some((pinned, pin_x, pin_v, params)), &graph)
+        forward(s, Some((pins, params)), &graph)
     }
 
     fn cloth_step_backward(
-        x: CubeTensor,
-        v: CubeTensor,
-        k: CubeTensor,
-        b: CubeTensor,
+        s: SpringInputs<Self>,
         pinned: CubeTensor,
         grad: CubeTensor,
         graph: Arc<HostGraph>,
         params: StepParams,
     ) -> SpringGrads<Self> {
-        backward(x, v, k, b, grad, Some((pinned, params)), &graph)
+        backward(s, grad, Some((pinned, params)), &graph)
     }
 
     fn rollout_loss(
-        _x0: CubeTensor,
-        _v0: CubeTensor,
-        _k: CubeTensor,
-        _b: CubeTensor,
-        _pinned: CubeTensor,
-        _path: CubeTensor,
-        _target: CubeTensor,
+        _inputs: RolloutInputs<Self>,
         _graph: Arc<HostGraph>,
         _params: RolloutParams,
     ) -> CubeTensor {

@@ -12,7 +12,10 @@ use num_traits::Float;
 
 use super::cpu::{self, Pins, StepParams};
 use super::rollout::{self, RolloutData, RolloutParams, Tape};
-use super::{HostGraph, RolloutInputs, RolloutKernels, RolloutTape, SpringBackend, SpringGrads};
+use super::{
+    HostGraph, RolloutInputs, RolloutKernels, RolloutTape, SpringBackend, SpringGrads,
+    SpringInputs, StepPins,
+};
 
 /// The element types the CPU kernels run in.
 trait HostFloat: Float + Element + Send + Sync + 'static {
@@ -107,120 +110,104 @@ macro_rules! by_dtype {
     };
 }
 
-fn forces<B: HostAccess, T: HostFloat>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    graph: &HostGraph,
-) -> FloatTensor<B> {
-    let (xs, vs, ks, bs) = (
-        B::read::<T>(&x),
-        B::read::<T>(&v),
-        B::read::<T>(&k),
-        B::read::<T>(&b),
-    );
-    let mut out = vec![T::zero(); xs.len()];
-    cpu::forces(graph, &xs, &vs, &ks, &bs, &mut out);
-    upload::<B, T>(out, x.shape().to_vec(), &x.device())
+/// A fused op's `x`, `v`, `k`, `b` on the host.
+struct HostInputs<'a, T: Clone> {
+    x: Cow<'a, [T]>,
+    v: Cow<'a, [T]>,
+    k: Cow<'a, [T]>,
+    b: Cow<'a, [T]>,
 }
 
-fn forces_backward<B: HostAccess, T: HostFloat>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    grad: FloatTensor<B>,
-    graph: &HostGraph,
-) -> SpringGrads<B> {
-    let (xs, vs, ks, bs) = (
-        B::read::<T>(&x),
-        B::read::<T>(&v),
-        B::read::<T>(&k),
-        B::read::<T>(&b),
-    );
-    let gs = B::read::<T>(&grad);
-    let s = graph.num_params();
-    let (mut gx, mut gv) = (vec![T::zero(); xs.len()], vec![T::zero(); xs.len()]);
-    let (mut gk, mut gb) = (vec![T::zero(); s], vec![T::zero(); s]);
-    cpu::forces_backward(
-        graph, &xs, &vs, &ks, &bs, &gs, &mut gx, &mut gv, &mut gk, &mut gb,
-    );
-    let (shape, device) = (x.shape().to_vec(), x.device());
-    SpringGrads {
-        x: upload::<B, T>(gx, shape.clone(), &device),
-        v: upload::<B, T>(gv, shape, &device),
-        k: upload::<B, T>(gk, vec![s], &device),
-        b: upload::<B, T>(gb, vec![s], &device),
+impl<'a, T: HostFloat> HostInputs<'a, T> {
+    fn read<B: HostAccess>(s: &'a SpringInputs<B>) -> Self {
+        let [x, v, k, b] = [&s.x, &s.v, &s.k, &s.b].map(|t| B::read::<T>(t));
+        Self { x, v, k, b }
+    }
+
+    fn view(&self) -> cpu::Inputs<'_, T> {
+        cpu::Inputs {
+            x: &self.x,
+            v: &self.v,
+            k: &self.k,
+            b: &self.b,
+        }
     }
 }
 
-#[allow(clippy::too_many_arguments)]
+/// Runs a backward kernel into fresh gradient buffers shaped like `x` (`[B, P, 3]`) and
+/// `[params]`, and uploads them next to `x`.
+fn spring_grads<B: HostAccess, T: HostFloat>(
+    x: &FloatTensor<B>,
+    params: usize,
+    kernel: impl FnOnce(cpu::Grads<T>),
+) -> SpringGrads<B> {
+    let (shape, device) = (x.shape().to_vec(), x.device());
+    let n = shape.iter().product();
+    let (mut gx, mut gv) = (vec![T::zero(); n], vec![T::zero(); n]);
+    let (mut gk, mut gb) = (vec![T::zero(); params], vec![T::zero(); params]);
+    kernel(cpu::Grads {
+        x: &mut gx,
+        v: &mut gv,
+        k: &mut gk,
+        b: &mut gb,
+    });
+    SpringGrads {
+        x: upload::<B, T>(gx, shape.clone(), &device),
+        v: upload::<B, T>(gv, shape, &device),
+        k: upload::<B, T>(gk, vec![params], &device),
+        b: upload::<B, T>(gb, vec![params], &device),
+    }
+}
+
+fn forces<B: HostAccess, T: HostFloat>(s: SpringInputs<B>, graph: &HostGraph) -> FloatTensor<B> {
+    let inputs = HostInputs::<T>::read(&s);
+    let mut out = vec![T::zero(); inputs.x.len()];
+    cpu::forces(graph, inputs.view(), &mut out);
+    upload::<B, T>(out, s.x.shape().to_vec(), &s.x.device())
+}
+
+fn forces_backward<B: HostAccess, T: HostFloat>(
+    s: SpringInputs<B>,
+    grad: FloatTensor<B>,
+    graph: &HostGraph,
+) -> SpringGrads<B> {
+    let (inputs, gs) = (HostInputs::<T>::read(&s), B::read::<T>(&grad));
+    spring_grads::<B, T>(&s.x, graph.num_params(), |grads| {
+        cpu::forces_backward(graph, inputs.view(), &gs, grads)
+    })
+}
+
 fn step<B: HostAccess, T: HostFloat>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    pinned: FloatTensor<B>,
-    pin_x: FloatTensor<B>,
-    pin_v: FloatTensor<B>,
+    s: SpringInputs<B>,
+    pins: StepPins<B>,
     graph: &HostGraph,
     params: StepParams,
 ) -> FloatTensor<B> {
-    let (xs, vs, ks, bs) = (
-        B::read::<T>(&x),
-        B::read::<T>(&v),
-        B::read::<T>(&k),
-        B::read::<T>(&b),
-    );
-    let (ps, pxs, pvs) = (
-        B::read::<T>(&pinned),
-        B::read::<T>(&pin_x),
-        B::read::<T>(&pin_v),
-    );
-    let mut out = vec![T::zero(); 3 * xs.len()];
+    let inputs = HostInputs::<T>::read(&s);
+    let [ps, pxs, pvs] = [&pins.pinned, &pins.x, &pins.v].map(|t| B::read::<T>(t));
+    let mut out = vec![T::zero(); 3 * inputs.x.len()];
     let pins = Pins {
         pinned: &ps,
         x: &pxs,
         v: &pvs,
     };
-    cpu::step(graph, &xs, &vs, &ks, &bs, pins, params, &mut out);
-    let mut shape = x.shape().to_vec();
+    cpu::step(graph, inputs.view(), pins, params, &mut out);
+    let mut shape = s.x.shape().to_vec();
     shape.insert(0, 3);
-    upload::<B, T>(out, shape, &x.device())
+    upload::<B, T>(out, shape, &s.x.device())
 }
 
-#[allow(clippy::too_many_arguments)]
 fn step_backward<B: HostAccess, T: HostFloat>(
-    x: FloatTensor<B>,
-    v: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    pinned: FloatTensor<B>,
-    grad: FloatTensor<B>,
+    s: SpringInputs<B>,
+    [pinned, grad]: [FloatTensor<B>; 2],
     graph: &HostGraph,
     params: StepParams,
 ) -> SpringGrads<B> {
-    let (xs, vs, ks, bs) = (
-        B::read::<T>(&x),
-        B::read::<T>(&v),
-        B::read::<T>(&k),
-        B::read::<T>(&b),
-    );
+    let inputs = HostInputs::<T>::read(&s);
     let (ps, gs) = (B::read::<T>(&pinned), B::read::<T>(&grad));
-    let s = graph.num_params();
-    let (mut gx, mut gv) = (vec![T::zero(); xs.len()], vec![T::zero(); xs.len()]);
-    let (mut gk, mut gb) = (vec![T::zero(); s], vec![T::zero(); s]);
-    cpu::step_backward(
-        graph, &xs, &vs, &ks, &bs, &ps, params, &gs, &mut gx, &mut gv, &mut gk, &mut gb,
-    );
-    let (shape, device) = (x.shape().to_vec(), x.device());
-    SpringGrads {
-        x: upload::<B, T>(gx, shape.clone(), &device),
-        v: upload::<B, T>(gv, shape, &device),
-        k: upload::<B, T>(gk, vec![s], &device),
-        b: upload::<B, T>(gb, vec![s], &device),
-    }
+    spring_grads::<B, T>(&s.x, graph.num_params(), |grads| {
+        cpu::step_backward(graph, inputs.view(), &ps, params, &gs, grads)
+    })
 }
 
 /// Runs `body` on the host data of a rollout's inputs.
@@ -287,80 +274,45 @@ fn rollout_backward<B: HostAccess, T: HostFloat>(
 macro_rules! cpu_backend {
     ($backend:ty) => {
         impl SpringBackend for $backend {
-            fn spring_forces(
-                x: FloatTensor<Self>,
-                v: FloatTensor<Self>,
-                k: FloatTensor<Self>,
-                b: FloatTensor<Self>,
-                graph: Arc<HostGraph>,
-            ) -> FloatTensor<Self> {
-                by_dtype!(x, forces::<Self>(x, v, k, b, &graph))
+            fn spring_forces(s: SpringInputs<Self>, graph: Arc<HostGraph>) -> FloatTensor<Self> {
+                by_dtype!(s.x, forces::<Self>(s, &graph))
             }
 
             fn spring_forces_backward(
-                x: FloatTensor<Self>,
-                v: FloatTensor<Self>,
-                k: FloatTensor<Self>,
-                b: FloatTensor<Self>,
+                s: SpringInputs<Self>,
                 grad: FloatTensor<Self>,
                 graph: Arc<HostGraph>,
             ) -> SpringGrads<Self> {
-                by_dtype!(x, forces_backward::<Self>(x, v, k, b, grad, &graph))
+                by_dtype!(s.x, forces_backward::<Self>(s, grad, &graph))
             }
 
             fn cloth_step(
-                x: FloatTensor<Self>,
-                v: FloatTensor<Self>,
-                k: FloatTensor<Self>,
-                b: FloatTensor<Self>,
-                pinned: FloatTensor<Self>,
-                pin_x: FloatTensor<Self>,
-                pin_v: FloatTensor<Self>,
+                s: SpringInputs<Self>,
+                pins: StepPins<Self>,
                 graph: Arc<HostGraph>,
                 params: StepParams,
             ) -> FloatTensor<Self> {
-                by_dtype!(
-                    x,
-                    step::<Self>(x, v, k, b, pinned, pin_x, pin_v, &graph, params)
-                )
+                by_dtype!(s.x, step::<Self>(s, pins, &graph, params))
             }
 
             fn cloth_step_backward(
-                x: FloatTensor<Self>,
-                v: FloatTensor<Self>,
-                k: FloatTensor<Self>,
-                b: FloatTensor<Self>,
+                s: SpringInputs<Self>,
                 pinned: FloatTensor<Self>,
                 grad: FloatTensor<Self>,
                 graph: Arc<HostGraph>,
                 params: StepParams,
             ) -> SpringGrads<Self> {
                 by_dtype!(
-                    x,
-                    step_backward::<Self>(x, v, k, b, pinned, grad, &graph, params)
+                    s.x,
+                    step_backward::<Self>(s, [pinned, grad], &graph, params)
                 )
             }
 
             fn rollout_loss(
-                x0: FloatTensor<Self>,
-                v0: FloatTensor<Self>,
-                k: FloatTensor<Self>,
-                b: FloatTensor<Self>,
-                pinned: FloatTensor<Self>,
-                path: FloatTensor<Self>,
-                target: FloatTensor<Self>,
+                inputs: RolloutInputs<Self>,
                 graph: Arc<HostGraph>,
                 params: RolloutParams,
             ) -> FloatTensor<Self> {
-                let inputs = RolloutInputs::<Self> {
-                    x0,
-                    v0,
-                    k,
-                    b,
-                    pinned,
-                    path,
-                    target,
-                };
                 <Self as RolloutKernels>::rollout_forward(&inputs, &graph, params).0
             }
         }

@@ -10,7 +10,7 @@
 //! clips, chunks of clips in parallel; `host.rs`); `Cube` (wgpu) runs the CubeCL kernels of
 //! `cube.rs` for the forces and the step (the whole-rollout op is CPU-only); `Autodiff<B>` records one node per op whose
 //! backward is the matching hand-written kernel of `B` (`autodiff.rs`). The tensor-op versions
-//! ([`super::springs::spring_forces_reference`], [`crate::sim::rollout`] with
+//! ([`super::SpringGraph::spring_forces_reference`], [`crate::sim::rollout`] with
 //! [`super::Kernel::Reference`]) are the references the tests compare against.
 // The NdArray backend is deprecated upstream; the design card keeps it for tests.
 #![allow(deprecated)]
@@ -139,72 +139,70 @@ impl HostGraph {
     }
 }
 
+/// What the spring forces read: positions `x` and velocities `v` `[B, P, 3]` and per-spring
+/// `k`, `b` `[S]` (then one per curvature element).
+#[derive(burn::backend::ExtensionType, Debug, Clone)]
+pub struct SpringInputs<B: Backend> {
+    /// Positions `[B, P, 3]`.
+    pub x: FloatTensor<B>,
+    /// Velocities `[B, P, 3]`.
+    pub v: FloatTensor<B>,
+    /// Stiffness `[S]`.
+    pub k: FloatTensor<B>,
+    /// Damping `[S]`.
+    pub b: FloatTensor<B>,
+}
+
+/// The pins of a step, data (no gradient flows to them): `pinned` `[B, P, 1]` (1 = pinned) and
+/// the pinned particles' prescribed state after the step, `x` and `v` `[B, P, 3]`.
+#[derive(burn::backend::ExtensionType, Debug, Clone)]
+pub struct StepPins<B: Backend> {
+    /// 1 for pinned particles, `[B, P, 1]`.
+    pub pinned: FloatTensor<B>,
+    /// Prescribed positions `[B, P, 3]`.
+    pub x: FloatTensor<B>,
+    /// Prescribed velocities `[B, P, 3]`.
+    pub v: FloatTensor<B>,
+}
+
 /// Backends that run the fused spring-force op.
 #[backend_extension(Autodiff, Cube: cfg(feature = "wgpu"), Flex, NdArray)]
 pub trait SpringBackend: Backend {
-    /// Spring forces `[B, P, 3]` at positions `x` and velocities `v` `[B, P, 3]` with
-    /// per-spring `k`, `b` `[S]`.
+    /// Spring forces `[B, P, 3]` at the state of `s`.
     fn spring_forces(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
+        #[extension_type] s: SpringInputs<Self>,
         graph: Arc<HostGraph>,
     ) -> FloatTensor<Self>;
 
     /// The vector-Jacobian product of [`spring_forces`](Self::spring_forces): `(∂ℓ/∂x, ∂ℓ/∂v,
     /// ∂ℓ/∂k, ∂ℓ/∂b)` given `grad = ∂ℓ/∂F`.
     fn spring_forces_backward(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
+        #[extension_type] s: SpringInputs<Self>,
         grad: FloatTensor<Self>,
         graph: Arc<HostGraph>,
     ) -> SpringGrads<Self>;
 
-    /// One semi-implicit Euler step with spring forces, gravity, Rayleigh damping and pins
+    /// One semi-implicit Euler step with spring forces, gravity, Rayleigh damping and `pins`
     /// (see [`cpu`]): returns `x'`, `v'` and the net force `f` stacked as `[3, B, P, 3]`.
-    /// `pinned` is `[B, P, 1]` (1 = pinned), `pin_x`, `pin_v` `[B, P, 3]` are the pinned
-    /// particles' prescribed state after the step; they are data (no gradient flows to them).
-    #[allow(clippy::too_many_arguments)]
     fn cloth_step(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        pinned: FloatTensor<Self>,
-        pin_x: FloatTensor<Self>,
-        pin_v: FloatTensor<Self>,
+        #[extension_type] s: SpringInputs<Self>,
+        #[extension_type] pins: StepPins<Self>,
         graph: Arc<HostGraph>,
         params: StepParams,
     ) -> FloatTensor<Self>;
 
     /// A whole batch of clips rolled out and scored in one op (see [`rollout`]): returns
-    /// `[L_f, L_J, L_x]`. `x0`, `v0`: `[B, P, 3]`; `pinned`: `[B, P, 1]`; `path`: target
-    /// positions `[B, T + 1, P, 3]`; `target`: target forces `[B, T, P, 3]`. Only `k` and `b`
-    /// receive gradients; the rest is data.
-    #[allow(clippy::too_many_arguments)]
+    /// `[L_f, L_J, L_x]`. Only `k` and `b` receive gradients; the rest is data.
     fn rollout_loss(
-        x0: FloatTensor<Self>,
-        v0: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
-        pinned: FloatTensor<Self>,
-        path: FloatTensor<Self>,
-        target: FloatTensor<Self>,
+        #[extension_type] inputs: RolloutInputs<Self>,
         graph: Arc<HostGraph>,
         params: RolloutParams,
     ) -> FloatTensor<Self>;
 
     /// The vector-Jacobian product of [`cloth_step`](Self::cloth_step) for `x`, `v`, `k`, `b`,
-    /// given `grad = ∂ℓ/∂(x', v', f)` `[3, B, P, 3]`.
-    #[allow(clippy::too_many_arguments)]
+    /// given `grad = ∂ℓ/∂(x', v', f)` `[3, B, P, 3]`; `pinned` as in [`StepPins`].
     fn cloth_step_backward(
-        x: FloatTensor<Self>,
-        v: FloatTensor<Self>,
-        k: FloatTensor<Self>,
-        b: FloatTensor<Self>,
+        #[extension_type] s: SpringInputs<Self>,
         pinned: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         graph: Arc<HostGraph>,
@@ -233,37 +231,40 @@ pub fn spring_forces(
     b: Tensor<1>,
     graph: &Arc<HostGraph>,
 ) -> Tensor<3> {
-    Tensor::from_dispatch(<Dispatch as SpringBackend>::spring_forces(
-        x.into_dispatch(),
-        v.into_dispatch(),
-        k.into_dispatch(),
-        b.into_dispatch(),
-        graph.clone(),
-    ))
+    let s = SpringInputs {
+        x: x.into_dispatch(),
+        v: v.into_dispatch(),
+        k: k.into_dispatch(),
+        b: b.into_dispatch(),
+    };
+    Tensor::from_dispatch(<Dispatch as SpringBackend>::spring_forces(s, graph.clone()))
 }
 
-/// One fused integration step (see [`SpringBackend::cloth_step`]): returns `(x', v', f)`.
-#[allow(clippy::too_many_arguments)]
+/// One fused integration step (see [`SpringBackend::cloth_step`]) from `(x, v)` with
+/// per-spring `k`, `b`: returns `(x', v', f)`.
 pub fn cloth_step(
-    x: Tensor<3>,
-    v: Tensor<3>,
-    k: Tensor<1>,
-    b: Tensor<1>,
-    pinned: Tensor<3>,
-    pin_x: Tensor<3>,
-    pin_v: Tensor<3>,
+    (x, v): (Tensor<3>, Tensor<3>),
+    (k, b): (Tensor<1>, Tensor<1>),
+    pins: [Tensor<3>; 3],
     graph: &Arc<HostGraph>,
     params: StepParams,
 ) -> (Tensor<3>, Tensor<3>, Tensor<3>) {
     let [bsz, p, _] = x.dims();
+    let s = SpringInputs {
+        x: x.into_dispatch(),
+        v: v.into_dispatch(),
+        k: k.into_dispatch(),
+        b: b.into_dispatch(),
+    };
+    let [pinned, pin_x, pin_v] = pins.map(Tensor::into_dispatch);
+    let pins = StepPins {
+        pinned,
+        x: pin_x,
+        v: pin_v,
+    };
     let out: Tensor<4> = Tensor::from_dispatch(<Dispatch as SpringBackend>::cloth_step(
-        x.into_dispatch(),
-        v.into_dispatch(),
-        k.into_dispatch(),
-        b.into_dispatch(),
-        pinned.into_dispatch(),
-        pin_x.into_dispatch(),
-        pin_v.into_dispatch(),
+        s,
+        pins,
         graph.clone(),
         params,
     ));
@@ -275,27 +276,28 @@ pub fn cloth_step(
     (part(0), part(1), part(2))
 }
 
-/// The fused rollout and loss (see [`SpringBackend::rollout_loss`]): `[L_f, L_J, L_x]`.
-#[allow(clippy::too_many_arguments)]
+/// The fused rollout and loss (see [`SpringBackend::rollout_loss`]): `[L_f, L_J, L_x]` of the
+/// clips starting at `(x0, v0)` with per-spring `k`, `b`, `pinned` particles, the target
+/// positions `path` `[B, T + 1, P, 3]` and forces `target` `[B, T, P, 3]`.
 pub fn rollout_loss(
-    x0: Tensor<3>,
-    v0: Tensor<3>,
-    k: Tensor<1>,
-    b: Tensor<1>,
+    (x0, v0): (Tensor<3>, Tensor<3>),
+    (k, b): (Tensor<1>, Tensor<1>),
     pinned: Tensor<3>,
-    path: Tensor<4>,
-    target: Tensor<4>,
+    (path, target): (Tensor<4>, Tensor<4>),
     graph: &Arc<HostGraph>,
     params: RolloutParams,
 ) -> Tensor<1> {
+    let inputs = RolloutInputs {
+        x0: x0.into_dispatch(),
+        v0: v0.into_dispatch(),
+        k: k.into_dispatch(),
+        b: b.into_dispatch(),
+        pinned: pinned.into_dispatch(),
+        path: path.into_dispatch(),
+        target: target.into_dispatch(),
+    };
     Tensor::from_dispatch(<Dispatch as SpringBackend>::rollout_loss(
-        x0.into_dispatch(),
-        v0.into_dispatch(),
-        k.into_dispatch(),
-        b.into_dispatch(),
-        pinned.into_dispatch(),
-        path.into_dispatch(),
-        target.into_dispatch(),
+        inputs,
         graph.clone(),
         params,
     ))
@@ -310,16 +312,23 @@ pub(crate) enum RolloutTape {
     F64(Arc<rollout::Tape<f64>>),
 }
 
-/// The inputs of a fused rollout, kept for its backward.
-#[derive(Debug, Clone)]
-pub(crate) struct RolloutInputs<B: Backend> {
-    x0: FloatTensor<B>,
-    v0: FloatTensor<B>,
-    k: FloatTensor<B>,
-    b: FloatTensor<B>,
-    pinned: FloatTensor<B>,
-    path: FloatTensor<B>,
-    target: FloatTensor<B>,
+/// The inputs of a fused rollout ([`SpringBackend::rollout_loss`]), kept for its backward.
+#[derive(burn::backend::ExtensionType, Debug, Clone)]
+pub struct RolloutInputs<B: Backend> {
+    /// Start positions `[B, P, 3]`.
+    pub x0: FloatTensor<B>,
+    /// Start velocities `[B, P, 3]`.
+    pub v0: FloatTensor<B>,
+    /// Stiffness `[S]`.
+    pub k: FloatTensor<B>,
+    /// Damping `[S]`.
+    pub b: FloatTensor<B>,
+    /// 1 for pinned particles, `[B, P, 1]`.
+    pub pinned: FloatTensor<B>,
+    /// Target positions `[B, T + 1, P, 3]`.
+    pub path: FloatTensor<B>,
+    /// Target forces `[B, T, P, 3]`.
+    pub target: FloatTensor<B>,
 }
 
 /// Host-side halves of the fused rollout, which the autodiff wrapper calls separately.

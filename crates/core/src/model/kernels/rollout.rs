@@ -20,7 +20,9 @@ use num_traits::Float;
 use rayon::prelude::*;
 
 use super::HostGraph;
-use super::cpu::{Lane, Springs, cast, interleave, run_backward, run_forces, wide};
+use super::cpu::{
+    Lane, LaneGrads, LaneSprings, Springs, cast, interleave, run_backward, run_forces, wide,
+};
 
 /// One state `(x, v)` of a batch's lanes, owned.
 type OwnedState<T, const L: usize> = (Vec<Lane<T, L>>, Vec<Lane<T, L>>);
@@ -230,7 +232,8 @@ impl<'a, T: Float + Send + Sync, const L: usize> Chunk<'a, T, L> {
             record(x, v);
             s.fill([T::zero(); L]);
             // SAFETY: x, v, s hold 3P lanes; k, b hold S values (RolloutData::check).
-            unsafe { run_forces(self.sp, x, v, self.data.k, self.data.b, s) };
+            let springs = LaneSprings::new(self.sp, x, v, self.data.k, self.data.b);
+            unsafe { run_forces(springs, s) };
             let t = cast::<T>((sub + 1) as f64 / n as f64);
             for i in 0..self.stride {
                 let here = self.frame_value(self.data.path, frames, j, i);
@@ -501,12 +504,14 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
                         }
                         let (pk_k, pk_b) = pk.split_at_mut(s_count);
                         // SAFETY: lane buffers hold 3P lanes; k, b, pk_k, pk_b hold S values.
-                        unsafe {
-                            run_backward(
-                                &sp, xs, vs, data.k, data.b, &gsub, &mut acc_x, &mut acc_v, pk_k,
-                                pk_b,
-                            )
+                        let springs = LaneSprings::new(&sp, xs, vs, data.k, data.b);
+                        let mut grads = LaneGrads {
+                            x: &mut acc_x,
+                            v: &mut acc_v,
+                            k: pk_k,
+                            b: pk_b,
                         };
+                        unsafe { run_backward(springs, &gsub, &mut grads) };
                         for i in 0..stride {
                             for l in 0..L {
                                 lx[i][l] = acc_x[i][l];

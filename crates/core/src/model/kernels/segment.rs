@@ -284,12 +284,7 @@ struct SegmentBackward(SegmentOp);
 impl<B: SegmentBackend> Backward<B, 1> for SegmentBackward {
     type State = (IntTensor<B>, Arc<Segments>);
 
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
+    fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
         let grad = grads.consume::<B>(&ops.node);
         let (owner, segments) = ops.state;
         if let Some(node) = &ops.parents[0] {
