@@ -178,32 +178,59 @@ pub(super) fn deinterleave<T: Copy, const L: usize>(
     }
 }
 
+/// One spring of a chunk: its stiffness, damping and rest length, and per lane
+/// `d = x_b − x_a`, `w = v_b − v_a`.
+struct SpringLanes<T, const L: usize> {
+    ks: T,
+    bs: T,
+    l0: T,
+    d: [Lane<T, L>; 3],
+    w: [Lane<T, L>; 3],
+}
+
+/// Spring `s` of the chunk `c`, whose ends' first lane rows are `a` and `bb`.
+///
+/// # Safety
+/// `s` is one of `c`'s springs and `a`, `bb` its ends' rows (`3 ·` particle), within the
+/// lengths [`chunk_forces`] asks for.
+#[inline(always)]
+unsafe fn spring_lanes<T: Float, const L: usize>(
+    c: &LaneSprings<T, L>,
+    s: usize,
+    (a, bb): (usize, usize),
+) -> SpringLanes<T, L> {
+    // SAFETY: the caller's contract.
+    unsafe {
+        let (ks, bs, l0) = (
+            *c.k.get_unchecked(s),
+            *c.b.get_unchecked(s),
+            *c.sp.l0.get_unchecked(s),
+        );
+        let mut d = [[T::zero(); L]; 3];
+        let mut w = [[T::zero(); L]; 3];
+        for i in 0..3 {
+            let (xa, xb) = (c.x.get_unchecked(a + i), c.x.get_unchecked(bb + i));
+            let (va, vb) = (c.v.get_unchecked(a + i), c.v.get_unchecked(bb + i));
+            for l in 0..L {
+                d[i][l] = xb[l] - xa[l];
+                w[i][l] = vb[l] - va[l];
+            }
+        }
+        SpringLanes { ks, bs, l0, d, w }
+    }
+}
+
 /// Accumulates the spring forces of one chunk into `out` (`[P·3][L]`).
 ///
 /// # Safety
 /// `x`, `v` and `out` hold `3 · sp.particles` lanes, `k` and `b` one value per spring.
 #[inline(always)]
 unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut [Lane<T, L>]) {
-    let LaneSprings { sp, x, v, k, b } = c;
-    for (s, &(a, bb)) in sp.ends.iter().enumerate() {
+    for (s, &(a, bb)) in c.sp.ends.iter().enumerate() {
         let (a, bb) = (3 * a as usize, 3 * bb as usize);
         // SAFETY: endpoints < particles (HostGraph::new) and the caller's length contract.
         unsafe {
-            let (ks, bs, l0) = (
-                *k.get_unchecked(s),
-                *b.get_unchecked(s),
-                *sp.l0.get_unchecked(s),
-            );
-            let mut d = [[T::zero(); L]; 3];
-            let mut w = [[T::zero(); L]; 3];
-            for c in 0..3 {
-                let (xa, xb) = (x.get_unchecked(a + c), x.get_unchecked(bb + c));
-                let (va, vb) = (v.get_unchecked(a + c), v.get_unchecked(bb + c));
-                for l in 0..L {
-                    d[c][l] = xb[l] - xa[l];
-                    w[c][l] = vb[l] - va[l];
-                }
-            }
+            let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let mut coef = [T::zero(); L];
             for l in 0..L {
                 let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
@@ -231,39 +258,22 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
 /// # Safety
 /// As [`chunk_forces`], and `gk`, `gb` hold one value per spring.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 unsafe fn chunk_backward<T: Float, const L: usize>(
     c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
     g: &mut LaneGrads<T, L>,
 ) {
-    let LaneSprings { sp, x, v, k, b } = c;
-    let LaneGrads {
-        x: gx,
-        v: gv,
-        k: gk,
-        b: gb,
-    } = g;
+    let (gx, gv, gk, gb) = (&mut *g.x, &mut *g.v, &mut *g.k, &mut *g.b);
     let two = T::one() + T::one();
-    for (s, &(a, bb)) in sp.ends.iter().enumerate() {
+    for (s, &(a, bb)) in c.sp.ends.iter().enumerate() {
         let (a, bb) = (3 * a as usize, 3 * bb as usize);
         // SAFETY: as in `chunk_forces`.
         unsafe {
-            let (ks, bs, l0) = (
-                *k.get_unchecked(s),
-                *b.get_unchecked(s),
-                *sp.l0.get_unchecked(s),
-            );
-            let mut d = [[T::zero(); L]; 3];
-            let mut w = [[T::zero(); L]; 3];
+            let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let mut g = [[T::zero(); L]; 3];
             for c in 0..3 {
-                let (xa, xb) = (x.get_unchecked(a + c), x.get_unchecked(bb + c));
-                let (va, vb) = (v.get_unchecked(a + c), v.get_unchecked(bb + c));
                 let (ga, gbb) = (gf.get_unchecked(a + c), gf.get_unchecked(bb + c));
                 for l in 0..L {
-                    d[c][l] = xb[l] - xa[l];
-                    w[c][l] = vb[l] - va[l];
                     g[c][l] = ga[l] - gbb[l];
                 }
             }

@@ -260,9 +260,7 @@ fn rollout_backward<B: HostAccess, T: HostFloat>(
     tape: &RolloutTape,
     w: [f64; 3],
 ) -> (FloatTensor<B>, FloatTensor<B>) {
-    let (gk, gb) = with_data::<B, T, _>(inputs, |d| {
-        rollout::backward(graph, d, params, T::untape(tape), w)
-    });
+    let (gk, gb) = with_data::<B, T, _>(inputs, |d| T::untape(tape).backward(graph, d, params, w));
     let (s, device) = (graph.num_params(), inputs.k.device());
     (
         upload::<B, T>(gk, vec![s], &device),

@@ -115,18 +115,20 @@ pub fn forward<T: Float + Send + Sync>(
     }
 }
 
-/// `(∂ℓ/∂k, ∂ℓ/∂b)` for `ℓ = w · [L_f, L_J, L_x]`.
-pub fn backward<T: Float + Send + Sync>(
-    g: &HostGraph,
-    data: RolloutData<T>,
-    params: RolloutParams,
-    tape: &Tape<T>,
-    w: [f64; 3],
-) -> (Vec<T>, Vec<T>) {
-    data.check(g);
-    match tape.lanes {
-        8 => backward_lanes::<T, 8>(g, data, params, tape, w),
-        _ => backward_lanes::<T, 4>(g, data, params, tape, w),
+impl<T: Float + Send + Sync> Tape<T> {
+    /// `(∂ℓ/∂k, ∂ℓ/∂b)` for `ℓ = w · [L_f, L_J, L_x]` of the rollout this tape recorded.
+    pub fn backward(
+        &self,
+        g: &HostGraph,
+        data: RolloutData<T>,
+        params: RolloutParams,
+        w: [f64; 3],
+    ) -> (Vec<T>, Vec<T>) {
+        data.check(g);
+        match self.lanes {
+            8 => backward_lanes::<T, 8>(g, data, params, self, w),
+            _ => backward_lanes::<T, 4>(g, data, params, self, w),
+        }
     }
 }
 
