@@ -268,5 +268,11 @@ fn the_blend_search_finds_the_bending_springs_share() {
         record["bending_candidates"]
     );
     assert_eq!(factor, 1.0 / 16.0, "{record}");
+    // ... and settles it on the uniform network, before the map's shares are searched.
+    assert_eq!(
+        record["rows_bending_factor"].as_f64(),
+        Some(1.0 / 16.0),
+        "{record}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -92,8 +92,12 @@ pub(crate) struct BlendSearch {
     /// Mean motion RMSE of the kept network, m.
     pub after: f64,
     /// `(α, k factor, b factor, substeps, mean motion RMSE)` of every stable candidate at the
-    /// bending springs' factor 1.
+    /// bending springs' factor the shares' rows ran at ([`Self::rows_bending_factor`]).
     pub candidates: Vec<(f64, f64, f64, usize, f64)>,
+    /// The bending springs' factor settled on the uniform network, at which the shares' rows
+    /// ran (1 in a record written before it existed).
+    #[serde(default = "one")]
+    pub rows_bending_factor: f64,
     /// The factor of the bending springs' `k` kept (1 when the network has none, or none moves
     /// closer).
     #[serde(default = "one")]
@@ -128,10 +132,11 @@ const WIDE_B_STEPS: std::ops::RangeInclusive<i32> = -6..=4;
 const NARROW_K_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
 const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
 /// Candidates the search considers (some twice, simulated once).
-const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2) + 6 + 3 + 3 + 2;
+const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2) + 2 * (6 + 3 + 3 + 2);
 
-/// Searches the best uniform network around `model`'s means on the training takes `train`, then the share of
-/// `model`'s map blended into it and the factors around the best; returns the kept network, the
+/// Searches the best uniform network around `model`'s means on the training takes `train`, the
+/// bending springs' share on it, then the share of `model`'s map blended into it and the factors
+/// around the best, and the bending springs' share again there; returns the kept network, the
 /// physics it runs at (substeps possibly raised) and the record.
 pub(crate) fn blend_search(
     model: &SpringNet,
@@ -166,24 +171,27 @@ pub(crate) fn blend_search(
         k_init / k_mean,
         if b_init > 0.0 { b_init / b_mean } else { 1.0 },
     );
-    let Some(uniform) = search.row_search(0.0, start, WIDE_K_STEPS, WIDE_B_STEPS) else {
+    let Some(uniform) = search.rows(0.0, start, 1.0, WIDE_K_STEPS, WIDE_B_STEPS) else {
         bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
     };
-    let mut rows = vec![uniform];
-    let learned = search.row_search(1.0, (uniform.1, uniform.2), WIDE_K_STEPS, WIDE_B_STEPS);
-    let far = learned.unwrap_or(uniform);
+    // The bending springs' share is settled on the uniform network before any map is judged:
+    // a map blended into a network whose bending springs are far off has to make up for them.
+    let (fh, start) = search.bending_search(uniform, 1.0);
+    let mut rows = vec![start];
+    let learned = search.rows(1.0, (start.1, start.2), fh, WIDE_K_STEPS, WIDE_B_STEPS);
+    let far = learned.unwrap_or(start);
     rows.extend(learned);
     for alpha in ALPHAS {
         let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
-        let centre = (at(uniform.1, far.1), at(uniform.2, far.2));
-        rows.extend(search.row_search(alpha, centre, NARROW_K_STEPS, NARROW_B_STEPS));
+        let centre = (at(start.1, far.1), at(start.2, far.2));
+        rows.extend(search.rows(alpha, centre, fh, NARROW_K_STEPS, NARROW_B_STEPS));
     }
     let best = rows
         .iter()
         .copied()
         .min_by(|a, b| a.4.total_cmp(&b.4))
         .expect("the uniform network is a candidate");
-    let (bending_factor, best) = search.bending_search(best);
+    let (bending_factor, best) = search.bending_search(best, fh);
     search.bar.finish();
     let (alpha, fk, fb, substeps, after) = best;
     let record = BlendSearch {
@@ -197,7 +205,8 @@ pub(crate) fn blend_search(
         uniform: (uniform.1 * k_mean, uniform.2 * b_mean, uniform.4),
         before,
         after,
-        candidates: search.candidates(1.0),
+        candidates: search.candidates(fh),
+        rows_bending_factor: fh,
         bending_candidates: BENDING_FACTORS
             .iter()
             .flat_map(|&fh| {
@@ -299,19 +308,9 @@ impl Blender<'_> {
         self.bar.inc(1);
     }
 
-    /// One share's search: a row of stiffness factors, a row of damping factors at the best,
-    /// then the stiffness a quarter octave either side; returns the share's best.
-    fn row_search(
-        &mut self,
-        alpha: f64,
-        (fk0, fb0): (f64, f64),
-        k_steps: std::ops::RangeInclusive<i32>,
-        b_steps: std::ops::RangeInclusive<i32>,
-    ) -> Option<Candidate> {
-        self.rows(alpha, (fk0, fb0), 1.0, k_steps, b_steps)
-    }
-
-    /// [`Self::row_search`] with the bending springs' factor `fh`.
+    /// One share's search with the bending springs' factor `fh`: a row of stiffness factors, a
+    /// row of damping factors at the best, then the stiffness a quarter octave either side;
+    /// returns the share's best.
     fn rows(
         &mut self,
         alpha: f64,
@@ -341,14 +340,14 @@ impl Blender<'_> {
     /// parameter of the fit like the size. A row of factors of their `k` at `best`, then, at
     /// the best factor, the size rows again (narrow), in turn until the factor stays (at most
     /// [`BENDING_ROUNDS`] rows; a factor moves only for [`BENDING_MARGIN`] closer); returns the
-    /// factor and the candidate kept (`best` and 1 when the network has no bending springs or
-    /// no factor moves closer).
-    fn bending_search(&mut self, best: Candidate) -> (f64, Candidate) {
+    /// factor and the candidate kept (`share` and `best` when the network has no bending springs
+    /// or no factor moves closer). `best` was scored with the bending springs' factor `share`.
+    fn bending_search(&mut self, best: Candidate, share: f64) -> (f64, Candidate) {
         let family = &self.takes.topology.family;
         if !family.contains(&SpringFamily::Bending) {
-            return (1.0, best);
+            return (share, best);
         }
-        let mut kept = (1.0, best);
+        let mut kept = (share, best);
         // Coordinate descent: the size found for one share of the bending springs is not the
         // size for another (a uniform network softens everything to make up for stiff
         // bending springs), so the row and the sizes alternate until the share stays.
