@@ -151,25 +151,24 @@ impl SpringGraph {
         k: Tensor<1>,
         b: Tensor<1>,
     ) -> Tensor<3> {
-        let graph = self;
         let [batch, p, _] = x.dims();
-        let s = graph.num_springs;
-        let d = x.clone().select(1, graph.ib.clone()) - x.select(1, graph.ia.clone());
-        let w = v.clone().select(1, graph.ib.clone()) - v.select(1, graph.ia.clone());
+        let s = self.num_springs;
+        let d = x.clone().select(1, self.ib.clone()) - x.select(1, self.ia.clone());
+        let w = v.clone().select(1, self.ib.clone()) - v.select(1, self.ia.clone());
         let len2 = (d.clone() * d.clone()).sum_dim(2); // [B, S, 1]
         let inv_len = len2.sqrt().recip();
-        let l0 = graph.rest_length.clone().reshape([1, s, 1]);
+        let l0 = self.rest_length.clone().reshape([1, s, 1]);
         let elastic = k.reshape([1, s, 1]) * (l0 * inv_len.clone()).neg().add_scalar(1.0);
         let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
         let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
         let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
         let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
             1,
-            graph.ends.clone(),
+            self.ends.clone(),
             both,
             burn::tensor::IndexingUpdateOp::Add,
         );
-        match &graph.force_scale {
+        match &self.force_scale {
             Some(scale) => f * scale.clone(),
             None => f,
         }

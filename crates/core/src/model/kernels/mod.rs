@@ -153,6 +153,18 @@ pub struct SpringInputs<B: Backend> {
     pub b: FloatTensor<B>,
 }
 
+impl SpringInputs<Dispatch> {
+    /// The state `(x, v)` and the per-spring `(k, b)` of the tensor API.
+    fn of((x, v): (Tensor<3>, Tensor<3>), (k, b): (Tensor<1>, Tensor<1>)) -> Self {
+        Self {
+            x: x.into_dispatch(),
+            v: v.into_dispatch(),
+            k: k.into_dispatch(),
+            b: b.into_dispatch(),
+        }
+    }
+}
+
 /// The pins of a step, data (no gradient flows to them): `pinned` `[B, P, 1]` (1 = pinned) and
 /// the pinned particles' prescribed state after the step, `x` and `v` `[B, P, 3]`.
 #[derive(burn::backend::ExtensionType, Debug, Clone)]
@@ -231,12 +243,7 @@ pub fn spring_forces(
     b: Tensor<1>,
     graph: &Arc<HostGraph>,
 ) -> Tensor<3> {
-    let s = SpringInputs {
-        x: x.into_dispatch(),
-        v: v.into_dispatch(),
-        k: k.into_dispatch(),
-        b: b.into_dispatch(),
-    };
+    let s = SpringInputs::of((x, v), (k, b));
     Tensor::from_dispatch(<Dispatch as SpringBackend>::spring_forces(s, graph.clone()))
 }
 
@@ -250,12 +257,7 @@ pub fn cloth_step(
     params: StepParams,
 ) -> (Tensor<3>, Tensor<3>, Tensor<3>) {
     let [bsz, p, _] = x.dims();
-    let s = SpringInputs {
-        x: x.into_dispatch(),
-        v: v.into_dispatch(),
-        k: k.into_dispatch(),
-        b: b.into_dispatch(),
-    };
+    let s = SpringInputs::of((x, v), (k, b));
     let [pinned, pin_x, pin_v] = pins.map(Tensor::into_dispatch);
     let pins = StepPins {
         pinned,
