@@ -239,14 +239,11 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
                 coef[l] = ks * (T::one() - l0 * inv) + bs * wd * inv * inv;
             }
             for c in 0..3 {
-                let fa = out.get_unchecked_mut(a + c);
+                let mut f = [T::zero(); L];
                 for l in 0..L {
-                    fa[l] = fa[l] + coef[l] * d[c][l];
+                    f[l] = coef[l] * d[c][l];
                 }
-                let fb = out.get_unchecked_mut(bb + c);
-                for l in 0..L {
-                    fb[l] = fb[l] - coef[l] * d[c][l];
-                }
+                scatter_pair(out, (a + c, bb + c), &f);
             }
         }
     }
@@ -308,24 +305,33 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
                     dd[l] = coef[l] * g[c][l] + gd[l] * (a1[l] * d[c][l] + a2[l] * w[c][l]);
                     dw[l] = gd[l] * a2[l] * d[c][l];
                 }
-                let gxb = gx.get_unchecked_mut(bb + c);
-                for l in 0..L {
-                    gxb[l] = gxb[l] + dd[l];
-                }
-                let gxa = gx.get_unchecked_mut(a + c);
-                for l in 0..L {
-                    gxa[l] = gxa[l] - dd[l];
-                }
-                let gvb = gv.get_unchecked_mut(bb + c);
-                for l in 0..L {
-                    gvb[l] = gvb[l] + dw[l];
-                }
-                let gva = gv.get_unchecked_mut(a + c);
-                for l in 0..L {
-                    gva[l] = gva[l] - dw[l];
-                }
+                scatter_pair(gx, (bb + c, a + c), &dd);
+                scatter_pair(gv, (bb + c, a + c), &dw);
             }
         }
+    }
+}
+
+/// Adds `d` to lane row `plus` and subtracts it from row `minus`: a spring's equal and
+/// opposite pair.
+///
+/// # Safety
+/// Both rows exist.
+#[inline(always)]
+unsafe fn scatter_pair<T: Float, const L: usize>(
+    rows: &mut [Lane<T, L>],
+    (plus, minus): (usize, usize),
+    d: &Lane<T, L>,
+) {
+    // SAFETY: the caller's contract.
+    let p = unsafe { rows.get_unchecked_mut(plus) };
+    for l in 0..L {
+        p[l] = p[l] + d[l];
+    }
+    // SAFETY: as above.
+    let m = unsafe { rows.get_unchecked_mut(minus) };
+    for l in 0..L {
+        m[l] = m[l] - d[l];
     }
 }
 
