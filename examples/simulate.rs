@@ -7,7 +7,7 @@
 use anyhow::{Context, Result};
 use springtime::cloth::Resampler;
 use springtime::data::{Rollout, Track};
-use springtime::eval::{frame_rmse, simulate_track};
+use springtime::eval::{FreeRun, frame_rmse};
 use springtime::run::Run;
 
 fn main() -> Result<()> {
@@ -36,18 +36,7 @@ fn main() -> Result<()> {
     // A free rollout from the first usable frame, pinned particles following the recording.
     let first = rollout.first_usable_frame();
     let frames = ((seconds / physics.frame_dt).round() as usize).min(track.frames - 1 - first);
-    let keep: Vec<usize> = (0..=frames).collect();
-    let sim = simulate_track(
-        model,
-        &physics,
-        None,
-        &track,
-        first,
-        frames,
-        &keep,
-        &run.device,
-        |_| {},
-    )?;
+    let sim = FreeRun::new(&track, first, frames).simulate(model, &physics, &run.device, |_| {})?;
 
     let p = topo.num_particles();
     let per_second = (1.0 / physics.frame_dt).round().max(1.0) as usize;

@@ -1792,15 +1792,9 @@ fn simulate(
         .check("the trained surrogate", config.sim.allow_unstable)?;
     let frames = (seconds / physics.frame_dt).round() as usize;
     let bar = progress.bar(frames as u64, "simulate");
-    let keep: Vec<usize> = (0..=frames).collect();
-    let sim = eval::simulate_track(
+    let sim = eval::FreeRun::new(&start.track, start.first, frames).simulate(
         model,
         physics,
-        None,
-        &start.track,
-        start.first,
-        frames,
-        &keep,
         &run.device,
         |_| bar.inc(1),
     )?;

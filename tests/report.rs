@@ -494,16 +494,11 @@ fn plotting_primitives_write_pngs_of_their_size() {
     let values: Vec<f64> = (0..topo.num_springs()).map(|s| s as f64).collect();
     let range = plot::value_range(&[&values]);
     let map = dir.join("map.png");
-    plot::spring_map_png(
-        &map,
-        &topo,
-        &values,
-        "k",
-        range,
-        "k (N/m)",
-        Some(SpringFamily::Bending),
-    )
-    .unwrap();
+    let bending = plot::Map::Springs {
+        topology: &topo,
+        family: Some(SpringFamily::Bending),
+    };
+    plot::map_png(&map, bending, &values, "k", range, "k (N/m)").unwrap();
     assert_eq!(
         png_size(&map),
         (plot::MAP_PANEL.0 + plot::COLORBAR_WIDTH, plot::MAP_PANEL.1)
@@ -511,7 +506,11 @@ fn plotting_primitives_write_pngs_of_their_size() {
     let tris = topo.triangles.clone();
     let tv: Vec<f64> = (0..tris.len()).map(|t| (t % 3) as f64).collect();
     let tmap = dir.join("tri.png");
-    plot::triangle_map_png(&tmap, &topo.rest_uv, &tris, &tv, "FEM", (0.0, 2.0), "E").unwrap();
+    let triangles = |triangles| plot::Map::Triangles {
+        rest_uv: &topo.rest_uv,
+        triangles,
+    };
+    plot::map_png(&tmap, triangles(&tris), &tv, "FEM", (0.0, 2.0), "E").unwrap();
     assert_eq!(
         png_size(&tmap),
         (plot::MAP_PANEL.0 + plot::COLORBAR_WIDTH, plot::MAP_PANEL.1)
@@ -524,9 +523,10 @@ fn plotting_primitives_write_pngs_of_their_size() {
     plot::curves_png(&curves, "curves", "x", "y", &series, true).unwrap();
     assert_eq!(png_size(&curves), plot::PLOT_PANEL);
     // Mismatched lengths are errors, not panics.
-    assert!(plot::spring_map_png(&map, &topo, &[1.0], "k", range, "k", None).is_err());
-    assert!(
-        plot::triangle_map_png(&tmap, &topo.rest_uv, &[[0, 1, 99]], &[1.0], "t", range, "E")
-            .is_err()
-    );
+    let all = plot::Map::Springs {
+        topology: &topo,
+        family: None,
+    };
+    assert!(plot::map_png(&map, all, &[1.0], "k", range, "k").is_err());
+    assert!(plot::map_png(&tmap, triangles(&[[0, 1, 99]]), &[1.0], "t", range, "E").is_err());
 }

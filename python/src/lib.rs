@@ -99,19 +99,9 @@ impl Run {
     ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
         let physics = self.physics(frame_dt)?;
         let model = self.force_model()?;
-        let keep: Vec<usize> = (0..=frames).collect();
-        let sim = springtime::eval::simulate_track(
-            model,
-            &physics,
-            None,
-            track,
-            first,
-            frames,
-            &keep,
-            &self.loaded.device,
-            |_| {},
-        )
-        .map_err(runtime)?;
+        let sim = springtime::eval::FreeRun::new(track, first, frames)
+            .simulate(model, &physics, &self.loaded.device, |_| {})
+            .map_err(runtime)?;
         let shape = [frames + 1, track.particles, 3];
         Ok((
             f32_out(py, sim.positions, &shape)?,

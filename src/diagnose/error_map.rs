@@ -140,9 +140,11 @@ impl ErrorMap {
             )?;
             let (left, right) = body.split_horizontally(mw + plot::COLORBAR_WIDTH);
             let (map, bar) = left.split_horizontally(mw);
-            plot::draw_particle_map(
+            plot::draw_map(
                 &map,
-                &inputs.topology,
+                plot::Map::Particles {
+                    topology: &inputs.topology,
+                },
                 &self.per_particle,
                 "time-averaged |x − x̂| per particle",
                 range,

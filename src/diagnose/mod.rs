@@ -9,7 +9,7 @@
 //! | `source_map.json` | where the rollouts carry their source's stiffness map: that map on the structural springs, sized on the training takes, against the best uniform network at its step ([`source_map`]) |
 //! | `diagnose.md` | the headline numbers, also printed |
 //!
-//! The run is opened as every command opens it ([`crate::run::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::simulate_track`].
+//! The run is opened as every command opens it ([`crate::run::Run::open`], [`report::data_files`]); test rollouts are simulated with [`eval::FreeRun`].
 
 pub mod chaos;
 pub mod error_map;
@@ -147,19 +147,9 @@ pub fn free_rollout(
         .stability_of(&inputs.topology, model)
         .check(what, inputs.config.sim.allow_unstable)?;
     let steps = test.steps();
-    let keep: Vec<usize> = (0..=steps).collect();
-    eval::simulate_track(
-        model,
-        &physics,
-        None,
-        &test.track,
-        test.first,
-        steps,
-        &keep,
-        &inputs.device,
-        |_| on_frame(),
-    )
-    .with_context(|| format!("{what} on {}", test.path.display()))
+    eval::FreeRun::new(&test.track, test.first, steps)
+        .simulate(model, &physics, &inputs.device, |_| on_frame())
+        .with_context(|| format!("{what} on {}", test.path.display()))
 }
 
 /// Per-frame Eq. 14 RMSE between two free rollouts (or a rollout and the data) of one test

@@ -332,21 +332,14 @@ pub fn simulate_model(
     let track = Track::at_rest(x0);
     let keep: Vec<usize> = (0..=frames).step_by(every).collect();
     let bar = progress.bar(frames as u64, label);
-    let sim = eval::simulate_track(
-        model,
-        physics,
-        Some(contact),
-        &track,
-        0,
-        frames,
-        &keep,
-        device,
-        |j| {
+    let sim = eval::FreeRun::new(&track, 0, frames)
+        .keeping(&keep)
+        .contact(Some(contact))
+        .simulate(model, physics, device, |j| {
             if j % 64 == 0 {
                 bar.set_position(j as u64)
             }
-        },
-    );
+        });
     bar.finish();
     let mut rec = Recording {
         label: label.into(),

@@ -512,17 +512,10 @@ impl<'a> Export<'a> {
         progress: &Progress,
     ) -> Result<Sequence> {
         let bar = progress.bar(plan.frames as u64, "simulate");
-        let sim = eval::simulate_track(
-            self.model,
-            &plan.physics,
-            plan.contact.as_ref(),
-            &plan.track,
-            plan.first,
-            plan.frames,
-            &plan.keep,
-            &self.run.device,
-            |_| bar.inc(1),
-        )?;
+        let sim = eval::FreeRun::new(&plan.track, plan.first, plan.frames)
+            .keeping(&plan.keep)
+            .contact(plan.contact.as_ref())
+            .simulate(self.model, &plan.physics, &self.run.device, |_| bar.inc(1))?;
         bar.finish();
         let p = self.run.topology.num_particles();
         let mut seq = Sequence {

@@ -644,23 +644,27 @@ fn fem_figure(dir: &Path, inputs: &Inputs) -> Result<Option<Figure>> {
         )?;
         let halves = body.split_evenly((1, 2));
         let (a, abar) = halves[0].split_horizontally(pw);
-        plot::draw_triangle_map(
+        plot::draw_map(
             &a,
-            uv,
-            &mesh.triangles,
+            plot::Map::Triangles {
+                rest_uv: uv,
+                triangles: &mesh.triangles,
+            },
             src_stiffness,
             "source: triangles",
             src_range,
         )?;
         plot::draw_colorbar(&abar, src_range, "source stiffness")?;
         let (b, bbar) = halves[1].split_horizontally(pw);
-        plot::draw_spring_map(
+        plot::draw_map(
             &b,
-            &inputs.topology,
+            plot::Map::Springs {
+                topology: &inputs.topology,
+                family: Some(SpringFamily::Structural),
+            },
             &inputs.k,
             "learned: structural springs",
             k_range,
-            Some(SpringFamily::Structural),
         )?;
         plot::draw_colorbar(&bbar, k_range, "k (N/m)")
     })?;
@@ -966,17 +970,9 @@ impl RolloutScene {
         let physics = physics_for(inputs, r.frame_dt);
         let keep = animation_frames(frames, 80);
         let bar = progress.bar(frames as u64, "animate");
-        let sim = eval::simulate_track(
-            &inputs.model,
-            &physics,
-            None,
-            &track,
-            first,
-            frames,
-            &keep,
-            &inputs.device,
-            |_| bar.inc(1),
-        )?;
+        let sim = eval::FreeRun::new(&track, first, frames)
+            .keeping(&keep)
+            .simulate(&inputs.model, &physics, &inputs.device, |_| bar.inc(1))?;
         bar.finish();
         let mut scene = RolloutScene {
             name: test

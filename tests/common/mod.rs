@@ -97,19 +97,12 @@ pub fn last_frame(
     frames: usize,
     device: &Device,
 ) -> Vec<f32> {
-    springtime::eval::simulate_track(
-        model,
-        physics,
-        contact,
-        track,
-        0,
-        frames,
-        &[frames],
-        device,
-        |_| {},
-    )
-    .unwrap()
-    .positions
+    springtime::eval::FreeRun::new(track, 0, frames)
+        .keeping(&[frames])
+        .contact(contact)
+        .simulate(model, physics, device, |_| {})
+        .unwrap()
+        .positions
 }
 
 /// A fresh, empty, uniquely named temporary directory for one test, removed when the test ends

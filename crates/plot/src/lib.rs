@@ -200,17 +200,7 @@ pub const TITLE_HEIGHT: u32 = 30;
 /// the rest of the area.
 pub fn title<'a>(area: &Area<'a>, caption: &str, size: u32) -> Result<Area<'a>> {
     let (top, rest) = area.split_vertically(TITLE_HEIGHT);
-    let (w, _) = top.dim_in_pixel();
-    let style = text(size).pos(plotters::style::text_anchor::Pos::new(
-        plotters::style::text_anchor::HPos::Center,
-        plotters::style::text_anchor::VPos::Center,
-    ));
-    top.draw(&Text::new(
-        caption.to_string(),
-        (w as i32 / 2, TITLE_HEIGHT as i32 / 2),
-        style,
-    ))
-    .map_err(err)?;
+    draw_centred(&top, caption, text(size))?;
     Ok(rest)
 }
 
@@ -218,15 +208,16 @@ pub fn title<'a>(area: &Area<'a>, caption: &str, size: u32) -> Result<Area<'a>> 
 /// says so instead of drawing empty axes).
 pub fn draw_message(area: &Area, caption: &str, message: &str) -> Result<()> {
     let area = title(area, caption, 16)?;
+    draw_centred(&area, message, text(14).color(&RGBColor(90, 90, 90)))
+}
+
+/// Draws `s` in `style` centred in `area`.
+fn draw_centred(area: &Area, s: &str, style: TextStyle) -> Result<()> {
+    use plotters::style::text_anchor::{HPos, Pos, VPos};
     let (w, h) = area.dim_in_pixel();
-    let style = text(14)
-        .color(&RGBColor(90, 90, 90))
-        .pos(plotters::style::text_anchor::Pos::new(
-            plotters::style::text_anchor::HPos::Center,
-            plotters::style::text_anchor::VPos::Center,
-        ));
+    let style = style.pos(Pos::new(HPos::Center, VPos::Center));
     area.draw(&Text::new(
-        message.to_string(),
+        s.to_string(),
         (w as i32 / 2, h as i32 / 2),
         style,
     ))
@@ -332,26 +323,128 @@ fn drawn_segment(topology: &Topology, s: usize) -> [(f64, f64); 2] {
     ]
 }
 
-/// Draws springs of `topology` as segments on the rest rectangle, each coloured by its value
-/// in `values` (one per spring) on viridis over `range`. `family` selects one family (`None`:
-/// every spring). No colour bar: see [`draw_colorbar`].
-pub fn draw_spring_map(
+/// What a map panel draws on the rest rectangle, one value per element, coloured on viridis.
+#[derive(Debug, Clone, Copy)]
+pub enum Map<'a> {
+    /// Springs as segments between their rest endpoints, slightly shortened; bending springs,
+    /// which overlap along a line, are offset sideways by their phase. `family` selects one
+    /// family (structural, shear or bending; `None`: every spring).
+    Springs {
+        /// The springs and their rest positions.
+        topology: &'a Topology,
+        /// The one family drawn, or all.
+        family: Option<SpringFamily>,
+    },
+    /// Filled triangles (e.g. an FEM source's stiffness map).
+    Triangles {
+        /// Vertex positions on the rest rectangle, metres.
+        rest_uv: &'a [[f64; 2]],
+        /// Vertex indices, one triple per triangle.
+        triangles: &'a [[usize; 3]],
+    },
+    /// A filled square around each particle of a grid topology (a cell of the grid spacing).
+    Particles {
+        /// The particles and their rest positions.
+        topology: &'a Topology,
+    },
+}
+
+impl Map<'_> {
+    /// How many values the map takes, and what they are of.
+    fn elements(&self) -> (usize, &'static str) {
+        match self {
+            Map::Springs { topology, .. } => (topology.num_springs(), "springs"),
+            Map::Triangles { triangles, .. } => (triangles.len(), "triangles"),
+            Map::Particles { topology } => (topology.num_particles(), "particles"),
+        }
+    }
+
+    /// The rest rectangle's width and height, metres.
+    fn extent(&self) -> (f64, f64) {
+        match self {
+            Map::Springs { topology, .. } | Map::Particles { topology } => {
+                (topology.width, topology.height)
+            }
+            Map::Triangles { rest_uv, .. } => {
+                let (w, h) = rest_uv
+                    .iter()
+                    .fold((0f64, 0f64), |(w, h), p| (w.max(p[0]), h.max(p[1])));
+                (w.max(1e-9), h.max(1e-9))
+            }
+        }
+    }
+}
+
+/// Draws `map` with `values` (one per element; NaN grey) coloured on viridis over `range`,
+/// under `caption`. No colour bar: see [`draw_colorbar`].
+pub fn draw_map(
     area: &Area,
-    topology: &Topology,
+    map: Map,
     values: &[f64],
     caption: &str,
     range: (f64, f64),
-    family: Option<SpringFamily>,
 ) -> Result<()> {
-    if values.len() != topology.num_springs() {
+    let (n, noun) = map.elements();
+    if values.len() != n {
+        bail!("{} values for {n} {noun}", values.len());
+    }
+    if let Map::Triangles { rest_uv, triangles } = map
+        && let Some(t) = triangles
+            .iter()
+            .find(|t| t.iter().any(|&i| i >= rest_uv.len()))
+    {
         bail!(
-            "{} values for {} springs",
-            values.len(),
-            topology.num_springs()
+            "triangle {t:?} indexes past the {} rest positions",
+            rest_uv.len()
         );
     }
-    let mut chart = sheet_chart(area, topology.width, topology.height, caption)?;
-    // Line width from the grid spacing on screen.
+    let (w, h) = map.extent();
+    let mut chart = sheet_chart(area, w, h, caption)?;
+    let (lo, hi) = widen(range);
+    let color = |v: f64| viridis((v - lo) / (hi - lo));
+    match map {
+        Map::Springs { topology, family } => {
+            draw_springs(area, &mut chart, topology, family, values, color)?
+        }
+        Map::Triangles { rest_uv, triangles } => {
+            chart
+                .draw_series(triangles.iter().zip(values).map(|(t, &v)| {
+                    let pts: Vec<(f64, f64)> =
+                        t.iter().map(|&i| (rest_uv[i][0], rest_uv[i][1])).collect();
+                    Polygon::new(pts, color(v).filled())
+                }))
+                .map_err(err)?;
+        }
+        Map::Particles { topology } => {
+            let (hx, hy) = match topology.grid {
+                Some([nx, ny]) => (
+                    topology.width / (nx - 1).max(1) as f64 / 2.0,
+                    topology.height / (ny - 1).max(1) as f64 / 2.0,
+                ),
+                None => (topology.spacing() / 2.0, topology.spacing() / 2.0),
+            };
+            chart
+                .draw_series(topology.rest_uv.iter().zip(values).map(|(p, &v)| {
+                    Rectangle::new(
+                        [(p[0] - hx, p[1] - hy), (p[0] + hx, p[1] + hy)],
+                        color(v).filled(),
+                    )
+                }))
+                .map_err(err)?;
+        }
+    }
+    Ok(())
+}
+
+/// The springs of [`Map::Springs`], with a line width from the grid spacing on screen.
+fn draw_springs(
+    area: &Area,
+    chart: &mut Chart,
+    topology: &Topology,
+    family: Option<SpringFamily>,
+    values: &[f64],
+    color: impl Fn(f64) -> RGBColor,
+) -> Result<()> {
     let (x_px, _) = chart.plotting_area().dim_in_pixel();
     let xr = chart.x_range();
     let px_per_m = x_px as f64 / (xr.end - xr.start);
@@ -363,7 +456,6 @@ pub fn draw_spring_map(
         Some(SpringFamily::Structural) => (0.35 * h * px_per_m).clamp(2.0, 10.0),
         _ => (0.13 * h * px_per_m).clamp(1.0, 5.0),
     } as u32;
-    let (lo, hi) = widen(range);
     let shown: Vec<usize> = (0..topology.num_springs())
         .filter(|&s| family.is_none_or(|f| topology.family[s] == f))
         .collect();
@@ -379,47 +471,10 @@ pub fn draw_spring_map(
     }
     chart
         .draw_series(shown.iter().map(|&s| {
-            let color = viridis((values[s] - lo) / (hi - lo));
             PathElement::new(
                 drawn_segment(topology, s).to_vec(),
-                color.stroke_width(width),
+                color(values[s]).stroke_width(width),
             )
-        }))
-        .map_err(err)?;
-    Ok(())
-}
-
-/// Draws filled triangles (indices into `rest_uv`, metres on the rest rectangle) coloured by
-/// `values` (one per triangle) on viridis over `range`. No colour bar: see [`draw_colorbar`].
-pub fn draw_triangle_map(
-    area: &Area,
-    rest_uv: &[[f64; 2]],
-    triangles: &[[usize; 3]],
-    values: &[f64],
-    caption: &str,
-    range: (f64, f64),
-) -> Result<()> {
-    if values.len() != triangles.len() {
-        bail!("{} values for {} triangles", values.len(), triangles.len());
-    }
-    if let Some(t) = triangles
-        .iter()
-        .find(|t| t.iter().any(|&i| i >= rest_uv.len()))
-    {
-        bail!(
-            "triangle {t:?} indexes past the {} rest positions",
-            rest_uv.len()
-        );
-    }
-    let (w, h) = rest_uv
-        .iter()
-        .fold((0f64, 0f64), |(w, h), p| (w.max(p[0]), h.max(p[1])));
-    let mut chart = sheet_chart(area, w.max(1e-9), h.max(1e-9), caption)?;
-    let (lo, hi) = widen(range);
-    chart
-        .draw_series(triangles.iter().zip(values).map(|(t, &v)| {
-            let pts: Vec<(f64, f64)> = t.iter().map(|&i| (rest_uv[i][0], rest_uv[i][1])).collect();
-            Polygon::new(pts, viridis((v - lo) / (hi - lo)).filled())
         }))
         .map_err(err)?;
     Ok(())
@@ -482,29 +537,24 @@ pub fn tick(v: f64) -> String {
     }
 }
 
-/// Writes a map of springs coloured by value on the rest rectangle, with a colour bar.
+/// Writes one map with a colour bar.
 ///
-/// - `values`: one per spring of `topology` (e.g. learned `k` in N/m);
+/// - `values`: one per element of `map` (e.g. learned `k` in N/m per spring);
 /// - `range`: the colour range `(lo, hi)`; give two maps the same range to compare them (see
 ///   [`value_range`]); values outside are clamped;
-/// - `label`: the colour bar's label, with units (e.g. `"k (N/m)"`);
-/// - `family`: draw one family (structural, shear or bending) or all springs (`None`).
-///
-/// Each spring is a segment between its rest endpoints, slightly shortened; bending springs,
-/// which overlap along a line, are offset sideways by their phase.
-pub fn spring_map_png(
+/// - `label`: the colour bar's label, with units (e.g. `"k (N/m)"`).
+pub fn map_png(
     path: &Path,
-    topology: &Topology,
+    map: Map,
     values: &[f64],
     title: &str,
     range: (f64, f64),
     label: &str,
-    family: Option<SpringFamily>,
 ) -> Result<()> {
     let (w, h) = MAP_PANEL;
     png_figure(path, w + COLORBAR_WIDTH, h, |root| {
-        let (map, bar) = root.split_horizontally(w);
-        draw_spring_map(&map, topology, values, title, range, family)?;
+        let (panel, bar) = root.split_horizontally(w);
+        draw_map(&panel, map, values, title, range)?;
         draw_colorbar(&bar, range, label)
     })
 }
@@ -576,13 +626,15 @@ pub fn spring_map_rows_png(
         let cells = maps.split_evenly((rows.len(), families.len()));
         for (r, row) in rows.iter().enumerate() {
             for (c, &fam) in families.iter().enumerate() {
-                draw_spring_map(
+                draw_map(
                     &cells[r * families.len() + c],
-                    topology,
+                    Map::Springs {
+                        topology,
+                        family: Some(fam),
+                    },
                     row.values,
                     &format!("{}: {}", row.name, fam.name()),
                     row.range,
-                    Some(fam),
                 )?;
             }
         }
@@ -650,69 +702,9 @@ pub fn curvature_map_png(
         let (maps, bar) = body.split_horizontally(n * pw);
         let cells = maps.split_evenly((1, n as usize));
         for (cell, (name, values)) in cells.iter().zip(&shown) {
-            draw_particle_map(cell, topology, values, name, range)?;
+            draw_map(cell, Map::Particles { topology }, values, name, range)?;
         }
         draw_colorbar(&bar, range, "κ (N/m)")
-    })
-}
-
-/// Draws one value per particle of a grid `topology` as a filled square around its rest
-/// position (a cell of the grid spacing), coloured on viridis over `range` (NaN grey).
-/// No colour bar: see [`draw_colorbar`].
-pub fn draw_particle_map(
-    area: &Area,
-    topology: &Topology,
-    values: &[f64],
-    caption: &str,
-    range: (f64, f64),
-) -> Result<()> {
-    if values.len() != topology.num_particles() {
-        bail!(
-            "{} values for {} particles",
-            values.len(),
-            topology.num_particles()
-        );
-    }
-    let mut chart = sheet_chart(area, topology.width, topology.height, caption)?;
-    let (hx, hy) = match topology.grid {
-        Some([nx, ny]) => (
-            topology.width / (nx - 1).max(1) as f64 / 2.0,
-            topology.height / (ny - 1).max(1) as f64 / 2.0,
-        ),
-        None => (topology.spacing() / 2.0, topology.spacing() / 2.0),
-    };
-    let (lo, hi) = widen(range);
-    chart
-        .draw_series(topology.rest_uv.iter().zip(values).map(|(p, &v)| {
-            Rectangle::new(
-                [(p[0] - hx, p[1] - hy), (p[0] + hx, p[1] + hy)],
-                viridis((v - lo) / (hi - lo)).filled(),
-            )
-        }))
-        .map_err(err)?;
-    Ok(())
-}
-
-/// Writes a map of filled triangles coloured by value (e.g. an FEM source's stiffness map)
-/// with a colour bar.
-///
-/// - `rest_uv`: vertex positions on the rest rectangle, metres;
-/// - `triangles`: vertex indices, one triple per triangle;
-/// - `values`: one per triangle; `range` and `label` as in [`spring_map_png`].
-pub fn triangle_map_png(
-    path: &Path,
-    rest_uv: &[[f64; 2]],
-    triangles: &[[usize; 3]],
-    values: &[f64],
-    title: &str,
-    range: (f64, f64),
-    label: &str,
-) -> Result<()> {
-    let (w, h) = MAP_PANEL;
-    png_figure(path, w + COLORBAR_WIDTH, h, |root| {
-        let (map, bar) = root.split_horizontally(w);
-        draw_triangle_map(&map, rest_uv, triangles, values, title, range)?;
-        draw_colorbar(&bar, range, label)
     })
 }
 
@@ -762,6 +754,30 @@ fn house_mesh<'m, 'a, 'b, X: Ranged, Y: Ranged, DB: DrawingBackend>(
         .axis_desc_style(text(14))
         .light_line_style(RGBColor(235, 235, 235))
         .bold_line_style(RGBColor(215, 215, 215))
+}
+
+/// Draws the house grid and axes with [`tick`] labels: the axes' descriptions `(x, y)`, 6 labels
+/// on x and `y_labels` on y (linear or log).
+fn draw_axes<'a: 'b, 'b, Y>(
+    chart: &mut ChartContext<'b, BitMapBackend<'a>, Cartesian2d<RangedCoordf64, Y>>,
+    (x_desc, y_desc): (&str, &str),
+    y_labels: usize,
+) -> Result<()>
+where
+    Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
+{
+    house_mesh(
+        chart
+            .configure_mesh()
+            .x_desc(x_desc)
+            .y_desc(y_desc)
+            .x_labels(6)
+            .y_labels(y_labels)
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| tick(*v)),
+    )
+    .draw()
+    .map_err(err)
 }
 
 /// Draws a line plot of `series` (colours from [`PALETTE`], in order) with a legend.
@@ -853,18 +869,7 @@ impl CurvesPanel<'_> {
     where
         Y: Ranged<ValueType = f64> + ValueFormatter<f64>,
     {
-        house_mesh(
-            chart
-                .configure_mesh()
-                .x_desc(self.x_label)
-                .y_desc(self.y_label)
-                .x_labels(6)
-                .y_labels(8)
-                .x_label_formatter(&|v| tick(*v))
-                .y_label_formatter(&|v| tick(*v)),
-        )
-        .draw()
-        .map_err(err)?;
+        draw_axes(&mut chart, (self.x_label, self.y_label), 8)?;
         let yr = chart.y_range();
         for &(x, name) in self.marks {
             chart
@@ -948,18 +953,8 @@ pub fn draw_truth_scatter(
         .y_label_area_size(62)
         .build_cartesian_2d(lo..hi, lo..hi)
         .map_err(err)?;
-    house_mesh(
-        chart
-            .configure_mesh()
-            .x_desc(format!("true {quantity}"))
-            .y_desc(format!("learned {quantity}"))
-            .x_labels(6)
-            .y_labels(6)
-            .x_label_formatter(&|v| tick(*v))
-            .y_label_formatter(&|v| tick(*v)),
-    )
-    .draw()
-    .map_err(err)?;
+    let descs = (format!("true {quantity}"), format!("learned {quantity}"));
+    draw_axes(&mut chart, (&descs.0, &descs.1), 6)?;
     chart
         .draw_series(std::iter::once(PathElement::new(
             vec![(lo, lo), (hi, hi)],
@@ -1099,18 +1094,7 @@ pub fn draw_band(
         .y_label_area_size(70)
         .build_cartesian_2d(x0..x1, 0f64..hi)
         .map_err(err)?;
-    house_mesh(
-        chart
-            .configure_mesh()
-            .x_desc(x_label)
-            .y_desc(y_label)
-            .x_labels(6)
-            .y_labels(8)
-            .x_label_formatter(&|v| tick(*v))
-            .y_label_formatter(&|v| tick(*v)),
-    )
-    .draw()
-    .map_err(err)?;
+    draw_axes(&mut chart, (x_label, y_label), 8)?;
     let shade = PALETTE[0].mix(0.22);
     if !band.is_empty() {
         let mut poly: Vec<(f64, f64)> = band.iter().map(|b| (b.0, b.3)).collect();

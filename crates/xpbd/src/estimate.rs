@@ -942,7 +942,15 @@ pub fn error_map_png(path: &Path, cfg: &XpbdConfig, fits: &[ScenarioFit]) -> Res
             .iter()
             .zip(fits.iter().zip(&mm))
         {
-            plot::draw_particle_map(area, &topology, v, &f.name, range)?;
+            plot::draw_map(
+                area,
+                plot::Map::Particles {
+                    topology: &topology,
+                },
+                v,
+                &f.name,
+                range,
+            )?;
         }
         plot::draw_colorbar(&bar, range, "mm")
     })

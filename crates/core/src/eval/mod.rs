@@ -775,77 +775,125 @@ pub fn stiffness_map_corr(
     spearman(&learned, &truth)
 }
 
-/// Simulates the surrogate for `frames` data frames from frame `first` of `track` (a rollout
-/// resampled to the particles), pinned particles following the track's path while it lasts and
-/// then holding its last frame, and keeps the frames listed in `keep` (sorted, `0..=frames`).
-///
-/// With `contact`, the colliders act on the cloth from frame `first` on (time 0 at `first`).
-/// `on_frame(j)` is called after each simulated frame (for progress). Fails, naming the time,
-/// when the simulation diverges.
-#[allow(clippy::too_many_arguments)]
-pub fn simulate_track(
-    model: &dyn ForceModel,
-    physics: &Physics,
-    contact: Option<&crate::sim::Contact>,
-    track: &Track,
-    first: usize,
-    frames: usize,
-    keep: &[usize],
-    device: &Device,
-    mut on_frame: impl FnMut(usize),
-) -> Result<FreeRollout> {
-    let p = track.particles;
-    if first >= track.frames {
-        bail!(
-            "the rollout has {} frames; cannot start at frame {first}",
-            track.frames
-        );
-    }
-    let t3 = |v: &[f32]| Tensor::<3>::from_data(TensorData::new(v.to_vec(), [1, p, 3]), device);
-    let observed = |j: usize| {
-        let j = (first + j).min(track.frames - 1);
-        &track.positions[j * p * 3..(j + 1) * p * 3]
-    };
-    let pinned: Vec<f32> = track.pinned.iter().map(|&x| x as u8 as f32).collect();
-    let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [1, p, 1]), device);
-    let v0 = &track.velocities[first * p * 3..(first + 1) * p * 3];
-    let mut state = State {
-        x: t3(observed(0)),
-        v: t3(v0),
-    };
-    let mut out = FreeRollout {
-        frames: Vec::new(),
-        positions: Vec::new(),
-        velocities: Vec::new(),
-    };
-    let mut keep = keep.iter().copied().filter(|&j| j <= frames).peekable();
-    if keep.next_if_eq(&0).is_some() {
-        out.record(0, observed(0).to_vec(), v0.to_vec(), physics.frame_dt)?;
-    }
-    for j in 0..frames {
-        let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
-        let at = contact.map(|contact| sim::ContactAt {
-            contact,
-            time: j as f64 * physics.frame_dt,
-        });
-        let (s, _) = sim::step_frame(model, physics, at, state, &pinned, &here, &next);
-        state = s;
-        if keep.next_if_eq(&(j + 1)).is_some() {
-            out.record(j + 1, host(&state.x)?, host(&state.v)?, physics.frame_dt)?;
+/// A free rollout of the surrogate along a track: `frames` data frames from frame `first` of
+/// `track` (a rollout resampled to the particles), pinned particles following the track's path
+/// while it lasts and then holding its last frame.
+#[derive(Debug, Clone, Copy)]
+pub struct FreeRun<'a> {
+    /// The recording: the start state and the pinned particles' path.
+    pub track: &'a Track,
+    /// The frame of `track` the surrogate starts from.
+    pub first: usize,
+    /// How many data frames to simulate.
+    pub frames: usize,
+    /// The frames kept (sorted, within `0..=frames`); `None` keeps every frame.
+    pub keep: Option<&'a [usize]>,
+    /// Colliders acting on the cloth from frame `first` on (time 0 at `first`).
+    pub contact: Option<&'a crate::sim::Contact>,
+}
+
+impl<'a> FreeRun<'a> {
+    /// `frames` frames from frame `first` of `track`, every frame kept, no colliders.
+    pub fn new(track: &'a Track, first: usize, frames: usize) -> Self {
+        Self {
+            track,
+            first,
+            frames,
+            keep: None,
+            contact: None,
         }
-        on_frame(j + 1);
     }
-    if out.frames.last() != Some(&frames) {
-        // A divergence leaves non-finite values behind: check the end state too.
-        let x = host(&state.x)?;
-        if x.iter().any(|c| !c.is_finite()) {
+
+    /// Keeps only the frames listed in `keep` (sorted, within `0..=frames`).
+    pub fn keeping(self, keep: &'a [usize]) -> Self {
+        Self {
+            keep: Some(keep),
+            ..self
+        }
+    }
+
+    /// With colliders (`None`: none).
+    pub fn contact(self, contact: Option<&'a crate::sim::Contact>) -> Self {
+        Self { contact, ..self }
+    }
+
+    /// Simulates `model` with `physics` on `device`, calling `on_frame(j)` after each simulated
+    /// frame (for progress). Fails, naming the time, when the simulation diverges.
+    pub fn simulate(
+        &self,
+        model: &dyn ForceModel,
+        physics: &Physics,
+        device: &Device,
+        mut on_frame: impl FnMut(usize),
+    ) -> Result<FreeRollout> {
+        let &Self {
+            track,
+            first,
+            frames,
+            contact,
+            ..
+        } = self;
+        let p = track.particles;
+        if first >= track.frames {
             bail!(
-                "the surrogate diverged within {:.3} s",
-                frames as f64 * physics.frame_dt
+                "the rollout has {} frames; cannot start at frame {first}",
+                track.frames
             );
         }
+        let t3 = |v: &[f32]| Tensor::<3>::from_data(TensorData::new(v.to_vec(), [1, p, 3]), device);
+        let observed = |j: usize| {
+            let j = (first + j).min(track.frames - 1);
+            &track.positions[j * p * 3..(j + 1) * p * 3]
+        };
+        let pinned: Vec<f32> = track.pinned.iter().map(|&x| x as u8 as f32).collect();
+        let pinned = Tensor::<3>::from_data(TensorData::new(pinned, [1, p, 1]), device);
+        let v0 = &track.velocities[first * p * 3..(first + 1) * p * 3];
+        let mut state = State {
+            x: t3(observed(0)),
+            v: t3(v0),
+        };
+        let mut out = FreeRollout {
+            frames: Vec::new(),
+            positions: Vec::new(),
+            velocities: Vec::new(),
+        };
+        let every: Vec<usize>;
+        let keep = match self.keep {
+            Some(keep) => keep,
+            None => {
+                every = (0..=frames).collect();
+                &every
+            }
+        };
+        let mut keep = keep.iter().copied().filter(|&j| j <= frames).peekable();
+        if keep.next_if_eq(&0).is_some() {
+            out.record(0, observed(0).to_vec(), v0.to_vec(), physics.frame_dt)?;
+        }
+        for j in 0..frames {
+            let (here, next) = (t3(observed(j)), t3(observed(j + 1)));
+            let at = contact.map(|contact| sim::ContactAt {
+                contact,
+                time: j as f64 * physics.frame_dt,
+            });
+            let (s, _) = sim::step_frame(model, physics, at, state, &pinned, &here, &next);
+            state = s;
+            if keep.next_if_eq(&(j + 1)).is_some() {
+                out.record(j + 1, host(&state.x)?, host(&state.v)?, physics.frame_dt)?;
+            }
+            on_frame(j + 1);
+        }
+        if out.frames.last() != Some(&frames) {
+            // A divergence leaves non-finite values behind: check the end state too.
+            let x = host(&state.x)?;
+            if x.iter().any(|c| !c.is_finite()) {
+                bail!(
+                    "the surrogate diverged within {:.3} s",
+                    frames as f64 * physics.frame_dt
+                );
+            }
+        }
+        Ok(out)
     }
-    Ok(out)
 }
 
 /// A tensor's values on the host.
@@ -933,7 +981,7 @@ pub fn read_curves_csv(path: &std::path::Path) -> Result<Vec<Curve>> {
     Ok(curves)
 }
 
-/// A free rollout of the surrogate (see [`simulate_track`]): the kept frames, `[K, P, 3]` each.
+/// A free rollout of the surrogate (see [`FreeRun`]): the kept frames, `[K, P, 3]` each.
 #[derive(Debug, Clone)]
 pub struct FreeRollout {
     /// Frames kept, counted from the start (0 = the initial state).
