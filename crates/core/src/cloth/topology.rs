@@ -259,10 +259,12 @@ impl Topology {
     }
 
     /// The network on a triangle mesh over a `width × height` rest rectangle (`layout =
-    /// "data"`): particles at `rest_uv`, structural springs on the triangles' edges and, with
-    /// `hinges`, a hinge spring between the two vertices opposite each interior edge: a shear
-    /// spring where that edge is the longest side of both its triangles (the hinge spring is
-    /// then the other diagonal of the quad cell they form), else a bending spring.
+    /// "data"`): particles at `rest_uv`, a spring on each of the triangles' edges and, with
+    /// `hinges`, a hinge spring between the two vertices opposite each interior edge. Where an
+    /// interior edge is the longest side of both its triangles, the two form a quad cell whose
+    /// diagonal it is: that edge and its hinge spring (the cell's other diagonal) are shear
+    /// springs, as on a grid. The other edges are structural springs, the other hinge springs
+    /// bending springs.
     ///
     /// A triangle listed twice (e.g. both sides of a double-sided mesh) counts once. Errors (the
     /// caller names the file) on an index out of range, a degenerate triangle, a vertex in no
@@ -282,7 +284,14 @@ impl Topology {
                 .map(|(e, w)| (e, w.into_iter().map(|(c, _)| c).collect()))
                 .collect();
         let mut springs: Vec<[usize; 2]> = opposite.keys().copied().collect();
-        let mut family = vec![SpringFamily::Structural; springs.len()];
+        // An edge that is the diagonal of the quad cell its two triangles form is a shear spring.
+        let mut family: Vec<SpringFamily> = opposite
+            .iter()
+            .map(|(edge, far)| match far.as_slice() {
+                &[a, b] if a != b && cell_diagonal(rest_uv, *edge, [a, b]) => SpringFamily::Shear,
+                _ => SpringFamily::Structural,
+            })
+            .collect();
         if hinges {
             let mut seen: std::collections::BTreeSet<[usize; 2]> =
                 opposite.keys().copied().collect();
@@ -293,7 +302,11 @@ impl Topology {
                 let pair = [far[0].min(far[1]), far[0].max(far[1])];
                 if seen.insert(pair) {
                     springs.push(pair);
-                    family.push(hinge_family(rest_uv, *edge, pair));
+                    family.push(if cell_diagonal(rest_uv, *edge, pair) {
+                        SpringFamily::Shear
+                    } else {
+                        SpringFamily::Bending
+                    });
                 }
             }
         }
@@ -493,22 +506,17 @@ fn counter_clockwise(
     Ok(ccw)
 }
 
-/// The family of the hinge spring `far` across the interior `edge`: [`SpringFamily::Shear`] when
-/// `edge` is the longest side of both triangles on it — the two triangles then form a quad cell
-/// whose diagonal it is, and the hinge spring is the cell's other diagonal (a triangulated
-/// grid's cut diagonals, where a mass-spring cloth has its shear springs) — else
-/// [`SpringFamily::Bending`] (across a cell's side: it spans two cells and resists bending).
-fn hinge_family(rest_uv: &[[f64; 2]], edge: [usize; 2], far: [usize; 2]) -> SpringFamily {
+/// Whether the interior `edge`, with `far` the vertices opposite it, is the diagonal of a quad
+/// cell: the longest side of both triangles on it. Then the edge and the hinge spring across it
+/// (the cell's other diagonal) are a triangulated grid's diagonals, where a mass-spring cloth has
+/// its shear springs; a hinge spring across any other edge (a cell's side) spans two cells and
+/// resists bending.
+fn cell_diagonal(rest_uv: &[[f64; 2]], edge: [usize; 2], far: [usize; 2]) -> bool {
     let shared = distance(rest_uv[edge[0]], rest_uv[edge[1]]);
-    let longest = far.iter().all(|&c| {
+    far.iter().all(|&c| {
         edge.iter()
             .all(|&a| distance(rest_uv[a], rest_uv[c]) <= shared * (1.0 + 1e-9))
-    });
-    if longest {
-        SpringFamily::Shear
-    } else {
-        SpringFamily::Bending
-    }
+    })
 }
 
 /// Lumped masses: a third of every adjacent triangle's rest area, relative to the mean.
@@ -584,7 +592,7 @@ mod tests {
             .collect();
         assert_eq!(
             structural,
-            vec![[0, 1], [0, 2], [0, 3], [1, 2], [1, 4], [2, 3], [2, 4]]
+            vec![[0, 1], [0, 3], [1, 2], [1, 4], [2, 3], [2, 4]]
         );
         let hinges = |family| -> Vec<[usize; 2]> {
             (0..topo.num_springs())
@@ -592,10 +600,10 @@ mod tests {
                 .map(|s| topo.springs[s])
                 .collect()
         };
-        // Across 0–2, the square's diagonal and the longest side of both its triangles:
-        // vertices 1 and 3, the square's other diagonal, a shear spring. Across 1–2, a side of
-        // the square: vertices 0 and 4, a bending spring.
-        assert_eq!(hinges(SpringFamily::Shear), vec![[1, 3]]);
+        // 0–2 is the square's diagonal, the longest side of both its triangles: a shear spring,
+        // and so is the hinge across it, vertices 1 and 3, the square's other diagonal. Across
+        // 1–2, a side of the square: vertices 0 and 4, a bending spring.
+        assert_eq!(hinges(SpringFamily::Shear), vec![[0, 2], [1, 3]]);
         assert_eq!(hinges(SpringFamily::Bending), vec![[0, 4]]);
         assert!((topo.rest_length[topo.num_springs() - 1] - 2.0615528128088303).abs() < 1e-12);
         // Every triangle counter-clockwise.
@@ -622,7 +630,7 @@ mod tests {
     }
 
     #[test]
-    fn a_grid_laid_out_as_a_data_mesh_has_the_grid_s_structural_and_shear_springs() {
+    fn a_grid_laid_out_as_a_data_mesh_has_the_grid_s_structural_and_shear_springs_and_families() {
         // The grid's own triangles as a "data mesh": edges = structural + main-diagonal shear.
         let spec = GridSpec {
             nx: 4,
@@ -641,6 +649,11 @@ mod tests {
             .collect();
         expect.sort_unstable();
         assert_eq!(mesh.springs, expect);
+        // With the grid's families: the cut diagonals are shear springs.
+        for (s, pair) in mesh.springs.iter().enumerate() {
+            let g = grid.springs.iter().position(|p| p == pair).unwrap();
+            assert_eq!(mesh.family[s], grid.family[g], "spring {pair:?}");
+        }
         assert!((mesh.spacing() - grid.spacing()).abs() < 1e-12);
     }
 

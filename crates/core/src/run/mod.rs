@@ -14,7 +14,7 @@ use burn::module::Module;
 use burn::tensor::Device;
 
 use crate::backend::Backend;
-use crate::cloth::{SpringFamily, SpringLayout, Topology};
+use crate::cloth::{SpringLayout, Topology};
 use crate::config::Config;
 use crate::data::npz::Npz;
 use crate::model::{ModelKind, SpringNet};
@@ -163,16 +163,18 @@ fn read_mesh_topology(path: &Path) -> Result<Topology> {
         npz.scalar("width").map_err(at)?,
         npz.scalar("height").map_err(at)?,
     );
-    // A data mesh's hinge springs are shear or bending springs; its edges are structural.
-    let hinges = npz
-        .int("family", &[None])
-        .map_err(at)?
-        .0
-        .iter()
-        .any(|&f| f != i64::from(SpringFamily::Structural.code()));
-    let topo = Topology::mesh(&rest_uv, &triangles, width, height, hinges)
-        .map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    // The springs are the mesh's edges, and hinge springs where there are more of them.
     let (ends, _) = npz.int("springs", &[None, Some(2)]).map_err(at)?;
+    let mesh = |hinges| {
+        Topology::mesh(&rest_uv, &triangles, width, height, hinges)
+            .map_err(|e| anyhow!("{}: {e}", path.display()))
+    };
+    let edges = mesh(false)?;
+    let topo = if ends.len() > 2 * edges.num_springs() {
+        mesh(true)?
+    } else {
+        edges
+    };
     let same = ends.len() == 2 * topo.num_springs()
         && ends
             .chunks_exact(2)

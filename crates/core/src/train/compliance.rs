@@ -6,7 +6,7 @@
 //! static reading is what the frames resolve best: the forces of a force fit are second
 //! differences of positions, noisy where a stiff spring's strain is small, so least squares
 //! leaves the stiffest springs least determined (and biased low), while the strains themselves
-//! are measured directly. Each spring's `k` is its family's median RMS strain over every frame
+//! are measured directly. Each spring's `k` is its group's median RMS strain over every frame
 //! of the training clips divided by its own (ratios kept within 100× either way; the
 //! positions' noise taken out of each mean square, `rms_strains`),
 //! scaled so that the stiffest spring has the run's initial uniform `k` (stable at the run's
@@ -28,7 +28,7 @@ pub struct ComplianceConfig {
     pub enabled: bool,
 }
 
-/// The largest ratio of a spring's `k` to its family's median, either way.
+/// The largest ratio of a spring's `k` to its group's median, either way.
 const MAX_RATIO: f64 = 100.0;
 
 /// The springs' RMS strains, with the share of their mean square that the positions' noise
@@ -50,7 +50,7 @@ const FOURTH_DIFFERENCE_GAIN: f64 = 70.0;
 const NOISE_FLOOR: f64 = 0.01;
 
 /// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts in
-/// which both ends are seen (a spring seen in no frame gets 0: it takes its family's median),
+/// which both ends are seen (a spring seen in no frame gets 0: it takes its group's median),
 /// less the strain noise of the positions.
 ///
 /// Measured positions (a capture's markers) carry noise, which adds its variance to every
@@ -141,17 +141,11 @@ fn add_fourth_differences(series: &[f64], sum: &mut f64, count: &mut usize) {
     }
 }
 
-/// The compliance map: each family's median RMS strain over the spring's own, scaled so that
-/// the largest is `k_init`.
+/// The compliance map: each group's median RMS strain over the spring's own (see
+/// [`strain_groups`]), scaled so that the largest is `k_init`.
 pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
     let mut k = vec![k_init; topo.num_springs()];
-    let mut families = topo.family.clone();
-    families.sort_by_key(|f| *f as usize);
-    families.dedup();
-    for family in families {
-        let members: Vec<usize> = (0..topo.num_springs())
-            .filter(|&s| topo.family[s] == family)
-            .collect();
+    for members in strain_groups(topo) {
         let mut moving: Vec<f64> = members
             .iter()
             .map(|&s| strains[s])
@@ -177,9 +171,28 @@ pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
     k.iter().map(|v| v * k_init / top).collect()
 }
 
+/// The springs whose strains the compliance map compares with each other: a grid's families;
+/// on a data mesh its edges together — the quad cells' sides and the diagonals that cut them
+/// alike, so that a diagonal that stretches more than the sides around it (a cloth weaker in
+/// shear) comes out softer — and its hinge springs by family.
+fn strain_groups(topo: &Topology) -> Vec<Vec<usize>> {
+    let edges: std::collections::BTreeSet<[usize; 2]> = match topo.grid {
+        Some(_) => Default::default(),
+        None => topo.edges().into_iter().collect(),
+    };
+    let mut groups: std::collections::BTreeMap<Option<usize>, Vec<usize>> = Default::default();
+    for (s, (pair, family)) in topo.springs.iter().zip(&topo.family).enumerate() {
+        let edge = edges.contains(&[pair[0].min(pair[1]), pair[0].max(pair[1])]);
+        let key = (!edge).then_some(*family as usize);
+        groups.entry(key).or_default().push(s);
+    }
+    groups.into_values().collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::cloth::SpringFamily;
     use rand::{Rng, SeedableRng, rngs::StdRng};
 
     /// The fourth differences of a motion the frames resolve (a swing of 12 frames a period)
@@ -219,8 +232,8 @@ mod tests {
         assert_eq!(count, 16 - 5);
     }
 
-    /// Within a family the map is the inverse of the strain; a spring that never stretches
-    /// takes the family's median; the stiffest spring has `k_init`.
+    /// Within a group the map is the inverse of the strain; a spring that never stretches
+    /// takes the group's median; the stiffest spring has `k_init`.
     #[test]
     fn stiffness_is_the_inverse_strain_scaled_to_the_initial_k() {
         let points: Vec<[f64; 2]> = (0..3)
@@ -228,7 +241,10 @@ mod tests {
             .collect();
         let topo = Topology::of_points(&points, 1.0, 1.01, false).expect("a mesh");
         let n = topo.num_springs();
-        assert!(topo.family.iter().all(|f| *f == topo.family[0]));
+        // Without hinge springs every spring is an edge of the mesh: one group, the cells'
+        // sides (structural) and diagonals (shear) together.
+        assert_eq!(strain_groups(&topo), vec![(0..n).collect::<Vec<_>>()]);
+        assert!(topo.family.contains(&SpringFamily::Shear));
         let mut strains: Vec<f64> = (0..n).map(|s| 0.01 * (1 + s % 3) as f64).collect();
         strains[0] = 0.0;
         let k = stiffness(&topo, &strains, 10.0);
@@ -243,5 +259,25 @@ mod tests {
                 k[s]
             );
         }
+    }
+
+    /// A data mesh's edges share one group, sides and cut diagonal alike; its hinge springs
+    /// are grouped by family. A grid's groups are its families.
+    #[test]
+    fn a_data_mesh_compares_its_edges_together_and_its_hinges_by_family() {
+        let uv = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [2.0, 0.5]];
+        let topo = Topology::mesh(&uv, &[[0, 1, 2], [0, 3, 2], [1, 4, 2]], 2.0, 1.0, true).unwrap();
+        let springs =
+            |g: &[usize]| -> Vec<[usize; 2]> { g.iter().map(|&s| topo.springs[s]).collect() };
+        let groups: Vec<Vec<[usize; 2]>> =
+            strain_groups(&topo).iter().map(|g| springs(g)).collect();
+        let edges = vec![[0, 1], [0, 2], [0, 3], [1, 2], [1, 4], [2, 3], [2, 4]];
+        assert_eq!(groups, vec![edges, vec![[1, 3]], vec![[0, 4]]]);
+        assert_eq!(topo.family[1], SpringFamily::Shear, "0–2 cuts the square");
+        let grid = Topology::grid(&crate::cloth::GridSpec::default(), 1.0, 1.0);
+        for g in strain_groups(&grid) {
+            assert!(g.iter().all(|&s| grid.family[s] == grid.family[g[0]]));
+        }
+        assert_eq!(strain_groups(&grid).len(), 3);
     }
 }
