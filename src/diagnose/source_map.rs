@@ -26,9 +26,10 @@ use serde::{Deserialize, Serialize};
 use super::Inputs;
 use crate::cloth::SpringFamily;
 use crate::data::Rollout;
-use crate::eval::{self, MotionRmse, Takes};
+use crate::eval::{self, EvalReport, MotionRmse, Takes};
 use crate::model::SpringNet;
 use crate::progress::Progress;
+use crate::sim::Physics;
 use crate::train::{self, scale::ScaleSearch};
 
 /// `source_map.json`.
@@ -79,43 +80,15 @@ pub fn source_map(
     train_files: &[PathBuf],
     progress: &Progress,
 ) -> Result<Outcome> {
-    let Some(first) = inputs.tests.first() else {
-        return Ok(Outcome::Skipped("no test rollouts".into()));
+    let map = match springs_on_map(inputs, train_files)? {
+        Ok(map) => map,
+        Err(why) => return Ok(Outcome::Skipped(why)),
     };
-    let rollout = Rollout::load(&first.path)?;
-    let Some(map) = rollout.mesh.as_ref().and_then(|mesh| {
-        eval::map_at_springs(
-            &inputs.topology,
-            &rollout.rest_uv,
-            mesh,
-            &[SpringFamily::Structural, SpringFamily::Shear],
-        )
-    }) else {
-        return Ok(Outcome::Skipped(
-            "no source-map reference: the rollouts carry no stiffness map of their source (tri_stiffness)"
-                .into(),
-        ));
-    };
-    if train_files.is_empty() {
-        return Ok(Outcome::Skipped(
-            "no source-map reference: the run's training rollouts are gone".into(),
-        ));
-    }
+    let first = &inputs.tests[0];
     let report = crate::report::read_eval(&train::RunDir {
         dir: run_dir.to_path_buf(),
     })?;
-    let (start, k_uniform, b_uniform) =
-        match report.as_ref().and_then(|r| r.uniform_baseline.as_ref()) {
-            Some(u) => ("uniform_baseline", u.k, u.b),
-            None => {
-                let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len().max(1) as f64;
-                (
-                    "learned_mean",
-                    mean(inputs.model.k_values()),
-                    mean(inputs.model.b_values()),
-                )
-            }
-        };
+    let (start, k_uniform, b_uniform) = uniform_start(report.as_ref(), inputs);
     let physics = inputs.physics(first.frame_dt);
     let batch = inputs.config.eval.batch;
     let takes = |files| Takes {
@@ -125,42 +98,19 @@ pub fn source_map(
         device: &inputs.device,
         progress,
     };
-    let train_takes = takes(train_files);
-    // The sizes, then the bending springs' share (the surrogate's own: no source has them),
-    // in turn until the share stays, as the blend search does.
-    let (mut k, mut b, mut share) = (k_uniform, b_uniform, 1.0);
-    let mut bending = Vec::new();
-    let mut sized = train::scale::search(
-        &map_network(inputs, &map, k, b, share),
+    let Sized {
+        net: sized,
+        physics: sized_physics,
+        search,
+        bending_factor,
+        bending,
+    } = size_map(
+        inputs,
+        &map,
+        (k_uniform, b_uniform),
         &physics,
-        &train_takes,
-    )
-    .context("the source map's scale search")?;
-    for _ in 0..train::scale::BENDING_ROUNDS {
-        let (k_now, b_now) = (k * sized.2.k_factor, b * sized.2.b_factor);
-        let mut best = (share, sized.2.after);
-        for f in train::scale::BENDING_FACTORS.into_iter().chain([1.0]) {
-            let net = map_network(inputs, &map, k_now, b_now, f);
-            if let Some((_, r)) = train::scale::score_network(&net, &sized.1, &train_takes) {
-                bending.push((f, r));
-                if r < best.1 * (1.0 - train::scale::BENDING_MARGIN) {
-                    best = (f, r);
-                }
-            }
-        }
-        if best.0 == share {
-            break;
-        }
-        (k, b, share) = (k_now, b_now, best.0);
-        sized = train::scale::search(
-            &map_network(inputs, &map, k, b, share),
-            &sized.1,
-            &train_takes,
-        )
-        .context("the source map's scale search")?;
-    }
-    let (sized, sized_physics, search) = sized;
-    let bending_factor = share;
+        &takes(train_files),
+    )?;
     let test_files: Vec<PathBuf> = inputs.tests.iter().map(|t| t.path.clone()).collect();
     let curves = eval::motion_curves(&sized, &sized_physics, &takes(&test_files))
         .context("the map network on the test takes")?;
@@ -203,6 +153,110 @@ pub fn source_map(
         run_gain,
         springs: map.len(),
     })))
+}
+
+/// The source's map at the run's structural and shear springs (`(spring, value)`, from the first
+/// test rollout), or why there is no reference.
+fn springs_on_map(
+    inputs: &Inputs,
+    train_files: &[PathBuf],
+) -> Result<std::result::Result<Vec<(usize, f64)>, String>> {
+    let Some(first) = inputs.tests.first() else {
+        return Ok(Err("no test rollouts".into()));
+    };
+    let rollout = Rollout::load(&first.path)?;
+    let Some(map) = rollout.mesh.as_ref().and_then(|mesh| {
+        eval::map_at_springs(
+            &inputs.topology,
+            &rollout.rest_uv,
+            mesh,
+            &[SpringFamily::Structural, SpringFamily::Shear],
+        )
+    }) else {
+        return Ok(Err(
+            "no source-map reference: the rollouts carry no stiffness map of their source (tri_stiffness)"
+                .into(),
+        ));
+    };
+    if train_files.is_empty() {
+        return Ok(Err(
+            "no source-map reference: the run's training rollouts are gone".into(),
+        ));
+    }
+    Ok(Ok(map))
+}
+
+/// Where the map network's sizes start: eval.json's best uniform network, else the learned
+/// network's means (`(start, k̄, b̄)`, see [`SourceMap::start`]).
+fn uniform_start(report: Option<&EvalReport>, inputs: &Inputs) -> (&'static str, f64, f64) {
+    match report.and_then(|r| r.uniform_baseline.as_ref()) {
+        Some(u) => ("uniform_baseline", u.k, u.b),
+        None => {
+            let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len().max(1) as f64;
+            (
+                "learned_mean",
+                mean(inputs.model.k_values()),
+                mean(inputs.model.b_values()),
+            )
+        }
+    }
+}
+
+/// The source's map sized on the training takes.
+struct Sized {
+    net: SpringNet,
+    physics: Physics,
+    search: ScaleSearch,
+    bending_factor: f64,
+    bending: Vec<(f64, f64)>,
+}
+
+/// The sizes of the map network from `(k̄, b̄)`, then the bending springs' share (the
+/// surrogate's own: no source has them), in turn until the share stays, as the blend search
+/// does.
+fn size_map(
+    inputs: &Inputs,
+    map: &[(usize, f64)],
+    (mut k, mut b): (f64, f64),
+    physics: &Physics,
+    train_takes: &Takes,
+) -> Result<Sized> {
+    let mut share = 1.0;
+    let mut bending = Vec::new();
+    let mut sized =
+        train::scale::search(&map_network(inputs, map, k, b, share), physics, train_takes)
+            .context("the source map's scale search")?;
+    for _ in 0..train::scale::BENDING_ROUNDS {
+        let (k_now, b_now) = (k * sized.2.k_factor, b * sized.2.b_factor);
+        let mut best = (share, sized.2.after);
+        for f in train::scale::BENDING_FACTORS.into_iter().chain([1.0]) {
+            let net = map_network(inputs, map, k_now, b_now, f);
+            if let Some((_, r)) = train::scale::score_network(&net, &sized.1, train_takes) {
+                bending.push((f, r));
+                if r < best.1 * (1.0 - train::scale::BENDING_MARGIN) {
+                    best = (f, r);
+                }
+            }
+        }
+        if best.0 == share {
+            break;
+        }
+        (k, b, share) = (k_now, b_now, best.0);
+        sized = train::scale::search(
+            &map_network(inputs, map, k, b, share),
+            &sized.1,
+            train_takes,
+        )
+        .context("the source map's scale search")?;
+    }
+    let (net, physics, search) = sized;
+    Ok(Sized {
+        net,
+        physics,
+        search,
+        bending_factor: share,
+        bending,
+    })
 }
 
 /// The network whose springs in `map` (`(spring, value)`: the structural and shear ones)

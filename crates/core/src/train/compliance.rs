@@ -141,8 +141,9 @@ fn add_fourth_differences(series: &[f64], sum: &mut f64, count: &mut usize) {
     }
 }
 
-/// The compliance map: each group's median RMS strain over the spring's own (see
-/// [`strain_groups`]), scaled so that the largest is `k_init`.
+/// The compliance map: each group's median RMS strain over the spring's own (a grid's
+/// families; a data mesh's edges together, its hinge springs by family), scaled so that the
+/// largest is `k_init`.
 pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
     let mut k = vec![k_init; topo.num_springs()];
     for members in strain_groups(topo) {

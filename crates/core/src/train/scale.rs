@@ -193,39 +193,13 @@ pub(crate) fn blend_search(
         .expect("the uniform network is a candidate");
     let (bending_factor, best) = search.bending_search(best, fh);
     search.bar.finish();
-    let (alpha, fk, fb, substeps, after) = best;
-    let record = BlendSearch {
-        map: "trained".into(),
-        alpha,
-        k_factor: fk,
-        b_factor: fb,
-        k_mean,
-        b_mean,
-        substeps,
-        uniform: (uniform.1 * k_mean, uniform.2 * b_mean, uniform.4),
-        before,
-        after,
-        candidates: search.candidates(fh),
-        rows_bending_factor: fh,
-        bending_candidates: BENDING_FACTORS
-            .iter()
-            .flat_map(|&fh| {
-                search
-                    .candidates(fh)
-                    .into_iter()
-                    .filter(|c| c.0 == alpha)
-                    .map(move |c| (fh, c.1, c.2, c.3, c.4))
-            })
-            .collect(),
-        bending_factor,
-        rollouts: files.len(),
-    };
+    let record = search.record(best, (fh, bending_factor), uniform, before);
     let physics = Physics {
-        substeps,
+        substeps: record.substeps,
         ..*physics
     };
     Ok((
-        search.blended(alpha, fk, fb, bending_factor),
+        search.blended(best.0, best.1, best.2, bending_factor),
         physics,
         record,
     ))
@@ -372,6 +346,43 @@ impl Blender<'_> {
             }
         }
         kept
+    }
+
+    /// The search's record: the kept candidate `best` at the bending springs' factors `(of the
+    /// rows, kept)`, the best `uniform` network, and the learned map's score `before`.
+    fn record(
+        &self,
+        best: Candidate,
+        (rows_bending_factor, bending_factor): (f64, f64),
+        uniform: Candidate,
+        before: Option<f64>,
+    ) -> BlendSearch {
+        let (alpha, fk, fb, substeps, after) = best;
+        BlendSearch {
+            map: "trained".into(),
+            alpha,
+            k_factor: fk,
+            b_factor: fb,
+            k_mean: self.k_mean,
+            b_mean: self.b_mean,
+            substeps,
+            uniform: (uniform.1 * self.k_mean, uniform.2 * self.b_mean, uniform.4),
+            before,
+            after,
+            candidates: self.candidates(rows_bending_factor),
+            rows_bending_factor,
+            bending_candidates: BENDING_FACTORS
+                .iter()
+                .flat_map(|&fh| {
+                    self.candidates(fh)
+                        .into_iter()
+                        .filter(|c| c.0 == alpha)
+                        .map(move |c| (fh, c.1, c.2, c.3, c.4))
+                })
+                .collect(),
+            bending_factor,
+            rollouts: self.takes.files.len(),
+        }
     }
 
     /// Every stable candidate tried at the bending springs' factor `fh`, sorted by share and
