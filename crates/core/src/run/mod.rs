@@ -165,16 +165,9 @@ fn read_mesh_topology(path: &Path) -> Result<Topology> {
     );
     // The springs are the mesh's edges, and hinge springs where there are more of them.
     let (ends, _) = npz.int("springs", &[None, Some(2)]).map_err(at)?;
-    let mesh = |hinges| {
-        Topology::mesh(&rest_uv, &triangles, width, height, hinges)
-            .map_err(|e| anyhow!("{}: {e}", path.display()))
-    };
-    let edges = mesh(false)?;
-    let topo = if ends.len() > 2 * edges.num_springs() {
-        mesh(true)?
-    } else {
-        edges
-    };
+    let hinges = ends.len() > 2 * crate::cloth::triangles::edges_with_opposites(&triangles).len();
+    let topo = Topology::mesh(&rest_uv, &triangles, width, height, hinges)
+        .map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let same = ends.len() == 2 * topo.num_springs()
         && ends
             .chunks_exact(2)
