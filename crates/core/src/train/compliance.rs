@@ -172,6 +172,36 @@ pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
     k.iter().map(|v| v * k_init / top).collect()
 }
 
+/// The fit's and the compliance map's stiffness together (ours): in each strain group, each
+/// map over its own mean, the two averaged, times the fit's mean there. The fit's values carry
+/// the frames' forces and the group sizes (hinge springs against edges), the compliance map the
+/// ranks where the forces are weakest — a stiff spring's strain is small and its force noisy, so
+/// the fit ranks it worst; the strains rank it best. A group one map leaves at zero takes the
+/// other's shape.
+pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64]) -> Vec<f64> {
+    let mut k = fit.to_vec();
+    for members in strain_groups(topo) {
+        let mean = |v: &[f64]| members.iter().map(|&s| v[s]).sum::<f64>() / members.len() as f64;
+        let (fit_mean, compliance_mean) = (mean(fit), mean(compliance));
+        let size = if fit_mean > 0.0 {
+            fit_mean
+        } else {
+            compliance_mean
+        };
+        for &s in &members {
+            let shapes: Vec<f64> = [(fit, fit_mean), (compliance, compliance_mean)]
+                .into_iter()
+                .filter(|(_, m)| *m > 0.0)
+                .map(|(v, m)| v[s] / m)
+                .collect();
+            if !shapes.is_empty() {
+                k[s] = size * shapes.iter().sum::<f64>() / shapes.len() as f64;
+            }
+        }
+    }
+    k
+}
+
 /// The springs whose strains the compliance map compares with each other: a grid's families;
 /// on a data mesh its edges together — the quad cells' sides and the diagonals that cut them
 /// alike, so that a diagonal that stretches more than the sides around it (a cloth weaker in
@@ -280,5 +310,37 @@ mod tests {
             assert!(g.iter().all(|&s| grid.family[s] == grid.family[g[0]]));
         }
         assert_eq!(strain_groups(&grid).len(), 3);
+    }
+
+    /// The mixed map averages the two maps' shapes within each group at the fit's group size;
+    /// a group the fit leaves at zero takes the compliance map's shape at its size.
+    #[test]
+    fn the_mixed_map_averages_shapes_at_the_fits_size() {
+        let uv = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [2.0, 0.5]];
+        let topo = Topology::mesh(&uv, &[[0, 1, 2], [0, 3, 2], [1, 4, 2]], 2.0, 1.0, true).unwrap();
+        let groups = strain_groups(&topo);
+        let (edges, hinge) = (&groups[0], groups[1][0]);
+        let mut fit = vec![0.0; topo.num_springs()];
+        let mut compliance = vec![1.0; topo.num_springs()];
+        // The edges: the fit at 10 but one at 40 (mean 100/7), the compliance map at 1 but
+        // another at 8 (mean 2).
+        for &s in edges {
+            fit[s] = 10.0;
+        }
+        fit[edges[0]] = 40.0;
+        compliance[edges[1]] = 8.0;
+        let k = mixed(&topo, &fit, &compliance);
+        let fit_mean = 100.0 / 7.0;
+        let expect = |f: f64, c: f64| fit_mean * (f / fit_mean + c / 2.0) / 2.0;
+        assert!((k[edges[0]] - expect(40.0, 1.0)).abs() < 1e-12);
+        assert!((k[edges[1]] - expect(10.0, 8.0)).abs() < 1e-12);
+        assert!((k[edges[2]] - expect(10.0, 1.0)).abs() < 1e-12);
+        let edge_mean = edges.iter().map(|&s| k[s]).sum::<f64>() / edges.len() as f64;
+        assert!(
+            (edge_mean - fit_mean).abs() < 1e-12,
+            "the fit's size is kept"
+        );
+        // A hinge group the fit left at zero: the compliance map's value.
+        assert_eq!(k[hinge], 1.0);
     }
 }

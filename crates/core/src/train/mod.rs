@@ -688,14 +688,21 @@ impl AfterFit<'_> {
     }
 
     /// The blend search on the maps to blend: the trained network, and with both starts on
-    /// the compliance map too; the one whose blend moves closest to the training rollouts is
-    /// kept.
+    /// the compliance map and the two mixed ([`compliance::mixed`]) too; the one whose blend
+    /// moves closest to the training rollouts is kept.
     fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
         let mut maps = vec![("trained", model)];
         if config.train.compliance.enabled && config.train.least_squares.enabled {
-            maps.push(("compliance", self.fit.compliance_springs(self.resolution)?));
+            let compliance = self.fit.compliance_springs(self.resolution)?;
+            let trained = &maps[0].1;
+            let k = compliance::mixed(job.topology, &trained.k_values(), &compliance.k_values());
+            let mixed = SpringNet::new(job.topology, &k, &trained.b_values(), self.device)
+                .with_kernel(trained.graph.kernel)
+                .with_curvature(&trained.curvature_values());
+            maps.push(("compliance", compliance));
+            maps.push(("mixed", mixed));
         }
         let mut found = Vec::new();
         for (name, map) in &maps {
@@ -1259,11 +1266,6 @@ impl Fit<'_> {
         Ok(out)
     }
 
-    /// The spring network training starts from (with its curvature elements at their initial
-    /// `κ`): the uniform `k_init`, `b_init`, or with `train.least_squares.enabled` the
-    /// per-spring least-squares fit of the data's forces, projected into the stable region;
-    /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
-    /// this network, so the fit is skipped there.
     /// The strain-compliance network ([`compliance`]) with a uniform `b_init`.
     fn compliance_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
         let (topo, device) = (self.job.topology, self.job.device);
@@ -1284,6 +1286,11 @@ impl Fit<'_> {
             .with_kernel(self.job.config.model.kernel))
     }
 
+    /// The spring network training starts from (with its curvature elements at their initial
+    /// `κ`): the uniform `k_init`, `b_init`, or with `train.least_squares.enabled` the
+    /// per-spring least-squares fit of the data's forces, projected into the stable region;
+    /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
+    /// this network, so the fit is skipped there.
     fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
         let (job, config) = (self.job, &self.job.config.train.least_squares);
         let (topo, device) = (job.topology, job.device);
