@@ -19,8 +19,7 @@
 //! best and a quarter octave either side: the ends `α = 0` (from the run's initial uniform
 //! network: the best uniform network on the training rollouts) and `α = 1` (from the uniform
 //! end's factors, since a fit's values are shrunk and a map with soft springs in series is softer
-//! than its mean) from wide rows whose damping also reaches the uniform search's fractions of
-//! critical damping, the shares between from narrow rows about the geometric mean of
+//! than its mean) from wide rows, the shares between from narrow rows about the geometric mean of
 //! the ends' factors. The learned map is kept only where it moves closer to the training
 //! rollouts than the best uniform network does; ranks (for `α > 0`) stay the learned ones.
 
@@ -31,7 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::{SpringFamily, Topology};
 use crate::eval::Takes;
-use crate::eval::uniform::{DAMPING_RATIOS, network_rollout_rmse};
+use crate::eval::uniform::network_rollout_rmse;
 use crate::model::SpringNet;
 use crate::sim::Physics;
 use crate::train::init::AUTO_SUBSTEPS_TARGET;
@@ -127,57 +126,14 @@ pub const BENDING_ROUNDS: usize = 4;
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
-
-/// A row search's reach: stiffness factors `2^(i/2)` and damping factors `2^i` around its start,
-/// `i` in these, and with `critical` also the uniform search's coordinate descent over
-/// fractions of critical damping (`eval.uniform_baseline`'s [`DAMPING_RATIOS`]) at the mean `k`
-/// and the stiffness around it — a start from a fit or the data's `b_init` can lie decades from
-/// the damping that moves closest, a row of octaves around it does not reach that far, and the
-/// stiffness that moves closest at one damping is not the one at another.
-#[derive(Debug, Clone)]
-struct Span {
-    k: std::ops::RangeInclusive<i32>,
-    b: std::ops::RangeInclusive<i32>,
-    critical: bool,
-}
-
-impl Span {
-    /// Candidates of a row search at most: its stiffness and damping factors, and the
-    /// stiffness a quarter octave either side (with `critical`, the descent's too).
-    const fn candidates(&self) -> usize {
-        let ratios = if self.critical {
-            2 * DAMPING_RATIOS.len() + 4
-        } else {
-            0
-        };
-        (*self.k.end() - *self.k.start() + *self.b.end() - *self.b.start() + 4) as usize + ratios
-    }
-}
-
-/// The ends' rows.
-const WIDE: Span = Span {
-    k: -6..=10,
-    b: -6..=4,
-    critical: true,
-};
-/// The shares between: around the geometric mean of the ends' factors.
-const NARROW: Span = Span {
-    k: -2..=2,
-    b: -2..=2,
-    critical: false,
-};
-/// The sizes' rows between the bending springs' rows.
-const BENDING_ROW: Span = Span {
-    k: -1..=1,
-    b: -1..=1,
-    critical: false,
-};
-/// Candidates of one bending springs' search at most: each round's factors and sizes' rows.
-const BENDING_CANDIDATES: usize =
-    BENDING_ROUNDS * (BENDING_FACTORS.len() + 1 + BENDING_ROW.candidates());
-/// Candidates the search considers at most (some twice, simulated once): the bar's length.
-const BLEND_CANDIDATES: usize =
-    2 * WIDE.candidates() + ALPHAS.len() * NARROW.candidates() + 2 * BENDING_CANDIDATES;
+/// The ends' stiffness factors `2^(i/2)` and damping factors `2^i` around their starts.
+const WIDE_K_STEPS: std::ops::RangeInclusive<i32> = -6..=10;
+const WIDE_B_STEPS: std::ops::RangeInclusive<i32> = -6..=4;
+/// The shares between: factors around the geometric mean of the ends'.
+const NARROW_K_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
+const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
+/// Candidates the search considers (some twice, simulated once).
+const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2) + 2 * (6 + 3 + 3 + 2);
 
 /// Searches the best uniform network around `model`'s means on the training takes `train`, the
 /// bending springs' share on it, then the share of `model`'s map blended into it and the factors
@@ -216,20 +172,20 @@ pub(crate) fn blend_search(
         k_init / k_mean,
         if b_init > 0.0 { b_init / b_mean } else { 1.0 },
     );
-    let Some(uniform) = search.rows(0.0, start, 1.0, WIDE) else {
+    let Some(uniform) = search.rows(0.0, start, 1.0, WIDE_K_STEPS, WIDE_B_STEPS) else {
         bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
     };
     // The bending springs' share is settled on the uniform network before any map is judged:
     // a map blended into a network whose bending springs are far off has to make up for them.
     let (fh, start) = search.bending_search(uniform, 1.0);
     let mut rows = vec![start];
-    let learned = search.rows(1.0, (start.1, start.2), fh, WIDE);
+    let learned = search.rows(1.0, (start.1, start.2), fh, WIDE_K_STEPS, WIDE_B_STEPS);
     let far = learned.unwrap_or(start);
     rows.extend(learned);
     for alpha in ALPHAS {
         let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
         let centre = (at(start.1, far.1), at(start.2, far.2));
-        rows.extend(search.rows(alpha, centre, fh, NARROW));
+        rows.extend(search.rows(alpha, centre, fh, NARROW_K_STEPS, NARROW_B_STEPS));
     }
     let best = rows
         .iter()
@@ -327,52 +283,30 @@ impl Blender<'_> {
         self.bar.inc(1);
     }
 
-    /// One share's search with the bending springs' factor `fh` over `span`: a row of
-    /// stiffness factors, a row of damping factors at the best, then the stiffness a quarter
-    /// octave either side; returns the share's best.
+    /// One share's search with the bending springs' factor `fh`: a row of stiffness factors, a
+    /// row of damping factors at the best, then the stiffness a quarter octave either side;
+    /// returns the share's best.
     fn rows(
         &mut self,
         alpha: f64,
         (fk0, fb0): (f64, f64),
         fh: f64,
-        span: Span,
+        k_steps: std::ops::RangeInclusive<i32>,
+        b_steps: std::ops::RangeInclusive<i32>,
     ) -> Option<Candidate> {
         let mut best: Option<Candidate> = None;
-        for i in span.k {
+        for i in k_steps {
             self.consider(alpha, fk0 * 2f64.powf(i as f64 / 2.0), fb0, fh, &mut best);
         }
         let fk = best.map_or(fk0, |b| b.1);
-        for i in span.b {
+        for i in b_steps {
             self.consider(alpha, fk, fb0 * 2f64.powi(i), fh, &mut best);
-        }
-        if span.critical {
-            // The uniform search's coordinate descent (`eval.uniform_baseline`): fractions of a
-            // mean spring's critical damping `√(2 k m)` at the best stiffness, the stiffness a
-            // half and a whole octave either side at the best damping, then the fractions again.
-            self.critical_row(alpha, fh, &mut best);
-            let (fk, fb) = best.map_or((fk, fb0), |b| (b.1, b.2));
-            for f in [-1.0, -0.5, 0.5, 1.0] {
-                self.consider(alpha, fk * 2f64.powf(f), fb, fh, &mut best);
-            }
-            self.critical_row(alpha, fh, &mut best);
         }
         let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
         for f in [-0.25, 0.25] {
             self.consider(alpha, fk * 2f64.powf(f), fb, fh, &mut best);
         }
         best
-    }
-
-    /// Damping factors of [`DAMPING_RATIOS`] of a mean spring's critical damping at `best`'s
-    /// stiffness (none while no candidate is stable).
-    fn critical_row(&mut self, alpha: f64, fh: f64, best: &mut Option<Candidate>) {
-        let Some(fk) = best.map(|b| b.1) else {
-            return;
-        };
-        let critical = (2.0 * fk * self.k_mean * self.physics.mass).sqrt();
-        for ratio in DAMPING_RATIOS {
-            self.consider(alpha, fk, ratio * critical / self.b_mean, fh, best);
-        }
     }
 
     /// The bending springs' share, after the blend (ours): they are the surrogate's own
@@ -406,7 +340,7 @@ impl Blender<'_> {
             if kept.0 == share {
                 break;
             }
-            if let Some(c) = self.rows(alpha, (fk, fb), kept.0, BENDING_ROW)
+            if let Some(c) = self.rows(alpha, (fk, fb), kept.0, -1..=1, -1..=1)
                 && c.4 < kept.1.4
             {
                 kept.1 = c;
