@@ -182,21 +182,16 @@ pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64]) -> Vec<f64> {
     let mut k = fit.to_vec();
     for members in strain_groups(topo) {
         let mean = |v: &[f64]| members.iter().map(|&s| v[s]).sum::<f64>() / members.len() as f64;
-        let (fit_mean, compliance_mean) = (mean(fit), mean(compliance));
-        let size = if fit_mean > 0.0 {
-            fit_mean
-        } else {
-            compliance_mean
+        // The maps with a shape here, each with its mean; the size is the fit's where it has one.
+        let shaped: Vec<(&[f64], f64)> = [(fit, mean(fit)), (compliance, mean(compliance))]
+            .into_iter()
+            .filter(|&(_, m)| m > 0.0)
+            .collect();
+        let Some(&(_, size)) = shaped.first() else {
+            continue;
         };
         for &s in &members {
-            let shapes: Vec<f64> = [(fit, fit_mean), (compliance, compliance_mean)]
-                .into_iter()
-                .filter(|(_, m)| *m > 0.0)
-                .map(|(v, m)| v[s] / m)
-                .collect();
-            if !shapes.is_empty() {
-                k[s] = size * shapes.iter().sum::<f64>() / shapes.len() as f64;
-            }
+            k[s] = size * shaped.iter().map(|&(v, m)| v[s] / m).sum::<f64>() / shaped.len() as f64;
         }
     }
     k
