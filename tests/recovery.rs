@@ -216,24 +216,21 @@ fn the_refinement_moves_a_uniform_network_towards_the_levels() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
-/// others: takes of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a
-/// sixteenth of that, learned from a uniform network over every spring by no fit at all.
-#[test]
-fn the_blend_search_finds_the_bending_springs_share() {
+/// Takes of a uniform 8 × 8 spring cloth (50 N/m, damping 6 N·s/m) whose stride-2 bending
+/// springs have `bending` times that stiffness: 8 training and 2 test takes under `dir`.
+fn spring_cloth_takes(dir: &std::path::Path, bending: f64) -> springtime::source::SourceConfig {
     use rand::{SeedableRng, rngs::StdRng};
     use springtime::cloth::SpringFamily;
     use springtime::source::mass_spring::SpringCloth;
     use springtime::source::{Scenario, simulate_rollout};
 
-    let dir = common::temp_dir("bending-share");
     let mut source = common::source(8, &[50.0], 2.0);
     source.frame_stride = 10;
     source.save_velocities = false;
     let mut cloth = SpringCloth::from_config(&source);
     for (k, family) in cloth.k.iter_mut().zip(&cloth.topology.family) {
         if *family == SpringFamily::Bending {
-            *k /= 16.0;
+            *k *= bending;
         }
     }
     for (split, seeds) in [("train", 0..8u64), ("test", 100..102u64)] {
@@ -251,17 +248,34 @@ fn the_blend_search_finds_the_bending_springs_share() {
                 .unwrap();
         }
     }
-    let text = "name = \"bending\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 50.0\nb_init = 6.0\n\
-                [train]\nblend_search = true\n[train.stiffness]\niterations = 0\n\
-                [train.damping]\niterations = 0\n";
-    let mut config = Config::parse(text, &[]).unwrap();
+    source
+}
+
+/// A blend search on `dir`'s takes from a uniform network `(k_init, b_init)`, no fit: its
+/// `blend.json`.
+fn blend_record(dir: &std::path::Path, k_init: f64, b_init: f64) -> serde_json::Value {
+    let text = format!(
+        "name = \"blend\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = {k_init}\n\
+         b_init = {b_init}\n[train]\nblend_search = true\n[train.stiffness]\niterations = 0\n\
+         [train.damping]\niterations = 0\n"
+    );
+    let mut config = Config::parse(&text, &[]).unwrap();
     config.data.dir = dir.join("train");
     config.data.test_dir = Some(dir.join("test"));
     config.runs_dir = dir.join("runs");
     let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
-    let record: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
-            .unwrap();
+    serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
+        .unwrap()
+}
+
+/// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
+/// others: takes of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a
+/// sixteenth of that, learned from a uniform network over every spring by no fit at all.
+#[test]
+fn the_blend_search_finds_the_bending_springs_share() {
+    let dir = common::temp_dir("bending-share");
+    spring_cloth_takes(&dir, 1.0 / 16.0);
+    let record = blend_record(&dir, 50.0, 6.0);
     let factor = record["bending_factor"].as_f64().unwrap();
     eprintln!(
         "bending factor {factor}; candidates {}",
@@ -274,5 +288,46 @@ fn the_blend_search_finds_the_bending_springs_share() {
         Some(1.0 / 16.0),
         "{record}"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The blend search reaches a damping decades from its start: from a `b_init` a thousand times
+/// below the source's 6 N·s/m (three times a spring's critical damping here), where its rows
+/// of octaves reach 16 × 0.006 ≈ 0.1 N·s/m at most, the uniform end's damping row also tries
+/// the fractions of critical damping and keeps one within a factor of 4 of the source's (the
+/// critical damping itself, 1.96 N·s/m: three times that needs more substeps than the search's
+/// cap), moving closer to the takes than any damping the octaves reach. Of its two chains (the
+/// octaves alone, and with the descent) it keeps the closer: no candidate it lists moves closer
+/// than the network it kept.
+#[test]
+fn the_blend_search_reaches_a_damping_far_from_its_start() {
+    let dir = common::temp_dir("blend-damping");
+    spring_cloth_takes(&dir, 1.0);
+    let record = blend_record(&dir, 50.0, 0.006);
+    let b = record["uniform"][1].as_f64().unwrap();
+    let b_mean = record["b_mean"].as_f64().unwrap();
+    eprintln!("uniform end: {}", record["uniform"]);
+    assert!((1.5..=24.0).contains(&b), "uniform damping {b}: {record}");
+    let octaves = record["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c[0].as_f64() == Some(0.0) && c[2].as_f64().unwrap() * b_mean <= 0.1)
+        .map(|c| c[4].as_f64().unwrap())
+        .fold(f64::INFINITY, f64::min);
+    let kept = record["uniform"][2].as_f64().unwrap();
+    assert!(
+        kept < 0.8 * octaves,
+        "{kept} m against {octaves} m within the octaves' reach"
+    );
+    let after = record["after"].as_f64().unwrap();
+    let closest = record["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c[4].as_f64().unwrap())
+        .fold(f64::INFINITY, f64::min);
+    eprintln!("kept the {} chain at {after} m", record["chain"]);
+    assert!(after <= closest, "kept {after} m, a candidate {closest} m");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -149,11 +149,16 @@ impl Bar {
         }
     }
 
-    /// Marks the bar done.
+    /// Marks the bar done, at its length (a search's length is its most candidates; one that
+    /// settles early ends there too).
     pub fn finish(&self) {
         match &self.inner {
             Inner::Bar(b) => b.finish(),
-            Inner::Lines(l) => l.lock().expect("lock").maybe_print(true),
+            Inner::Lines(l) => {
+                let mut l = l.lock().expect("lock");
+                l.pos = l.len;
+                l.maybe_print(true)
+            }
             Inner::Quiet => {}
         }
     }

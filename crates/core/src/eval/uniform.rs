@@ -23,7 +23,7 @@ const SPAN: i32 = 6;
 /// Training rollouts the search simulates (the first ones of the split).
 const SEARCH_ROLLOUTS: usize = 8;
 /// Damping candidates as fractions of a spring's critical damping `√(2 k m)`.
-const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
+pub(crate) const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
 
 /// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `files` (`None` when it
 /// is unstable at `physics`' step or a rollout diverges).

@@ -20,7 +20,11 @@
 //! network: the best uniform network on the training rollouts) and `α = 1` (from the uniform
 //! end's factors, since a fit's values are shrunk and a map with soft springs in series is softer
 //! than its mean) from wide rows, the shares between from narrow rows about the geometric mean of
-//! the ends' factors. The learned map is kept only where it moves closer to the training
+//! the ends' factors. That chain runs twice from the same start, sharing every candidate: once
+//! with the ends' rows octaves around their starts, once with them also descending over the
+//! uniform search's fractions of critical damping; the chain that moves closer to the training
+//! rollouts is kept (each stage starts from the one before, so a closer uniform end alone does
+//! not make a closer blend). The learned map is kept only where it moves closer to the training
 //! rollouts than the best uniform network does; ranks (for `α > 0`) stay the learned ones.
 
 use std::path::PathBuf;
@@ -30,7 +34,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::{SpringFamily, Topology};
 use crate::eval::Takes;
-use crate::eval::uniform::network_rollout_rmse;
+use crate::eval::uniform::{DAMPING_RATIOS, network_rollout_rmse};
 use crate::model::SpringNet;
 use crate::sim::Physics;
 use crate::train::init::AUTO_SUBSTEPS_TARGET;
@@ -109,6 +113,15 @@ pub(crate) struct BlendSearch {
     pub bending_candidates: Vec<(f64, f64, f64, usize, f64)>,
     /// Training rollouts simulated per candidate.
     pub rollouts: usize,
+    /// The chain kept: `octaves` (the ends' rows are octaves around their starts) or
+    /// `critical` (they also descend over fractions of critical damping).
+    #[serde(default = "octaves")]
+    pub chain: String,
+}
+
+/// The chain of a record written before there were two.
+fn octaves() -> String {
+    "octaves".into()
 }
 
 /// The default of a factor a record written before it existed lacks.
@@ -126,14 +139,78 @@ pub const BENDING_ROUNDS: usize = 4;
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
-/// The ends' stiffness factors `2^(i/2)` and damping factors `2^i` around their starts.
-const WIDE_K_STEPS: std::ops::RangeInclusive<i32> = -6..=10;
-const WIDE_B_STEPS: std::ops::RangeInclusive<i32> = -6..=4;
-/// The shares between: factors around the geometric mean of the ends'.
-const NARROW_K_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
-const NARROW_B_STEPS: std::ops::RangeInclusive<i32> = -2..=2;
-/// Candidates the search considers (some twice, simulated once).
-const BLEND_CANDIDATES: usize = 2 * (17 + 11 + 2) + 3 * (5 + 5 + 2) + 2 * (6 + 3 + 3 + 2);
+
+/// A row search's reach: stiffness factors `2^(i/2)` and damping factors `2^i` around its start,
+/// `i` in these, and with `critical` also the uniform search's coordinate descent over
+/// fractions of critical damping (`eval.uniform_baseline`'s [`DAMPING_RATIOS`]) at the mean `k`
+/// and the stiffness around it — a start from a fit or the data's `b_init` can lie decades from
+/// the damping that moves closest, a row of octaves around it does not reach that far, and the
+/// stiffness that moves closest at one damping is not the one at another.
+#[derive(Debug, Clone)]
+struct Span {
+    k: std::ops::RangeInclusive<i32>,
+    b: std::ops::RangeInclusive<i32>,
+    critical: bool,
+}
+
+impl Span {
+    /// Candidates of a row search at most: its stiffness and damping factors, and the
+    /// stiffness a quarter octave either side (with `critical`, the descent's too).
+    const fn candidates(&self) -> usize {
+        let ratios = if self.critical {
+            2 * DAMPING_RATIOS.len() + 4
+        } else {
+            0
+        };
+        (*self.k.end() - *self.k.start() + *self.b.end() - *self.b.start() + 4) as usize + ratios
+    }
+}
+
+/// The ends' rows of the chain from the octaves (the rows around the starts alone).
+const WIDE: Span = Span {
+    k: -6..=10,
+    b: -6..=4,
+    critical: false,
+};
+/// The ends' rows of the chain that also descends over fractions of critical damping.
+const WIDE_CRITICAL: Span = Span {
+    critical: true,
+    ..WIDE
+};
+/// The shares between: around the geometric mean of the ends' factors.
+const NARROW: Span = Span {
+    k: -2..=2,
+    b: -2..=2,
+    critical: false,
+};
+/// The sizes' rows between the bending springs' rows.
+const BENDING_ROW: Span = Span {
+    k: -1..=1,
+    b: -1..=1,
+    critical: false,
+};
+/// Candidates of one bending springs' search at most: each round's factors and sizes' rows.
+const BENDING_CANDIDATES: usize =
+    BENDING_ROUNDS * (BENDING_FACTORS.len() + 1 + BENDING_ROW.candidates());
+/// Candidates of one chain at most, from its ends' rows `wide`.
+const fn chain_candidates(wide: &Span) -> usize {
+    2 * wide.candidates() + ALPHAS.len() * NARROW.candidates() + 2 * BENDING_CANDIDATES
+}
+/// Candidates the search considers at most (some twice, simulated once): the bar's length.
+const BLEND_CANDIDATES: usize = chain_candidates(&WIDE) + chain_candidates(&WIDE_CRITICAL);
+
+/// What one chain of the blend search found ([`Blender::chain`]).
+#[derive(Debug, Clone, Copy)]
+struct Chain {
+    /// The best uniform network the chain found (`α = 0`).
+    uniform: Candidate,
+    /// The bending springs' factor the shares' rows ran at.
+    rows_bending_factor: f64,
+    /// The bending springs' factor kept.
+    bending_factor: f64,
+    /// The candidate kept.
+    best: Candidate,
+}
 
 /// Searches the best uniform network around `model`'s means on the training takes `train`, the
 /// bending springs' share on it, then the share of `model`'s map blended into it and the factors
@@ -164,43 +241,47 @@ pub(crate) fn blend_search(
         bar: train.progress.bar(BLEND_CANDIDATES as u64, "blend search"),
     };
     let before = search.score(1.0, 1.0, 1.0, 1.0).map(|(_, r)| r);
-    // Both ends first: the uniform network (α = 0) and the learned map (α = 1), each from a
-    // wide search; the shares between from the geometric mean of the ends' factors.
-    // The uniform end starts from the run's initial uniform network (derived from the data);
-    // the learned end from the uniform end's factors, since a fit's values are shrunk.
+    // The uniform end starts from the run's initial uniform network (derived from the data).
     let start = (
         k_init / k_mean,
         if b_init > 0.0 { b_init / b_mean } else { 1.0 },
     );
-    let Some(uniform) = search.rows(0.0, start, 1.0, WIDE_K_STEPS, WIDE_B_STEPS) else {
+    // Two chains from the same start, sharing every candidate scored: one whose ends' rows are
+    // octaves around their starts, one whose ends also descend over fractions of critical
+    // damping (a start can lie decades from the damping that moves closest). Each later stage
+    // starts from the one before it, so a closer uniform end does not make a closer blend; the
+    // chain that moves closer to the training takes is kept, so the search is never worse than
+    // either chain alone.
+    let chains: Vec<(&str, Chain)> = [("octaves", WIDE), ("critical", WIDE_CRITICAL)]
+        .into_iter()
+        .filter_map(|(name, wide)| search.chain(start, wide).map(|c| (name, c)))
+        .collect();
+    search.bar.finish();
+    let Some(&(name, kept)) = chains
+        .iter()
+        .min_by(|a, b| a.1.best.4.total_cmp(&b.1.best.4))
+    else {
         bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
     };
-    // The bending springs' share is settled on the uniform network before any map is judged:
-    // a map blended into a network whose bending springs are far off has to make up for them.
-    let (fh, start) = search.bending_search(uniform, 1.0);
-    let mut rows = vec![start];
-    let learned = search.rows(1.0, (start.1, start.2), fh, WIDE_K_STEPS, WIDE_B_STEPS);
-    let far = learned.unwrap_or(start);
-    rows.extend(learned);
-    for alpha in ALPHAS {
-        let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
-        let centre = (at(start.1, far.1), at(start.2, far.2));
-        rows.extend(search.rows(alpha, centre, fh, NARROW_K_STEPS, NARROW_B_STEPS));
-    }
-    let best = rows
+    let uniform = chains
         .iter()
-        .copied()
+        .map(|c| c.1.uniform)
         .min_by(|a, b| a.4.total_cmp(&b.4))
-        .expect("the uniform network is a candidate");
-    let (bending_factor, best) = search.bending_search(best, fh);
-    search.bar.finish();
-    let record = search.record(best, (fh, bending_factor), uniform, before);
+        .expect("one chain at least");
+    let mut record = search.record(
+        kept.best,
+        (kept.rows_bending_factor, kept.bending_factor),
+        uniform,
+        before,
+    );
+    record.chain = name.into();
     let physics = Physics {
         substeps: record.substeps,
         ..*physics
     };
+    let best = kept.best;
     Ok((
-        search.blended(best.0, best.1, best.2, bending_factor),
+        search.blended(best.0, best.1, best.2, kept.bending_factor),
         physics,
         record,
     ))
@@ -273,6 +354,37 @@ impl Blender<'_> {
         found
     }
 
+    /// One chain from the uniform network's factors `start`, with the ends' rows `wide`: the
+    /// uniform end (`α = 0`), the bending springs' share on it (a map blended into a network
+    /// whose bending springs are far off has to make up for them), the learned end (`α = 1`,
+    /// from the uniform end's factors, since a fit's values are shrunk), the shares between from
+    /// the geometric mean of the ends' factors, and the bending springs' share again at the
+    /// best; `None` when no uniform network is stable.
+    fn chain(&mut self, start: (f64, f64), wide: Span) -> Option<Chain> {
+        let uniform = self.rows(0.0, start, 1.0, wide.clone())?;
+        let (fh, start) = self.bending_search(uniform, 1.0);
+        let mut rows = vec![start];
+        let learned = self.rows(1.0, (start.1, start.2), fh, wide);
+        let far = learned.unwrap_or(start);
+        rows.extend(learned);
+        for alpha in ALPHAS {
+            let at = |a: f64, b: f64| a.powf(1.0 - alpha) * b.powf(alpha);
+            let centre = (at(start.1, far.1), at(start.2, far.2));
+            rows.extend(self.rows(alpha, centre, fh, NARROW));
+        }
+        let best = rows
+            .into_iter()
+            .min_by(|a, b| a.4.total_cmp(&b.4))
+            .expect("the uniform network is a candidate");
+        let (bending_factor, best) = self.bending_search(best, fh);
+        Some(Chain {
+            uniform,
+            rows_bending_factor: fh,
+            bending_factor,
+            best,
+        })
+    }
+
     /// `candidate` if it scores and beats `best`.
     fn consider(&mut self, alpha: f64, fk: f64, fb: f64, fh: f64, best: &mut Option<Candidate>) {
         if let Some((n, r)) = self.score(alpha, fk, fb, fh)
@@ -283,30 +395,52 @@ impl Blender<'_> {
         self.bar.inc(1);
     }
 
-    /// One share's search with the bending springs' factor `fh`: a row of stiffness factors, a
-    /// row of damping factors at the best, then the stiffness a quarter octave either side;
-    /// returns the share's best.
+    /// One share's search with the bending springs' factor `fh` over `span`: a row of
+    /// stiffness factors, a row of damping factors at the best, then the stiffness a quarter
+    /// octave either side; returns the share's best.
     fn rows(
         &mut self,
         alpha: f64,
         (fk0, fb0): (f64, f64),
         fh: f64,
-        k_steps: std::ops::RangeInclusive<i32>,
-        b_steps: std::ops::RangeInclusive<i32>,
+        span: Span,
     ) -> Option<Candidate> {
         let mut best: Option<Candidate> = None;
-        for i in k_steps {
+        for i in span.k {
             self.consider(alpha, fk0 * 2f64.powf(i as f64 / 2.0), fb0, fh, &mut best);
         }
         let fk = best.map_or(fk0, |b| b.1);
-        for i in b_steps {
+        for i in span.b {
             self.consider(alpha, fk, fb0 * 2f64.powi(i), fh, &mut best);
+        }
+        if span.critical {
+            // The uniform search's coordinate descent (`eval.uniform_baseline`): fractions of a
+            // mean spring's critical damping `√(2 k m)` at the best stiffness, the stiffness a
+            // half and a whole octave either side at the best damping, then the fractions again.
+            self.critical_row(alpha, fh, &mut best);
+            let (fk, fb) = best.map_or((fk, fb0), |b| (b.1, b.2));
+            for f in [-1.0, -0.5, 0.5, 1.0] {
+                self.consider(alpha, fk * 2f64.powf(f), fb, fh, &mut best);
+            }
+            self.critical_row(alpha, fh, &mut best);
         }
         let (fk, fb) = best.map_or((fk0, fb0), |b| (b.1, b.2));
         for f in [-0.25, 0.25] {
             self.consider(alpha, fk * 2f64.powf(f), fb, fh, &mut best);
         }
         best
+    }
+
+    /// Damping factors of [`DAMPING_RATIOS`] of a mean spring's critical damping at `best`'s
+    /// stiffness (none while no candidate is stable).
+    fn critical_row(&mut self, alpha: f64, fh: f64, best: &mut Option<Candidate>) {
+        let Some(fk) = best.map(|b| b.1) else {
+            return;
+        };
+        let critical = (2.0 * fk * self.k_mean * self.physics.mass).sqrt();
+        for ratio in DAMPING_RATIOS {
+            self.consider(alpha, fk, ratio * critical / self.b_mean, fh, best);
+        }
     }
 
     /// The bending springs' share, after the blend (ours): they are the surrogate's own
@@ -340,7 +474,7 @@ impl Blender<'_> {
             if kept.0 == share {
                 break;
             }
-            if let Some(c) = self.rows(alpha, (fk, fb), kept.0, -1..=1, -1..=1)
+            if let Some(c) = self.rows(alpha, (fk, fb), kept.0, BENDING_ROW)
                 && c.4 < kept.1.4
             {
                 kept.1 = c;
@@ -383,6 +517,7 @@ impl Blender<'_> {
                 .collect(),
             bending_factor,
             rollouts: self.takes.files.len(),
+            chain: octaves(),
         }
     }
 
