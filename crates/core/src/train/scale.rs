@@ -202,6 +202,8 @@ const BLEND_CANDIDATES: usize = chain_candidates(&WIDE) + chain_candidates(&WIDE
 /// What one chain of the blend search found ([`Blender::chain`]).
 #[derive(Debug, Clone, Copy)]
 struct Chain {
+    /// Its name in `blend.json`: `octaves` or `critical`.
+    name: &'static str,
     /// The best uniform network the chain found (`α = 0`).
     uniform: Candidate,
     /// The bending springs' factor the shares' rows ran at.
@@ -252,29 +254,20 @@ pub(crate) fn blend_search(
     // starts from the one before it, so a closer uniform end does not make a closer blend; the
     // chain that moves closer to the training takes is kept, so the search is never worse than
     // either chain alone.
-    let chains: Vec<(&str, Chain)> = [("octaves", WIDE), ("critical", WIDE_CRITICAL)]
+    let chains: Vec<Chain> = [("octaves", WIDE), ("critical", WIDE_CRITICAL)]
         .into_iter()
-        .filter_map(|(name, wide)| search.chain(start, wide).map(|c| (name, c)))
+        .filter_map(|(name, wide)| search.chain(name, start, wide))
         .collect();
     search.bar.finish();
-    let Some(&(name, kept)) = chains
-        .iter()
-        .min_by(|a, b| a.1.best.4.total_cmp(&b.1.best.4))
-    else {
+    let Some(&kept) = chains.iter().min_by(|a, b| a.best.4.total_cmp(&b.best.4)) else {
         bail!("the blend search found no stable uniform network around k = {k_init:.4} N/m");
     };
     let uniform = chains
         .iter()
-        .map(|c| c.1.uniform)
+        .map(|c| c.uniform)
         .min_by(|a, b| a.4.total_cmp(&b.4))
         .expect("one chain at least");
-    let mut record = search.record(
-        kept.best,
-        (kept.rows_bending_factor, kept.bending_factor),
-        uniform,
-        before,
-    );
-    record.chain = name.into();
+    let record = search.record(&kept, uniform, before);
     let physics = Physics {
         substeps: record.substeps,
         ..*physics
@@ -354,13 +347,13 @@ impl Blender<'_> {
         found
     }
 
-    /// One chain from the uniform network's factors `start`, with the ends' rows `wide`: the
+    /// One chain, `name`, from the uniform network's factors `start`, with the ends' rows `wide`: the
     /// uniform end (`α = 0`), the bending springs' share on it (a map blended into a network
     /// whose bending springs are far off has to make up for them), the learned end (`α = 1`,
     /// from the uniform end's factors, since a fit's values are shrunk), the shares between from
     /// the geometric mean of the ends' factors, and the bending springs' share again at the
     /// best; `None` when no uniform network is stable.
-    fn chain(&mut self, start: (f64, f64), wide: Span) -> Option<Chain> {
+    fn chain(&mut self, name: &'static str, start: (f64, f64), wide: Span) -> Option<Chain> {
         let uniform = self.rows(0.0, start, 1.0, wide.clone())?;
         let (fh, start) = self.bending_search(uniform, 1.0);
         let mut rows = vec![start];
@@ -378,6 +371,7 @@ impl Blender<'_> {
             .expect("the uniform network is a candidate");
         let (bending_factor, best) = self.bending_search(best, fh);
         Some(Chain {
+            name,
             uniform,
             rows_bending_factor: fh,
             bending_factor,
@@ -483,16 +477,11 @@ impl Blender<'_> {
         kept
     }
 
-    /// The search's record: the kept candidate `best` at the bending springs' factors `(of the
-    /// rows, kept)`, the best `uniform` network, and the learned map's score `before`.
-    fn record(
-        &self,
-        best: Candidate,
-        (rows_bending_factor, bending_factor): (f64, f64),
-        uniform: Candidate,
-        before: Option<f64>,
-    ) -> BlendSearch {
-        let (alpha, fk, fb, substeps, after) = best;
+    /// The search's record: the `kept` chain, the best `uniform` network, and the learned map's
+    /// score `before`.
+    fn record(&self, kept: &Chain, uniform: Candidate, before: Option<f64>) -> BlendSearch {
+        let (alpha, fk, fb, substeps, after) = kept.best;
+        let (rows_bending_factor, bending_factor) = (kept.rows_bending_factor, kept.bending_factor);
         BlendSearch {
             map: "trained".into(),
             alpha,
@@ -517,7 +506,7 @@ impl Blender<'_> {
                 .collect(),
             bending_factor,
             rollouts: self.takes.files.len(),
-            chain: octaves(),
+            chain: kept.name.into(),
         }
     }
 
