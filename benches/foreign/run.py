@@ -14,6 +14,7 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py --sims mujoco,warp --materials soft --quick
     python3 benches/foreign/run.py --set train.scale_search=false --tag noscale
     python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
+                                 # (trains with train.least_squares.noise = the capture's noise)
     python3 benches/foreign/run.py --source-map             # + what the source's own map wins
 
 `--source-map` runs `springtime diagnose` on each finished run and adds its source-map
@@ -163,6 +164,10 @@ def train(sim, material, data: Path, a):
     cmd = [str(a.springtime), "train", str(a.config), "--out", str(run), "--force",
            "--set", f"data.dir={data / 'train'}", "--set", f"data.test_dir={data / 'test'}",
            "--set", "eval.uniform_baseline=true"]
+    if a.capture:
+        # The capture's marker accuracy, as a capture's user states it: the least-squares fit
+        # takes the noise's dilution out of its values (`train.least_squares.noise`).
+        cmd += ["--set", f"train.least_squares.noise={a.capture[0]:g}"]
     for s in a.set:
         cmd += ["--set", s]
     print(f"[{sim}-{material}] {' '.join(cmd)}", flush=True)

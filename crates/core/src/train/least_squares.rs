@@ -58,6 +58,14 @@ pub struct LeastSquaresConfig {
     /// a particle, so that a spring the data hardly constrains takes its neighbours' value
     /// instead of the uniform start's or zero (0 = none).
     pub smoothness: f64,
+    /// Standard deviation per axis of the positions' measurement noise, m (a capture's marker
+    /// accuracy; 0 = exact positions, a simulator's). Noise in the positions enters the springs'
+    /// unit forces as well as the target, which biases a plain least-squares fit: it dilutes
+    /// every spring's `k` towards zero by its strain's signal-to-noise ratio — most where the
+    /// cloth is stiffest and strains least, which reverses the map's ranks — and correlates the
+    /// centre frame's noise with the target's. The expected noise terms are taken out of the
+    /// normal equations (errors-in-variables correction).
+    pub noise: f64,
     /// The training clips whose frames are fitted: `all`, or `low_velocity` (the last seconds
     /// of each rollout, where a camera-rate target is least noisy: the paper's stiffness pass
     /// uses them) or `regular`.
@@ -77,6 +85,7 @@ impl Default for LeastSquaresConfig {
             frames: 4096,
             prior: 1e-9,
             smoothness: 0.0,
+            noise: 0.0,
             clips: super::ClipPool::All,
             max_iterations: 20_000,
             tolerance: 1e-10,
@@ -119,6 +128,12 @@ impl LeastSquaresConfig {
             bail!(
                 "`train.least_squares.smoothness` must be a non-negative number, is {}",
                 self.smoothness
+            );
+        }
+        if !(self.noise >= 0.0 && self.noise.is_finite()) {
+            bail!(
+                "`train.least_squares.noise` must be a non-negative length in m, is {}",
+                self.noise
             );
         }
         if self.max_iterations == 0 {
@@ -166,6 +181,12 @@ pub struct LeastSquaresRecord {
     pub settled: bool,
     /// Unknowns fixed at zero because the unconstrained solution was negative.
     pub fixed_at_zero: usize,
+    /// The positions' noise the fit took out, m per axis (`noise`; 0: none).
+    pub noise: f64,
+    /// The median over the springs of the share of a spring's measured `k`–`k` diagonal that
+    /// is not the positions' noise: the fitted `k` were divided by these shares (1 without
+    /// noise).
+    pub dilution_median: f64,
     /// The stencils `"auto"` tried on a sample of the frames (empty for a given stencil).
     pub trials: Vec<StencilTrial>,
     /// Seconds for the trials, the assembly and the solves.
@@ -189,6 +210,9 @@ pub struct LeastSquaresFit {
 #[derive(Debug, Clone, PartialEq)]
 struct Sums {
     blocks: Vec<[f64; 4]>,
+    /// Per spring, what the positions' noise adds to its `k`–`k` diagonal in expectation (all
+    /// zero without `noise`).
+    noise: Vec<f64>,
     rhs: Vec<f64>,
     yy: f64,
     rows: usize,
@@ -254,6 +278,7 @@ impl Pattern {
     fn empty_sums(&self) -> Sums {
         Sums {
             blocks: vec![[0.0; 4]; self.col.len()],
+            noise: vec![0.0; self.row_start.len() - 1],
             rhs: vec![0.0; 2 * (self.row_start.len() - 1)],
             yy: 0.0,
             rows: 0,
@@ -262,12 +287,40 @@ impl Pattern {
     }
 }
 
+/// The least share of its measured diagonal that a spring's noise-free part is taken to be: a
+/// spring whose strains are all noise is divided by at most 1 / NOISE_FLOOR.
+const NOISE_FLOOR: f64 = 0.01;
+
 impl Sums {
+    /// Per spring, the factor by which the positions' noise dilutes its fitted `k`: the share
+    /// of its measured diagonal `A_ss` that is not the noise's expected `N_ss` (at least
+    /// `NOISE_FLOOR`; 1 without noise).
+    fn dilution(&self, pattern: &Pattern) -> Vec<f64> {
+        (0..self.noise.len())
+            .map(|s| {
+                let row = &pattern.col[pattern.row_start[s]..pattern.row_start[s + 1]];
+                let own = pattern.row_start[s]
+                    + row
+                        .binary_search(&s)
+                        .expect("a spring's own block is in the pattern");
+                let (a, n) = (self.blocks[own][0], self.noise[s]);
+                if n > 0.0 && a > 0.0 {
+                    (a - n).max(NOISE_FLOOR * a) / a
+                } else {
+                    1.0
+                }
+            })
+            .collect()
+    }
+
     fn add(&mut self, other: &Sums) {
         for (a, b) in self.blocks.iter_mut().zip(&other.blocks) {
             for (x, y) in a.iter_mut().zip(b) {
                 *x += y;
             }
+        }
+        for (a, b) in self.noise.iter_mut().zip(&other.noise) {
+            *a += b;
         }
         for (a, b) in self.rhs.iter_mut().zip(&other.rhs) {
             *a += b;
@@ -459,6 +512,7 @@ fn fit_with(
     if sums.samples == 0 {
         bail!("`train.least_squares`: the training clips have no free particle to fit");
     }
+    let dilution = sums.dilution(pattern);
     let normal = Normal { pattern, sums };
     let n = normal.unknowns();
     let initial: Vec<f64> = (0..n)
@@ -511,11 +565,22 @@ fn fit_with(
         converged: normal_residual <= config.tolerance,
         settled,
         fixed_at_zero: free.iter().filter(|f| !**f).count(),
+        noise: config.noise,
+        dilution_median: {
+            let mut sorted = dilution.clone();
+            sorted.sort_by(f64::total_cmp);
+            sorted.get(sorted.len() / 2).copied().unwrap_or(1.0)
+        },
         trials: Vec::new(),
         seconds: start.elapsed().as_secs_f64(),
     };
     Ok(LeastSquaresFit {
-        k: theta.iter().step_by(2).copied().collect(),
+        k: theta
+            .iter()
+            .step_by(2)
+            .zip(&dilution)
+            .map(|(k, r)| k / r)
+            .collect(),
         b: theta.iter().skip(1).step_by(2).copied().collect(),
         record,
     })
@@ -594,7 +659,11 @@ fn accumulate_centres(
         if velocities {
             velocity_frames += js.len();
         }
-        let stencil = Stencil { w, velocities };
+        let stencil = Stencil {
+            w,
+            velocities,
+            noise: config.noise,
+        };
         // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
         // on every run and machine.
         let parts: Vec<Sums> = js
@@ -633,6 +702,8 @@ fn kind_means(diag: &[[f64; 4]]) -> (f64, f64) {
 struct Stencil {
     w: usize,
     velocities: bool,
+    /// The positions' noise per axis, m (0: exact).
+    noise: f64,
 }
 
 impl Stencil {
@@ -669,7 +740,8 @@ fn accumulate(
     let mut fk = vec![[0f64; 3]; topo.num_springs()];
     let mut fb = vec![[0f64; 3]; topo.num_springs()];
     let mut v_mean = vec![[0f64; 3]; p];
-    for (q, weight) in stencil.weights(j) {
+    let weights = stencil.weights(j);
+    for &(q, weight) in &weights {
         for (s, (&[a, b], &l0)) in topo.springs.iter().zip(&topo.rest_length).enumerate() {
             let (xa, xb) = (at(&track.positions, q, a), at(&track.positions, q, b));
             let (va, vb) = (at(&track.velocities, q, a), at(&track.velocities, q, b));
@@ -734,6 +806,18 @@ fn accumulate(
             }
         }
         acc.yy += dot(&y, &y);
+        if stencil.noise > 0.0 {
+            // Each spring's unit force moves with the noise of its two ends along it (one where
+            // the far end is pinned), over the stencil's frames.
+            let var = stencil.noise * stencil.noise;
+            let tent: f64 = weights.iter().map(|&(_, w)| w * w).sum();
+            for &(s, _) in &pattern.incident[i] {
+                let [a, b] = topo.springs[s];
+                let far = if a == i { b } else { a };
+                let ends = if track.pinned[far] { 1.0 } else { 2.0 };
+                acc.noise[s] += scale * scale * ends * var * tent;
+            }
+        }
         acc.rows += 3;
         acc.samples += 1;
     }
@@ -927,6 +1011,7 @@ mod tests {
         let stencil = Stencil {
             w: 1,
             velocities: false,
+            noise: 0.0,
         };
         for j in 1..=4 {
             accumulate(&mut sums, &pattern, &topo, &track, &physics, j, stencil);
@@ -1031,6 +1116,7 @@ mod tests {
         let stencil = Stencil {
             w: 1,
             velocities: false,
+            noise: 0.0,
         };
         let sums = |t: &Track| {
             let mut acc = pattern.empty_sums();
@@ -1050,6 +1136,96 @@ mod tests {
         // frames its velocities difference): particle 0 and its neighbours drop out there.
         let neighbours = topo.springs.iter().filter(|s| s.contains(&0)).count();
         assert_eq!(all.samples - hidden.samples, 6 * (1 + neighbours));
+    }
+
+    /// White noise of σ per axis on the free particles' positions adds to every spring's
+    /// `k`–`k` diagonal what `noise` expects there: `(ends free) σ²` per row and axis along the
+    /// spring, none from a pinned end. The expected noise is the measured excess, spring by
+    /// spring, and the share of the noisy diagonal that is not noise (the fit's divisor) is the
+    /// clean diagonal's share of it.
+    #[test]
+    fn the_expected_noise_is_what_noise_adds_to_the_diagonal() {
+        use rand_distr::{Distribution, Normal as Gaussian};
+        let points: Vec<[f64; 2]> = (0..3)
+            .flat_map(|j| (0..3).map(move |i| [i as f64 * 0.5, j as f64 * 0.5]))
+            .collect();
+        let topo = Topology::of_points(&points, 1.0, 1.0, false).expect("a mesh");
+        let (frames, p) = (40_000, points.len());
+        // A smooth motion: every particle swings on its own slow sinusoids.
+        let clean: Vec<f64> = (0..frames)
+            .flat_map(|f| {
+                points.iter().enumerate().flat_map(move |(i, &[u, v])| {
+                    let t = f as f64 * 0.1;
+                    let phase = i as f64;
+                    [
+                        u + 0.02 * (0.7 * t + phase).sin(),
+                        v + 0.02 * (0.5 * t + 2.0 * phase).cos(),
+                        0.03 * (0.3 * t + phase).sin(),
+                    ]
+                })
+            })
+            .collect();
+        let sigma = 0.005;
+        let gaussian = Gaussian::new(0.0, sigma).expect("a positive deviation");
+        let mut rng = StdRng::seed_from_u64(3);
+        let mut pinned = vec![false; p];
+        pinned[0] = true;
+        let noisy: Vec<f64> = clean
+            .iter()
+            .enumerate()
+            .map(|(o, &x)| {
+                if pinned[(o / 3) % p] {
+                    x
+                } else {
+                    x + gaussian.sample(&mut rng)
+                }
+            })
+            .collect();
+        let track = |positions: &[f64]| Track {
+            frames,
+            particles: p,
+            positions: positions.iter().map(|&x| x as f32).collect(),
+            velocities: vec![0.0; positions.len()],
+            stored_velocities: true,
+            pinned: pinned.clone(),
+            visible: None,
+        };
+        let physics = test_physics();
+        let pattern = Pattern::new(&topo);
+        let sums = |t: &Track, noise: f64| {
+            let stencil = Stencil {
+                w: 1,
+                velocities: false,
+                noise,
+            };
+            let mut acc = pattern.empty_sums();
+            for j in 1..frames - 1 {
+                accumulate(&mut acc, &pattern, &topo, t, &physics, j, stencil);
+            }
+            acc
+        };
+        let (exact, measured) = (sums(&track(&clean), 0.0), sums(&track(&noisy), sigma));
+        assert!(exact.noise.iter().all(|&n| n == 0.0));
+        let diagonal = |sums: &Sums, s: usize| {
+            let row = &pattern.col[pattern.row_start[s]..pattern.row_start[s + 1]];
+            sums.blocks[pattern.row_start[s] + row.binary_search(&s).unwrap()][0]
+        };
+        let dilution = measured.dilution(&pattern);
+        // Particle 0 is pinned: its springs' noise is that of their free end alone.
+        for (s, &[a, b]) in topo.springs.iter().enumerate() {
+            let excess = diagonal(&measured, s) - diagonal(&exact, s);
+            let expected = measured.noise[s];
+            assert!(
+                (excess / expected - 1.0).abs() < 0.1,
+                "spring {s} ({a}–{b}): noise added {excess:e} to its diagonal, {expected:e} expected"
+            );
+            let share = diagonal(&exact, s) / diagonal(&measured, s);
+            assert!(
+                (dilution[s] / share - 1.0).abs() < 0.1,
+                "spring {s}: dilution {} against the clean share {share}",
+                dilution[s]
+            );
+        }
     }
 
     /// The dense `A` of a `Normal`, column by column.

@@ -1329,6 +1329,13 @@ impl Fit<'_> {
                 100.0 * (1.0 - r.residual_fitted.powi(2))
             ));
         }
+        if r.noise > 0.0 {
+            self.progress.note(&format!(
+                "least squares: the positions' noise ({:.2} mm per axis,                  `train.least_squares.noise`) diluted the fitted k of the median spring to {:.0} %                  of its value; the fit divided it out, spring by spring",
+                1e3 * r.noise,
+                100.0 * r.dilution_median
+            ));
+        }
         crate::io::write_json(&self.run.least_squares(), r)?;
         if !r.settled {
             self.progress.note(
