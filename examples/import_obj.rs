@@ -26,6 +26,7 @@ fn main() -> Result<()> {
         size: None,
         gravity: None,
         rayleigh: None,
+        position_noise: None,
         force: true,
     };
     let summary = obj::import_sequence(&dir, &options)?;

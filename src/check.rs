@@ -200,15 +200,7 @@ impl Survey {
             }
         }
         let r = Rollout::from_npz(&npz)?;
-        let info = SetInfo {
-            frame_dt: r.frame_dt,
-            total_mass: r.total_mass,
-            width: r.width,
-            height: r.height,
-            landmarks: r.landmarks,
-            gravity: r.gravity,
-            rayleigh: r.rayleigh,
-        };
+        let info = SetInfo::of(&r);
         if let Some((info0, r0)) = &self.first {
             check_same(info0, &info, path, first_path)?;
             check_same_landmarks(&r0.rest_uv, &r.rest_uv, path, first_path)?;

@@ -686,6 +686,11 @@ pub struct ImportArgs {
     /// used one (stored in the rollout; default: none stored, training fits it).
     #[arg(long, value_name = "C")]
     pub rayleigh: Option<f64>,
+    /// The positions' measurement noise, m per axis (a capture's marker accuracy; stored in
+    /// the rollout as `position_noise`, which the least-squares fit takes out; default: none
+    /// stored, exact positions).
+    #[arg(long, value_name = "SIGMA")]
+    pub position_noise: Option<f64>,
     /// Overwrite an existing rollout file.
     #[arg(long)]
     pub force: bool,
@@ -715,6 +720,7 @@ impl ImportArgs {
             size,
             gravity,
             rayleigh: self.rayleigh,
+            position_noise: self.position_noise,
             force: self.force,
         })
     }
@@ -1884,6 +1890,7 @@ impl SimulateStart {
             mesh: None,
             gravity: Some(physics.gravity),
             rayleigh: Some(physics.rayleigh),
+            position_noise: None,
             visible: None,
         }
     }

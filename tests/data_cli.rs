@@ -138,6 +138,27 @@ fn data_check_fails_naming_the_file_and_key() {
         &springtime(&["data", "check", "damaged_gravity"], &dir),
         &["g.npz", "`gravity`", "plausible"],
     );
+    // A marker accuracy in millimetres written as metres; a plausible one is read as stated.
+    for (value, name) in [(2.0, "mm_as_m.npz"), (0.002, "capture.npz")] {
+        let mut npz = springtime::data::npz::Npz::read(&fixture("npz_savez.npz")).unwrap();
+        npz.insert(
+            "position_noise",
+            springtime::data::npz::Array::scalar(value),
+        );
+        std::fs::create_dir_all(dir.join("noise")).unwrap();
+        npz.write(&dir.join("noise").join(name)).unwrap();
+        let read = springtime::data::Rollout::load(&dir.join("noise").join(name));
+        match read {
+            Ok(r) => assert_eq!((name, r.position_noise), ("capture.npz", Some(0.002))),
+            Err(e) => {
+                let e = format!("{e:#}");
+                assert!(
+                    name == "mm_as_m.npz" && e.contains(name) && e.contains("`position_noise`"),
+                    "{e}"
+                );
+            }
+        }
+    }
     fails(
         &springtime(&["data", "check", "nowhere"], &dir),
         &["nowhere"],

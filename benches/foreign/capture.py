@@ -12,6 +12,8 @@ Every take under SRC/train and SRC/test is written to the same place under DST w
   occlusion bursts (a disc over a fifth of the sheet's width, in the rest rectangle, that hides
   every marker under it for 0.1-0.4 s at a time and moves between bursts);
 - hidden positions written as NaN and a `visible` [F, N] bool mask (springtime's rollout format);
+- the noise's standard deviation as `position_noise` (m per axis: the marker accuracy a capture
+  states, which springtime's least-squares fit takes out);
 - stored velocities dropped (a capture has none).
 
 Other keys (`triangles`, `tri_stiffness`, ...) are kept, so the Spearman against the source's map
@@ -57,6 +59,8 @@ def corrupt(take: dict, noise: float, missing: float, rng: np.random.Generator) 
     out = {k: v for k, v in take.items() if k not in ("positions", "velocities", "visible")}
     out["positions"] = noisy.astype(np.float32)
     out["visible"] = seen
+    # The marker accuracy, as a capture states it: springtime's least-squares fit takes it out.
+    out["position_noise"] = np.float64(noise)
     return out
 
 

@@ -14,7 +14,7 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py --sims mujoco,warp --materials soft --quick
     python3 benches/foreign/run.py --set train.scale_search=false --tag noscale
     python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
-                                 # (trains with train.least_squares.noise = the capture's noise)
+                                 # (the copies state their noise: `position_noise`)
     python3 benches/foreign/run.py --source-map             # + what the source's own map wins
 
 `--source-map` runs `springtime diagnose` on each finished run and adds its source-map
@@ -148,12 +148,13 @@ def capture(sim, material, data: Path, a) -> Path:
     args = [str(data), str(out), "--noise", str(noise), "--missing", str(missing),
             "--seed", str(a.seed)]
     record = out / "capture-args.json"
-    same = record.exists() and json.loads(record.read_text()) == {
-        "args": args, "source": (data / "bench-args.json").read_text()}
+    # The copies' format: 2 writes `position_noise`.
+    wanted = {"args": args, "source": (data / "bench-args.json").read_text(), "format": 2}
+    same = record.exists() and json.loads(record.read_text()) == wanted
     if not same:
         py = venv_python(a.venvs, sim)
         subprocess.run([str(py), str(HERE / "capture.py"), *args], check=True)
-        record.write_text(json.dumps({"args": args, "source": (data / "bench-args.json").read_text()}))
+        record.write_text(json.dumps(wanted))
     return out
 
 
@@ -164,10 +165,6 @@ def train(sim, material, data: Path, a):
     cmd = [str(a.springtime), "train", str(a.config), "--out", str(run), "--force",
            "--set", f"data.dir={data / 'train'}", "--set", f"data.test_dir={data / 'test'}",
            "--set", "eval.uniform_baseline=true"]
-    if a.capture:
-        # The capture's marker accuracy, as a capture's user states it: the least-squares fit
-        # takes the noise's dilution out of its values (`train.least_squares.noise`).
-        cmd += ["--set", f"train.least_squares.noise={a.capture[0]:g}"]
     for s in a.set:
         cmd += ["--set", s]
     print(f"[{sim}-{material}] {' '.join(cmd)}", flush=True)

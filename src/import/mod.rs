@@ -39,6 +39,9 @@ pub struct ImportOptions {
     /// Rayleigh damping `c` of `−c ẋ` on every point, N·s/m (stored as the key `rayleigh`;
     /// default: not stored, so training fits it).
     pub rayleigh: Option<f64>,
+    /// The positions' measurement noise, m per axis (stored as the key `position_noise`;
+    /// default: not stored, exact positions).
+    pub position_noise: Option<f64>,
     /// Overwrite an existing output file.
     pub force: bool,
 }
@@ -403,6 +406,7 @@ pub fn write_rollout(
         mesh,
         gravity: options.gravity,
         rayleigh: options.rayleigh,
+        position_noise: options.position_noise,
         visible: motion
             .visible
             .clone()

@@ -329,6 +329,7 @@ impl Scene {
             mesh: sheet.mesh,
             gravity: Some(sheet.gravity),
             rayleigh: Some(sheet.rayleigh),
+            position_noise: None,
             visible: None,
         }
     }

@@ -315,6 +315,8 @@ pub struct SetInfo {
     pub gravity: Option<[f64; 3]>,
     /// Rayleigh damping per landmark the files state, N·s/m (key `rayleigh`).
     pub rayleigh: Option<f64>,
+    /// The positions' measurement noise the files state, m per axis (key `position_noise`).
+    pub position_noise: Option<f64>,
 }
 
 impl SetInfo {
@@ -727,7 +729,7 @@ impl Sampler {
 
 impl SetInfo {
     /// The constants of `rollout`.
-    fn of(rollout: &Rollout) -> Self {
+    pub fn of(rollout: &Rollout) -> Self {
         Self {
             frame_dt: rollout.frame_dt,
             total_mass: rollout.total_mass,
@@ -736,6 +738,7 @@ impl SetInfo {
             landmarks: rollout.landmarks,
             gravity: rollout.gravity,
             rayleigh: rollout.rayleigh,
+            position_noise: rollout.position_noise,
         }
     }
 }
@@ -872,11 +875,16 @@ pub fn check_same(a: &SetInfo, b: &SetInfo, path: &Path, first: &Path) -> Result
             a.rayleigh.as_ref().map(std::slice::from_ref),
             b.rayleigh.as_ref().map(std::slice::from_ref),
         ),
+        (
+            "position_noise",
+            a.position_noise.as_ref().map(std::slice::from_ref),
+            b.position_noise.as_ref().map(std::slice::from_ref),
+        ),
     ] {
         if !same(x, y) {
             bail!(
                 "{}: key `{key}` = {y:?} differs from {} ({x:?}): all rollouts of a set must \
-                 share their external forces",
+                 share their external forces and measurement noise",
                 path.display(),
                 first.display()
             );

@@ -10,6 +10,7 @@
 //! | `width`, `height` | f64 | scalar | size of the rest rectangle, m |
 //! | `velocities` | f32 | `[F, N, 3]` | optional; landmark velocities per frame, m/s |
 //! | `visible` | bool | `[F, N]` | optional; whether each landmark was seen in each frame (tracked markers: occlusions, dropped tracks). A hidden landmark's position (and velocity) may be NaN; the reader fills it from its seen frames before and after, carried by the motion of its nearest seen neighbours (`fill_hidden`), which serves only as a start state or a pin's path: every loss, fit and motion RMSE of the spring network and the Neural ODE skips hidden landmarks (the GNN baseline reads the filled positions). Absent, or all true: every landmark seen |
+//! | `position_noise` | f64 | scalar | optional; the positions' measurement noise, m per axis (a capture's marker accuracy): `train.least_squares.noise = "auto"` takes it (absent: exact positions) |
 //! | `segments` | i64 | `[K, 2]` | optional; `(first frame, frame count)` of each stored window of a longer rollout, in order (default: one window from frame 0) |
 //! | `springs`, `spring_k`, `spring_b` | i32, f32, f32 | `[S, 2]`, `[S]`, `[S]` | optional ground truth of a mass-spring source |
 //! | `triangles` | i32 | `[M, 3]` | optional; the landmarks' triangle mesh (the surrogate's springs with `cloth.layout = "data"`) |
@@ -94,6 +95,8 @@ pub struct Rollout {
     /// Whether each landmark was seen in each frame, `[F, N]` (key `visible`); `None` when
     /// every landmark was seen in every frame. Hidden positions hold the reader's fill.
     pub visible: Option<Vec<bool>>,
+    /// The positions' measurement noise, m per axis (key `position_noise`), when the file says.
+    pub position_noise: Option<f64>,
 }
 
 /// The plausible range `(low, high, unit)` of a rollout's scalar `key` (SI units, generous for
@@ -131,6 +134,7 @@ pub const KEYS: &[&str] = &[
     "gravity",
     "rayleigh",
     "visible",
+    "position_noise",
 ];
 
 impl Rollout {
@@ -191,6 +195,7 @@ impl Rollout {
             mesh: mesh_of(npz, &rest_uv, [width, height])?,
             gravity: gravity_of(npz)?,
             rayleigh: rayleigh_of(npz)?,
+            position_noise: position_noise_of(npz)?,
             rest_uv,
             pinned,
             frame_dt,
@@ -228,6 +233,9 @@ impl Rollout {
         }
         if let Some(seen) = &self.visible {
             npz.insert("visible", Array::bool(&[f, n], seen));
+        }
+        if let Some(sigma) = self.position_noise {
+            npz.insert("position_noise", Array::scalar(sigma));
         }
         let whole = self.segments.len() == 1 && self.segments[0].start == 0;
         if !whole {
@@ -476,6 +484,24 @@ fn rayleigh_of(npz: &Npz) -> Result<Option<f64>> {
         );
     }
     Ok(Some(c))
+}
+
+/// The largest plausible measurement noise, m per axis (beyond it, a unit mix-up: millimetres
+/// written as metres).
+const MAX_POSITION_NOISE: f64 = 0.1;
+
+fn position_noise_of(npz: &Npz) -> Result<Option<f64>> {
+    if !npz.has("position_noise") {
+        return Ok(None);
+    }
+    let sigma = npz.scalar("position_noise")?;
+    if !(0.0..=MAX_POSITION_NOISE).contains(&sigma) {
+        bail!(
+            "{}: key `position_noise` must be a standard deviation in m per axis, from 0 to              {MAX_POSITION_NOISE} m, is {sigma}",
+            npz.path.display()
+        );
+    }
+    Ok(Some(sigma))
 }
 
 /// Checks that `values` (`[F, N, 3]`, of `key`) are finite wherever `seen`, then fills each

@@ -318,6 +318,7 @@ mod tests {
             }),
             gravity: None,
             rayleigh: None,
+            position_noise: None,
             visible: None,
         }
     }

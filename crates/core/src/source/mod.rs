@@ -382,6 +382,7 @@ pub fn simulate_rollout(
         mesh: sim.mesh_truth(),
         gravity: Some(cfg.gravity),
         rayleigh: Some(cfg.rayleigh),
+        position_noise: None,
         visible: None,
     })
 }

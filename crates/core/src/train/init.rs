@@ -602,6 +602,15 @@ pub fn resolve(
     out.sim.gravity = Auto::Value(gravity);
     out.sim.rayleigh = Auto::Value(rayleigh);
     out.sim.substeps = Auto::Value(substeps);
+    out.train.least_squares.noise = Auto::Value(
+        config
+            .train
+            .least_squares
+            .noise
+            .value()
+            .or(info.position_noise)
+            .unwrap_or(0.0),
+    );
     out.model.k_init = Auto::Value(k);
     out.model.b_init = Auto::Value(b);
     let resolution = Resolution {

@@ -59,13 +59,14 @@ pub struct LeastSquaresConfig {
     /// instead of the uniform start's or zero (0 = none).
     pub smoothness: f64,
     /// Standard deviation per axis of the positions' measurement noise, m (a capture's marker
-    /// accuracy; 0 = exact positions, a simulator's). Noise in the positions enters the springs'
+    /// accuracy; 0 = exact positions, a simulator's; `"auto"`: the rollouts' `position_noise`,
+    /// else 0). Noise in the positions enters the springs'
     /// unit forces as well as the target, which biases a plain least-squares fit: it dilutes
     /// every spring's `k` towards zero by its strain's signal-to-noise ratio — most where the
     /// cloth is stiffest and strains least, which reverses the map's ranks — and correlates the
     /// centre frame's noise with the target's. The expected noise terms are taken out of the
     /// normal equations (errors-in-variables correction).
-    pub noise: f64,
+    pub noise: Auto<f64>,
     /// The training clips whose frames are fitted: `all`, or `low_velocity` (the last seconds
     /// of each rollout, where a camera-rate target is least noisy: the paper's stiffness pass
     /// uses them) or `regular`.
@@ -85,7 +86,7 @@ impl Default for LeastSquaresConfig {
             frames: 4096,
             prior: 1e-9,
             smoothness: 0.0,
-            noise: 0.0,
+            noise: Auto::Auto,
             clips: super::ClipPool::All,
             max_iterations: 20_000,
             tolerance: 1e-10,
@@ -130,10 +131,12 @@ impl LeastSquaresConfig {
                 self.smoothness
             );
         }
-        if !(self.noise >= 0.0 && self.noise.is_finite()) {
+        if let Auto::Value(sigma) = self.noise
+            && !(sigma >= 0.0 && sigma.is_finite())
+        {
             bail!(
-                "`train.least_squares.noise` must be a non-negative length in m, is {}",
-                self.noise
+                "`train.least_squares.noise` must be a non-negative length in m (or \"auto\"), \
+                 is {sigma}"
             );
         }
         if self.max_iterations == 0 {
@@ -565,7 +568,7 @@ fn fit_with(
         converged: normal_residual <= config.tolerance,
         settled,
         fixed_at_zero: free.iter().filter(|f| !**f).count(),
-        noise: config.noise,
+        noise: config.noise.value().unwrap_or(0.0),
         dilution_median: {
             let mut sorted = dilution.clone();
             sorted.sort_by(f64::total_cmp);
@@ -662,7 +665,7 @@ fn accumulate_centres(
         let stencil = Stencil {
             w,
             velocities,
-            noise: config.noise,
+            noise: config.noise.value().unwrap_or(0.0),
         };
         // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
         // on every run and machine.
