@@ -1331,7 +1331,9 @@ impl Fit<'_> {
         }
         if r.noise > 0.0 {
             self.progress.note(&format!(
-                "least squares: the positions' noise ({:.2} mm per axis,                  `train.least_squares.noise`) diluted the fitted k of the median spring to {:.0} %                  of its value; the fit divided it out, spring by spring",
+                "least squares: the positions' noise ({:.2} mm per axis, \
+                 `train.least_squares.noise`) diluted the fitted k of the median spring to {:.0} \
+                 % of its value; the fit divided it out, spring by spring",
                 1e3 * r.noise,
                 100.0 * r.dilution_median
             ));
