@@ -497,7 +497,8 @@ fn position_noise_of(npz: &Npz) -> Result<Option<f64>> {
     let sigma = npz.scalar("position_noise")?;
     if !(0.0..=MAX_POSITION_NOISE).contains(&sigma) {
         bail!(
-            "{}: key `position_noise` must be a standard deviation in m per axis, from 0 to              {MAX_POSITION_NOISE} m, is {sigma}",
+            "{}: key `position_noise` must be a standard deviation in m per axis, from 0 to \
+             {MAX_POSITION_NOISE} m, is {sigma}",
             npz.path.display()
         );
     }

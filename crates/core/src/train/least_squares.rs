@@ -60,12 +60,12 @@ pub struct LeastSquaresConfig {
     pub smoothness: f64,
     /// Standard deviation per axis of the positions' measurement noise, m (a capture's marker
     /// accuracy; 0 = exact positions, a simulator's; `"auto"`: the rollouts' `position_noise`,
-    /// else 0). Noise in the positions enters the springs'
-    /// unit forces as well as the target, which biases a plain least-squares fit: it dilutes
-    /// every spring's `k` towards zero by its strain's signal-to-noise ratio — most where the
-    /// cloth is stiffest and strains least, which reverses the map's ranks — and correlates the
-    /// centre frame's noise with the target's. The expected noise terms are taken out of the
-    /// normal equations (errors-in-variables correction).
+    /// else 0). Noise in the positions enters the springs' unit forces as well as the target,
+    /// which dilutes a plain least-squares fit's `k` of every spring by the share of its
+    /// regressor's power that is signal — least where the cloth is stiffest and strains least,
+    /// which reverses the map's ranks. Each spring's fitted `k` is divided by that share, its
+    /// noise's expected part of its own diagonal taken out (the attenuation correction, spring
+    /// by spring; its median is `least_squares.json`'s `dilution_median`).
     pub noise: Auto<f64>,
     /// The training clips whose frames are fitted: `all`, or `low_velocity` (the last seconds
     /// of each rollout, where a camera-rate target is least noisy: the paper's stiffness pass
@@ -294,28 +294,21 @@ impl Pattern {
 /// spring whose strains are all noise is divided by at most 1 / NOISE_FLOOR.
 const NOISE_FLOOR: f64 = 0.01;
 
-impl Sums {
-    /// Per spring, the factor by which the positions' noise dilutes its fitted `k`: the share
-    /// of its measured diagonal `A_ss` that is not the noise's expected `N_ss` (at least
-    /// `NOISE_FLOOR`; 1 without noise).
-    fn dilution(&self, pattern: &Pattern) -> Vec<f64> {
-        (0..self.noise.len())
-            .map(|s| {
-                let row = &pattern.col[pattern.row_start[s]..pattern.row_start[s + 1]];
-                let own = pattern.row_start[s]
-                    + row
-                        .binary_search(&s)
-                        .expect("a spring's own block is in the pattern");
-                let (a, n) = (self.blocks[own][0], self.noise[s]);
-                if n > 0.0 && a > 0.0 {
-                    (a - n).max(NOISE_FLOOR * a) / a
-                } else {
-                    1.0
-                }
-            })
-            .collect()
-    }
+/// Per spring, the factor by which the positions' noise dilutes its fitted `k`: the share of
+/// its measured `k`–`k` diagonal `A_ss` (of `diag`, [`Normal::diagonal`]) that is not the
+/// noise's expected `N_ss` (of `noise`, [`Sums::noise`]), at least `NOISE_FLOOR`; 1 without
+/// noise.
+fn dilution(diag: &[[f64; 4]], noise: &[f64]) -> Vec<f64> {
+    diag.iter()
+        .zip(noise)
+        .map(|(m, &n)| match m[0] {
+            a if n > 0.0 && a > 0.0 => (a - n).max(NOISE_FLOOR * a) / a,
+            _ => 1.0,
+        })
+        .collect()
+}
 
+impl Sums {
     fn add(&mut self, other: &Sums) {
         for (a, b) in self.blocks.iter_mut().zip(&other.blocks) {
             for (x, y) in a.iter_mut().zip(b) {
@@ -515,7 +508,6 @@ fn fit_with(
     if sums.samples == 0 {
         bail!("`train.least_squares`: the training clips have no free particle to fit");
     }
-    let dilution = sums.dilution(pattern);
     let normal = Normal { pattern, sums };
     let n = normal.unknowns();
     let initial: Vec<f64> = (0..n)
@@ -523,6 +515,7 @@ fn fit_with(
         .collect();
     let residual_initial = normal.relative_residual(&initial);
     let diag = normal.diagonal();
+    let dilution = dilution(&diag, &normal.sums.noise);
     let (mean_k, mean_b) = kind_means(&diag);
     let shift: Vec<f64> = (0..n)
         .map(|i| config.prior * if i % 2 == 0 { mean_k } else { mean_b })
@@ -764,6 +757,9 @@ fn accumulate(
     let (m, c, g) = (physics.mass, physics.rayleigh, physics.gravity);
     let h = w as f64 * physics.frame_dt;
     let mut cols: Vec<([f64; 3], [f64; 3])> = Vec::new();
+    // One end's noise variance in a unit force, over the stencil's tent-weighted frames.
+    let end_noise =
+        stencil.noise * stencil.noise * weights.iter().map(|&(_, w)| w * w).sum::<f64>();
     // With hidden particles, a row counts only where the particle and the far ends of its
     // springs are seen over the whole stencil (and the frames its velocities difference).
     let window = j.saturating_sub(w + 1)..=j + w + 1;
@@ -809,16 +805,14 @@ fn accumulate(
             }
         }
         acc.yy += dot(&y, &y);
-        if stencil.noise > 0.0 {
+        if end_noise > 0.0 {
             // Each spring's unit force moves with the noise of its two ends along it (one where
-            // the far end is pinned), over the stencil's frames.
-            let var = stencil.noise * stencil.noise;
-            let tent: f64 = weights.iter().map(|&(_, w)| w * w).sum();
+            // the far end is pinned).
             for &(s, _) in &pattern.incident[i] {
                 let [a, b] = topo.springs[s];
                 let far = if a == i { b } else { a };
                 let ends = if track.pinned[far] { 1.0 } else { 2.0 };
-                acc.noise[s] += scale * scale * ends * var * tent;
+                acc.noise[s] += scale * scale * ends * end_noise;
             }
         }
         acc.rows += 3;
@@ -1209,20 +1203,25 @@ mod tests {
         };
         let (exact, measured) = (sums(&track(&clean), 0.0), sums(&track(&noisy), sigma));
         assert!(exact.noise.iter().all(|&n| n == 0.0));
-        let diagonal = |sums: &Sums, s: usize| {
-            let row = &pattern.col[pattern.row_start[s]..pattern.row_start[s + 1]];
-            sums.blocks[pattern.row_start[s] + row.binary_search(&s).unwrap()][0]
+        let noise = measured.noise.clone();
+        let diagonal = |sums: Sums| {
+            Normal {
+                pattern: &pattern,
+                sums,
+            }
+            .diagonal()
         };
-        let dilution = measured.dilution(&pattern);
+        let (exact, measured) = (diagonal(exact), diagonal(measured));
+        let dilution = dilution(&measured, &noise);
         // Particle 0 is pinned: its springs' noise is that of their free end alone.
         for (s, &[a, b]) in topo.springs.iter().enumerate() {
-            let excess = diagonal(&measured, s) - diagonal(&exact, s);
-            let expected = measured.noise[s];
+            let excess = measured[s][0] - exact[s][0];
+            let expected = noise[s];
             assert!(
                 (excess / expected - 1.0).abs() < 0.1,
                 "spring {s} ({a}–{b}): noise added {excess:e} to its diagonal, {expected:e} expected"
             );
-            let share = diagonal(&exact, s) / diagonal(&measured, s);
+            let share = exact[s][0] / measured[s][0];
             assert!(
                 (dilution[s] / share - 1.0).abs() < 0.1,
                 "spring {s}: dilution {} against the clean share {share}",
