@@ -255,6 +255,31 @@ impl Track {
                 .all(|f| self.seen(f, i))
     }
 
+    /// Where each sample `[F × P]` is seen or its landmark's hidden run is bridgeable: at most
+    /// `max_gap` frames long, with seen frames on both sides (the reader's fill there rests on
+    /// seen frames close by). `None` where every landmark is seen in every frame.
+    pub fn bridged(&self, max_gap: usize) -> Option<Vec<bool>> {
+        let seen = self.visible.as_ref()?;
+        let (f, p) = (self.frames, self.particles);
+        let mut out = seen.clone();
+        for i in 0..p {
+            let mut start = None; // first hidden frame of the current run
+            for frame in 0..f {
+                match (seen[frame * p + i], start) {
+                    (false, None) => start = Some(frame),
+                    (true, Some(a)) => {
+                        if a > 0 && frame - a <= max_gap {
+                            (a..frame).for_each(|q| out[q * p + i] = true);
+                        }
+                        start = None;
+                    }
+                    _ => {}
+                }
+            }
+        }
+        Some(out)
+    }
+
     /// Whether particle `i`'s velocity at frame `f` rests on seen positions: stored velocities
     /// on frame `f` alone, differences of positions on frames `f − 1 … f + 1`.
     pub fn velocity_seen(&self, i: usize, f: usize) -> bool {
@@ -935,5 +960,40 @@ mod tests {
         seen.extend(s.next(6));
         seen.sort();
         assert_eq!(seen, (0..10).collect::<Vec<_>>());
+    }
+
+    /// Hidden runs of at most `max_gap` frames with seen frames on both sides are bridged; a
+    /// longer run, or one at either end of the track, is not.
+    #[test]
+    fn short_interior_gaps_are_bridged() {
+        let frames = 12;
+        let hidden = [0, 3, 5, 6, 8, 9, 10];
+        let track = Track {
+            frames,
+            particles: 2,
+            positions: vec![0.0; frames * 2 * 3],
+            velocities: vec![0.0; frames * 2 * 3],
+            stored_velocities: false,
+            pinned: vec![false; 2],
+            visible: Some(
+                (0..frames)
+                    .flat_map(|f| [!hidden.contains(&f), f != 11])
+                    .collect(),
+            ),
+        };
+        let bridged = track.bridged(2).expect("a mask");
+        let of =
+            |i: usize| -> Vec<usize> { (0..frames).filter(|&f| !bridged[f * 2 + i]).collect() };
+        assert_eq!(of(0), vec![0, 8, 9, 10]);
+        assert_eq!(of(1), vec![11]);
+        assert_eq!(
+            track.bridged(0).expect("a mask"),
+            *track.visible.as_ref().unwrap()
+        );
+        let all_seen = Track {
+            visible: None,
+            ..track
+        };
+        assert!(all_seen.bridged(2).is_none());
     }
 }

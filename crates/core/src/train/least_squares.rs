@@ -67,6 +67,13 @@ pub struct LeastSquaresConfig {
     /// noise's expected part of its own diagonal taken out (the attenuation correction, spring
     /// by spring; its median is `least_squares.json`'s `dilution_median`).
     pub noise: Auto<f64>,
+    /// Where markers are hidden (`visible`), the longest run of hidden frames, in frames, across
+    /// which a spring's far end is read from the reader's fill (carried by its seen neighbours
+    /// from seen frames on both sides), as motion-capture software bridges short gaps. A row
+    /// needs its own particle seen over its stencil; without bridging it also needs every far end
+    /// seen there, and with a twelfth of a sheet's samples dropped at random few rows are left
+    /// (0: no bridging).
+    pub bridge: usize,
     /// The training clips whose frames are fitted: `all`, or `low_velocity` (the last seconds
     /// of each rollout, where a camera-rate target is least noisy: the paper's stiffness pass
     /// uses them) or `regular`.
@@ -87,6 +94,7 @@ impl Default for LeastSquaresConfig {
             prior: 1e-9,
             smoothness: 0.0,
             noise: Auto::Auto,
+            bridge: 2,
             clips: super::ClipPool::All,
             max_iterations: 20_000,
             tolerance: 1e-10,
@@ -163,6 +171,9 @@ pub struct LeastSquaresRecord {
     pub velocity_frames: usize,
     /// Free particle × centre frame samples (three force rows each).
     pub samples: usize,
+    /// Free particle × centre frame samples left out because a marker they read was hidden:
+    /// the particle over its stencil, or a far end of its springs beyond `bridge` frames.
+    pub hidden_samples: usize,
     /// Unknowns (`k` and `b` of every spring).
     pub unknowns: usize,
     /// Unknowns that no sample constrains (they keep the initial value).
@@ -220,6 +231,8 @@ struct Sums {
     yy: f64,
     rows: usize,
     samples: usize,
+    /// Free particle × centre frame samples left out where a marker they read was hidden.
+    hidden: usize,
 }
 
 /// Accumulated sums with their sparsity pattern.
@@ -286,6 +299,7 @@ impl Pattern {
             yy: 0.0,
             rows: 0,
             samples: 0,
+            hidden: 0,
         }
     }
 }
@@ -324,6 +338,7 @@ impl Sums {
         self.yy += other.yy;
         self.rows += other.rows;
         self.samples += other.samples;
+        self.hidden += other.hidden;
     }
 }
 
@@ -551,6 +566,7 @@ fn fit_with(
         frames: by_rollout.iter().map(|(_, js)| js.len()).sum(),
         velocity_frames,
         samples: normal.sums.samples,
+        hidden_samples: normal.sums.hidden,
         unknowns: n,
         unconstrained,
         target_rms: (normal.sums.yy / normal.sums.rows.max(1) as f64).sqrt(),
@@ -660,6 +676,7 @@ fn accumulate_centres(
             velocities,
             noise: config.noise.value().unwrap_or(0.0),
         };
+        let bridged = track.bridged(config.bridge);
         // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
         // on every run and machine.
         let parts: Vec<Sums> = js
@@ -667,7 +684,11 @@ fn accumulate_centres(
             .map(|chunk| {
                 let mut acc = pattern.empty_sums();
                 for &j in chunk {
-                    accumulate(&mut acc, pattern, topo, &track, physics, j, stencil);
+                    let seen = Seen {
+                        track: &track,
+                        bridged: bridged.as_deref(),
+                    };
+                    accumulate(&mut acc, pattern, topo, seen, physics, j, stencil);
                 }
                 acc
             })
@@ -716,16 +737,36 @@ impl Stencil {
     }
 }
 
-/// Adds the rows of the free particles at centre frame `j` of `track`.
+/// A track and where its far ends may be read: seen, or bridged across a short gap
+/// ([`Track::bridged`](crate::data::Track::bridged); `None`: where seen).
+#[derive(Clone, Copy)]
+struct Seen<'a> {
+    track: &'a crate::data::Track,
+    bridged: Option<&'a [bool]>,
+}
+
+#[cfg(test)]
+impl<'a> Seen<'a> {
+    /// `track` with its far ends read where seen only.
+    fn plain(track: &'a crate::data::Track) -> Self {
+        Self {
+            track,
+            bridged: None,
+        }
+    }
+}
+
+/// Adds the rows of the free particles at centre frame `j` of `seen.track`.
 fn accumulate(
     acc: &mut Sums,
     pattern: &Pattern,
     topo: &Topology,
-    track: &crate::data::Track,
+    seen: Seen<'_>,
     physics: &Physics,
     j: usize,
     stencil: Stencil,
 ) {
+    let track = seen.track;
     let w = stencil.w;
     let p = topo.num_particles();
     let at = |buf: &[f32], q: usize, i: usize| -> [f64; 3] {
@@ -760,18 +801,29 @@ fn accumulate(
     // One end's noise variance in a unit force, over the stencil's tent-weighted frames.
     let end_noise =
         stencil.noise * stencil.noise * weights.iter().map(|&(_, w)| w * w).sum::<f64>();
-    // With hidden particles, a row counts only where the particle and the far ends of its
-    // springs are seen over the whole stencil (and the frames its velocities difference).
-    let window = j.saturating_sub(w + 1)..=j + w + 1;
-    let seen = |i: usize| track.seen_throughout(i, window.clone());
+    // With hidden particles, a row counts only where the particle is seen over the whole
+    // stencil (frames j − w … j + w: its acceleration, and the central differences of its
+    // velocities), and the far ends of its springs are seen or bridged there.
+    let window = j - w..=j + w;
+    let far_seen = |e: usize| match seen.bridged {
+        Some(bridged) => window
+            .clone()
+            .take_while(|&f| f < track.frames)
+            .all(|f| bridged[f * p + e]),
+        None => track.seen_throughout(e, window.clone()),
+    };
     let row_seen = |i: usize| {
         track.visible.is_none()
-            || (seen(i)
+            || (track.seen_throughout(i, window.clone())
                 && pattern.incident[i]
                     .iter()
-                    .all(|&(s, _)| topo.springs[s].iter().all(|&e| seen(e))))
+                    .all(|&(s, _)| topo.springs[s].iter().all(|&e| e == i || far_seen(e))))
     };
-    for i in (0..p).filter(|&i| !track.pinned[i] && row_seen(i)) {
+    for i in (0..p).filter(|&i| !track.pinned[i]) {
+        if !row_seen(i) {
+            acc.hidden += 1;
+            continue;
+        }
         let accel: [f64; 3] = if stencil.velocities {
             let (a, e) = (at(&track.velocities, j, i), at(&track.velocities, j + w, i));
             [0, 1, 2].map(|d| (e[d] - a[d]) / h)
@@ -1011,7 +1063,15 @@ mod tests {
             noise: 0.0,
         };
         for j in 1..=4 {
-            accumulate(&mut sums, &pattern, &topo, &track, &physics, j, stencil);
+            accumulate(
+                &mut sums,
+                &pattern,
+                &topo,
+                Seen::plain(&track),
+                &physics,
+                j,
+                stencil,
+            );
         }
         // The dense rows: one per (centre, particle, axis).
         let at = |buf: &[f32], q: usize, i: usize| -> [f64; 3] {
@@ -1056,8 +1116,6 @@ mod tests {
         (topo, sums, jac, y)
     }
 
-    /// With particle 0 of a 4 × 4 sheet hidden in frames 5 and 6, moving it there changes no
-    /// sum, and the rows whose stencil would read it (its own and its neighbours') are gone.
     /// A track of `p` free particles over `frames` frames, its velocities not stored.
     fn free_track(
         frames: usize,
@@ -1077,8 +1135,12 @@ mod tests {
         }
     }
 
+    /// With particle 0 of a 4 × 4 sheet hidden in frames 5 and 6, moving it there changes no
+    /// sum without bridging, and the rows whose stencil would read it (its own and its
+    /// neighbours') are gone. Bridging two frames brings its neighbours' rows back (they read
+    /// its fill there); a third hidden frame is a gap too long to bridge.
     #[test]
-    fn hidden_particles_add_no_rows() {
+    fn hidden_particles_add_no_rows_and_short_gaps_are_bridged() {
         let points: Vec<[f64; 2]> = (0..4)
             .flat_map(|j| (0..4).map(move |i| [i as f64 * 0.5, j as f64 * 0.5]))
             .collect();
@@ -1115,24 +1177,39 @@ mod tests {
             velocities: false,
             noise: 0.0,
         };
-        let sums = |t: &Track| {
+        let sums_bridged = |t: &Track, bridge: usize| {
+            let bridged = t.bridged(bridge);
+            let seen = Seen {
+                track: t,
+                bridged: bridged.as_deref(),
+            };
             let mut acc = pattern.empty_sums();
             for j in 2..=9 {
-                accumulate(&mut acc, &pattern, &topo, t, &physics, j, stencil);
+                accumulate(&mut acc, &pattern, &topo, seen, &physics, j, stencil);
             }
             acc
         };
+        let sums = |t: &Track| sums_bridged(t, 0);
         let hidden = sums(&track(positions.clone(), Some(seen.clone())));
-        assert_eq!(hidden, sums(&track(moved.clone(), Some(seen))));
-        let all = sums(&track(positions, None));
+        assert_eq!(hidden, sums(&track(moved.clone(), Some(seen.clone()))));
+        let all = sums(&track(positions.clone(), None));
         assert!(
             all != sums(&track(moved, None)),
             "a seen move must change the sums"
         );
-        // Centres 3…8 read frame 5 or 6 within their window (j − 2 … j + 2: the stencil and the
+        // Centres 4…7 read frame 5 or 6 within their window (j − 1 … j + 1: the stencil and the
         // frames its velocities difference): particle 0 and its neighbours drop out there.
         let neighbours = topo.springs.iter().filter(|s| s.contains(&0)).count();
-        assert_eq!(all.samples - hidden.samples, 6 * (1 + neighbours));
+        assert!(neighbours >= 3);
+        assert_eq!(all.samples - hidden.samples, 4 * (1 + neighbours));
+        assert_eq!((all.hidden, hidden.hidden), (0, 4 * (1 + neighbours)));
+        // Bridged, only particle 0's own rows are gone.
+        let bridged = sums_bridged(&track(positions.clone(), Some(seen.clone())), 2);
+        assert_eq!(all.samples - bridged.samples, 4);
+        // Hidden in frame 7 as well: three frames are too many to bridge (centres 4…8).
+        seen[7 * p] = false;
+        let long = sums_bridged(&track(positions, Some(seen)), 2);
+        assert_eq!(all.samples - long.samples, 5 * (1 + neighbours));
     }
 
     /// White noise of σ per axis on the free particles' positions adds to every spring's
@@ -1197,7 +1274,15 @@ mod tests {
             };
             let mut acc = pattern.empty_sums();
             for j in 1..frames - 1 {
-                accumulate(&mut acc, &pattern, &topo, t, &physics, j, stencil);
+                accumulate(
+                    &mut acc,
+                    &pattern,
+                    &topo,
+                    Seen::plain(t),
+                    &physics,
+                    j,
+                    stencil,
+                );
             }
             acc
         };

@@ -1329,6 +1329,15 @@ impl Fit<'_> {
                 100.0 * (1.0 - r.residual_fitted.powi(2))
             ));
         }
+        if r.hidden_samples > 0 {
+            self.progress.note(&format!(
+                "least squares: hidden markers left out {:.1} % of the free particles' samples \
+                 (the particle hidden over its stencil, or a far end of its springs hidden for \
+                 more than {} frames in a row, `train.least_squares.bridge`)",
+                100.0 * r.hidden_samples as f64 / (r.hidden_samples + r.samples) as f64,
+                config.bridge
+            ));
+        }
         if r.noise > 0.0 {
             self.progress.note(&format!(
                 "least squares: the positions' noise ({:.2} mm per axis, \
