@@ -1844,7 +1844,7 @@ impl SimulateStart {
             let init = init.expect("clap requires --init without --rest");
             let rollout = Rollout::load(init)?;
             let res = Resampler::new(&rollout.rest_uv, &topo.rest_uv);
-            let first = rollout.first_usable_frame();
+            let first = rollout.first_state_frame();
             Ok(Self {
                 track: Track::new(&rollout, &res),
                 first,

@@ -185,6 +185,66 @@ fn the_motion_rmse_skips_hidden_landmarks() {
     }
 }
 
+/// A take whose landmark is hidden from its first frame is simulated from the first frame whose
+/// state its seen frames give (before it, the landmark's state is extrapolated from later frames
+/// alone): its curve is the clean take's, cut to start there, value for value. At most half the
+/// take is skipped.
+#[test]
+fn a_take_starts_where_its_landmarks_have_been_seen() {
+    let dir = common::temp_dir("visibility_start");
+    let (cfg, r, q) = capture();
+    let topo = common::grid_of(&cfg);
+    assert_eq!(r.first_state_frame(), r.first_usable_frame());
+    let mut m = hide(&r, q, 0..=7, 0.0);
+    for f in 0..=7 {
+        for c in 0..3 {
+            m.positions[(f * r.landmarks + q) * 3 + c] = f32::NAN;
+        }
+    }
+    // First seen in frame 8; its velocity there differences frames 7 and 9.
+    assert_eq!(m.first_state_frame(), 9);
+    assert_eq!(
+        hide(&r, q, 0..=r.frames - 2, 0.0).first_state_frame(),
+        (r.frames - 1) / 2,
+        "at most half the take is skipped"
+    );
+    // The clean take from frame 8: its first usable frame is the masked take's frame 9.
+    let mut cut = r.clone();
+    let n = r.landmarks * 3;
+    cut.positions = r.positions[8 * n..].to_vec();
+    cut.frames = r.frames - 8;
+    cut.segments[0].len = cut.frames;
+    let (cut_path, masked) = (dir.join("cut.npz"), dir.join("masked.npz"));
+    cut.save(&cut_path).unwrap();
+    m.save(&masked).unwrap();
+    let device = Device::flex();
+    let s = topo.num_springs();
+    let model = SpringNet::new(&topo, &vec![40.0; s], &vec![3.0; s], &device);
+    let physics = Physics {
+        frame_dt: r.frame_dt,
+        substeps: 4,
+        mass: r.total_mass / topo.num_particles() as f64,
+        rayleigh: 0.1,
+        gravity: springtime::sim::GRAVITY,
+    };
+    let curves = eval::motion_curves(
+        &model,
+        &physics,
+        &eval::Takes {
+            topology: &topo,
+            files: &[cut_path, masked],
+            batch: 1,
+            device: &device,
+            progress: &Progress::quiet(),
+        },
+    )
+    .unwrap()
+    .curves;
+    assert_eq!(curves[1].len(), r.frames - 1 - 9);
+    let values = |c: &[(f64, f64)]| c.iter().map(|x| x.1).collect::<Vec<_>>();
+    assert_eq!(values(&curves[0]), values(&curves[1]));
+}
+
 /// The reader fills hidden positions by interpolation in time, and refuses a non-finite
 /// position that `visible` says was seen, or a landmark seen in no frame, naming file and key.
 #[test]

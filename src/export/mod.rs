@@ -441,7 +441,7 @@ impl<'a> Export<'a> {
             return Ok((None, note));
         };
         let track = Track::new(&r, &Resampler::new(&r.rest_uv, &topo.rest_uv));
-        let first = r.first_usable_frame();
+        let first = r.first_state_frame();
         let physics = self.run.physics(r.frame_dt);
         stability(&physics, None)?;
         let seconds = self

@@ -955,7 +955,7 @@ struct RolloutScene {
 }
 
 impl RolloutScene {
-    /// The surrogate simulated freely from the first usable frame of the rollout file `test`,
+    /// The surrogate simulated freely from the first state frame of the rollout file `test`,
     /// its pinned particles following the data, keeping the animation's frames.
     fn simulate(inputs: &Inputs, test: &Path, progress: &Progress) -> Result<Self> {
         let r = Rollout::load(test)?;
@@ -965,7 +965,7 @@ impl RolloutScene {
         let topo = &inputs.topology;
         let res = Resampler::new(&r.rest_uv, &topo.rest_uv);
         let track = Track::new(&r, &res);
-        let first = r.first_usable_frame();
+        let first = r.first_state_frame();
         let frames = r.frames - 1 - first;
         let physics = physics_for(inputs, r.frame_dt);
         let keep = animation_frames(frames, 80);

@@ -144,6 +144,26 @@ impl Rollout {
         if self.velocities.is_some() { 0 } else { 1 }
     }
 
+    /// The frame a free simulation of the whole take starts from: the first usable frame, or,
+    /// where landmarks are hidden from the take's first frame, the first whose state every
+    /// landmark's seen frames give (the last landmark's first seen frame, plus one where
+    /// velocities are differences of positions). Before it, a hidden landmark's state is
+    /// extrapolated from later frames alone — centimetres off at a free corner — and a stiff
+    /// network released from it rings. At most half the take is skipped. The first usable frame
+    /// for a rollout stored in windows (`segments`) or with every landmark seen.
+    pub fn first_state_frame(&self) -> usize {
+        let first = self.first_usable_frame();
+        let (Some(seen), [_]) = (&self.visible, self.segments.as_slice()) else {
+            return first;
+        };
+        let n = self.landmarks;
+        let observed = (0..n)
+            .map(|i| (0..self.frames).find(|&f| seen[f * n + i]).unwrap_or(0))
+            .max()
+            .unwrap_or(0);
+        first.max((observed + first).min((self.frames - 1) / 2))
+    }
+
     /// Reads and validates a rollout file.
     pub fn load(path: &Path) -> Result<Self> {
         Self::from_npz(&Npz::read(path)?)

@@ -190,7 +190,8 @@ pub struct TestTrack {
     pub path: PathBuf,
     /// Its frames on the particles.
     pub track: Track,
-    /// The first usable frame: 0 with stored velocities, else 1.
+    /// The frame its free rollout starts from ([`Rollout::first_state_frame`]): 0 with stored
+    /// velocities, else 1, or later where landmarks are hidden from its first frame.
     pub first: usize,
     /// Time between frames, s.
     pub frame_dt: f64,
@@ -210,17 +211,17 @@ impl TestTrack {
         Ok(Self {
             path: path.to_path_buf(),
             track: Track::new(&r, &res),
-            first: r.first_usable_frame(),
+            first: r.first_state_frame(),
             frame_dt: r.frame_dt,
         })
     }
 
-    /// Frames a free rollout steps: from the first usable frame to the last.
+    /// Frames a free rollout steps: from its first state frame to the last.
     pub fn steps(&self) -> usize {
         self.track.frames - 1 - self.first
     }
 
-    /// Observed positions of frame `j` counted from the first usable frame, `[P, 3]`.
+    /// Observed positions of frame `j` counted from its first state frame, `[P, 3]`.
     pub fn observed(&self, j: usize) -> &[f32] {
         let n = self.track.particles * 3;
         let j = self.first + j;
@@ -270,7 +271,7 @@ pub fn motion_curves(
         .iter()
         .map(|f| TestTrack::load(f, takes.topology))
         .collect::<Result<Vec<_>>>()?;
-    // Every rollout is stepped from its first usable frame to its last.
+    // Every rollout is stepped from its first state frame to its last.
     let total_frames: usize = tracks.iter().map(|t| t.track.frames - 1 - t.first).sum();
     let bar = takes.progress.bar(total_frames as u64, "eval");
     let mut out = MotionCurves {
