@@ -46,6 +46,34 @@ fn batch_of(r: &Rollout, topo: &springtime::cloth::Topology, device: &Device) ->
     ClipBatch::new(&[(&track, 20)], 30, mass, r.frame_dt, device).unwrap()
 }
 
+/// The motion curves of `files` under a uniform network, at `r`'s frame rate and mass.
+fn uniform_curves(
+    topo: &springtime::cloth::Topology,
+    r: &Rollout,
+    files: &[std::path::PathBuf],
+) -> Vec<eval::Curve> {
+    let device = Device::flex();
+    let s = topo.num_springs();
+    let model = SpringNet::new(topo, &vec![40.0; s], &vec![3.0; s], &device);
+    let physics = Physics {
+        frame_dt: r.frame_dt,
+        substeps: 4,
+        mass: r.total_mass / topo.num_particles() as f64,
+        rayleigh: 0.1,
+        gravity: springtime::sim::GRAVITY,
+    };
+    let takes = eval::Takes {
+        topology: topo,
+        files,
+        batch: 1,
+        device: &device,
+        progress: &Progress::quiet(),
+    };
+    eval::motion_curves(&model, &physics, &takes)
+        .unwrap()
+        .curves
+}
+
 /// The loss and its gradients with respect to `k` and `b`.
 fn loss_and_grads(
     batch: &ClipBatch,
@@ -146,29 +174,7 @@ fn the_motion_rmse_skips_hidden_landmarks() {
         }
     }
     m.save(&masked).unwrap();
-    let device = Device::flex();
-    let s = topo.num_springs();
-    let model = SpringNet::new(&topo, &vec![40.0; s], &vec![3.0; s], &device);
-    let physics = Physics {
-        frame_dt: r.frame_dt,
-        substeps: 4,
-        mass: r.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
-    };
-    let curves = eval::motion_curves(
-        &model,
-        &physics,
-        &eval::Takes {
-            topology: &topo,
-            files: &[clean, masked],
-            batch: 1,
-            device: &device,
-            progress: &Progress::quiet(),
-        },
-    )
-    .unwrap()
-    .curves;
+    let curves = uniform_curves(&topo, &r, &[clean, masked]);
     let (a, b) = (&curves[0], &curves[1]);
     assert_eq!(a.len(), b.len());
     let first = r.first_usable_frame();
@@ -217,29 +223,7 @@ fn a_take_starts_where_its_landmarks_have_been_seen() {
     let (cut_path, masked) = (dir.join("cut.npz"), dir.join("masked.npz"));
     cut.save(&cut_path).unwrap();
     m.save(&masked).unwrap();
-    let device = Device::flex();
-    let s = topo.num_springs();
-    let model = SpringNet::new(&topo, &vec![40.0; s], &vec![3.0; s], &device);
-    let physics = Physics {
-        frame_dt: r.frame_dt,
-        substeps: 4,
-        mass: r.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
-    };
-    let curves = eval::motion_curves(
-        &model,
-        &physics,
-        &eval::Takes {
-            topology: &topo,
-            files: &[cut_path, masked],
-            batch: 1,
-            device: &device,
-            progress: &Progress::quiet(),
-        },
-    )
-    .unwrap()
-    .curves;
+    let curves = uniform_curves(&topo, &r, &[cut_path, masked]);
     assert_eq!(curves[1].len(), r.frames - 1 - 9);
     let values = |c: &[(f64, f64)]| c.iter().map(|x| x.1).collect::<Vec<_>>();
     assert_eq!(values(&curves[0]), values(&curves[1]));
