@@ -677,6 +677,10 @@ fn accumulate_centres(
             noise: config.noise.value().unwrap_or(0.0),
         };
         let bridged = track.bridged(config.bridge);
+        let seen = Seen {
+            track: &track,
+            bridged: bridged.as_deref(),
+        };
         // A fixed split into at most PARTIALS runs of frames, summed in order: the same sums
         // on every run and machine.
         let parts: Vec<Sums> = js
@@ -684,10 +688,6 @@ fn accumulate_centres(
             .map(|chunk| {
                 let mut acc = pattern.empty_sums();
                 for &j in chunk {
-                    let seen = Seen {
-                        track: &track,
-                        bridged: bridged.as_deref(),
-                    };
                     accumulate(&mut acc, pattern, topo, seen, physics, j, stencil);
                 }
                 acc
@@ -738,7 +738,7 @@ impl Stencil {
 }
 
 /// A track and where its far ends may be read: seen, or bridged across a short gap
-/// ([`Track::bridged`](crate::data::Track::bridged); `None`: where seen).
+/// ([`Track::bridged`](crate::data::Track::bridged); `None`: every marker seen in every frame).
 #[derive(Clone, Copy)]
 struct Seen<'a> {
     track: &'a crate::data::Track,
@@ -747,8 +747,9 @@ struct Seen<'a> {
 
 #[cfg(test)]
 impl<'a> Seen<'a> {
-    /// `track` with its far ends read where seen only.
+    /// `track`, every marker of which is seen in every frame.
     fn plain(track: &'a crate::data::Track) -> Self {
+        assert!(track.visible.is_none(), "a track with hidden markers");
         Self {
             track,
             bridged: None,
@@ -805,19 +806,15 @@ fn accumulate(
     // stencil (frames j − w … j + w: its acceleration, and the central differences of its
     // velocities), and the far ends of its springs are seen or bridged there.
     let window = j - w..=j + w;
-    let far_seen = |e: usize| match seen.bridged {
-        Some(bridged) => window
-            .clone()
-            .take_while(|&f| f < track.frames)
-            .all(|f| bridged[f * p + e]),
-        None => track.seen_throughout(e, window.clone()),
-    };
     let row_seen = |i: usize| {
-        track.visible.is_none()
-            || (track.seen_throughout(i, window.clone())
-                && pattern.incident[i]
-                    .iter()
-                    .all(|&(s, _)| topo.springs[s].iter().all(|&e| e == i || far_seen(e))))
+        let Some(bridged) = seen.bridged else {
+            return true;
+        };
+        let far_seen = |e: usize| window.clone().all(|f| bridged[f * p + e]);
+        track.seen_throughout(i, window.clone())
+            && pattern.incident[i]
+                .iter()
+                .all(|&(s, _)| topo.springs[s].iter().all(|&e| e == i || far_seen(e)))
     };
     for i in (0..p).filter(|&i| !track.pinned[i]) {
         if !row_seen(i) {
