@@ -1342,9 +1342,13 @@ impl Fit<'_> {
             self.progress.note(&format!(
                 "least squares: the positions' noise ({:.2} mm per axis, \
                  `train.least_squares.noise`) diluted the fitted k of the median spring to {:.0} \
-                 % of its value; the fit divided it out, spring by spring",
+                 % of its value; the fit divided it out, spring by spring ({} of {} springs' \
+                 strains not resolved above the noise: divided by two standard deviations of its \
+                 part instead)",
                 1e3 * r.noise,
-                100.0 * r.dilution_median
+                100.0 * r.dilution_median,
+                r.unresolved,
+                r.unknowns / 2
             ));
         }
         crate::io::write_json(&self.run.least_squares(), r)?;
