@@ -56,11 +56,8 @@ fn uniform_curves(
     let s = topo.num_springs();
     let model = SpringNet::new(topo, &vec![40.0; s], &vec![3.0; s], &device);
     let physics = Physics {
-        frame_dt: r.frame_dt,
         substeps: 4,
-        mass: r.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
+        ..common::finite_difference::physics(r, topo)
     };
     let takes = eval::Takes {
         topology: topo,
@@ -111,13 +108,7 @@ fn a_hidden_landmark_changes_no_loss_or_gradient() {
     let device = Device::flex().autodiff();
     let (cfg, r, q) = capture();
     let topo = common::grid_of(&cfg);
-    let physics = Physics {
-        frame_dt: r.frame_dt,
-        substeps: 2,
-        mass: r.total_mass / topo.num_particles() as f64,
-        rayleigh: 0.1,
-        gravity: springtime::sim::GRAVITY,
-    };
+    let physics = common::finite_difference::physics(&r, &topo);
     // Frames 20..=50 form the clip; q is hidden in 28..=33.
     let hidden = || hide(&r, q, 28..=33, 0.0);
     let moved = || hide(&r, q, 28..=33, 0.25);

@@ -1,5 +1,5 @@
 //! The setting the finite-difference gradient checks share (tests/gradient_check.rs for `k` and
-//! `b`, tests/curvature.rs for `κ`).
+//! `b`, tests/curvature.rs for `κ`; tests/visibility.rs's physics too).
 
 use springtime::cloth::Topology;
 use springtime::data::Rollout;

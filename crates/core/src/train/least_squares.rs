@@ -1299,11 +1299,11 @@ mod tests {
             let p = self.topo.num_particles();
             let frames = positions.len() / (3 * p);
             let mut rng = StdRng::seed_from_u64(seed);
-            let gaussian = Gaussian::new(0.0, sigma.max(1e-300)).expect("a deviation");
+            let gaussian = Gaussian::new(0.0, sigma).expect("a deviation");
             let noisy: Vec<f32> = positions
                 .iter()
                 .enumerate()
-                .map(|(o, &x)| match self.pinned[(o / 3) % p] || sigma == 0.0 {
+                .map(|(o, &x)| match self.pinned[(o / 3) % p] {
                     true => x as f32,
                     false => (x + gaussian.sample(&mut rng)) as f32,
                 })
