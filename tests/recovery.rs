@@ -254,6 +254,16 @@ fn spring_cloth_takes(dir: &std::path::Path, bending: f64) -> springtime::source
 /// A blend search on `dir`'s takes from a uniform network `(k_init, b_init)`, no fit: its
 /// `blend.json`.
 fn blend_record(dir: &std::path::Path, k_init: f64, b_init: f64) -> serde_json::Value {
+    blend_run(dir, k_init, b_init).1
+}
+
+/// A blend search on `dir`'s takes from a uniform network `(k_init, b_init)`, no fit: its run
+/// directory and `blend.json`.
+fn blend_run(
+    dir: &std::path::Path,
+    k_init: f64,
+    b_init: f64,
+) -> (std::path::PathBuf, serde_json::Value) {
     let text = format!(
         "name = \"blend\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = {k_init}\n\
          b_init = {b_init}\n[train]\nblend_search = true\n[train.stiffness]\niterations = 0\n\
@@ -264,8 +274,10 @@ fn blend_record(dir: &std::path::Path, k_init: f64, b_init: f64) -> serde_json::
     config.data.test_dir = Some(dir.join("test"));
     config.runs_dir = dir.join("runs");
     let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
-    serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
-        .unwrap()
+    let record =
+        serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
+            .unwrap();
+    (summary.run_dir, record)
 }
 
 /// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
@@ -329,5 +341,71 @@ fn the_blend_search_reaches_a_damping_far_from_its_start() {
         .fold(f64::INFINITY, f64::min);
     eprintln!("kept the {} chain at {after} m", record["chain"]);
     assert!(after <= closest, "kept {after} m, a candidate {closest} m");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The blend search's polish measures the kept network against the yardstick itself: at the
+/// substeps the run keeps, from the run's initial network, on the same training takes, its best
+/// uniform network is the one `eval.uniform_baseline` then finds — the same `k`, `b` and
+/// training-take RMSE to the bit — and the network it keeps, read back from the run's
+/// `springs.npz`, moves no farther from those takes than that one. On takes of a uniform cloth
+/// started a thousand times under its damping, that is the source's cloth.
+#[test]
+fn the_polish_measures_the_kept_network_against_the_yardstick() {
+    let dir = common::temp_dir("blend-polish");
+    spring_cloth_takes(&dir, 1.0);
+    let (run_dir, record) = blend_run(&dir, 50.0, 0.006);
+    let polish = &record["polish"];
+    eprintln!("polish: {polish}");
+    let report = springtime::run::evaluate(
+        &run_dir,
+        None,
+        None,
+        &["eval.uniform_baseline=true".to_string()],
+        &Progress::quiet(),
+    )
+    .unwrap();
+    let baseline = report.uniform_baseline.expect("asked for");
+    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
+    assert_eq!(
+        polish["substeps"].as_u64(),
+        config.sim.substeps.value().map(|n| n as u64),
+        "{polish}"
+    );
+    assert_eq!(polish["uniform"][0].as_f64(), Some(baseline.k), "{polish}");
+    assert_eq!(polish["uniform"][1].as_f64(), Some(baseline.b), "{polish}");
+    let yardstick = baseline
+        .search
+        .iter()
+        .chain(&baseline.b_search)
+        .map(|c| c.1)
+        .fold(f64::INFINITY, f64::min);
+    assert_eq!(polish["uniform"][2].as_f64(), Some(yardstick), "{polish}");
+    let after = polish["after"].as_f64().unwrap();
+    assert!(
+        after <= yardstick,
+        "kept {after} m, the yardstick {yardstick} m"
+    );
+    // At the run's substeps the descent reaches the source's own uniform cloth (50 N/m, 6 N·s/m),
+    // which the blend search, each candidate at its fewest substeps at a stability number of 1,
+    // does not.
+    assert_eq!(baseline.k, 50.0, "{polish}");
+    assert!((baseline.b / 6.0 - 1.0).abs() < 0.1, "{polish}");
+    assert!(after < 0.5 * record["after"].as_f64().unwrap(), "{record}");
+    // The kept network, read back from the run, moves as the polish measured it on the takes.
+    let kept = springtime::run::evaluate(
+        &run_dir,
+        Some(&dir.join("train")),
+        None,
+        &[],
+        &Progress::quiet(),
+    )
+    .unwrap()
+    .motion_rmse
+    .mean;
+    assert!(
+        (kept - after).abs() <= 1e-6 * after,
+        "the run's network moves {kept} m, the polish kept {after} m"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -110,15 +110,13 @@ pub fn search(
     let train: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
     let score =
         |k: f64, b: f64| rollout_rmse(topology, physics, k, b, &train, eval_config.batch, device);
-    let bar = progress.bar(
-        (2 * SPAN + 5) as u64 + 2 * DAMPING_RATIOS.len() as u64,
-        "uniform search",
-    );
+    let bar = progress.bar(DESCENT_CANDIDATES, "uniform search");
     let Descent {
         k,
         b,
         search,
         b_search,
+        ..
     } = descend(&score, (k0, b0), physics.mass, &bar)?;
     bar.finish();
     let model = SpringNet::uniform(topology, k, b, device);
@@ -151,18 +149,26 @@ pub fn search(
     })
 }
 
-/// The uniform network a coordinate descent found, and every `(k, RMSE)` and `(b, RMSE)` it
-/// tried, sorted.
-struct Descent {
-    k: f64,
-    b: f64,
-    search: Vec<(f64, f64)>,
-    b_search: Vec<(f64, f64)>,
+/// Candidates a [`descend`] scores at most: its stiffness row, two damping rows and the
+/// stiffness around the best between them (a progress bar's length).
+pub(crate) const DESCENT_CANDIDATES: u64 = (2 * SPAN + 5) as u64 + 2 * DAMPING_RATIOS.len() as u64;
+
+/// The network a coordinate descent found, its mean motion RMSE, and every `(k, RMSE)` and
+/// `(b, RMSE)` it tried, sorted.
+pub(crate) struct Descent {
+    pub k: f64,
+    pub b: f64,
+    pub rmse: f64,
+    pub search: Vec<(f64, f64)>,
+    pub b_search: Vec<(f64, f64)>,
 }
 
 /// Searches `k` on a row around `k0`, then by coordinate descent: the damping at the best
-/// stiffness, the stiffness around it at the best damping, then the damping once more.
-fn descend(
+/// stiffness (fractions of a spring's critical damping `√(2 k m)`, `m` the particle `mass`), the
+/// stiffness around it at the best damping, then the damping once more. `score` takes a
+/// network's mean `k` and `b`: a uniform network's, or a spatial map's sizes
+/// ([`crate::train::scale::polish`]).
+pub(crate) fn descend(
     score: &dyn Fn(f64, f64) -> Option<f64>,
     (k0, b0): (f64, f64),
     mass: f64,
@@ -217,6 +223,7 @@ fn descend(
     Ok(Descent {
         k,
         b,
+        rmse: k_rmse,
         search,
         b_search,
     })

@@ -722,7 +722,7 @@ impl AfterFit<'_> {
             }
             found.push((net, p, record));
         }
-        let (blended, blended_physics, record) = found
+        let (blended, blended_physics, mut record) = found
             .into_iter()
             .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
             .expect("one map at least");
@@ -750,6 +750,36 @@ impl AfterFit<'_> {
                  rollouts than the best uniform network; the run keeps that uniform network",
             );
         }
+        // The same start as the yardstick's (`eval.uniform_baseline`, the held-out check).
+        let start = (config.model.k_init.or(50.0), config.model.b_init.or(0.0));
+        let (blended, polish) =
+            scale::polish(&blended, &blended_physics, start, &self.train_takes())?;
+        progress.note(&format!(
+            "polish at {} substep(s) per frame: the best uniform network there is k {:.4} N/m, b \
+             {:.4e} N·s/m ({:.4e} m); the searched network {:.4e} m -> {}",
+            polish.substeps,
+            polish.uniform.0,
+            polish.uniform.1,
+            polish.uniform.2,
+            polish.before,
+            if polish.kept_uniform {
+                "no size or damping of it moves as close: the run keeps that uniform network"
+                    .to_string()
+            } else {
+                format!(
+                    "k × {:.3}, b × {:.3}: {:.4e} m",
+                    polish.k_factor, polish.b_factor, polish.after
+                )
+            }
+        ));
+        if polish.kept_uniform && record.alpha > 0.0 {
+            progress.note(
+                "WARNING: polish: at the substeps the learned map needs, the best uniform network \
+                 moves closer to the training rollouts than any size of the map; the run keeps \
+                 that uniform network",
+            );
+        }
+        record.polish = Some(polish);
         let run = self.fit.run;
         keep_searched(
             run,
