@@ -752,27 +752,12 @@ impl AfterFit<'_> {
         }
         // The same start as the yardstick's (`eval.uniform_baseline`, the held-out check).
         let start = (config.model.k_init.or(50.0), config.model.b_init.or(0.0));
-        // The drag is searched where the run fitted it (neither the config nor the data states it).
-        let search_drag = self.resolution.rayleigh_from == "fit";
-        let (blended, blended_physics, polish) = scale::polish(
-            &blended,
-            &blended_physics,
-            start,
-            &self.train_takes(),
-            search_drag,
-        )?;
+        let (blended, polish) =
+            scale::polish(&blended, &blended_physics, start, &self.train_takes())?;
         progress.note(&format!(
-            "polish at {} substep(s) per frame{}: the best uniform network there is k {:.4} N/m, \
-             b {:.4e} N·s/m ({:.4e} m); the searched network {:.4e} m -> {}",
+            "polish at {} substep(s) per frame: the best uniform network there is k {:.4} N/m, b \
+             {:.4e} N·s/m ({:.4e} m); the searched network {:.4e} m -> {}",
             polish.substeps,
-            if search_drag {
-                format!(
-                    ", drag searched: sim.rayleigh {:.4e} -> {:.4e} N·s/m",
-                    self.resolution.rayleigh, polish.rayleigh
-                )
-            } else {
-                String::new()
-            },
             polish.uniform.0,
             polish.uniform.1,
             polish.uniform.2,
@@ -910,12 +895,9 @@ fn keep_searched(
     file: &str,
     record: &impl Serialize,
 ) -> Result<()> {
-    if config.sim.substeps.value() != Some(physics.substeps)
-        || config.sim.rayleigh.value() != Some(physics.rayleigh)
-    {
+    if config.sim.substeps.value() != Some(physics.substeps) {
         let mut updated = config.clone();
         updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
-        updated.sim.rayleigh = crate::settings::Auto::Value(physics.rayleigh);
         crate::io::write_text(&run.config(), &updated.to_toml())?;
     }
     crate::io::write_json(&run.dir.join(file), record)?;

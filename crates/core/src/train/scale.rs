@@ -666,10 +666,6 @@ pub fn search(
 pub struct Polish {
     /// Substeps per frame every candidate ran at: the searched network's fewest stable ones.
     pub substeps: usize,
-    /// The drag `sim.rayleigh` every uniform candidate ran at, and the kept network runs at
-    /// (N·s/m): the run's, or with the drag searched the one the map moved closest at.
-    #[serde(default)]
-    pub rayleigh: f64,
     /// The best uniform network at these substeps, `(k, b, mean motion RMSE)`: the search
     /// `eval.uniform_baseline` and the held-out check run, from the same start on the same takes.
     pub uniform: (f64, f64, f64),
@@ -685,17 +681,9 @@ pub struct Polish {
     pub kept_uniform: bool,
     /// `(mean k, mean motion RMSE)` of every stable size of the map tried, sorted.
     pub search: Vec<(f64, f64)>,
-    /// `(mean b, mean motion RMSE)` of every stable damping of the map tried, sorted (at the
-    /// drag kept).
+    /// `(mean b, mean motion RMSE)` of every stable damping of the map tried, sorted.
     pub b_search: Vec<(f64, f64)>,
-    /// `(drag, mean motion RMSE)` of the map at its best size for every drag tried, sorted;
-    /// empty when the drag was not searched (the data or the config states it).
-    #[serde(default)]
-    pub drag_search: Vec<(f64, f64)>,
 }
-
-/// Drag rates `γ = c/m` the polish tries besides none and octaves around the run's, s⁻¹.
-pub const DRAG_RATES: [f64; 4] = [0.1, 0.3, 1.0, 3.0];
 
 /// The searched network `model` polished at the substeps it runs at (`physics`, ours): the
 /// searches before score every candidate at its own fewest stable substeps, but the step decides
@@ -706,27 +694,24 @@ pub const DRAG_RATES: [f64; 4] = [0.1, 0.3, 1.0, 3.0];
 /// `physics` exactly: the best uniform network from `(k0, b0)` by the yardstick's own descent
 /// (`eval.uniform_baseline`), and the same descent over the map's mean `k` and `b` (its shape
 /// kept); the closer is kept, so on these takes the kept network never moves farther than the
-/// yardstick does. With `search_drag` (the run fitted `sim.rayleigh`; neither the data nor the
-/// config states it) a row of drags — none, octaves around the run's, rates of [`DRAG_RATES`] —
-/// runs first at the map's best size, the map's descent again at the closest, and the yardstick
-/// at that drag: a drag fitted with the uniform start by least squares on the frames' forces can
-/// cost the map a third of its error over a take (MuJoCo's). Returns the kept network, the
-/// physics it runs at (the drag kept) and the record.
+/// yardstick does. Returns the kept network and the record.
 pub fn polish(
     model: &SpringNet,
     physics: &Physics,
     (k0, b0): (f64, f64),
     train: &Takes,
-    search_drag: bool,
-) -> Result<(SpringNet, Physics, Polish)> {
+) -> Result<(SpringNet, Polish)> {
     use std::cell::RefCell;
     let files = search_files(train);
-    let at = |c: f64| Physics {
-        rayleigh: c,
-        ..*physics
-    };
-    let rmse = |net: &SpringNet, p: &Physics| {
-        network_rollout_rmse(net, train.topology, p, &files, train.batch, train.device)
+    let rmse = |net: &SpringNet| {
+        network_rollout_rmse(
+            net,
+            train.topology,
+            physics,
+            &files,
+            train.batch,
+            train.device,
+        )
     };
     let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
     let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
@@ -736,66 +721,42 @@ pub fn polish(
             .with_kernel(model.graph.kernel)
             .with_curvature(&times(&kappa, fk))
     };
-    // The descents meet some candidates twice (a damping row at an unchanged stiffness).
-    // `((uniform, mean k, mean b, drag), mean motion RMSE)` of every candidate simulated.
-    type Tried = Vec<((bool, f64, f64, f64), Option<f64>)>;
+    // The descent meets some pairs twice (a damping row at an unchanged stiffness).
+    // `((uniform, mean k, mean b), mean motion RMSE)` of every candidate simulated.
+    type Tried = Vec<((bool, f64, f64), Option<f64>)>;
     let tried: RefCell<Tried> = RefCell::new(Vec::new());
-    let score = |uniform: bool, k: f64, b: f64, c: f64| {
-        let key = (uniform, k, b, c);
+    let memo = |key: (bool, f64, f64), run: &dyn Fn() -> Option<f64>| {
         if let Some(&(_, known)) = tried.borrow().iter().find(|t| t.0 == key) {
             return known;
         }
-        let net = if uniform {
-            SpringNet::uniform(train.topology, k, b, train.device)
-        } else {
-            scaled(k / k_mean, b / b_mean)
-        };
-        let found = rmse(&net, &at(c));
+        let found = run();
         tried.borrow_mut().push((key, found));
         found
     };
-    let descents = if search_drag { 4 } else { 2 };
-    let bar = train.progress.bar(
-        descents * uniform::DESCENT_CANDIDATES + DRAG_RATES.len() as u64 + 7,
-        "polish",
-    );
-    let before = rmse(model, physics).unwrap_or(f64::INFINITY);
-    let descend = |uniform: bool, start: (f64, f64), c: f64| {
-        uniform::descend(&|k, b| score(uniform, k, b, c), start, physics.mass, &bar)
-    };
-    let mut rayleigh = physics.rayleigh;
-    let mut map = descend(false, (k_mean, b_mean), rayleigh).ok();
-    let mut drag_search = Vec::new();
-    if search_drag && let Some(m) = &map {
-        // The drag row at the map's best size: none, octaves around the run's, and rates
-        // `γ = c/m` over decades.
-        drag_search.push((rayleigh, m.rmse));
-        let octaves = [-3, -2, -1, 1, 2, 3].map(|i| rayleigh * 2f64.powi(i));
-        let rates = DRAG_RATES.map(|g| g * physics.mass);
-        let row = std::iter::once(0.0).chain(octaves.into_iter().filter(|c| *c > 0.0));
-        for c in row.chain(rates) {
-            if let Some(r) = score(false, m.k, m.b, c) {
-                drag_search.push((c, r));
-            }
-            bar.inc(1);
-        }
-        let best = drag_search
-            .iter()
-            .copied()
-            .min_by(|a, b| a.1.total_cmp(&b.1))
-            .expect("the run's drag is a candidate");
-        if best.0 != rayleigh {
-            rayleigh = best.0;
-            let start = (m.k, m.b);
-            map = descend(false, start, rayleigh).ok();
-        }
-        drag_search.sort_by(|a, b| a.0.total_cmp(&b.0));
-    }
-    let flat = descend(true, (k0, b0), rayleigh)?;
+    let bar = train
+        .progress
+        .bar(2 * uniform::DESCENT_CANDIDATES, "polish");
+    let flat = uniform::descend(
+        &|k, b| {
+            memo((true, k, b), &|| {
+                rmse(&SpringNet::uniform(train.topology, k, b, train.device))
+            })
+        },
+        (k0, b0),
+        physics.mass,
+        &bar,
+    )?;
+    let before = rmse(model).unwrap_or(f64::INFINITY);
+    let map = uniform::descend(
+        &|k, b| memo((false, k, b), &|| rmse(&scaled(k / k_mean, b / b_mean))),
+        (k_mean, b_mean),
+        physics.mass,
+        &bar,
+    )
+    .ok();
     bar.finish();
     let record = |fk: f64, fb: f64, after: f64, kept_uniform: bool| Polish {
         substeps: physics.substeps,
-        rayleigh,
         uniform: (flat.k, flat.b, flat.rmse),
         before,
         k_factor: fk,
@@ -804,9 +765,8 @@ pub fn polish(
         kept_uniform,
         search: map.as_ref().map_or(Vec::new(), |m| m.search.clone()),
         b_search: map.as_ref().map_or(Vec::new(), |m| m.b_search.clone()),
-        drag_search: drag_search.clone(),
     };
-    let (net, record) = match &map {
+    Ok(match &map {
         Some(m) if m.rmse <= flat.rmse => {
             let (fk, fb) = (m.k / k_mean, m.b / b_mean);
             (scaled(fk, fb), record(fk, fb, m.rmse, false))
@@ -815,6 +775,5 @@ pub fn polish(
             SpringNet::uniform(train.topology, flat.k, flat.b, train.device),
             record(1.0, 1.0, flat.rmse, true),
         ),
-    };
-    Ok((net, at(rayleigh), record))
+    })
 }
