@@ -126,8 +126,7 @@ pub fn source_map(
     let uniform = eval::uniform::search(
         &inputs.topology,
         &sized_physics,
-        k_uniform,
-        b_uniform,
+        (k_uniform, b_uniform),
         train_files,
         &test_files,
         &mapped,

@@ -98,8 +98,7 @@ pub struct UniformBaseline {
 pub fn search(
     topology: &Topology,
     physics: &Physics,
-    k0: f64,
-    b0: f64,
+    (k0, b0): (f64, f64),
     train_files: &[PathBuf],
     test_files: &[PathBuf],
     trained: &MotionRmse,
@@ -167,13 +166,23 @@ pub(crate) struct Descent {
 /// stiffness (fractions of a spring's critical damping `√(2 k m)`, `m` the particle `mass`), the
 /// stiffness around it at the best damping, then the damping once more. `score` takes a
 /// network's mean `k` and `b`: a uniform network's, or a spatial map's sizes
-/// ([`crate::train::scale::polish`]).
+/// ([`crate::train::scale::polish`]); each pair is simulated once (the second damping row
+/// repeats the first where the stiffness stayed).
 pub(crate) fn descend(
     score: &dyn Fn(f64, f64) -> Option<f64>,
     (k0, b0): (f64, f64),
     mass: f64,
     bar: &crate::progress::Bar,
 ) -> Result<Descent> {
+    let mut tried: Vec<((f64, f64), Option<f64>)> = Vec::new();
+    let mut score = |k: f64, b: f64| {
+        if let Some(&(_, known)) = tried.iter().find(|t| t.0 == (k, b)) {
+            return known;
+        }
+        let found = score(k, b);
+        tried.push(((k, b), found));
+        found
+    };
     let best = |s: &[(f64, f64)]| {
         s.iter()
             .copied()
@@ -218,8 +227,12 @@ pub(crate) fn descend(
         (k, k_rmse) = best(&around)?;
         search.extend(around.into_iter().skip(1));
     }
-    b_search.sort_by(|a, b| a.0.total_cmp(&b.0));
-    search.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let by_value = |a: &(f64, f64), b: &(f64, f64)| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1));
+    b_search.sort_by(by_value);
+    search.sort_by(by_value);
+    // A pair met twice is one candidate.
+    b_search.dedup();
+    search.dedup();
     Ok(Descent {
         k,
         b,

@@ -102,6 +102,13 @@ impl ModelConfig {
         self.gnn.validate()
     }
 
+    /// Where the search for the best uniform network starts — the yardstick a learned network is
+    /// measured against (`eval.uniform_baseline`, the held-out check, the blend search's polish):
+    /// the run's initial uniform network (`train` resolves `"auto"`), else 50 N/m, undamped.
+    pub fn uniform_start(&self) -> (f64, f64) {
+        (self.k_init.or(50.0), self.b_init.or(0.0))
+    }
+
     /// The curvature elements' initial stiffness beside springs of initial stiffness `k_init`.
     pub(crate) fn curvature_init_for(&self, k_init: f64) -> f64 {
         self.curvature_init.or(k_init / 20.0)

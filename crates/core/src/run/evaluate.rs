@@ -52,8 +52,7 @@ pub fn evaluate(
         Trained::Springs(_) if config.eval.uniform_baseline => Some(eval::uniform::search(
             topo,
             &physics,
-            config.model.k_init.or(50.0),
-            config.model.b_init.or(0.0),
+            config.model.uniform_start(),
             &split.train,
             &files,
             &motion,

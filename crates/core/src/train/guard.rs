@@ -55,8 +55,7 @@ pub fn validate(
     let uniform = uniform::search(
         topology,
         physics,
-        k0,
-        b0,
+        (k0, b0),
         train_files,
         validation_files,
         &trained,

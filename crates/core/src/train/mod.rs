@@ -750,10 +750,12 @@ impl AfterFit<'_> {
                  rollouts than the best uniform network; the run keeps that uniform network",
             );
         }
-        // The same start as the yardstick's (`eval.uniform_baseline`, the held-out check).
-        let start = (config.model.k_init.or(50.0), config.model.b_init.or(0.0));
-        let (blended, polish) =
-            scale::polish(&blended, &blended_physics, start, &self.train_takes())?;
+        let (blended, polish) = scale::polish(
+            &blended,
+            &blended_physics,
+            config.model.uniform_start(),
+            &self.train_takes(),
+        )?;
         progress.note(&format!(
             "polish at {} substep(s) per frame: the best uniform network there is k {:.4} N/m, b \
              {:.4e} N·s/m ({:.4e} m); the searched network {:.4e} m -> {}",
@@ -866,7 +868,7 @@ impl AfterFit<'_> {
             model,
             job.topology,
             physics,
-            (config.model.k_init.or(50.0), config.model.b_init.or(0.0)),
+            config.model.uniform_start(),
             &self.split.train,
             &self.split.validation,
             &config.eval,

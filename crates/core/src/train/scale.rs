@@ -589,14 +589,8 @@ pub fn search(
         files: &files,
         ..*train
     };
-    let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
-    // The curvature elements are stiffnesses: they scale with `k`.
-    let scaled = |fk: f64, fb: f64| {
-        let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
-        SpringNet::new(train.topology, &times(&k, fk), &times(&b, fb), train.device)
-            .with_kernel(model.graph.kernel)
-            .with_curvature(&times(&kappa, fk))
-    };
+    let sizes = Sizes::of(model);
+    let scaled = |fk: f64, fb: f64| sizes.scaled(train, fk, fb);
     // Every pair is simulated once: the coarse k row meets the b row at its best k, and the
     // start (1, 1) lies on the k row.
     let mut tried: Vec<(f64, f64, Scored)> = Vec::new();
@@ -701,7 +695,6 @@ pub fn polish(
     (k0, b0): (f64, f64),
     train: &Takes,
 ) -> Result<(SpringNet, Polish)> {
-    use std::cell::RefCell;
     let files = search_files(train);
     let rmse = |net: &SpringNet| {
         network_rollout_rmse(
@@ -713,42 +706,20 @@ pub fn polish(
             train.device,
         )
     };
-    let (k, b, kappa) = (model.k_values(), model.b_values(), model.curvature_values());
-    let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
-    let scaled = |fk: f64, fb: f64| {
-        let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
-        SpringNet::new(train.topology, &times(&k, fk), &times(&b, fb), train.device)
-            .with_kernel(model.graph.kernel)
-            .with_curvature(&times(&kappa, fk))
-    };
-    // The descent meets some pairs twice (a damping row at an unchanged stiffness).
-    // `((uniform, mean k, mean b), mean motion RMSE)` of every candidate simulated.
-    type Tried = Vec<((bool, f64, f64), Option<f64>)>;
-    let tried: RefCell<Tried> = RefCell::new(Vec::new());
-    let memo = |key: (bool, f64, f64), run: &dyn Fn() -> Option<f64>| {
-        if let Some(&(_, known)) = tried.borrow().iter().find(|t| t.0 == key) {
-            return known;
-        }
-        let found = run();
-        tried.borrow_mut().push((key, found));
-        found
-    };
+    let sizes = Sizes::of(model);
+    let (k_mean, b_mean) = blend_means(&sizes.k, &sizes.b, physics.mass)?;
     let bar = train
         .progress
         .bar(2 * uniform::DESCENT_CANDIDATES, "polish");
     let flat = uniform::descend(
-        &|k, b| {
-            memo((true, k, b), &|| {
-                rmse(&SpringNet::uniform(train.topology, k, b, train.device))
-            })
-        },
+        &|k, b| rmse(&SpringNet::uniform(train.topology, k, b, train.device)),
         (k0, b0),
         physics.mass,
         &bar,
     )?;
     let before = rmse(model).unwrap_or(f64::INFINITY);
     let map = uniform::descend(
-        &|k, b| memo((false, k, b), &|| rmse(&scaled(k / k_mean, b / b_mean))),
+        &|k, b| rmse(&sizes.scaled(train, k / k_mean, b / b_mean)),
         (k_mean, b_mean),
         physics.mass,
         &bar,
@@ -769,11 +740,44 @@ pub fn polish(
     Ok(match &map {
         Some(m) if m.rmse <= flat.rmse => {
             let (fk, fb) = (m.k / k_mean, m.b / b_mean);
-            (scaled(fk, fb), record(fk, fb, m.rmse, false))
+            (sizes.scaled(train, fk, fb), record(fk, fb, m.rmse, false))
         }
         _ => (
             SpringNet::uniform(train.topology, flat.k, flat.b, train.device),
             record(1.0, 1.0, flat.rmse, true),
         ),
     })
+}
+
+/// A network's per-spring values, read once, for the searches that scale them as a whole.
+struct Sizes<'a> {
+    model: &'a SpringNet,
+    k: Vec<f64>,
+    b: Vec<f64>,
+    kappa: Vec<f64>,
+}
+
+impl<'a> Sizes<'a> {
+    fn of(model: &'a SpringNet) -> Self {
+        Self {
+            model,
+            k: model.k_values(),
+            b: model.b_values(),
+            kappa: model.curvature_values(),
+        }
+    }
+
+    /// The network with every `k` times `fk` (the curvature elements too: they are
+    /// stiffnesses) and every `b` times `fb`, on `takes`' springs and device.
+    fn scaled(&self, takes: &Takes, fk: f64, fb: f64) -> SpringNet {
+        let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
+        SpringNet::new(
+            takes.topology,
+            &times(&self.k, fk),
+            &times(&self.b, fb),
+            takes.device,
+        )
+        .with_kernel(self.model.graph.kernel)
+        .with_curvature(&times(&self.kappa, fk))
+    }
 }
