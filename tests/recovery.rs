@@ -217,8 +217,13 @@ fn the_refinement_moves_a_uniform_network_towards_the_levels() {
 }
 
 /// Takes of a uniform 8 × 8 spring cloth (50 N/m, damping 6 N·s/m) whose stride-2 bending
-/// springs have `bending` times that stiffness: 8 training and 2 test takes under `dir`.
-fn spring_cloth_takes(dir: &std::path::Path, bending: f64) -> springtime::source::SourceConfig {
+/// springs have `bending` times that stiffness: 8 training and 2 test takes under `dir`, the
+/// files stating the source's drag where `state_drag`.
+fn spring_cloth_takes(
+    dir: &std::path::Path,
+    bending: f64,
+    state_drag: bool,
+) -> springtime::source::SourceConfig {
     use rand::{SeedableRng, rngs::StdRng};
     use springtime::cloth::SpringFamily;
     use springtime::source::mass_spring::SpringCloth;
@@ -242,10 +247,13 @@ fn spring_cloth_takes(dir: &std::path::Path, bending: f64) -> springtime::source
                 &mut StdRng::seed_from_u64(seed),
             );
             let path = dir.join(split).join(format!("take_{seed:03}.npz"));
-            simulate_rollout(&cloth, &source, &scenario, None, &path.to_string_lossy())
-                .unwrap()
-                .save(&path)
-                .unwrap();
+            let mut take =
+                simulate_rollout(&cloth, &source, &scenario, None, &path.to_string_lossy())
+                    .unwrap();
+            if !state_drag {
+                take.rayleigh = None;
+            }
+            take.save(&path).unwrap();
         }
     }
     source
@@ -264,10 +272,20 @@ fn blend_run(
     k_init: f64,
     b_init: f64,
 ) -> (std::path::PathBuf, serde_json::Value) {
+    blend_run_holding_out(dir, k_init, b_init, 0)
+}
+
+/// [`blend_run`] with the last `holdout` training takes held out of it (`data.holdout`).
+fn blend_run_holding_out(
+    dir: &std::path::Path,
+    k_init: f64,
+    b_init: f64,
+    holdout: usize,
+) -> (std::path::PathBuf, serde_json::Value) {
     let text = format!(
         "name = \"blend\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = {k_init}\n\
-         b_init = {b_init}\n[train]\nblend_search = true\n[train.stiffness]\niterations = 0\n\
-         [train.damping]\niterations = 0\n"
+         b_init = {b_init}\n[data]\nholdout = {holdout}\n[train]\nblend_search = true\n\
+         [train.stiffness]\niterations = 0\n[train.damping]\niterations = 0\n"
     );
     let mut config = Config::parse(&text, &[]).unwrap();
     config.data.dir = dir.join("train");
@@ -286,7 +304,7 @@ fn blend_run(
 #[test]
 fn the_blend_search_finds_the_bending_springs_share() {
     let dir = common::temp_dir("bending-share");
-    spring_cloth_takes(&dir, 1.0 / 16.0);
+    spring_cloth_takes(&dir, 1.0 / 16.0, true);
     let record = blend_record(&dir, 50.0, 6.0);
     let factor = record["bending_factor"].as_f64().unwrap();
     eprintln!(
@@ -314,7 +332,7 @@ fn the_blend_search_finds_the_bending_springs_share() {
 #[test]
 fn the_blend_search_reaches_a_damping_far_from_its_start() {
     let dir = common::temp_dir("blend-damping");
-    spring_cloth_takes(&dir, 1.0);
+    spring_cloth_takes(&dir, 1.0, true);
     let record = blend_record(&dir, 50.0, 0.006);
     let b = record["uniform"][1].as_f64().unwrap();
     let b_mean = record["b_mean"].as_f64().unwrap();
@@ -353,7 +371,7 @@ fn the_blend_search_reaches_a_damping_far_from_its_start() {
 #[test]
 fn the_polish_measures_the_kept_network_against_the_yardstick() {
     let dir = common::temp_dir("blend-polish");
-    spring_cloth_takes(&dir, 1.0);
+    spring_cloth_takes(&dir, 1.0, true);
     let (run_dir, record) = blend_run(&dir, 50.0, 0.006);
     let polish = &record["polish"];
     eprintln!("polish: {polish}");
@@ -407,5 +425,68 @@ fn the_polish_measures_the_kept_network_against_the_yardstick() {
         (kept - after).abs() <= 1e-6 * after,
         "the run's network moves {kept} m, the polish kept {after} m"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Where neither the data nor the config states the drag, the run searches it after the polish:
+/// on takes of a uniform spring cloth whose files do not state their drag, the drag the run keeps
+/// (and writes to its `config.toml`) is the source's within a factor of 2, a drag other than the
+/// fitted one only where the held-out takes agree at both horizons; and from a drag eight times
+/// the source's, the row of drags comes back to it.
+#[test]
+fn the_run_searches_a_drag_the_data_does_not_state() {
+    let dir = common::temp_dir("blend-drag");
+    let source = spring_cloth_takes(&dir, 1.0, false);
+    let (run_dir, record) = blend_run_holding_out(&dir, 50.0, 6.0, 2);
+    let drag = &record["drag"];
+    eprintln!("source drag {}; drag search: {drag}", source.rayleigh);
+    let kept = drag["kept"].as_f64().unwrap();
+    let ratio = kept / source.rayleigh;
+    assert!((0.5..=2.0).contains(&ratio), "kept drag {kept}: {drag}");
+    assert!(drag["row"].as_array().unwrap().len() >= 8, "{drag}");
+    let (fitted, best) = (
+        drag["fitted"].as_f64().unwrap(),
+        drag["best"].as_f64().unwrap(),
+    );
+    if kept != fitted {
+        assert_eq!(kept, best, "{drag}");
+        let held = &drag["held_out"];
+        for horizon in 0..2 {
+            assert!(
+                held[1][horizon].as_f64() < held[0][horizon].as_f64(),
+                "kept a drag the held-out takes do not prefer: {drag}"
+            );
+        }
+    }
+    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
+    assert_eq!(
+        config.sim.rayleigh.value(),
+        Some(kept),
+        "the run runs at the kept drag"
+    );
+    // From a drag eight times the source's, the row comes back to it.
+    let run = springtime::run::Run::open(&run_dir, &[], None).unwrap();
+    let train_files = run.config.data.split().unwrap().train;
+    let first = springtime::data::Rollout::load(&train_files[0]).unwrap();
+    let physics = springtime::sim::Physics {
+        rayleigh: 8.0 * source.rayleigh,
+        ..run.physics(first.frame_dt)
+    };
+    let progress = Progress::quiet();
+    let takes = springtime::eval::Takes {
+        topology: &run.topology,
+        files: &train_files,
+        batch: run.config.eval.batch,
+        device: &run.device,
+        progress: &progress,
+    };
+    let row = springtime::train::scale::drag_row(run.springs().unwrap(), &physics, &takes);
+    let found = row
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("a stable drag")
+        .0;
+    let ratio = found / source.rayleigh;
+    assert!((0.5..=2.0).contains(&ratio), "from 8 ×: {row:?}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -781,7 +781,9 @@ impl AfterFit<'_> {
                  that uniform network",
             );
         }
+        let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
         record.polish = Some(polish);
+        record.drag = drag;
         let run = self.fit.run;
         keep_searched(
             run,
@@ -792,6 +794,98 @@ impl AfterFit<'_> {
             &record,
         )?;
         Ok((blended, blended_physics))
+    }
+
+    /// The drag searched after the polish ([`scale::DragSearch`]) where the run fitted it, the
+    /// polish kept the map and training takes were held out; returns the network and physics kept
+    /// and the record.
+    fn drag(
+        &self,
+        net: SpringNet,
+        physics: Physics,
+        polish: &scale::Polish,
+    ) -> Result<(SpringNet, Physics, Option<scale::DragSearch>)> {
+        if self.resolution.rayleigh_from != "fit"
+            || polish.kept_uniform
+            || self.split.validation.is_empty()
+        {
+            return Ok((net, physics, None));
+        }
+        let (config, progress) = (self.fit.job.config, self.fit.progress);
+        let row = scale::drag_row(&net, &physics, &self.train_takes());
+        let best = row
+            .iter()
+            .copied()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .map_or(physics.rayleigh, |r| r.0);
+        let mut record = scale::DragSearch {
+            fitted: physics.rayleigh,
+            row,
+            best,
+            polish: None,
+            held_out: None,
+            kept: physics.rayleigh,
+        };
+        if best == physics.rayleigh {
+            progress.note(&format!(
+                "drag search: no drag of the row moves the map closer to the training rollouts \
+                 than the fitted sim.rayleigh {:.4e} N·s/m",
+                physics.rayleigh
+            ));
+            return Ok((net, physics, Some(record)));
+        }
+        let at_best = Physics {
+            rayleigh: best,
+            ..physics
+        };
+        let (other, again) = scale::polish(
+            &net,
+            &at_best,
+            config.model.uniform_start(),
+            &self.train_takes(),
+        )?;
+        // `(short, long)` motion RMSE on the held-out training rollouts.
+        let held = |n: &SpringNet, p: &Physics| -> Result<(f64, f64)> {
+            let takes = Takes {
+                files: &self.split.validation,
+                ..self.train_takes()
+            };
+            let curves = crate::eval::motion_curves(n, p, &takes)?;
+            let s = crate::eval::summarize(
+                &curves.curves,
+                p.frame_dt,
+                config.eval.short_seconds,
+                config.eval.long_seconds,
+            );
+            Ok((s.short.mean, s.long.mean))
+        };
+        let (at_fitted, at_other) = (held(&net, &physics)?, held(&other, &at_best)?);
+        let closer = !again.kept_uniform && at_other.0 < at_fitted.0 && at_other.1 < at_fitted.1;
+        progress.note(&format!(
+            "drag search: the map moves closest to the training rollouts at sim.rayleigh {:.4e} \
+             N·s/m (fitted {:.4e}); polished there, on the {} held-out rollouts it moves {:.4e} / \
+             {:.4e} m (short / long) against {:.4e} / {:.4e} m at the fitted drag -> {}",
+            best,
+            physics.rayleigh,
+            self.split.validation.len(),
+            at_other.0,
+            at_other.1,
+            at_fitted.0,
+            at_fitted.1,
+            if closer {
+                "the run keeps that drag"
+            } else {
+                "the run keeps the fitted drag"
+            }
+        ));
+        record.polish = Some(again);
+        record.held_out = Some((at_fitted, at_other));
+        Ok(if closer {
+            record.kept = best;
+            (other, at_best, Some(record))
+        } else {
+            (net, physics, Some(record))
+        })
     }
 
     /// The scale search of `model` (from the fit's physics).
@@ -887,8 +981,8 @@ fn before_text(before: Option<f64>) -> String {
     before.map_or("(diverged)".to_string(), |r| format!("{r:.4e}"))
 }
 
-/// Keeps a network a search after training found: its substeps into the run's `config.toml`
-/// (when they differ from the config's), its record as `file`, the network as the run's model.
+/// Keeps a network a search after training found: its substeps and drag into the run's
+/// `config.toml` (when they differ from the config's), its record as `file`, the network as the run's model.
 fn keep_searched(
     run: &RunDir,
     config: &Config,
@@ -897,9 +991,12 @@ fn keep_searched(
     file: &str,
     record: &impl Serialize,
 ) -> Result<()> {
-    if config.sim.substeps.value() != Some(physics.substeps) {
+    if config.sim.substeps.value() != Some(physics.substeps)
+        || config.sim.rayleigh.value() != Some(physics.rayleigh)
+    {
         let mut updated = config.clone();
         updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
+        updated.sim.rayleigh = crate::settings::Auto::Value(physics.rayleigh);
         crate::io::write_text(&run.config(), &updated.to_toml())?;
     }
     crate::io::write_json(&run.dir.join(file), record)?;
