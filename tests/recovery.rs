@@ -480,7 +480,7 @@ fn the_run_searches_a_drag_the_data_does_not_state() {
         device: &run.device,
         progress: &progress,
     };
-    let row = springtime::train::scale::drag_row(run.springs().unwrap(), &physics, &takes);
+    let row = springtime::train::scale::drag_row(run.springs().unwrap(), &physics, None, &takes);
     let found = row
         .iter()
         .min_by(|a, b| a.1.total_cmp(&b.1))

@@ -812,7 +812,7 @@ impl AfterFit<'_> {
             return Ok((net, physics, None));
         }
         let (config, progress) = (self.fit.job.config, self.fit.progress);
-        let row = scale::drag_row(&net, &physics, &self.train_takes());
+        let row = scale::drag_row(&net, &physics, Some(polish.after), &self.train_takes());
         let best = row
             .iter()
             .copied()
@@ -982,7 +982,8 @@ fn before_text(before: Option<f64>) -> String {
 }
 
 /// Keeps a network a search after training found: its substeps and drag into the run's
-/// `config.toml` (when they differ from the config's), its record as `file`, the network as the run's model.
+/// `config.toml` (when they differ from the config's), its record as `file`, the network as the
+/// run's model.
 fn keep_searched(
     run: &RunDir,
     config: &Config,
