@@ -48,7 +48,9 @@ def train(data, out, extra=()):
         out=str(out),
         set=[f"data.dir={data / 'train'}", f"data.test_dir={data / 'test'}", *extra],
     )
-    return json.loads((Path(run.path) / "eval.json").read_text())
+    ev = json.loads((Path(run.path) / "eval.json").read_text())
+    ev["blend"] = json.loads((Path(run.path) / "blend.json").read_text())
+    return ev
 
 
 def test_the_data_mesh_learns_another_simulators_map_better_than_a_grid(data, tmp_path):
@@ -57,6 +59,14 @@ def test_the_data_mesh_learns_another_simulators_map_better_than_a_grid(data, tm
     assert mesh["stiffness_map_corr"] > 0.4, mesh["stiffness_map_corr"]
     assert gain["improvement_long"] > 0.1, gain
     assert gain["improvement_short"] > 0.1, gain
+    # The three maps' blends were judged on the held-out training takes too: the run keeps the
+    # mixed map unless another moves closer to the training takes and to the held-out takes at
+    # both horizons.
+    maps = {m["map"]: m for m in mesh["blend"]["maps"]}
+    assert list(maps) == ["trained", "compliance", "mixed"], maps
+    closest = min(maps.values(), key=lambda m: m["after"])
+    agree = all(c < m for c, m in zip(closest["held_out"], maps["mixed"]["held_out"]))
+    assert mesh["blend"]["map"] == (closest["map"] if agree else "mixed"), maps
 
     grid = train(
         data, tmp_path / "grid", ["cloth.layout=grid", "cloth.nx=13", "cloth.ny=13"]

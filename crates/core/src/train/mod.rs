@@ -702,7 +702,7 @@ impl AfterFit<'_> {
                 .with_kernel(trained.graph.kernel)
                 .with_curvature(&trained.curvature_values());
             maps.push(("compliance", compliance));
-            maps.push(("mixed", mixed));
+            maps.push((MIXED_MAP, mixed));
         }
         let mut found = Vec::new();
         for (name, map) in &maps {
@@ -722,10 +722,45 @@ impl AfterFit<'_> {
             }
             found.push((net, p, record));
         }
-        let (blended, blended_physics, mut record) = found
-            .into_iter()
-            .min_by(|a, b| a.2.after.total_cmp(&b.2.after))
-            .expect("one map at least");
+        let scores = self.map_scores(&found)?;
+        let chosen = choose_map(&scores);
+        if let Some(mixed) = scores.iter().find(|s| s.map == MIXED_MAP)
+            && let Some(at_mixed) = mixed.held_out
+        {
+            for s in &scores {
+                let (short, long) = s.held_out.unwrap_or((f64::NAN, f64::NAN));
+                progress.note(&format!(
+                    "blend search of the {} map: on the {} held-out rollouts {short:.4e} / \
+                     {long:.4e} m (short / long)",
+                    s.map,
+                    self.split.validation.len()
+                ));
+            }
+            let closest = closest_map(&scores);
+            progress.note(&format!(
+                "blend search: {}",
+                if closest == chosen && scores[chosen].map == MIXED_MAP {
+                    "the mixed map's blend moves closest to the training rollouts; the run keeps it"
+                        .to_string()
+                } else if closest == chosen {
+                    format!(
+                        "the {} map's blend moves closest to the training rollouts, and closer \
+                         than the mixed map's to the held-out rollouts at both horizons; the run \
+                         keeps it",
+                        scores[chosen].map
+                    )
+                } else {
+                    format!(
+                        "the {} map's blend moves closest to the training rollouts but not closer \
+                         than the mixed map's ({:.4e} / {:.4e} m) to the held-out rollouts at \
+                         both horizons; the run keeps the mixed map",
+                        scores[closest].map, at_mixed.0, at_mixed.1
+                    )
+                }
+            ));
+        }
+        let (blended, blended_physics, mut record) = found.swap_remove(chosen);
+        record.maps = scores;
         progress.note(&format!(
             "blend search: the best uniform network on {} training rollouts is k {:.4} N/m, b \
              {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3} (bending springs' \
@@ -844,22 +879,10 @@ impl AfterFit<'_> {
             config.model.uniform_start(),
             &self.train_takes(),
         )?;
-        // `(short, long)` motion RMSE on the held-out training rollouts.
-        let held = |n: &SpringNet, p: &Physics| -> Result<(f64, f64)> {
-            let takes = Takes {
-                files: &self.split.validation,
-                ..self.train_takes()
-            };
-            let curves = crate::eval::motion_curves(n, p, &takes)?;
-            let s = crate::eval::summarize(
-                &curves.curves,
-                p.frame_dt,
-                config.eval.short_seconds,
-                config.eval.long_seconds,
-            );
-            Ok((s.short.mean, s.long.mean))
-        };
-        let (at_fitted, at_other) = (held(&net, &physics)?, held(&other, &at_best)?);
+        let (at_fitted, at_other) = (
+            self.held_out_rmse(&net, &physics)?,
+            self.held_out_rmse(&other, &at_best)?,
+        );
         let closer = !again.kept_uniform && at_other.0 < at_fitted.0 && at_other.1 < at_fitted.1;
         progress.note(&format!(
             "drag search: the map moves closest to the training rollouts at sim.rayleigh {:.4e} \
@@ -886,6 +909,47 @@ impl AfterFit<'_> {
         } else {
             (net, physics, Some(record))
         })
+    }
+
+    /// `(short, long)` motion RMSE of `net` on the held-out training rollouts (m).
+    fn held_out_rmse(&self, net: &SpringNet, physics: &Physics) -> Result<(f64, f64)> {
+        let config = self.fit.job.config;
+        let takes = Takes {
+            files: &self.split.validation,
+            ..self.train_takes()
+        };
+        let curves = crate::eval::motion_curves(net, physics, &takes)?;
+        let s = crate::eval::summarize(
+            &curves.curves,
+            physics.frame_dt,
+            config.eval.short_seconds,
+            config.eval.long_seconds,
+        );
+        Ok((s.short.mean, s.long.mean))
+    }
+
+    /// Each map's blend: its share and motion RMSE on the search's training takes, and where
+    /// several maps were searched and training takes were held out, on those.
+    fn map_scores(
+        &self,
+        found: &[(SpringNet, Physics, scale::BlendSearch)],
+    ) -> Result<Vec<scale::MapScore>> {
+        let judge = found.len() > 1 && !self.split.validation.is_empty();
+        found
+            .iter()
+            .map(|(net, p, record)| {
+                Ok(scale::MapScore {
+                    map: record.map.clone(),
+                    alpha: record.alpha,
+                    after: record.after,
+                    held_out: if judge {
+                        Some(self.held_out_rmse(net, p)?)
+                    } else {
+                        None
+                    },
+                })
+            })
+            .collect()
     }
 
     /// The scale search of `model` (from the fit's physics).
@@ -974,6 +1038,45 @@ impl AfterFit<'_> {
             .note(&format!("validation: {}", v.summary()));
         crate::io::write_json(&guard::Validation::path(&self.fit.run.dir), &v)
     }
+}
+
+/// The map of the blend search that averages the other two ([`compliance::mixed`]).
+const MIXED_MAP: &str = "mixed";
+
+/// The map whose blend moves closest to the search's training takes (a figure that is not
+/// finite loses).
+fn closest_map(scores: &[scale::MapScore]) -> usize {
+    (0..scores.len())
+        .min_by(|&a, &b| finite(scores[a].after).total_cmp(&finite(scores[b].after)))
+        .expect("one map at least")
+}
+
+/// The map the run keeps. The search's training takes are the ones the maps were read off, so
+/// they favour the fitted map, and a fifth of them held out are few: the mixed map (the fit's
+/// forces and the compliance map's ranks averaged) is kept unless another map moves closer to
+/// the training takes and the held-out takes agree — it is closer than the mixed map there at
+/// both horizons. Without held-out figures, or without a mixed map, the closest on the training
+/// takes.
+fn choose_map(scores: &[scale::MapScore]) -> usize {
+    let closest = closest_map(scores);
+    let Some(mixed) = scores.iter().position(|s| s.map == MIXED_MAP) else {
+        return closest;
+    };
+    match (scores[closest].held_out, scores[mixed].held_out) {
+        (Some(c), Some(m)) => {
+            if finite(c.0) < finite(m.0) && finite(c.1) < finite(m.1) {
+                closest
+            } else {
+                mixed
+            }
+        }
+        _ => closest,
+    }
+}
+
+/// `r`, or infinity where it is not finite (a diverged rollout loses every comparison).
+fn finite(r: f64) -> f64 {
+    if r.is_finite() { r } else { f64::INFINITY }
 }
 
 /// A search's motion RMSE before it: the figure, or `(diverged)`.
@@ -2145,5 +2248,59 @@ mod schedule_tests {
         );
         assert!((held.lr_at(10) - 0.02).abs() < 1e-12);
         assert!(held.lr_at(8) < held.lr_at(7));
+    }
+}
+
+#[cfg(test)]
+mod map_choice_tests {
+    use super::choose_map;
+    use crate::train::scale::MapScore;
+
+    fn score(map: &str, after: f64, held_out: Option<(f64, f64)>) -> MapScore {
+        MapScore {
+            map: map.into(),
+            alpha: 1.0,
+            after,
+            held_out,
+        }
+    }
+
+    #[test]
+    fn another_map_than_the_mixed_one_is_kept_only_where_the_held_out_takes_agree() {
+        // The fitted map moves closest to the training takes and is closer on the held-out
+        // takes at both horizons too: kept.
+        let agree = [
+            score("trained", 0.20, Some((0.05, 0.24))),
+            score("compliance", 0.23, Some((0.04, 0.29))),
+            score("mixed", 0.21, Some((0.06, 0.25))),
+        ];
+        assert_eq!(choose_map(&agree), 0);
+        // Closer over the whole take, not at the short horizon: the mixed map.
+        let long_only = [
+            score("trained", 0.20, Some((0.07, 0.24))),
+            score("compliance", 0.23, Some((0.04, 0.29))),
+            score("mixed", 0.21, Some((0.06, 0.25))),
+        ];
+        assert_eq!(choose_map(&long_only), 2);
+        // The compliance map is the held-out takes' closest but not the training takes': the
+        // mixed map.
+        let held_out_only = [
+            score("trained", 0.20, Some((0.07, 0.26))),
+            score("compliance", 0.23, Some((0.01, 0.01))),
+            score("mixed", 0.21, Some((0.06, 0.25))),
+        ];
+        assert_eq!(choose_map(&held_out_only), 2);
+        // Without held-out figures the training takes decide.
+        let plain: Vec<MapScore> = agree.iter().map(|s| score(&s.map, s.after, None)).collect();
+        assert_eq!(choose_map(&plain), 0);
+        // Without a mixed map too.
+        assert_eq!(choose_map(&agree[..2]), 0);
+        // A mixed map that diverged on the held-out takes loses; one that diverged on the
+        // training takes is not the closest there.
+        let diverged = [
+            score("trained", 0.20, Some((0.05, 0.30))),
+            score("mixed", f64::NAN, Some((f64::NAN, f64::NAN))),
+        ];
+        assert_eq!(choose_map(&diverged), 0);
     }
 }

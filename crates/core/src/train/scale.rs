@@ -130,6 +130,24 @@ pub(crate) struct BlendSearch {
     /// training take was held out, or in a record written before there was a drag search.
     #[serde(default)]
     pub drag: Option<DragSearch>,
+    /// Every map's blend, the kept one among them ([`MapScore`]); empty where one map was
+    /// searched, or in a record written before the maps were judged on held-out takes.
+    #[serde(default)]
+    pub maps: Vec<MapScore>,
+}
+
+/// One map's blend in the blend search: what the search kept of it and how close it moves.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapScore {
+    /// `trained`, `compliance` or `mixed`.
+    pub map: String,
+    /// The share of the map kept (0: uniform).
+    pub alpha: f64,
+    /// Mean motion RMSE on the search's training takes (m).
+    pub after: f64,
+    /// `(short, long)` motion RMSE on the held-out training takes (m); `None` where none were
+    /// held out or one map was searched.
+    pub held_out: Option<(f64, f64)>,
 }
 
 /// The chain of a record written before there were two.
@@ -522,6 +540,7 @@ impl Blender<'_> {
             chain: kept.name.into(),
             polish: None,
             drag: None,
+            maps: Vec::new(),
         }
     }
 
