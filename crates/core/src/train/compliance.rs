@@ -197,6 +197,59 @@ pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64]) -> Vec<f64> {
     k
 }
 
+/// `values` smoothed over the spring graph by `passes` rounds of averaging (ours,
+/// `train.map_smoothing`): each round, each spring takes the mean of its own value and its
+/// neighbours' mean — the springs of its strain group (a data mesh's edges together, its hinge
+/// springs by family; a grid's families) that share a particle with it. A stiffness map of a
+/// cloth is spatially coherent (regions painted or assigned a material), while each spring's
+/// value read from the frames carries its own error; the neighbours average that error down,
+/// and a spring the data leaves at zero takes its neighbours' value. Each group's values stay
+/// inside their own range.
+pub fn smoothed(topo: &Topology, values: &[f64], passes: usize) -> Vec<f64> {
+    let mut group = vec![0usize; topo.num_springs()];
+    for (g, members) in strain_groups(topo).into_iter().enumerate() {
+        for s in members {
+            group[s] = g;
+        }
+    }
+    let mut at_particle = vec![Vec::new(); topo.num_particles()];
+    for (s, pair) in topo.springs.iter().enumerate() {
+        for &p in pair {
+            at_particle[p].push(s);
+        }
+    }
+    let neighbours: Vec<Vec<usize>> = topo
+        .springs
+        .iter()
+        .enumerate()
+        .map(|(s, pair)| {
+            let mut n: Vec<usize> = pair
+                .iter()
+                .flat_map(|&p| at_particle[p].iter().copied())
+                .filter(|&r| r != s && group[r] == group[s])
+                .collect();
+            n.sort_unstable();
+            n.dedup();
+            n
+        })
+        .collect();
+    let mut v = values.to_vec();
+    for _ in 0..passes {
+        v = neighbours
+            .iter()
+            .enumerate()
+            .map(|(s, n)| {
+                if n.is_empty() {
+                    v[s]
+                } else {
+                    0.5 * (v[s] + n.iter().map(|&r| v[r]).sum::<f64>() / n.len() as f64)
+                }
+            })
+            .collect();
+    }
+    v
+}
+
 /// The springs whose strains the compliance map compares with each other: a grid's families;
 /// on a data mesh its edges together — the quad cells' sides and the diagonals that cut them
 /// alike, so that a diagonal that stretches more than the sides around it (a cloth weaker in
@@ -337,5 +390,45 @@ mod tests {
         );
         // A hinge group the fit left at zero: the compliance map's value.
         assert_eq!(k[hinge], 1.0);
+    }
+
+    /// A spring the data left at zero takes half its neighbours' mean in one round; springs of
+    /// other strain groups (the hinge springs) neither enter the edges' means nor move; many
+    /// rounds even a connected group out.
+    #[test]
+    fn smoothing_averages_each_spring_with_its_own_groups_neighbours() {
+        let uv = [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0], [2.0, 0.5]];
+        let topo = Topology::mesh(&uv, &[[0, 1, 2], [0, 3, 2], [1, 4, 2]], 2.0, 1.0, true).unwrap();
+        let groups = strain_groups(&topo);
+        let edges = &groups[0];
+        let hinges: Vec<usize> = groups[1..].concat();
+        assert!(!hinges.is_empty());
+        let mut k = vec![100.0; topo.num_springs()];
+        for &s in edges {
+            k[s] = 10.0;
+        }
+        k[edges[0]] = 0.0;
+        assert_eq!(smoothed(&topo, &k, 0), k);
+        let once = smoothed(&topo, &k, 1);
+        assert_eq!(
+            once[edges[0]], 5.0,
+            "half its neighbours' mean, hinges left out"
+        );
+        for &s in &hinges {
+            assert_eq!(once[s], 100.0);
+        }
+        for &s in &edges[1..] {
+            let [a, b] = topo.springs[s];
+            let touches = topo.springs[edges[0]].iter().any(|&p| p == a || p == b);
+            assert_eq!(once[s] < 10.0, touches, "spring {s}");
+            assert!(once[s] > 5.0);
+        }
+        let many = smoothed(&topo, &k, 200);
+        let (lo, hi) = edges.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &s| {
+            (lo.min(many[s]), hi.max(many[s]))
+        });
+        assert!(hi - lo < 1e-9 && lo > 5.0 && hi < 10.0, "{lo}..{hi}");
+        let constant = vec![3.0; topo.num_springs()];
+        assert_eq!(smoothed(&topo, &constant, 3), constant);
     }
 }

@@ -178,6 +178,11 @@ pub struct TrainConfig {
     /// uniform network is a candidate, so the kept one is never worse on those rollouts;
     /// replaces `scale_search`, whose candidates are the blend's `α = 1`).
     pub blend_search: bool,
+    /// Rounds of averaging over the spring graph applied to each stiffness map before the
+    /// blend search blends it ([`compliance::smoothed`]; ours): each round, each spring takes
+    /// the mean of its own `k` and its neighbours' (the springs of its strain group that share
+    /// a particle). 0 (the default): the maps as fitted.
+    pub map_smoothing: usize,
     /// Start a spring network from the strain-compliance map (ours; replaces the
     /// least-squares start).
     pub compliance: compliance::ComplianceConfig,
@@ -210,6 +215,7 @@ impl Default for TrainConfig {
             project_stable: true,
             scale_search: false,
             blend_search: false,
+            map_smoothing: 0,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             refine: refine::RefineConfig::default(),
@@ -286,6 +292,12 @@ impl TrainConfig {
                 "`train.compliance.enabled` and `train.least_squares.enabled` both choose the \
                  start of the spring network; keep one, or turn on `train.blend_search`, which \
                  blends each map into the uniform network and keeps the better"
+            );
+        }
+        if self.map_smoothing > 0 && !self.blend_search {
+            bail!(
+                "`train.map_smoothing` smooths the maps that the blend search blends; turn on \
+                 `train.blend_search`, or set `train.map_smoothing = 0`"
             );
         }
         if self.scale_search && self.blend_search {
@@ -688,14 +700,30 @@ impl AfterFit<'_> {
     }
 
     /// The blend search on the maps to blend: the trained network, and with both starts on
-    /// the compliance map and the two mixed ([`compliance::mixed`]) too; the one whose blend
-    /// moves closest to the training rollouts is kept.
+    /// the compliance map and the two mixed ([`compliance::mixed`]) too, each smoothed by
+    /// `train.map_smoothing` first; the map is chosen by [`choose_map`].
     fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
-        let mut maps = vec![("trained", model)];
+        let passes = config.train.map_smoothing;
+        let smooth = |net: SpringNet| {
+            if passes == 0 {
+                return net;
+            }
+            let k = compliance::smoothed(job.topology, &net.k_values(), passes);
+            SpringNet::new(job.topology, &k, &net.b_values(), self.device)
+                .with_kernel(net.graph.kernel)
+                .with_curvature(&net.curvature_values())
+        };
+        if passes > 0 {
+            progress.note(&format!(
+                "blend search: each map's k smoothed by {passes} round(s) of averaging with its \
+                 neighbours' (`train.map_smoothing`)"
+            ));
+        }
+        let mut maps = vec![("trained", smooth(model))];
         if config.train.compliance.enabled && config.train.least_squares.enabled {
-            let compliance = self.fit.compliance_springs(self.resolution)?;
+            let compliance = smooth(self.fit.compliance_springs(self.resolution)?);
             let trained = &maps[0].1;
             let k = compliance::mixed(job.topology, &trained.k_values(), &compliance.k_values());
             let mixed = SpringNet::new(job.topology, &k, &trained.b_values(), self.device)
@@ -723,12 +751,10 @@ impl AfterFit<'_> {
             found.push((net, p, record));
         }
         let scores = self.map_scores(&found)?;
-        let chosen = choose_map(&scores);
-        if let Some(mixed) = scores.iter().find(|s| s.map == MIXED_MAP)
-            && let Some(at_mixed) = mixed.held_out
-        {
-            for s in &scores {
-                let (short, long) = s.held_out.unwrap_or((f64::NAN, f64::NAN));
+        let choice = choose_map(&scores);
+        if scores.len() > 1 {
+            for s in scores.iter().filter(|s| s.held_out.is_some()) {
+                let (short, long) = s.held_out.unwrap_or_default();
                 progress.note(&format!(
                     "blend search of the {} map: on the {} held-out rollouts {short:.4e} / \
                      {long:.4e} m (short / long)",
@@ -736,29 +762,9 @@ impl AfterFit<'_> {
                     self.split.validation.len()
                 ));
             }
-            let closest = closest_map(&scores);
-            progress.note(&format!(
-                "blend search: {}",
-                if closest == chosen && scores[chosen].map == MIXED_MAP {
-                    "the mixed map's blend moves closest to the training rollouts; the run keeps it"
-                        .to_string()
-                } else if closest == chosen {
-                    format!(
-                        "the {} map's blend moves closest to the training rollouts, and closer \
-                         than the mixed map's to the held-out rollouts at both horizons; the run \
-                         keeps it",
-                        scores[chosen].map
-                    )
-                } else {
-                    format!(
-                        "the {} map's blend moves closest to the training rollouts but not closer \
-                         than the mixed map's ({:.4e} / {:.4e} m) to the held-out rollouts at \
-                         both horizons; the run keeps the mixed map",
-                        scores[closest].map, at_mixed.0, at_mixed.1
-                    )
-                }
-            ));
+            progress.note(&format!("blend search: {}", choice.why));
         }
+        let chosen = choice.kept;
         let (blended, blended_physics, mut record) = found.swap_remove(chosen);
         record.maps = scores;
         progress.note(&format!(
@@ -1051,26 +1057,58 @@ fn closest_map(scores: &[scale::MapScore]) -> usize {
         .expect("one map at least")
 }
 
+/// The map the run keeps ([`choose_map`]): its index among the scores, and why, in words.
+struct MapChoice {
+    kept: usize,
+    why: String,
+}
+
 /// The map the run keeps. The search's training takes are the ones the maps were read off, so
 /// they favour the fitted map, and a fifth of them held out are few: the mixed map (the fit's
 /// forces and the compliance map's ranks averaged) is kept unless another map moves closer to
 /// the training takes and the held-out takes agree — it is closer than the mixed map there at
 /// both horizons. Without held-out figures, or without a mixed map, the closest on the training
 /// takes.
-fn choose_map(scores: &[scale::MapScore]) -> usize {
+fn choose_map(scores: &[scale::MapScore]) -> MapChoice {
     let closest = closest_map(scores);
+    let name = &scores[closest].map;
+    let keep = |kept, why| MapChoice { kept, why };
     let Some(mixed) = scores.iter().position(|s| s.map == MIXED_MAP) else {
-        return closest;
+        return keep(
+            closest,
+            format!(
+                "the {name} map's blend moves closest to the training rollouts; the run keeps it"
+            ),
+        );
     };
     match (scores[closest].held_out, scores[mixed].held_out) {
-        (Some(c), Some(m)) => {
-            if finite(c.0) < finite(m.0) && finite(c.1) < finite(m.1) {
-                closest
-            } else {
-                mixed
-            }
-        }
-        _ => closest,
+        _ if closest == mixed => keep(
+            mixed,
+            "the mixed map's blend moves closest to the training rollouts; the run keeps it".into(),
+        ),
+        (Some(c), Some(m)) if finite(c.0) < finite(m.0) && finite(c.1) < finite(m.1) => keep(
+            closest,
+            format!(
+                "the {name} map's blend moves closest to the training rollouts, and closer than \
+                 the mixed map's to the held-out rollouts at both horizons; the run keeps it"
+            ),
+        ),
+        (Some(_), Some(m)) => keep(
+            mixed,
+            format!(
+                "the {name} map's blend moves closest to the training rollouts but not closer \
+                 than the mixed map's ({:.4e} / {:.4e} m) to the held-out rollouts at both \
+                 horizons; the run keeps the mixed map",
+                m.0, m.1
+            ),
+        ),
+        _ => keep(
+            closest,
+            format!(
+                "the {name} map's blend moves closest to the training rollouts (no held-out \
+                 rollouts to confirm it); the run keeps it"
+            ),
+        ),
     }
 }
 
@@ -2214,6 +2252,23 @@ mod schedule_tests {
         );
     }
 
+    /// Map smoothing acts on the blend search's maps: without the search it is refused,
+    /// naming both keys.
+    #[test]
+    fn map_smoothing_needs_the_blend_search() {
+        let mut c = TrainConfig {
+            map_smoothing: 1,
+            ..TrainConfig::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("`train.map_smoothing`") && e.contains("`train.blend_search`"),
+            "{e}"
+        );
+        c.blend_search = true;
+        c.validate().unwrap();
+    }
+
     #[test]
     fn the_learning_rate_decays_geometrically_from_lr_to_lr_times_decay() {
         let pass = PassConfig {
@@ -2274,14 +2329,19 @@ mod map_choice_tests {
             score("compliance", 0.23, Some((0.04, 0.29))),
             score("mixed", 0.21, Some((0.06, 0.25))),
         ];
-        assert_eq!(choose_map(&agree), 0);
+        assert_eq!(choose_map(&agree).kept, 0);
         // Closer over the whole take, not at the short horizon: the mixed map.
         let long_only = [
             score("trained", 0.20, Some((0.07, 0.24))),
             score("compliance", 0.23, Some((0.04, 0.29))),
             score("mixed", 0.21, Some((0.06, 0.25))),
         ];
-        assert_eq!(choose_map(&long_only), 2);
+        assert_eq!(choose_map(&long_only).kept, 2);
+        let why = choose_map(&long_only).why;
+        assert!(
+            why.contains("the trained map's") && why.contains("keeps the mixed map"),
+            "{why}"
+        );
         // The compliance map is the held-out takes' closest but not the training takes': the
         // mixed map.
         let held_out_only = [
@@ -2289,18 +2349,18 @@ mod map_choice_tests {
             score("compliance", 0.23, Some((0.01, 0.01))),
             score("mixed", 0.21, Some((0.06, 0.25))),
         ];
-        assert_eq!(choose_map(&held_out_only), 2);
+        assert_eq!(choose_map(&held_out_only).kept, 2);
         // Without held-out figures the training takes decide.
         let plain: Vec<MapScore> = agree.iter().map(|s| score(&s.map, s.after, None)).collect();
-        assert_eq!(choose_map(&plain), 0);
+        assert_eq!(choose_map(&plain).kept, 0);
         // Without a mixed map too.
-        assert_eq!(choose_map(&agree[..2]), 0);
+        assert_eq!(choose_map(&agree[..2]).kept, 0);
         // A mixed map that diverged on the held-out takes loses; one that diverged on the
         // training takes is not the closest there.
         let diverged = [
             score("trained", 0.20, Some((0.05, 0.30))),
             score("mixed", f64::NAN, Some((f64::NAN, f64::NAN))),
         ];
-        assert_eq!(choose_map(&diverged), 0);
+        assert_eq!(choose_map(&diverged).kept, 0);
     }
 }
