@@ -706,14 +706,20 @@ impl AfterFit<'_> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
         let passes = config.train.map_smoothing;
+        // `net` with the stiffness `k`, its damping, kernel and curvature kept.
+        let with_k = |net: &SpringNet, k: &[f64]| {
+            SpringNet::new(job.topology, k, &net.b_values(), self.device)
+                .with_kernel(net.graph.kernel)
+                .with_curvature(&net.curvature_values())
+        };
         let smooth = |net: SpringNet| {
             if passes == 0 {
                 return net;
             }
-            let k = compliance::smoothed(job.topology, &net.k_values(), passes);
-            SpringNet::new(job.topology, &k, &net.b_values(), self.device)
-                .with_kernel(net.graph.kernel)
-                .with_curvature(&net.curvature_values())
+            with_k(
+                &net,
+                &compliance::smoothed(job.topology, &net.k_values(), passes),
+            )
         };
         if passes > 0 {
             progress.note(&format!(
@@ -726,9 +732,7 @@ impl AfterFit<'_> {
             let compliance = smooth(self.fit.compliance_springs(self.resolution)?);
             let trained = &maps[0].1;
             let k = compliance::mixed(job.topology, &trained.k_values(), &compliance.k_values());
-            let mixed = SpringNet::new(job.topology, &k, &trained.b_values(), self.device)
-                .with_kernel(trained.graph.kernel)
-                .with_curvature(&trained.curvature_values());
+            let mixed = with_k(trained, &k);
             maps.push(("compliance", compliance));
             maps.push((MIXED_MAP, mixed));
         }
@@ -753,8 +757,7 @@ impl AfterFit<'_> {
         let scores = self.map_scores(&found)?;
         let choice = choose_map(&scores);
         if scores.len() > 1 {
-            for s in scores.iter().filter(|s| s.held_out.is_some()) {
-                let (short, long) = s.held_out.unwrap_or_default();
+            for (s, (short, long)) in scores.iter().filter_map(|s| Some((s, s.held_out?))) {
                 progress.note(&format!(
                     "blend search of the {} map: on the {} held-out rollouts {short:.4e} / \
                      {long:.4e} m (short / long)",
@@ -764,8 +767,7 @@ impl AfterFit<'_> {
             }
             progress.note(&format!("blend search: {}", choice.why));
         }
-        let chosen = choice.kept;
-        let (blended, blended_physics, mut record) = found.swap_remove(chosen);
+        let (blended, blended_physics, mut record) = found.swap_remove(choice.kept);
         record.maps = scores;
         progress.note(&format!(
             "blend search: the best uniform network on {} training rollouts is k {:.4} N/m, b \
