@@ -1051,12 +1051,10 @@ impl AfterFit<'_> {
 /// The map of the blend search that averages the other two ([`compliance::mixed`]).
 const MIXED_MAP: &str = "mixed";
 
-/// The map whose blend moves closest to the search's training takes (a figure that is not
-/// finite loses).
-fn closest_map(scores: &[scale::MapScore]) -> usize {
-    (0..scores.len())
-        .min_by(|&a, &b| finite(scores[a].after).total_cmp(&finite(scores[b].after)))
-        .expect("one map at least")
+/// Of the maps `among`, the one whose blend moves closest to the search's training takes (a
+/// figure that is not finite loses); `None` where `among` is empty.
+fn closest_map(scores: &[scale::MapScore], among: impl Iterator<Item = usize>) -> Option<usize> {
+    among.min_by(|&a, &b| finite(scores[a].after).total_cmp(&finite(scores[b].after)))
 }
 
 /// The map the run keeps ([`choose_map`]): its index among the scores, and why, in words.
@@ -1072,7 +1070,7 @@ struct MapChoice {
 /// map there at both horizons too; of such maps, the one closest to the training takes. Without
 /// held-out figures, or without a mixed map, the closest on the training takes.
 fn choose_map(scores: &[scale::MapScore]) -> MapChoice {
-    let closest = closest_map(scores);
+    let closest = closest_map(scores, 0..scores.len()).expect("one map at least");
     let keep = |kept: usize, why| MapChoice { kept, why };
     let unconfirmed = |why: &str| {
         keep(
@@ -1083,12 +1081,14 @@ fn choose_map(scores: &[scale::MapScore]) -> MapChoice {
             ),
         )
     };
-    let Some(mixed) = scores.iter().position(|s| s.map == MIXED_MAP) else {
+    // Without a mixed map, or where it is the closest, the closest.
+    let Some(mixed) = scores
+        .iter()
+        .position(|s| s.map == MIXED_MAP)
+        .filter(|&m| m != closest)
+    else {
         return unconfirmed("");
     };
-    if closest == mixed {
-        return unconfirmed("");
-    }
     let Some(m) = scores[mixed].held_out else {
         return unconfirmed(" (no held-out rollouts to confirm it)");
     };
@@ -1097,9 +1097,10 @@ fn choose_map(scores: &[scale::MapScore]) -> MapChoice {
             && s.held_out
                 .is_some_and(|h| finite(h.0) < finite(m.0) && finite(h.1) < finite(m.1))
     };
-    let confirmed = (0..scores.len())
-        .filter(|&i| i != mixed && beats_mixed(&scores[i]))
-        .min_by(|&a, &b| finite(scores[a].after).total_cmp(&finite(scores[b].after)));
+    let confirmed = closest_map(
+        scores,
+        (0..scores.len()).filter(|&i| i != mixed && beats_mixed(&scores[i])),
+    );
     match confirmed {
         Some(kept) => {
             let aside = if kept == closest {
