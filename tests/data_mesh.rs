@@ -85,86 +85,102 @@ fn a_data_mesh_surrogate_recovers_the_stiffness_of_an_irregular_spring_cloth() {
     assert_eq!(opened.topology.grid, None);
     assert_eq!(opened.topology.num_springs(), truth.topology.num_springs());
     assert_eq!(opened.topology.springs, truth.topology.springs);
+    // With the masses it trained with (lumped; from the run's f32 `rest_uv`), or those its
+    // config is opened with.
+    let (reread, lumped) = (
+        opened.topology.mass_weight.as_ref().unwrap(),
+        truth.topology.mass_weight.as_ref().unwrap(),
+    );
+    assert!(reread.iter().zip(lumped).all(|(a, b)| (a - b).abs() < 1e-6));
+    let equal = ["cloth.masses=\"equal\"".to_string()];
+    let reopened =
+        springtime::run::Run::open(&dir.join("runs").join("data"), &equal, None).unwrap();
+    assert_eq!(reopened.topology.mass_weight, None);
+    assert_eq!(reopened.topology.springs, truth.topology.springs);
 }
 
 /// The surrogate on a data mesh with the true `k`, `b` (tensor ops and the fused kernel, f32)
-/// follows the host spring cloth whose particles carry the mesh's lumped masses (f64): the
-/// spring forces divided by the relative masses are that cloth's dynamics. With equal masses
-/// instead, the same network drifts away.
+/// follows the host spring cloth whose particles carry the same masses (f64) — the mesh's lumped
+/// masses, or equal ones (`cloth.masses`): the spring forces divided by the relative masses are
+/// that cloth's dynamics. With the other masses, the same network drifts away.
 #[test]
-fn a_data_mesh_surrogate_with_the_true_springs_follows_its_lumped_mass_source() {
-    use springtime::cloth::Resampler;
+fn a_data_mesh_surrogate_with_the_true_springs_follows_a_source_of_its_masses() {
+    use springtime::cloth::{ParticleMasses, Resampler};
     use springtime::data::Track;
     use springtime::model::{Kernel, SpringNet};
     use springtime::sim::Physics;
     let n = 7;
     let cfg = common::source(n, &[20.0, 80.0], 0.5);
     let size = 0.5 * (n - 1) as f64;
-    let topology = Topology::of_points(&common::jittered_points(n, 3), size, size, true).unwrap();
-    let w = topology.mass_weight.clone().unwrap();
+    let lumped = Topology::of_points(&common::jittered_points(n, 3), size, size, true).unwrap();
+    let w = lumped.mass_weight.clone().unwrap();
     let spread = w.iter().fold(0.0f64, |m, w| m.max((w - 1.0).abs()));
     assert!(spread > 0.3, "lumped masses should differ: {spread}");
     let base = SpringCloth::from_config(&cfg);
-    let s = topology.num_springs();
-    let truth = SpringCloth {
-        k: (0..s)
-            .map(|i| 30.0 + 20.0 * (i as f64 * 0.7).sin())
-            .collect(),
-        b: vec![4.0; s],
-        mass: base.mass,
-        topology,
-        ..base
-    };
-    let scenario = Scenario::random(
-        &truth.topology.rest_uv,
-        cfg.anchor_radius,
-        &mut StdRng::seed_from_u64(5),
-    );
-    let r = simulate_rollout(&truth, &cfg, &scenario, None, "parity").unwrap();
-    let track = Track::new(&r, &Resampler::new(&r.rest_uv, &truth.topology.rest_uv));
-    let frames = r.frames - 1;
-    let physics = Physics {
-        frame_dt: r.frame_dt,
-        substeps: (r.frame_dt / cfg.dt).round() as usize,
-        mass: truth.mass,
-        rayleigh: truth.rayleigh,
-        gravity: truth.gravity,
-    };
+    let s = lumped.num_springs();
+    let k: Vec<f64> = (0..s)
+        .map(|i| 30.0 + 20.0 * (i as f64 * 0.7).sin())
+        .collect();
     let device = burn::tensor::Device::flex();
-    let gap = |topology: &Topology, kernel: Kernel| {
-        let model = SpringNet::new(topology, &truth.k, &truth.b, &device).with_kernel(kernel);
-        common::last_frame(&model, &physics, None, &track, frames, &device)
+    for (host, other) in [
+        (ParticleMasses::Lumped, ParticleMasses::Equal),
+        (ParticleMasses::Equal, ParticleMasses::Lumped),
+    ] {
+        let truth = SpringCloth {
+            k: k.clone(),
+            b: vec![4.0; s],
+            mass: base.mass,
+            topology: lumped.clone().with_masses(host),
+            ..base.clone()
+        };
+        let scenario = Scenario::random(
+            &truth.topology.rest_uv,
+            cfg.anchor_radius,
+            &mut StdRng::seed_from_u64(5),
+        );
+        let r = simulate_rollout(&truth, &cfg, &scenario, None, "parity").unwrap();
+        let track = Track::new(&r, &Resampler::new(&r.rest_uv, &truth.topology.rest_uv));
+        let frames = r.frames - 1;
+        let physics = Physics {
+            frame_dt: r.frame_dt,
+            substeps: (r.frame_dt / cfg.dt).round() as usize,
+            mass: truth.mass,
+            rayleigh: truth.rayleigh,
+            gravity: truth.gravity,
+        };
+        let gap = |masses: ParticleMasses, kernel: Kernel| {
+            let topology = truth.topology.clone().with_masses(masses);
+            let model = SpringNet::new(&topology, &truth.k, &truth.b, &device).with_kernel(kernel);
+            common::last_frame(&model, &physics, None, &track, frames, &device)
+                .iter()
+                .zip(r.positions[frames * r.landmarks * 3..].iter())
+                .map(|(a, b)| (a - b).abs() as f64)
+                .fold(0.0, f64::max)
+        };
+        let moved = r.positions[frames * r.landmarks * 3..]
             .iter()
-            .zip(r.positions[frames * r.landmarks * 3..].iter())
+            .zip(&r.positions[..r.landmarks * 3])
             .map(|(a, b)| (a - b).abs() as f64)
-            .fold(0.0, f64::max)
-    };
-    let moved = r.positions[frames * r.landmarks * 3..]
-        .iter()
-        .zip(&r.positions[..r.landmarks * 3])
-        .map(|(a, b)| (a - b).abs() as f64)
-        .fold(0.0, f64::max);
-    let equal_masses = Topology {
-        mass_weight: None,
-        ..truth.topology.clone()
-    };
-    let (fused, reference, unweighted) = (
-        gap(&truth.topology, Kernel::Fused),
-        gap(&truth.topology, Kernel::Reference),
-        gap(&equal_masses, Kernel::Fused),
-    );
-    eprintln!(
-        "moved {moved:.3} m; gap fused {fused:.2e}, reference {reference:.2e}, equal masses {unweighted:.2e} m"
-    );
-    assert!(moved > 0.1, "the cloth barely moved: {moved} m");
-    assert!(
-        fused < 1e-4 && reference < 1e-4,
-        "fused {fused} m, reference {reference} m"
-    );
-    assert!(
-        unweighted > 10.0 * fused.max(1e-4),
-        "equal masses: {unweighted} m"
-    );
+            .fold(0.0, f64::max);
+        let (fused, reference, mismatched) = (
+            gap(host, Kernel::Fused),
+            gap(host, Kernel::Reference),
+            gap(other, Kernel::Fused),
+        );
+        eprintln!(
+            "{host:?} host: moved {moved:.3} m; gap fused {fused:.2e}, reference {reference:.2e}, \
+             {other:?} masses {mismatched:.2e} m"
+        );
+        assert!(moved > 0.1, "the cloth barely moved: {moved} m");
+        assert!(
+            fused < 1e-4 && reference < 1e-4,
+            "{host:?} host: fused {fused} m, reference {reference} m"
+        );
+        assert!(
+            mismatched > 10.0 * fused.max(1e-4),
+            "{host:?} host, {other:?} masses: {mismatched} m"
+        );
+    }
 }
 
 /// Bad meshes for `layout = "data"`: a landmark in no triangle is refused naming the file and

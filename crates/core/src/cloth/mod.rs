@@ -12,7 +12,9 @@ pub(crate) mod resample;
 pub mod triangles;
 
 pub use resample::{Resampler, twice_area};
-pub use topology::{Diagonal, GridSpec, SpringFamily, SpringLayout, Topology, grid_triangles};
+pub use topology::{
+    Diagonal, GridSpec, ParticleMasses, SpringFamily, SpringLayout, Topology, grid_triangles,
+};
 
 /// The flat sheet at rest in the horizontal plane, centred at the origin.
 pub fn flat(rest_uv: &[[f64; 2]], width: f64, height: f64) -> Vec<[f64; 3]> {

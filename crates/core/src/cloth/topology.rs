@@ -41,6 +41,22 @@ pub struct GridSpec {
     /// only).
     /// Springs have no linear bending stiffness about the flat state; these do.
     pub curvature: bool,
+    /// How the particles of a data mesh (`layout = "data"`) share the cloth's mass.
+    pub masses: ParticleMasses,
+}
+
+/// How the particles of a data mesh share the cloth's mass: `cloth.masses`. A grid's particles
+/// always weigh the same.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ParticleMasses {
+    /// Each particle weighs its lumped rest area (a third of each adjacent triangle's): an
+    /// FEM's or a density-based cloth's masses (border particles are lighter).
+    #[default]
+    Lumped,
+    /// Every particle weighs the same (`total_mass / N`): the vertex masses of Blender's cloth,
+    /// of Warp's and Newton's `add_cloth_grid`, of MuJoCo's `flexcomp`.
+    Equal,
 }
 
 /// The surrogate's particles and springs: `cloth.layout`.
@@ -65,6 +81,7 @@ impl Default for GridSpec {
             bending_stride: 2,
             layout: SpringLayout::Grid,
             curvature: false,
+            masses: ParticleMasses::Lumped,
         }
     }
 }
@@ -333,6 +350,17 @@ impl Topology {
             curvature: Vec::new(),
             mass_weight,
         })
+    }
+
+    /// The same network with its particles' masses shared as `masses` says (a grid's stay equal).
+    pub fn with_masses(mut self, masses: ParticleMasses) -> Self {
+        if self.grid.is_none() {
+            self.mass_weight = match masses {
+                ParticleMasses::Lumped => Some(lumped_mass_weights(&self.rest_uv, &self.triangles)),
+                ParticleMasses::Equal => None,
+            };
+        }
+        self
     }
 
     /// The network on the Delaunay triangulation of `rest_uv` (slivers dropped), for data that
@@ -655,6 +683,38 @@ mod tests {
             assert_eq!(mesh.family[s], grid.family[g], "spring {pair:?}");
         }
         assert!((mesh.spacing() - grid.spacing()).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_data_mesh_s_particles_weigh_their_lumped_area_or_the_same() {
+        // A triangulated 3 × 3 grid: its corners touch one or two triangles, its middle six.
+        let spec = GridSpec {
+            nx: 3,
+            ny: 3,
+            ..GridSpec::default()
+        };
+        let grid = Topology::grid(&spec, 2.0, 2.0);
+        let lumped = Topology::mesh(&grid.rest_uv, &grid.triangles, 2.0, 2.0, true).unwrap();
+        let w = lumped
+            .mass_weight
+            .clone()
+            .expect("a mesh lumps its masses by default");
+        // Areas (in units of one triangle's third): corners 1 or 2, sides 3, middle 6; mean 8/3.
+        let mean = 24.0 / 9.0;
+        let expect = [2.0, 3.0, 1.0, 3.0, 6.0, 3.0, 1.0, 3.0, 2.0].map(|a| a / mean);
+        for (i, (w, e)) in w.iter().zip(expect).enumerate() {
+            assert!((w - e).abs() < 1e-12, "particle {i}: {w} against {e}");
+        }
+        let equal = lumped.clone().with_masses(ParticleMasses::Equal);
+        assert_eq!(equal.mass_weight, None);
+        assert_eq!((0..9).map(|i| equal.relative_mass(i)).sum::<f64>(), 9.0);
+        assert_eq!(equal.springs, lumped.springs);
+        // Back to lumped: the same weights; a grid's particles weigh the same either way.
+        assert_eq!(
+            equal.with_masses(ParticleMasses::Lumped).mass_weight,
+            Some(w)
+        );
+        assert_eq!(grid.with_masses(ParticleMasses::Lumped).mass_weight, None);
     }
 
     #[test]

@@ -77,7 +77,9 @@ impl Run {
         })?;
         let topology = match (config.cloth.layout, meta.kind) {
             (SpringLayout::Grid, _) => Topology::grid(&config.cloth, meta.width, meta.height),
-            (SpringLayout::Data, ModelKind::Springs) => read_mesh_topology(&dir.springs())?,
+            (SpringLayout::Data, ModelKind::Springs) => {
+                read_mesh_topology(&dir.springs())?.with_masses(config.cloth.masses)
+            }
             (SpringLayout::Data, kind) => bail!(
                 "{}: a {} run with cloth.layout = \"data\" (only the spring surrogate takes the \
                  data's mesh)",

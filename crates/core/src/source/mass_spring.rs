@@ -44,7 +44,7 @@ impl SpringCloth {
             shear_anti: true,
             bending_stride: 2,
             layout: SpringLayout::Grid,
-            curvature: false,
+            ..GridSpec::default()
         };
         let topology = Topology::grid(&spec, cfg.width, cfg.height);
         let map = StiffnessMap {

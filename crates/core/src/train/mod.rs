@@ -437,6 +437,7 @@ pub fn topology(config: &Config, first: &Rollout) -> Result<Topology> {
                 Some(m) => Topology::mesh(uv, &m.triangles, w, h, hinges),
                 None => Topology::of_points(uv, w, h, hinges),
             }
+            .map(|topo| topo.with_masses(cloth.masses))
             .map_err(|e| anyhow!("{}: cloth.layout = \"data\": {e}", first.path.display()))
         }
     }
