@@ -187,6 +187,9 @@ fn key_help(key: &str) -> Option<&'static str> {
         ("runs_dir", _) => "where runs go",
         ("cloth", _) => "the surrogate's particles and springs",
         ("cloth.layout", _) => "grid (the paper's) or data (the data's landmarks and mesh edges)",
+        ("cloth.masses", _) => {
+            "layout = data: each particle's lumped rest area, or equal masses (total_mass / N)"
+        }
         ("cloth.nx" | "cloth.ny", _) => "particles along width / height (layout = grid)",
         ("cloth.bending_stride", _) => {
             "stride of the bending springs (0 = none; layout = data: > 0 adds the hinge springs)"
