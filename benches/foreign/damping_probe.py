@@ -1,0 +1,191 @@
+"""What a bench run's surrogate does under other damping models: a NumPy copy of springtime's
+step (semi-implicit Euler, Eq. 5, with the run's substeps, masses and pins) that replays a run's
+learned springs on a bench set's takes with the drag changed and an isotropic viscosity on the
+mesh's edges added, and prints the motion RMSE as `eval` measures it (Eq. 14, every particle,
+the frames' mean up to 0.8 s and over the take) and over half-second windows.
+
+    python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
+        [--viscosity NU | --viscosity-source SCALE] [--project] [--uniform K,B]
+
+RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
+bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
+the drag `-c v` (`sim.rayleigh`, the run's by default). The viscosity is a damper
+`nu (v_j - v_i)` on every edge of the data's triangles: the whole relative velocity, rotations
+and out-of-plane motion included, as Warp's FEM triangles damp (`k_damp * dF/dt`, rest area
+weighted). `--viscosity NU` puts the same `nu` on every edge; `--viscosity-source SCALE` reads
+the source's own damping off the takes (`tri_kd`, written by `warp_cloth.py`) and splits each
+triangle's `kd * area * |dF/dt|^2` into its edges with the cotangent weights
+(`nu_e = SCALE * sum kd cot(theta) / 2` over the edge's triangles, theta the opposite angle).
+`--project` applies the viscosity along the springs instead (added to the matching springs' `b`),
+`--uniform K,B` replays one `k` and `b` on every spring instead of the run's. A scratch tool for
+the book's damping measurements (Results, Other simulators): it does not replace `eval`, which
+it matches to a few per cent (f64 here, f32 there). Needs numpy (any of the bench's
+environments: `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve
+3 s takes at 189 substeps on one core.
+"""
+import argparse
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+
+SHORT = 0.8  # s, eval's short horizon
+
+
+def load_takes(data, count):
+    files = sorted(Path(data).glob("*.npz"))[:count]
+    if not files:
+        raise SystemExit(f"{data}: no .npz takes")
+    takes = [np.load(f) for f in files]
+    positions = np.stack([t["positions"] for t in takes]).astype(np.float64)  # B F N 3
+    if not np.isfinite(positions).all():
+        raise SystemExit(f"{data}: hidden markers (NaN positions); the probe takes complete takes only")
+    if "velocities" in takes[0].files:
+        raise SystemExit(f"{data}: stored velocities; the probe starts as eval does without them only")
+    pinned = np.stack([t["pinned"] for t in takes])
+    return takes[0], positions, pinned, float(takes[0]["frame_dt"])
+
+
+def mesh_edges(triangles, rest_uv, kd=None):
+    """Each edge of the triangles once, and its cotangent share of the triangles' `kd`."""
+    weight = {}
+    for t, tri in enumerate(triangles):
+        for a, b, o in ((tri[0], tri[1], tri[2]), (tri[1], tri[2], tri[0]), (tri[2], tri[0], tri[1])):
+            e1, e2 = rest_uv[a] - rest_uv[o], rest_uv[b] - rest_uv[o]
+            cot = (e1 @ e2) / abs(e1[0] * e2[1] - e1[1] * e2[0])
+            key = (min(a, b), max(a, b))
+            weight[key] = weight.get(key, 0.0) + (0.0 if kd is None else 0.5 * kd[t] * cot)
+    return np.array(list(weight.keys()), dtype=int), np.array(list(weight.values()))
+
+
+def particle_weights(config, first, n):
+    """Each particle's mass over the mean (springtime's `cloth.masses`): lumped rest areas or 1."""
+    if re.search(r'masses\s*=\s*"equal"', config):
+        return np.ones(n)
+    uv, tri = first["rest_uv"].astype(np.float64), first["triangles"].astype(int)
+    e1, e2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    w = np.zeros(n)
+    for c in range(3):
+        w += np.bincount(tri[:, c], area / 3.0, n)
+    return w / w.mean()
+
+
+def scatter(pair_force, ia, ib, size):
+    """Sums `pair_force` [B, E, 3] (the force on each pair's first end) onto both ends."""
+    out = np.empty((size, 3))
+    flat = pair_force.reshape(-1, 3)
+    for c in range(3):
+        out[:, c] = np.bincount(ia, flat[:, c], size) - np.bincount(ib, flat[:, c], size)
+    return out
+
+
+def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu):
+    """Free rollouts from frame 0 of `x` [B, F, N, 3] (velocities by central differences), the
+    pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1."""
+    batch, frames, n, _ = x.shape
+    size = batch * n
+    offset = (np.arange(batch) * n)[:, None]
+    sa, sb = (offset + springs[:, 0]).ravel(), (offset + springs[:, 1]).ravel()
+    ea, eb = (offset + edges[:, 0]).ravel(), (offset + edges[:, 1]).ravel()
+    h = dt / substeps
+    free = (~pinned)[..., None].astype(np.float64)
+    pin = 1.0 - free
+    inv_w = (1.0 / weight)[None, :, None]
+    pos = x[:, 1].copy()
+    vel = (x[:, 2] - x[:, 0]) / (2.0 * dt)
+    out = [pos.copy()]
+    for j in range(1, frames - 1):
+        here, nxt = x[:, j], x[:, j + 1]
+        pin_v = (nxt - here) / dt * pin
+        for s in range(substeps):
+            t = (s + 1) / substeps
+            d = pos[:, springs[:, 1]] - pos[:, springs[:, 0]]
+            w = vel[:, springs[:, 1]] - vel[:, springs[:, 0]]
+            length = np.linalg.norm(d, axis=-1, keepdims=True)
+            coef = k[None, :, None] * (1.0 - rest[None, :, None] / length) + b[None, :, None] * (
+                (w * d).sum(-1, keepdims=True) / length**2
+            )
+            f = scatter(d * coef, sa, sb, size).reshape(batch, n, 3)
+            if nu is not None:
+                rel = (vel[:, edges[:, 1]] - vel[:, edges[:, 0]]) * nu[None, :, None]
+                f += scatter(rel, ea, eb, size).reshape(batch, n, 3)
+            acc = f * inv_w / mass + gravity[None, None] - (drag / mass) * vel
+            vel = vel + h * acc
+            pos = pos + h * vel
+            pos = pos * free + (here * (1.0 - t) + nxt * t) * pin
+            vel = vel * free + pin_v
+        out.append(pos.copy())
+        if not np.isfinite(pos).all():
+            raise SystemExit(f"diverged at frame {j + 1}: the step is unstable with these constants")
+    return np.stack(out, 1)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run")
+    p.add_argument("data")
+    p.add_argument("--takes", type=int, default=1000, help="the first N takes of DATA")
+    p.add_argument("--drag", type=float, help="sim.rayleigh, N*s/m (default: the run's)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--viscosity", type=float, help="one viscosity on every mesh edge, N*s/m")
+    g.add_argument("--viscosity-source", type=float, metavar="SCALE",
+                   help="the takes' own tri_kd, cotangent weights, times SCALE")
+    p.add_argument("--project", action="store_true", help="the viscosity along the springs (into b)")
+    p.add_argument("--uniform", help="K,B: one stiffness and damping on every spring")
+    a = p.parse_args()
+
+    run = Path(a.run)
+    config = (run / "config.toml").read_text()
+    substeps = int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
+    drag = a.drag if a.drag is not None else float(re.search(r"^rayleigh\s*=\s*(\S+)", config, re.M).group(1))
+    net = np.load(run / "springs.npz")
+    springs = net["springs"].astype(int)
+    rest = net["rest_length"].astype(np.float64)
+    if a.uniform:
+        kk, bb = (float(v) for v in a.uniform.split(","))
+        k, b = np.full(len(springs), kk), np.full(len(springs), bb)
+    else:
+        k, b = net["k"].astype(np.float64), net["b"].astype(np.float64)
+
+    first, x, pinned, dt = load_takes(a.data, a.takes)
+    n = x.shape[2]
+    mass = float(first["total_mass"]) / n
+    weight = particle_weights(config, first, n)
+    gravity = np.asarray(first["gravity"], dtype=np.float64)
+    if a.viscosity_source is not None:
+        if "tri_kd" not in first.files:
+            raise SystemExit(f"{a.data}: the takes carry no tri_kd (only warp_cloth.py writes it)")
+        edges, nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64),
+                               first["tri_kd"].astype(np.float64) * a.viscosity_source)
+    else:
+        edges, _ = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64))
+        nu = None if a.viscosity is None else np.full(len(edges), a.viscosity)
+    if nu is not None and a.project:
+        index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
+        b = b.copy()
+        for (i, j), v in zip(edges, nu):
+            b[index[(i, j)]] += v
+        nu = None
+
+    start = time.time()
+    sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu)
+    target = x[:, 1:]
+    per = np.sqrt(((sim - target) ** 2).sum(-1).mean(-1))  # B, F
+    t = np.arange(per.shape[1]) * dt
+    windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
+    print(
+        f"{len(x)} takes, drag {drag:.4g}, viscosity "
+        + ("none" if a.viscosity is None and a.viscosity_source is None else
+           f"{a.viscosity if a.viscosity is not None else 'source x %g' % a.viscosity_source}"
+           + (" (projected)" if a.project else ""))
+        + (f", uniform {a.uniform}" if a.uniform else "")
+        + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
+        + " ".join(f"{w:.3f}" for w in windows)
+        + f" ({time.time() - start:.0f} s)"
+    )
+
+
+if __name__ == "__main__":
+    main()
