@@ -5,23 +5,28 @@ mesh's edges added, and prints the motion RMSE as `eval` measures it (Eq. 14, ev
 the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
-        [--viscosity NU | --viscosity-source SCALE] [--project] [--uniform K,B]
+        [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
+        [--uniform K,B]
+        [--damping-per-k BETA]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
 the drag `-c v` (`sim.rayleigh`, the run's by default). The viscosity is a damper
 `nu (v_j - v_i)` on every edge of the data's triangles: the whole relative velocity, rotations
 and out-of-plane motion included, as Warp's FEM triangles damp (`k_damp * dF/dt`, rest area
-weighted). `--viscosity NU` puts the same `nu` on every edge; `--viscosity-source SCALE` reads
+weighted). `--viscosity NU` puts the same `nu` on every edge, `--viscosity-per-k BETA` BETA times
+the `k` of the spring along it; `--viscosity-source SCALE` reads
 the source's own damping off the takes (`tri_kd`, written by `warp_cloth.py`) and splits each
 triangle's `kd * area * |dF/dt|^2` into its edges with the cotangent weights
 (`nu_e = SCALE * sum kd cot(theta) / 2` over the edge's triangles, theta the opposite angle).
 `--project` applies the viscosity along the springs instead (added to the matching springs' `b`),
-`--uniform K,B` replays one `k` and `b` on every spring instead of the run's. A scratch tool for
-the book's damping measurements (Results, Other simulators): it does not replace `eval`, which
-it matches to a few per cent (f64 here, f32 there). Needs numpy (any of the bench's
-environments: `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve
-3 s takes at 189 substeps on one core.
+`--uniform K,B` replays one `k` and `b` on every spring instead of the run's, and
+`--damping-per-k BETA` sets each spring's `b` to `BETA * k` (stiffness-proportional damping, as
+MuJoCo's elasticity damping). A scratch tool for the book's damping measurements (Results, Other
+simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
+there). Needs numpy (any of the bench's environments:
+`~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve 3 s takes at 189
+substeps on one core.
 """
 import argparse
 import re
@@ -132,8 +137,12 @@ def main():
     g.add_argument("--viscosity", type=float, help="one viscosity on every mesh edge, N*s/m")
     g.add_argument("--viscosity-source", type=float, metavar="SCALE",
                    help="the takes' own tri_kd, cotangent weights, times SCALE")
+    g.add_argument("--viscosity-per-k", type=float, metavar="BETA",
+                   help="on each edge BETA times the k of the spring along it (s)")
     p.add_argument("--project", action="store_true", help="the viscosity along the springs (into b)")
     p.add_argument("--uniform", help="K,B: one stiffness and damping on every spring")
+    p.add_argument("--damping-per-k", type=float, metavar="BETA",
+                   help="each spring's b = BETA * k (stiffness-proportional damping, s)")
     a = p.parse_args()
 
     run = Path(a.run)
@@ -148,6 +157,8 @@ def main():
         k, b = np.full(len(springs), kk), np.full(len(springs), bb)
     else:
         k, b = net["k"].astype(np.float64), net["b"].astype(np.float64)
+    if a.damping_per_k is not None:
+        b = a.damping_per_k * k
 
     first, x, pinned, dt = load_takes(a.data, a.takes)
     n = x.shape[2]
@@ -162,6 +173,15 @@ def main():
     else:
         edges, _ = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64))
         nu = None if a.viscosity is None else np.full(len(edges), a.viscosity)
+        if a.viscosity_per_k is not None:
+            index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
+            nu = a.viscosity_per_k * k[[index[(i, j)] for i, j in edges]]
+    nu_label = (
+        None if a.viscosity is None and a.viscosity_source is None and a.viscosity_per_k is None
+        else f"{a.viscosity}" if a.viscosity is not None
+        else f"source x {a.viscosity_source:g}" if a.viscosity_source is not None
+        else f"{a.viscosity_per_k:g} k"
+    )
     if nu is not None and a.project:
         index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
         b = b.copy()
@@ -177,10 +197,9 @@ def main():
     windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
     print(
         f"{len(x)} takes, drag {drag:.4g}, viscosity "
-        + ("none" if a.viscosity is None and a.viscosity_source is None else
-           f"{a.viscosity if a.viscosity is not None else 'source x %g' % a.viscosity_source}"
-           + (" (projected)" if a.project else ""))
+        + ("none" if nu_label is None else nu_label + (" (projected)" if a.project else ""))
         + (f", uniform {a.uniform}" if a.uniform else "")
+        + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
         + " ".join(f"{w:.3f}" for w in windows)
         + f" ({time.time() - start:.0f} s)"
