@@ -6,8 +6,7 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
-        [--uniform K,B]
-        [--damping-per-k BETA]
+        [--uniform K,B] [--damping-per-k BETA]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
@@ -165,29 +164,26 @@ def main():
     mass = float(first["total_mass"]) / n
     weight = particle_weights(config, first, n)
     gravity = np.asarray(first["gravity"], dtype=np.float64)
+    kd = None
     if a.viscosity_source is not None:
         if "tri_kd" not in first.files:
             raise SystemExit(f"{a.data}: the takes carry no tri_kd (only warp_cloth.py writes it)")
-        edges, nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64),
-                               first["tri_kd"].astype(np.float64) * a.viscosity_source)
+        kd = first["tri_kd"].astype(np.float64) * a.viscosity_source
+    edges, source_nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64), kd)
+    index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
+    spring_of = np.array([index[(i, j)] for i, j in edges])  # the spring along each edge
+    if kd is not None:
+        nu, label = source_nu, f"source x {a.viscosity_source:g}"
+    elif a.viscosity is not None:
+        nu, label = np.full(len(edges), a.viscosity), f"{a.viscosity}"
+    elif a.viscosity_per_k is not None:
+        nu, label = a.viscosity_per_k * k[spring_of], f"{a.viscosity_per_k:g} k"
     else:
-        edges, _ = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64))
-        nu = None if a.viscosity is None else np.full(len(edges), a.viscosity)
-        if a.viscosity_per_k is not None:
-            index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
-            nu = a.viscosity_per_k * k[[index[(i, j)] for i, j in edges]]
-    nu_label = (
-        None if a.viscosity is None and a.viscosity_source is None and a.viscosity_per_k is None
-        else f"{a.viscosity}" if a.viscosity is not None
-        else f"source x {a.viscosity_source:g}" if a.viscosity_source is not None
-        else f"{a.viscosity_per_k:g} k"
-    )
+        nu, label = None, "none"
     if nu is not None and a.project:
-        index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
         b = b.copy()
-        for (i, j), v in zip(edges, nu):
-            b[index[(i, j)]] += v
-        nu = None
+        np.add.at(b, spring_of, nu)
+        nu, label = None, label + " (projected)"
 
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu)
@@ -196,8 +192,7 @@ def main():
     t = np.arange(per.shape[1]) * dt
     windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
     print(
-        f"{len(x)} takes, drag {drag:.4g}, viscosity "
-        + ("none" if nu_label is None else nu_label + (" (projected)" if a.project else ""))
+        f"{len(x)} takes, drag {drag:.4g}, viscosity {label}"
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
