@@ -224,10 +224,8 @@ fn spring_cloth_takes(
     bending: f64,
     state_drag: bool,
 ) -> springtime::source::SourceConfig {
-    use rand::{SeedableRng, rngs::StdRng};
     use springtime::cloth::SpringFamily;
     use springtime::source::mass_spring::SpringCloth;
-    use springtime::source::{Scenario, simulate_rollout};
 
     let mut source = common::source(8, &[50.0], 2.0);
     source.frame_stride = 10;
@@ -238,7 +236,23 @@ fn spring_cloth_takes(
             *k *= bending;
         }
     }
-    for (split, seeds) in [("train", 0..8u64), ("test", 100..102u64)] {
+    save_takes(dir, &cloth, &source, 2, state_drag);
+    source
+}
+
+/// Simulates `cloth` (of `source`) from random scenarios: 8 training takes and `test` test takes
+/// under `dir`, the files stating the source's drag where `state_drag`.
+fn save_takes(
+    dir: &std::path::Path,
+    cloth: &springtime::source::mass_spring::SpringCloth,
+    source: &springtime::source::SourceConfig,
+    test: u64,
+    state_drag: bool,
+) {
+    use rand::{SeedableRng, rngs::StdRng};
+    use springtime::source::{Scenario, simulate_rollout};
+
+    for (split, seeds) in [("train", 0..8u64), ("test", 100..100 + test)] {
         std::fs::create_dir_all(dir.join(split)).unwrap();
         for seed in seeds {
             let scenario = Scenario::random(
@@ -248,15 +262,13 @@ fn spring_cloth_takes(
             );
             let path = dir.join(split).join(format!("take_{seed:03}.npz"));
             let mut take =
-                simulate_rollout(&cloth, &source, &scenario, None, &path.to_string_lossy())
-                    .unwrap();
+                simulate_rollout(cloth, source, &scenario, None, &path.to_string_lossy()).unwrap();
             if !state_drag {
                 take.rayleigh = None;
             }
             take.save(&path).unwrap();
         }
     }
-    source
 }
 
 /// A blend search on `dir`'s takes from a uniform network `(k_init, b_init)`, no fit: its
@@ -282,10 +294,21 @@ fn blend_run_holding_out(
     b_init: f64,
     holdout: usize,
 ) -> (std::path::PathBuf, serde_json::Value) {
+    blend_run_with(dir, k_init, b_init, holdout, "")
+}
+
+/// [`blend_run_holding_out`] with `train` (lines of the `[train]` section) added.
+fn blend_run_with(
+    dir: &std::path::Path,
+    k_init: f64,
+    b_init: f64,
+    holdout: usize,
+    train_lines: &str,
+) -> (std::path::PathBuf, serde_json::Value) {
     let text = format!(
         "name = \"blend\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = {k_init}\n\
          b_init = {b_init}\n[data]\nholdout = {holdout}\n[train]\nblend_search = true\n\
-         [train.stiffness]\niterations = 0\n[train.damping]\niterations = 0\n"
+         {train_lines}[train.stiffness]\niterations = 0\n[train.damping]\niterations = 0\n"
     );
     let mut config = Config::parse(&text, &[]).unwrap();
     config.data.dir = dir.join("train");
@@ -425,6 +448,60 @@ fn the_polish_measures_the_kept_network_against_the_yardstick() {
         (kept - after).abs() <= 1e-6 * after,
         "the run's network moves {kept} m, the polish kept {after} m"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Where the data does not state its drag, the run also tries spring damping proportional to
+/// stiffness without drag after the drag search: on takes of a spring cloth damped by
+/// `b = β k` with no drag (two stiffness levels, so its `b` follows its map; the run, with no
+/// fit, stays uniform), the run keeps that damping, with the source's `β` within a factor of 2,
+/// the drag at zero in its `config.toml` and every spring's `b / k` equal; it kept it because
+/// the held-out takes agree ([`springtime::train::scale::held_out_agrees`]).
+#[test]
+fn the_run_finds_damping_proportional_to_stiffness() {
+    use springtime::source::mass_spring::SpringCloth;
+
+    let dir = common::temp_dir("blend-proportional");
+    let beta = 0.04;
+    let mut source = common::source(8, &[30.0, 90.0], 2.0);
+    source.frame_stride = 10;
+    source.save_velocities = false;
+    let mut cloth = SpringCloth::from_config(&source);
+    cloth.b = cloth.k.iter().map(|k| beta * k).collect();
+    cloth.rayleigh = 0.0;
+    save_takes(&dir, &cloth, &source, 1, false);
+    let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "proportional_damping = true\n");
+    let damping = &record["damping"];
+    eprintln!("source β {beta}; proportional damping: {damping}");
+    assert_eq!(damping["kept"].as_bool(), Some(true), "{damping}");
+    let found = damping["beta"].as_f64().unwrap();
+    assert!(
+        (0.5..=2.0).contains(&(found / beta)),
+        "β {found} against the source's {beta}: {damping}"
+    );
+    let held = &damping["held_out"];
+    let pair = |i: usize| (held[i][0].as_f64().unwrap(), held[i][1].as_f64().unwrap());
+    assert!(
+        springtime::train::scale::held_out_agrees(pair(0), pair(1)),
+        "{damping}"
+    );
+    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
+    assert_eq!(config.sim.rayleigh.value(), Some(0.0));
+    let npz = springtime::data::npz::Npz::read(&run_dir.join("springs.npz")).unwrap();
+    let read = |key: &str| -> Vec<f64> {
+        npz.f32(key, &[None])
+            .unwrap()
+            .0
+            .iter()
+            .map(|&x| x as f64)
+            .collect()
+    };
+    for (k, b) in read("k").iter().zip(read("b")).filter(|(k, _)| **k > 0.0) {
+        assert!(
+            (b / k - found).abs() <= 1e-5 * found,
+            "b {b} k {k}: b / k is not β {found}"
+        );
+    }
     std::fs::remove_dir_all(&dir).ok();
 }
 

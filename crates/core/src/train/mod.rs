@@ -183,6 +183,11 @@ pub struct TrainConfig {
     /// the mean of its own `k` and its neighbours' (the springs of its strain group that share
     /// a particle). 0 (the default): the maps as fitted.
     pub map_smoothing: usize,
+    /// After the blend search's drag search, also search spring damping proportional to
+    /// stiffness without drag, `b_s = β k_s` ([`scale::ProportionalDamping`]; ours, off by
+    /// default), kept only where the held-out training takes prefer it. Needs
+    /// `train.blend_search`; runs where the drag was searched.
+    pub proportional_damping: bool,
     /// Start a spring network from the strain-compliance map (ours; replaces the
     /// least-squares start).
     pub compliance: compliance::ComplianceConfig,
@@ -216,6 +221,7 @@ impl Default for TrainConfig {
             scale_search: false,
             blend_search: false,
             map_smoothing: 0,
+            proportional_damping: false,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             refine: refine::RefineConfig::default(),
@@ -298,6 +304,12 @@ impl TrainConfig {
             bail!(
                 "`train.map_smoothing` smooths the maps that the blend search blends; turn on \
                  `train.blend_search`, or set `train.map_smoothing = 0`"
+            );
+        }
+        if self.proportional_damping && !self.blend_search {
+            bail!(
+                "`train.proportional_damping` is searched after the blend search's drag search; \
+                 turn on `train.blend_search`, or set `train.proportional_damping = false`"
             );
         }
         if self.scale_search && self.blend_search {
@@ -826,8 +838,16 @@ impl AfterFit<'_> {
             );
         }
         let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
+        let searched = drag.is_some();
         record.polish = Some(polish);
         record.drag = drag;
+        let (blended, blended_physics) = if searched && config.train.proportional_damping {
+            let (net, physics, damping) = self.proportional_damping(blended, blended_physics)?;
+            record.damping = damping;
+            (net, physics)
+        } else {
+            (blended, blended_physics)
+        };
         let run = self.fit.run;
         keep_searched(
             run,
@@ -915,6 +935,54 @@ impl AfterFit<'_> {
         Ok(if closer {
             record.kept = best;
             (other, at_best, Some(record))
+        } else {
+            (net, physics, Some(record))
+        })
+    }
+
+    /// Spring damping proportional to stiffness without drag ([`scale::ProportionalDamping`]),
+    /// searched where the drag was; kept only where the held-out training takes agree
+    /// ([`scale::held_out_agrees`]). Returns the network and physics kept and the record.
+    fn proportional_damping(
+        &self,
+        net: SpringNet,
+        physics: Physics,
+    ) -> Result<(SpringNet, Physics, Option<scale::ProportionalDamping>)> {
+        let progress = self.fit.progress;
+        let Some((other, at, mut record)) =
+            scale::proportional_damping(&net, &physics, &self.train_takes())
+        else {
+            progress.note(
+                "proportional damping: no b = β k without drag is stable at the run's substeps",
+            );
+            return Ok((net, physics, None));
+        };
+        let (before, after) = (
+            self.held_out_rmse(&net, &physics)?,
+            self.held_out_rmse(&other, &at)?,
+        );
+        record.kept = scale::held_out_agrees(before, after);
+        record.held_out = Some((before, after));
+        progress.note(&format!(
+            "proportional damping: without drag the map moves closest to the training rollouts \
+             at b = {:.3e} s · k, k × {:.3} ({:.4e} m); on the {} held-out rollouts it moves \
+             {:.4e} / {:.4e} m (short / long) against {:.4e} / {:.4e} m as kept so far -> {}",
+            record.beta,
+            record.k_factor,
+            record.after,
+            self.split.validation.len(),
+            after.0,
+            after.1,
+            before.0,
+            before.1,
+            if record.kept {
+                "the run keeps it"
+            } else {
+                "the run keeps the network as it was"
+            }
+        ));
+        Ok(if record.kept {
+            (other, at, Some(record))
         } else {
             (net, physics, Some(record))
         })
@@ -2282,6 +2350,21 @@ mod schedule_tests {
         let e = c.validate().unwrap_err().to_string();
         assert!(
             e.contains("`train.map_smoothing`") && e.contains("`train.blend_search`"),
+            "{e}"
+        );
+        c.blend_search = true;
+        c.validate().unwrap();
+    }
+
+    #[test]
+    fn proportional_damping_needs_the_blend_search() {
+        let mut c = TrainConfig {
+            proportional_damping: true,
+            ..TrainConfig::default()
+        };
+        let e = c.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("`train.proportional_damping`") && e.contains("`train.blend_search`"),
             "{e}"
         );
         c.blend_search = true;
