@@ -838,11 +838,14 @@ impl AfterFit<'_> {
             );
         }
         let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
-        let searched = drag.is_some();
+        let searched = drag.as_ref().map(scale::DragSearch::held_out_kept);
         record.polish = Some(polish);
         record.drag = drag;
-        let (blended, blended_physics) = if searched && config.train.proportional_damping {
-            let (net, physics, damping) = self.proportional_damping(blended, blended_physics)?;
+        let (blended, blended_physics) = if let Some(known) = searched
+            && config.train.proportional_damping
+        {
+            let (net, physics, damping) =
+                self.proportional_damping(blended, blended_physics, known)?;
             record.damping = damping;
             (net, physics)
         } else {
@@ -942,11 +945,13 @@ impl AfterFit<'_> {
 
     /// Spring damping proportional to stiffness without drag ([`scale::ProportionalDamping`]),
     /// searched where the drag was; kept only where the held-out training takes agree
-    /// ([`scale::held_out_agrees`]). Returns the network and physics kept and the record.
+    /// ([`scale::held_out_agrees`]). `known` is `net`'s `(short, long)` held-out RMSE where the
+    /// drag search measured it. Returns the network and physics kept and the record.
     fn proportional_damping(
         &self,
         net: SpringNet,
         physics: Physics,
+        known: Option<(f64, f64)>,
     ) -> Result<(SpringNet, Physics, Option<scale::ProportionalDamping>)> {
         let progress = self.fit.progress;
         let Some((other, at, mut record)) =
@@ -957,10 +962,11 @@ impl AfterFit<'_> {
             );
             return Ok((net, physics, None));
         };
-        let (before, after) = (
-            self.held_out_rmse(&net, &physics)?,
-            self.held_out_rmse(&other, &at)?,
-        );
+        let before = match known {
+            Some(r) => r,
+            None => self.held_out_rmse(&net, &physics)?,
+        };
+        let after = self.held_out_rmse(&other, &at)?;
         record.kept = scale::held_out_agrees(before, after);
         record.held_out = Some((before, after));
         progress.note(&format!(

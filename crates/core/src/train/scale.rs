@@ -800,27 +800,26 @@ impl<'a> Sizes<'a> {
     /// The network with every `k` times `fk` (the curvature elements too: they are
     /// stiffnesses) and every `b` times `fb`, on `takes`' springs and device.
     fn scaled(&self, takes: &Takes, fk: f64, fb: f64) -> SpringNet {
-        let times = |v: &[f64], f: f64| -> Vec<f64> { v.iter().map(|x| x * f).collect() };
-        SpringNet::new(
-            takes.topology,
-            &times(&self.k, fk),
-            &times(&self.b, fb),
-            takes.device,
-        )
-        .with_kernel(self.model.graph.kernel)
-        .with_curvature(&times(&self.kappa, fk))
+        self.with(takes, fk, &times(&self.b, fb))
     }
 
     /// The network with every `k` times `fk` (the curvature elements too) and every `b` set to
     /// `beta` times its spring's new `k`.
     fn proportional(&self, takes: &Takes, fk: f64, beta: f64) -> SpringNet {
-        let k: Vec<f64> = self.k.iter().map(|x| x * fk).collect();
-        let b: Vec<f64> = k.iter().map(|x| x * beta).collect();
-        let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
-        SpringNet::new(takes.topology, &k, &b, takes.device)
-            .with_kernel(self.model.graph.kernel)
-            .with_curvature(&kappa)
+        self.with(takes, fk, &times(&self.k, fk * beta))
     }
+
+    /// The network with every `k` and curvature element times `fk` and the damping `b`.
+    fn with(&self, takes: &Takes, fk: f64, b: &[f64]) -> SpringNet {
+        SpringNet::new(takes.topology, &times(&self.k, fk), b, takes.device)
+            .with_kernel(self.model.graph.kernel)
+            .with_curvature(&times(&self.kappa, fk))
+    }
+}
+
+/// Every value of `v` times `f`.
+fn times(v: &[f64], f: f64) -> Vec<f64> {
+    v.iter().map(|x| x * f).collect()
 }
 
 /// Drag rates `γ = c/m` the drag row tries besides none and octaves around the run's, s⁻¹.
@@ -850,6 +849,20 @@ pub struct DragSearch {
     pub held_out: Option<((f64, f64), (f64, f64))>,
     /// The drag the run keeps.
     pub kept: f64,
+}
+
+impl DragSearch {
+    /// `(short, long)` motion RMSE on the held-out training takes of the network the run keeps,
+    /// where the search measured it.
+    pub fn held_out_kept(&self) -> Option<(f64, f64)> {
+        self.held_out.map(|(fitted, best)| {
+            if self.kept == self.fitted {
+                fitted
+            } else {
+                best
+            }
+        })
+    }
 }
 
 /// `(drag, mean motion RMSE on the first training takes)` of `model` for every stable drag of a
@@ -948,9 +961,9 @@ pub fn held_out_agrees(before: (f64, f64), after: (f64, f64)) -> bool {
 
 /// The closest network with `b = β k` and no drag on the first training takes
 /// ([`ProportionalDamping`]): a row of `β` ([`BETA_STEPS`]) at `model`'s `k`, the factors
-/// `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network, the physics it runs at (the
-/// drag zero, `physics`' substeps) and the record (not yet judged on held-out takes); `None`
-/// where no candidate is stable.
+/// `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network, the
+/// physics it runs at (the drag zero, `physics`' substeps) and the record (not yet judged on
+/// held-out takes); `None` where no candidate is stable.
 pub fn proportional_damping(
     model: &SpringNet,
     physics: &Physics,
