@@ -122,6 +122,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
             mass: cloth.mass,
             rayleigh: cfg.rayleigh,
             gravity: cfg.gravity,
+            viscosity: 0.0,
         },
         batch: b,
         steps: t,

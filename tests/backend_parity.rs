@@ -47,6 +47,7 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn, curvature: bool) -> O
         mass: rollouts[0].total_mass / topo.num_particles() as f64,
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
+        viscosity: 0.0,
     };
     let frames = batch.positions.dims()[1];
     let drive = common::clip_drive(&batch);

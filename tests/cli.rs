@@ -609,3 +609,39 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
         &["cloth.curvature", "cloth.layout"],
     );
 }
+
+/// A run with the springs' viscosity (`sim.viscosity`) trains through the fused rollout with it,
+/// keeps it in its `config.toml`, and `eval` reloads it (the same figure as training's
+/// evaluation, which differs from the same run's without it); `export` refuses the run, naming
+/// the key, since `surrogate.json` has no viscosity.
+#[test]
+fn a_run_with_a_viscosity_keeps_it_and_export_refuses_it() {
+    let dir = setup("cli-viscosity");
+    let motion = |text: &str| {
+        text.lines()
+            .find(|l| l.starts_with("motion RMSE"))
+            .unwrap_or_default()
+            .to_string()
+    };
+    let out = ok(&train_tiny(&["--set", "sim.viscosity=2e-3"], &dir));
+    let config = <springtime::config::Config as springtime::settings::Job>::load(
+        &dir.join("runs/tiny/config.toml"),
+        &[],
+    )
+    .unwrap();
+    assert_eq!(config.sim.viscosity, 2e-3);
+    let again = ok(&springtime(&["eval", "runs/tiny"], &dir));
+    assert!(!motion(&out).is_empty(), "{out}");
+    assert_eq!(motion(&again), motion(&out));
+    let plain = ok(&train_tiny(&["--out", "runs/plain"], &dir));
+    assert_ne!(
+        motion(&plain),
+        motion(&out),
+        "the viscosity changed nothing"
+    );
+    fails(
+        &springtime(&["export", "runs/tiny", "--out", "e"], &dir),
+        &["sim.viscosity", "runs/tiny"],
+    );
+    assert!(!dir.join("e/surrogate.json").exists());
+}

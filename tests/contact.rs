@@ -344,6 +344,7 @@ fn the_surrogate_with_the_true_springs_matches_the_source_through_contact() {
         mass: cloth.mass,
         rayleigh: cloth.rayleigh,
         gravity: cloth.gravity,
+        viscosity: 0.0,
     };
     let track = Track::at_rest(&x0);
     let tensor_contact = contact.clone();

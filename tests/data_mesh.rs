@@ -147,6 +147,7 @@ fn a_data_mesh_surrogate_with_the_true_springs_follows_a_source_of_its_masses() 
             mass: truth.mass,
             rayleigh: truth.rayleigh,
             gravity: truth.gravity,
+            viscosity: 0.0,
         };
         let gap = |masses: ParticleMasses, kernel: Kernel| {
             let topology = truth.topology.clone().with_masses(masses);

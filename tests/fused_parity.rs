@@ -87,39 +87,109 @@ fn fused_kernel_matches_tensor_ops() {
 }
 
 /// The fused rollout-and-loss op against the tensor-op rollout and losses: loss terms and their
-/// gradients with respect to k and b, with and without substeps and checkpointing.
+/// gradients with respect to k and b, with and without substeps and checkpointing, and with the
+/// springs' isotropic viscosity (`sim.viscosity`, 2 ms: `β k` up to 0.2 N·s/m beside `b` of 3–5).
 #[test]
 fn fused_rollout_loss_matches_tensor_ops() {
-    compare_losses(&Device::flex(), &[(1, 1024), (1, 0), (3, 1024), (3, 0)]);
+    compare_losses(
+        &Device::flex(),
+        &[
+            (1, 0.0, 1024),
+            (1, 0.0, 0),
+            (3, 0.0, 1024),
+            (3, 0.0, 0),
+            (3, 2e-3, 1024),
+            (3, 2e-3, 0),
+        ],
+    );
 }
 
 /// Loss terms and their `k`, `b` gradients, fused against tensor ops on `device`, for each
-/// `(substeps, state budget in MiB)`.
-fn compare_losses(device: &Device, cases: &[(usize, usize)]) {
+/// `(substeps, viscosity, state budget in MiB)`.
+fn compare_losses(device: &Device, cases: &[(usize, f64, usize)]) {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
     for topo in topologies(&cfg) {
         let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
-        for &(substeps, budget) in cases {
+        for &(substeps, viscosity, budget) in cases {
             let case = common::LossCase {
                 cfg: &cfg,
                 topo: &topo,
                 rollouts: &rollouts,
                 substeps,
+                viscosity,
                 budget,
             };
             let (rv, rk, rb) = case.evaluate(Kernel::Reference, device);
             let (fv, fk, fb) = case.evaluate(Kernel::Fused, device);
-            common::assert_losses_close(&format!("substeps {substeps}"), &rv, &fv);
-            assert_close(
-                &format!("substeps {substeps} budget {budget} dL/dk"),
-                &rk,
-                &fk,
-            );
-            assert_close(
-                &format!("substeps {substeps} budget {budget} dL/db"),
-                &rb,
-                &fb,
-            );
+            let case = format!("substeps {substeps} viscosity {viscosity} budget {budget}");
+            common::assert_losses_close(&case, &rv, &fv);
+            assert_close(&format!("{case} dL/dk"), &rk, &fk);
+            assert_close(&format!("{case} dL/db"), &rb, &fb);
         }
+    }
+}
+
+/// The fused step with the springs' isotropic viscosity (`sim.viscosity`) against the tensor-op
+/// step, on every CPU backend and on wgpu (whose step falls back to tensor ops around its fused
+/// forces there): positions after 30 frames of 3 substeps and the gradients of a weighted sum of
+/// them with respect to `k` and `b`, through the step's backward. The viscosity moves the cloth:
+/// without it the positions differ by far more than the tolerance.
+#[test]
+#[allow(deprecated)]
+fn fused_step_with_viscosity_matches_tensor_ops() {
+    use springtime::sim::{self, Physics};
+    let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
+    let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
+    let topo = common::grid_of(&cfg);
+    let s = topo.num_springs();
+    let k: Vec<f64> = (0..s)
+        .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
+        .collect();
+    let b: Vec<f64> = (0..s)
+        .map(|i| 0.5 + 0.2 * ((i as f64) * 0.91).cos())
+        .collect();
+    let physics = |viscosity: f64| Physics {
+        frame_dt: rollouts[0].frame_dt,
+        substeps: 3,
+        mass: rollouts[0].total_mass / topo.num_particles() as f64,
+        rayleigh: cfg.rayleigh,
+        gravity: cfg.gravity,
+        viscosity,
+    };
+    let frames = 30;
+    let run = |device: &Device, kernel: Kernel, viscosity: f64| {
+        let ad = device.clone().autodiff();
+        let batch = common::batch(&cfg, &rollouts, 150, frames, &ad);
+        let model = SpringNet::new(&topo, &k, &b, &ad).with_kernel(kernel);
+        let out = sim::rollout(
+            &model,
+            &physics(viscosity),
+            &common::clip_drive(&batch),
+            frames,
+        );
+        let x = out.positions;
+        let w = x.clone().detach().sin();
+        let grads = (x.clone() * w).sum().backward();
+        (
+            to_f64(x.detach()),
+            to_f64(model.k.val().grad(&grads).unwrap()),
+            to_f64(model.b.val().grad(&grads).unwrap()),
+        )
+    };
+    for device in [Device::flex(), Device::ndarray()]
+        .into_iter()
+        .chain(common::wgpu())
+    {
+        let (rx, rk, rb) = run(&device, Kernel::Reference, 0.01);
+        let (fx, fk, fb) = run(&device, Kernel::Fused, 0.01);
+        assert_close("positions", &rx, &fx);
+        assert_close("dℓ/dk", &rk, &fk);
+        assert_close("dℓ/db", &rb, &fb);
+        let (plain, _, _) = run(&device, Kernel::Fused, 0.0);
+        let apart = plain
+            .iter()
+            .zip(&fx)
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+        assert!(apart > 1e-3, "the viscosity moves the cloth only {apart} m");
     }
 }

@@ -28,14 +28,21 @@ fn autodiff_gradients_match_central_differences() {
         .collect();
     let weights = common::finite_difference::WEIGHTS;
 
-    // The fused rollout keeps every state (budget 1 GiB) or recomputes from checkpoints (0).
-    for (on, kernel, budget) in [
-        (ForceOn::Simulated, Kernel::Fused, 1024),
-        (ForceOn::Simulated, Kernel::Fused, 0),
-        (ForceOn::Target, Kernel::Fused, 1024),
-        (ForceOn::Simulated, Kernel::Reference, 1024),
-        (ForceOn::Frames, Kernel::Fused, 1024),
+    // The fused rollout keeps every state (budget 1 GiB) or recomputes from checkpoints (0);
+    // with the springs' isotropic viscosity (`sim.viscosity`, s) too.
+    for (on, kernel, budget, viscosity) in [
+        (ForceOn::Simulated, Kernel::Fused, 1024, 0.0),
+        (ForceOn::Simulated, Kernel::Fused, 0, 0.0),
+        (ForceOn::Target, Kernel::Fused, 1024, 0.0),
+        (ForceOn::Simulated, Kernel::Reference, 1024, 0.0),
+        (ForceOn::Frames, Kernel::Fused, 1024, 0.0),
+        (ForceOn::Simulated, Kernel::Fused, 0, 0.02),
+        (ForceOn::Simulated, Kernel::Reference, 1024, 0.02),
     ] {
+        let physics = springtime::sim::Physics {
+            viscosity,
+            ..physics
+        };
         let eval = |k: &[f64], b: &[f64], device: &Device| {
             let batch = common::batch(&cfg, &rollouts, 30, 20, device);
             let model = SpringNet::new(&topo, k, b, device).with_kernel(kernel);
@@ -79,7 +86,7 @@ fn autodiff_gradients_match_central_differences() {
                 let err = (fd - g[i]).abs();
                 assert!(
                     err <= 1e-6 * scale + 1e-6 * fd.abs(),
-                    "{on:?} {kernel:?} budget {budget}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
+                    "{on:?} {kernel:?} budget {budget} viscosity {viscosity}: dL/d{which}[{i}]: autodiff {} vs finite difference {fd} (scale {scale})",
                     g[i]
                 );
             }

@@ -91,6 +91,7 @@ fn free_flight_conserves_momentum_and_rest_is_an_equilibrium() {
         mass: cloth.mass,
         rayleigh: 0.0,
         gravity: [0.0; 3],
+        viscosity: 0.0,
     };
     let pinned = Tensor::<3>::zeros([1, p, 1], &device);
     // At rest, with no gravity, nothing moves.
@@ -129,6 +130,80 @@ fn free_flight_conserves_momentum_and_rest_is_an_equilibrium() {
             "momentum[{c}]: {} → {}",
             p0[c],
             p1[c]
+        );
+    }
+}
+
+/// The springs' isotropic viscosity (`sim.viscosity = β`): the net force of a step with it less
+/// the step without it is `β k_s (v_b − v_a)` on each spring's `a` and its opposite on `b`,
+/// against an f64 sum here, through the fused step and the tensor-op step alike; it sums to zero
+/// (momentum), dissipates (its power is `−Σ β k_s |v_b − v_a|²`) and vanishes when the cloth
+/// translates as a whole.
+#[test]
+fn viscosity_matches_the_f64_sum_conserves_momentum_and_dissipates() {
+    use springtime::model::Kernel;
+    let device = Device::flex();
+    let cfg = common::source(5, &[10.0, 50.0, 100.0], 1.0);
+    let cloth = SpringCloth::from_config(&cfg);
+    let topo = &cloth.topology;
+    let p = topo.num_particles();
+    let beta = 0.01;
+    let physics = |viscosity: f64| Physics {
+        frame_dt: 1e-3,
+        substeps: 1,
+        mass: cloth.mass,
+        rayleigh: 0.0,
+        gravity: [0.0; 3],
+        viscosity,
+    };
+    let pinned = Tensor::<3>::zeros([1, p, 1], &device);
+    let (x, v) = random_state(p, 1, 3);
+    let translating = [0.7, -0.2, 0.4].repeat(p);
+    for kernel in [Kernel::Fused, Kernel::Reference] {
+        let model = SpringNet::new(topo, &cloth.k, &cloth.b, &device).with_kernel(kernel);
+        let viscous = |v: &[f64]| {
+            let state = || State {
+                x: Tensor::from_data(TensorData::new(x.clone(), [1, p, 3]), &device),
+                v: Tensor::from_data(TensorData::new(v.to_vec(), [1, p, 3]), &device),
+            };
+            let here = state().x;
+            let (_, with) =
+                sim::step_frame(&model, &physics(beta), None, state(), &pinned, &here, &here);
+            let (_, without) =
+                sim::step_frame(&model, &physics(0.0), None, state(), &pinned, &here, &here);
+            to_f64(with - without)
+        };
+        let f = viscous(&v);
+        let mut expected = vec![0.0; 3 * p];
+        let mut power = 0.0;
+        for (s, &[a, b]) in topo.springs.iter().enumerate() {
+            let nu = beta * cloth.k[s];
+            for c in 0..3 {
+                let w = v[3 * b + c] - v[3 * a + c];
+                expected[3 * a + c] += nu * w;
+                expected[3 * b + c] -= nu * w;
+                power -= nu * w * w;
+            }
+        }
+        common::assert_close(&format!("{kernel:?} viscous forces"), &expected, &f, 1e-4);
+        let magnitude: f64 = f.iter().map(|c| c.abs()).sum();
+        assert!(
+            magnitude > 1.0,
+            "{kernel:?}: the viscosity acts ({magnitude} N)"
+        );
+        for c in 0..3 {
+            let net: f64 = f.iter().skip(c).step_by(3).sum();
+            assert!(
+                net.abs() <= 1e-5 * magnitude,
+                "{kernel:?}: net viscous force {net}"
+            );
+        }
+        let done: f64 = f.iter().zip(&v).map(|(f, v)| f * v).sum();
+        assert!(power < 0.0 && (done - power).abs() <= 1e-4 * power.abs());
+        let still = viscous(&translating);
+        assert!(
+            still.iter().all(|f| f.abs() <= 1e-5 * magnitude),
+            "{kernel:?}: a translating cloth feels the viscosity"
         );
     }
 }

@@ -68,6 +68,7 @@ fn frame_difference_loss_is_zero_at_the_truth_and_ranks_uniform_stiffness() {
         mass: rollouts[0].total_mass / topo.num_particles() as f64,
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
+        viscosity: 0.0,
     };
     assert!((physics.frame_dt - 0.01).abs() < 1e-12);
     let batch = common::batch(&cfg, &rollouts, 20, 30, &device);
@@ -502,6 +503,46 @@ fn the_run_finds_damping_proportional_to_stiffness() {
             "b {b} k {k}: b / k is not β {found}"
         );
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The viscosity search (`train.viscosity_search`) recovers an isotropic viscosity
+/// proportional to stiffness: takes of an 8 × 8 spring cloth (30 and 90 N/m, `b` 0.5 N·s/m)
+/// whose springs also damp their ends' whole relative velocity with `β k` (β = 0.01 s), no drag,
+/// files that state no drag. The run keeps a viscosity within a factor of 2 of the source's, confirmed on its
+/// held-out takes, and writes it (with no drag) to its `config.toml`.
+#[test]
+fn the_run_finds_a_viscosity_proportional_to_stiffness() {
+    use springtime::source::mass_spring::SpringCloth;
+
+    let dir = common::temp_dir("blend-viscosity");
+    let beta = 0.01;
+    let mut source = common::source(8, &[30.0, 90.0], 2.0);
+    source.damping = 0.5;
+    source.frame_stride = 10;
+    source.save_velocities = false;
+    let mut cloth = SpringCloth::from_config(&source);
+    cloth.rayleigh = 0.0;
+    cloth.viscosity = beta;
+    save_takes(&dir, &cloth, &source, 1, false);
+    let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "viscosity_search = true\n");
+    let viscosity = &record["viscosity"];
+    eprintln!("source β {beta}; viscosity search: {viscosity}");
+    assert_eq!(viscosity["kept"].as_bool(), Some(true), "{viscosity}");
+    let found = viscosity["beta"].as_f64().unwrap();
+    assert!(
+        (0.5..=2.0).contains(&(found / beta)),
+        "β {found} against the source's {beta}: {viscosity}"
+    );
+    let held = &viscosity["held_out"];
+    let pair = |i: usize| (held[i][0].as_f64().unwrap(), held[i][1].as_f64().unwrap());
+    assert!(
+        springtime::train::scale::held_out_agrees(pair(0), pair(1)),
+        "{viscosity}"
+    );
+    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
+    assert_eq!(config.sim.rayleigh.value(), Some(0.0));
+    assert_eq!(config.sim.viscosity, found);
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -44,6 +44,7 @@ fn ground_truth_parameters_reproduce_the_source() {
         mass: set.particle_mass(),
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
+        viscosity: 0.0,
     };
     let refs: Vec<_> = set.regular.clone();
     let batch = set.batch(&refs, &device).unwrap();

@@ -48,6 +48,7 @@ fn fused_steps_on_wgpu_are_as_accurate_as_tensor_ops() {
                 topo: &topo,
                 rollouts: &rollouts,
                 substeps,
+                viscosity: 0.0,
                 budget: 1024,
             };
             let (_, ek, eb) = case.evaluate(Kernel::Reference, &cpu);

@@ -574,7 +574,7 @@ impl<'a> Export<'a> {
     /// Returns the text of `surrogate.json`.
     fn write_surrogate(&self, pinned: &[usize], physics: Option<&Physics>) -> Result<String> {
         let topo = &self.run.topology;
-        let json = SurrogateJson::of(self.run, self.model, pinned, physics);
+        let json = SurrogateJson::of(self.run, self.model, pinned, physics)?;
         let (rayleigh, gravity) = (json.rayleigh, json.gravity);
         let p = topo.num_particles();
         let text = json.to_text()?;

@@ -349,6 +349,7 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
         mass,
         rayleigh: cfg.fold.settle.damping_rate * mass,
         gravity: run.config.sim.gravity.or(crate::sim::GRAVITY),
+        viscosity: run.config.sim.viscosity,
         topology: run.topology.clone(),
     };
     Ok(Setup {

@@ -25,6 +25,7 @@ pub fn physics(r: &Rollout, topo: &Topology) -> Physics {
         mass: r.total_mass / topo.num_particles() as f64,
         rayleigh: 0.1,
         gravity: springtime::sim::GRAVITY,
+        viscosity: 0.0,
     }
 }
 

@@ -269,12 +269,14 @@ pub fn assert_losses_close(name: &str, a: &LossValues, b: &LossValues) {
 }
 
 /// A training loss of the spring surrogate: 90-step clips from stored frame 150 of `rollouts`
-/// of the source `cfg`, simulated on `topo` with `substeps` and a state budget of `budget` MiB.
+/// of the source `cfg`, simulated on `topo` with `substeps`, the springs' isotropic `viscosity`
+/// (`sim.viscosity`, s) and a state budget of `budget` MiB.
 pub struct LossCase<'a> {
     pub cfg: &'a SourceConfig,
     pub topo: &'a Topology,
     pub rollouts: &'a [Rollout],
     pub substeps: usize,
+    pub viscosity: f64,
     pub budget: usize,
 }
 
@@ -305,6 +307,7 @@ impl LossCase<'_> {
             mass: self.rollouts[0].total_mass / self.topo.num_particles() as f64,
             rayleigh: self.cfg.rayleigh,
             gravity: self.cfg.gravity,
+            viscosity: self.viscosity,
         };
         let model = SpringNet::new(self.topo, &k, &b, &device).with_kernel(kernel);
         let terms = loss_with_budget(

@@ -93,6 +93,16 @@ impl Job for Config {
         {
             bail!("`sim.rayleigh` must be non-negative");
         }
+        let nu = self.sim.viscosity;
+        if !(nu.is_finite() && nu >= 0.0) {
+            bail!("`sim.viscosity` must be finite and non-negative, is {nu}");
+        }
+        if nu != 0.0 && self.model.kind != ModelKind::Springs {
+            bail!(
+                "`sim.viscosity` acts on the springs of the spring surrogate; `model.kind` is {:?}",
+                self.model.kind.name()
+            );
+        }
         self.model.validate()?;
         let c = &self.data.clips;
         if c.steps.value().is_some_and(|t| t < 2) {
@@ -202,6 +212,10 @@ fn key_help(key: &str) -> Option<&'static str> {
         ("sim.substeps", _) => "integration steps per data frame",
         ("sim.rayleigh", _) => "Rayleigh damping c of the force -c v, N·s/m",
         ("sim.gravity", _) => "m/s²",
+        ("sim.viscosity", _) => {
+            "isotropic viscosity per unit stiffness β, s: each spring damps its ends' whole \
+             relative velocity with β k (0 = none)"
+        }
         ("sim.allow_unstable", _) => "run even when the stability guard refuses",
         ("data", _) => "the rollouts (see `springtime data check DIR`)",
         ("data.dir", _) => "folder of .npz rollouts (with index.json, or every file trains)",
@@ -276,6 +290,19 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("sim.substeps"), "{err}");
+        for bad in ["sim.viscosity=-1e-3", "sim.viscosity=nan"] {
+            let err = Config::parse("", &[bad.into()]).unwrap_err().to_string();
+            assert!(err.contains("sim.viscosity"), "{bad}: {err}");
+        }
+        let err = Config::parse("[model]\nkind = \"gnn\"\n", &["sim.viscosity=1e-5".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("sim.viscosity") && err.contains("gnn"),
+            "{err}"
+        );
+        let ok = Config::parse("", &["sim.viscosity=1e-5".into()]).unwrap();
+        assert_eq!(ok.sim.viscosity, 1e-5);
         let err = Config::parse("", &["train.least_squares.stencil=0".into()])
             .unwrap_err()
             .to_string();

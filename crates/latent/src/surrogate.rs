@@ -41,7 +41,7 @@ impl SpringSheet {
         let surrogate = if path.is_dir() {
             let run = Run::open(path, &[], Some(springtime_core::backend::Backend::Flex))?;
             let physics = run.physics(run.meta.frame_dt);
-            SurrogateJson::of(&run, run.springs()?, &[], Some(&physics))
+            SurrogateJson::of(&run, run.springs()?, &[], Some(&physics))?
         } else {
             SurrogateJson::read(path)?
         };
@@ -169,6 +169,7 @@ impl SpringSheet {
             ),
             rayleigh: springtime_core::settings::Auto::Value(s.rayleigh),
             gravity: springtime_core::settings::Auto::Value(s.gravity),
+            viscosity: 0.0,
             allow_unstable: false,
         };
         Physics::new(&sim, frame_dt, s.masses[0])

@@ -8,7 +8,7 @@ pub mod springs;
 
 pub use gnn::{Gnn, GnnConfig};
 pub use neural_ode::{NeuralOde, NeuralOdeConfig};
-pub use springs::{Kernel, SpringGraph, SpringNet};
+pub use springs::{FusedOn, Kernel, SpringGraph, SpringNet};
 
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
@@ -122,6 +122,13 @@ pub trait ForceModel {
     /// `[B, P, 1]` (1 = pinned).
     fn internal_forces(&self, x: Tensor<3>, v: Tensor<3>, pinned: &Tensor<3>) -> Tensor<3>;
 
+    /// The forces `[B, P, 3]` of an isotropic viscosity `viscosity` per unit stiffness on the
+    /// model's springs ([`crate::sim::SimConfig::viscosity`]) at velocities `v`. Only spring
+    /// networks have springs: the config refuses `sim.viscosity` for the other models.
+    fn viscous_forces(&self, _v: Tensor<3>, _viscosity: f64) -> Tensor<3> {
+        panic!("`sim.viscosity` acts on a spring network's springs only")
+    }
+
     /// One fused semi-implicit Euler step `(x', v', f)` when the model has a kernel for it on
     /// this device (see [`kernels::cloth_step`]); `None` steps with tensor ops.
     fn fused_step(
@@ -142,6 +149,10 @@ impl ForceModel for SpringNet {
         self.forces(x, v)
     }
 
+    fn viscous_forces(&self, v: Tensor<3>, viscosity: f64) -> Tensor<3> {
+        self.graph.viscous_forces(v, self.k.val(), viscosity)
+    }
+
     fn fused_step(
         &self,
         x: Tensor<3>,
@@ -151,7 +162,10 @@ impl ForceModel for SpringNet {
         pin_v: Tensor<3>,
         params: StepParams,
     ) -> Option<(Tensor<3>, Tensor<3>, Tensor<3>)> {
-        self.graph.fused_curvature().then(|| {
+        // The CubeCL step has no viscosity: its tensor-op step adds it to the fused forces.
+        let fused = self.graph.fused_curvature()
+            && (params.viscosity == 0.0 || self.graph.fused_on == FusedOn::Host);
+        fused.then(|| {
             let (k, b) = self.kernel_params();
             kernels::cloth_step(
                 (x, v),

@@ -175,6 +175,34 @@ impl SpringGraph {
     }
 }
 
+impl SpringGraph {
+    /// The forces of an isotropic viscosity on the springs as tensor ops, `[B, P, 3]`: spring
+    /// `s = (a, b)` puts `β k_s (v_b − v_a)` on `a` and its opposite on `b` (the whole relative
+    /// velocity, [`crate::sim::SimConfig::viscosity`]); with particle masses each particle's
+    /// force is then divided by its relative mass, as the springs' are. The fused CPU step and
+    /// rollout add the same term in their kernels; this is their reference, and what the
+    /// tensor-op step (CubeCL devices, contact) adds to the spring forces.
+    ///
+    /// `v`: velocities `[B, P, 3]`; `k`: the springs' stiffness `[S]`; `viscosity`: `β`, s.
+    pub fn viscous_forces(&self, v: Tensor<3>, k: Tensor<1>, viscosity: f64) -> Tensor<3> {
+        let [batch, p, _] = v.dims();
+        let s = self.num_springs;
+        let w = v.clone().select(1, self.ib.clone()) - v.select(1, self.ia.clone());
+        let fs = w * k.mul_scalar(viscosity).reshape([1, s, 1]); // on endpoint a, [B, S, 3]
+        let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1);
+        let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
+            1,
+            self.ends.clone(),
+            both,
+            burn::tensor::IndexingUpdateOp::Add,
+        );
+        match &self.force_scale {
+            Some(scale) => f * scale.clone(),
+            None => f,
+        }
+    }
+}
+
 /// The curvature elements of a grid ([`Topology::curvature`], ours): three consecutive
 /// particles `(i, j, l)` of a row, column or diagonal with the energy `½ κ_t |x_i − 2x_j + x_l|²`.
 ///

@@ -94,10 +94,27 @@ pub struct StabilityJson {
 impl SurrogateJson {
     /// The spring network `model` of `run`, with the particles `pinned`, stepped by `physics`
     /// (its frame time, substeps, mass and stability) when known.
-    pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], physics: Option<&Physics>) -> Self {
+    ///
+    /// Errors on a run with a viscosity (`sim.viscosity`): the format, and the engines and the
+    /// web playground that step it, have none, and would move the cloth differently.
+    pub fn of(
+        run: &Run,
+        model: &SpringNet,
+        pinned: &[usize],
+        physics: Option<&Physics>,
+    ) -> Result<Self> {
         let (topo, config) = (&run.topology, &run.config);
+        if config.sim.viscosity != 0.0 {
+            bail!(
+                "{}: `sim.viscosity` is {} s; the exported surrogate (surrogate.json) has no \
+                 viscosity yet, and without it the export would move differently from \
+                 `simulate`: export a run trained without it",
+                run.dir.dir.display(),
+                config.sim.viscosity
+            );
+        }
         let to_f32 = |values: Vec<f64>| values.iter().map(|&x| x as f32).collect();
-        Self {
+        Ok(Self {
             pinned: pinned.to_vec(),
             rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
             gravity: config.sim.gravity.or(crate::sim::GRAVITY),
@@ -116,7 +133,7 @@ impl SurrogateJson {
                 to_f32(model.k_values()),
                 to_f32(model.b_values()),
             )
-        }
+        })
     }
 
     /// The springs of `topology` with particle `masses` and per-spring `k`, `b`: nothing

@@ -36,6 +36,12 @@ pub struct SimConfig {
     pub rayleigh: Auto<f64>,
     /// Gravity vector, m/s²; `"auto"`: the data's `gravity` key, else `[0, 0, −9.81]`.
     pub gravity: Auto<[f64; 3]>,
+    /// Isotropic viscosity of the springs per unit stiffness `β`, s (ours; 0: none): each spring
+    /// also damps the whole relative velocity of its ends, `β k_s (v_b − v_a)` on `a` and its
+    /// opposite on `b`, rotations and bending included, as a viscous sheet (Warp's FEM
+    /// triangles, `k_damp · dF/dt`) does; a spring's `b` damps only the stretching along it.
+    /// Spring networks only; `train.viscosity_search` searches it.
+    pub viscosity: f64,
     /// Run even when the stability guard predicts a blow-up.
     pub allow_unstable: bool,
 }
@@ -46,6 +52,7 @@ impl Default for SimConfig {
             substeps: Auto::Auto,
             rayleigh: Auto::Auto,
             gravity: Auto::Auto,
+            viscosity: 0.0,
             allow_unstable: false,
         }
     }
@@ -64,6 +71,8 @@ pub struct Physics {
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
+    /// The springs' isotropic viscosity per unit stiffness `β`, s ([`SimConfig::viscosity`]).
+    pub viscosity: f64,
 }
 
 impl Physics {
@@ -76,29 +85,31 @@ impl Physics {
             mass,
             rayleigh: sim.rayleigh.or(RAYLEIGH),
             gravity: sim.gravity.or(GRAVITY),
+            viscosity: sim.viscosity,
         }
     }
 
     /// The explicit-step stability estimate of a spring network at this step (`.check(..)` it
-    /// before simulating).
+    /// before simulating). The viscosity counts as damping `β k` along each spring: its rate on
+    /// any mode is at most that of such a damper's.
     pub fn stability_of(
         &self,
         topology: &crate::cloth::Topology,
         model: &crate::model::SpringNet,
     ) -> Stability {
-        Stability::estimate(
-            topology,
-            &model.k_values(),
-            &model.b_values(),
-            self.mass,
-            self.rayleigh,
-            self.sim_dt(),
-        )
-        .with_curvature(
-            &topology.curvature,
-            &model.curvature_values(),
-            topology.num_particles(),
-        )
+        let k = model.k_values();
+        let b: Vec<f64> = model
+            .b_values()
+            .iter()
+            .zip(&k)
+            .map(|(b, k)| b + self.viscosity * k)
+            .collect();
+        Stability::estimate(topology, &k, &b, self.mass, self.rayleigh, self.sim_dt())
+            .with_curvature(
+                &topology.curvature,
+                &model.curvature_values(),
+                topology.num_particles(),
+            )
     }
 
     /// The integration step `frame_dt / substeps`.
@@ -106,8 +117,8 @@ impl Physics {
         self.frame_dt / self.substeps as f64
     }
 
-    /// Net force at a state: the model's internal forces plus gravity and Rayleigh damping,
-    /// `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
+    /// Net force at a state: the model's internal forces plus gravity, Rayleigh damping and the
+    /// springs' viscosity, `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
     pub(crate) fn net_force(
         &self,
         model: &dyn ForceModel,
@@ -126,6 +137,9 @@ impl Physics {
         )
         .reshape([1, 1, 3]);
         let mut f = model.internal_forces(x, v.clone(), pinned) + g;
+        if self.viscosity != 0.0 {
+            f = f + model.viscous_forces(v.clone(), self.viscosity);
+        }
         if self.rayleigh != 0.0 {
             f = f - v.mul_scalar(self.rayleigh);
         }
@@ -202,6 +216,7 @@ pub fn step_frame(
         mass: physics.mass,
         rayleigh: physics.rayleigh,
         gravity: physics.gravity,
+        viscosity: physics.viscosity,
     };
     for sub in 0..n {
         let target = if sub + 1 == n {

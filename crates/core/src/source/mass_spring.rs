@@ -25,6 +25,9 @@ pub struct SpringCloth {
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
+    /// Isotropic viscosity per unit stiffness `β`, s: each spring also puts `β k_s (v_b − v_a)`
+    /// on `a` and its opposite on `b` (the surrogate's `sim.viscosity`; 0 from a config).
+    pub viscosity: f64,
 }
 
 impl SpringCloth {
@@ -68,10 +71,12 @@ impl SpringCloth {
             mass,
             rayleigh: cfg.rayleigh,
             gravity: cfg.gravity,
+            viscosity: 0.0,
         }
     }
 
-    /// Net force on every particle at `(x, v)` (Eq. 4, Eq. 2, gravity, Rayleigh damping).
+    /// Net force on every particle at `(x, v)` (Eq. 4, Eq. 2, gravity, Rayleigh damping, the
+    /// springs' viscosity).
     pub fn forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]) {
         for (i, (o, vi)) in out.iter_mut().zip(v).enumerate() {
             let w = self.weight(i);
@@ -86,9 +91,10 @@ impl SpringCloth {
             let inv = 1.0 / len2.sqrt();
             let coef = self.k[s] * (1.0 - self.topology.rest_length[s] * inv)
                 + self.b[s] * (w[0] * d[0] + w[1] * d[1] + w[2] * d[2]) * inv * inv;
+            let nu = self.viscosity * self.k[s];
             for c in 0..3 {
-                out[a][c] += coef * d[c];
-                out[b][c] -= coef * d[c];
+                out[a][c] += coef * d[c] + nu * w[c];
+                out[b][c] -= coef * d[c] + nu * w[c];
             }
         }
     }
@@ -119,14 +125,11 @@ impl ClothSim for SpringCloth {
     }
 
     fn stability(&self, dt: f64) -> Stability {
-        Stability::estimate(
-            &self.topology,
-            &self.k,
-            &self.b,
-            self.mass,
-            self.rayleigh,
-            dt,
-        )
+        // The viscosity's rate on any mode is at most that of a damper `β k` along the spring.
+        let b: Vec<f64> = (self.b.iter().zip(&self.k))
+            .map(|(b, k)| b + self.viscosity * k)
+            .collect();
+        Stability::estimate(&self.topology, &self.k, &b, self.mass, self.rayleigh, dt)
     }
 
     fn spring_truth(&self) -> Option<SpringTruth> {

@@ -119,6 +119,8 @@ pub(crate) fn search_stiffness(
             mass,
             rayleigh: c,
             gravity,
+            // The start's guess; the viscosity is searched (or given) at the run's map.
+            viscosity: 0.0,
         };
         let rmse = crate::eval::uniform::rollout_rmse(topo, &physics, k, b, &files, 16, ctx.device)
             .unwrap_or(f64::INFINITY);

@@ -1090,6 +1090,7 @@ mod tests {
             mass: 0.7,
             rayleigh: 0.1,
             gravity: [0.0, 0.0, -9.81],
+            viscosity: 0.0,
         }
     }
 

@@ -372,6 +372,7 @@ fn fused_loss(
         mass: physics.mass,
         rayleigh: physics.rayleigh,
         gravity: physics.gravity,
+        viscosity: physics.viscosity,
         state_budget: budget_mib << 20,
     };
     let (k, b) = model.kernel_params();

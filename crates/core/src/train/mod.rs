@@ -188,6 +188,11 @@ pub struct TrainConfig {
     /// default), kept only where the held-out training takes prefer it. Needs
     /// `train.blend_search`; runs where the drag was searched.
     pub proportional_damping: bool,
+    /// After those, also search an isotropic viscosity proportional to stiffness on the springs
+    /// without drag, `sim.viscosity` ([`scale::Proportional::Viscosity`]; ours, off by
+    /// default), kept only where the held-out training takes prefer it. Needs
+    /// `train.blend_search`; runs where the drag was searched.
+    pub viscosity_search: bool,
     /// Start a spring network from the strain-compliance map (ours; replaces the
     /// least-squares start).
     pub compliance: compliance::ComplianceConfig,
@@ -222,6 +227,7 @@ impl Default for TrainConfig {
             blend_search: false,
             map_smoothing: 0,
             proportional_damping: false,
+            viscosity_search: false,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             refine: refine::RefineConfig::default(),
@@ -310,6 +316,12 @@ impl TrainConfig {
             bail!(
                 "`train.proportional_damping` is searched after the blend search's drag search; \
                  turn on `train.blend_search`, or set `train.proportional_damping = false`"
+            );
+        }
+        if self.viscosity_search && !self.blend_search {
+            bail!(
+                "`train.viscosity_search` is searched after the blend search's drag search; turn \
+                 on `train.blend_search`, or set `train.viscosity_search = false`"
             );
         }
         if self.scale_search && self.blend_search {
@@ -841,16 +853,36 @@ impl AfterFit<'_> {
         let searched = drag.as_ref().map(scale::DragSearch::held_out_kept);
         record.polish = Some(polish);
         record.drag = drag;
-        let (blended, blended_physics) = if let Some(known) = searched
-            && config.train.proportional_damping
-        {
-            let (net, physics, damping) =
-                self.proportional_damping(blended, blended_physics, known)?;
-            record.damping = damping;
-            (net, physics)
-        } else {
-            (blended, blended_physics)
-        };
+        let (mut blended, mut blended_physics) = (blended, blended_physics);
+        if let Some(mut known) = searched {
+            let forms = [
+                (
+                    scale::Proportional::Springs,
+                    config.train.proportional_damping,
+                ),
+                (
+                    scale::Proportional::Viscosity,
+                    config.train.viscosity_search,
+                ),
+            ];
+            for (form, on) in forms {
+                if !on {
+                    continue;
+                }
+                let (net, physics, found) =
+                    self.proportional_damping(blended, blended_physics, known, form)?;
+                (blended, blended_physics) = (net, physics);
+                // The held-out figures of the network kept now, for the next search.
+                known = found.as_ref().and_then(|r| {
+                    r.held_out
+                        .map(|(before, after)| if r.kept { after } else { before })
+                });
+                match form {
+                    scale::Proportional::Springs => record.damping = found,
+                    scale::Proportional::Viscosity => record.viscosity = found,
+                }
+            }
+        }
         let run = self.fit.run;
         keep_searched(
             run,
@@ -943,23 +975,26 @@ impl AfterFit<'_> {
         })
     }
 
-    /// Spring damping proportional to stiffness without drag ([`scale::ProportionalDamping`]),
+    /// Damping proportional to stiffness without drag in `form` ([`scale::ProportionalDamping`]),
     /// searched where the drag was; kept only where the held-out training takes agree
-    /// ([`scale::held_out_agrees`]). `known` is `net`'s `(short, long)` held-out RMSE where the
-    /// drag search measured it. Returns the network and physics kept and the record.
+    /// ([`scale::held_out_agrees`]). `known` is `net`'s `(short, long)` held-out RMSE where an
+    /// earlier search measured it. Returns the network and physics kept and the record.
     fn proportional_damping(
         &self,
         net: SpringNet,
         physics: Physics,
         known: Option<(f64, f64)>,
+        form: scale::Proportional,
     ) -> Result<(SpringNet, Physics, Option<scale::ProportionalDamping>)> {
         let progress = self.fit.progress;
         let Some((other, at, mut record)) =
-            scale::proportional_damping(&net, &physics, &self.train_takes())
+            scale::proportional_damping(&net, &physics, &self.train_takes(), form)
         else {
-            progress.note(
-                "proportional damping: no b = β k without drag is stable at the run's substeps",
-            );
+            progress.note(&format!(
+                "{}: no {} is stable at the run's substeps",
+                form.name(),
+                form.form()
+            ));
             return Ok((net, physics, None));
         };
         let before = match known {
@@ -970,9 +1005,14 @@ impl AfterFit<'_> {
         record.kept = scale::held_out_agrees(before, after);
         record.held_out = Some((before, after));
         progress.note(&format!(
-            "proportional damping: without drag the map moves closest to the training rollouts \
-             at b = {:.3e} s · k, k × {:.3} ({:.4e} m); on the {} held-out rollouts it moves \
-             {:.4e} / {:.4e} m (short / long) against {:.4e} / {:.4e} m as kept so far -> {}",
+            "{}: without drag the map moves closest to the training rollouts at {} = {:.3e} s · \
+             k, k × {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m \
+             (short / long) against {:.4e} / {:.4e} m as kept so far -> {}",
+            form.name(),
+            match form {
+                scale::Proportional::Springs => "b",
+                scale::Proportional::Viscosity => "the viscosity",
+            },
             record.beta,
             record.k_factor,
             record.after,
@@ -1228,10 +1268,12 @@ fn keep_searched(
 ) -> Result<()> {
     if config.sim.substeps.value() != Some(physics.substeps)
         || config.sim.rayleigh.value() != Some(physics.rayleigh)
+        || config.sim.viscosity != physics.viscosity
     {
         let mut updated = config.clone();
         updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
         updated.sim.rayleigh = crate::settings::Auto::Value(physics.rayleigh);
+        updated.sim.viscosity = physics.viscosity;
         crate::io::write_text(&run.config(), &updated.to_toml())?;
     }
     crate::io::write_json(&run.dir.join(file), record)?;
@@ -2363,18 +2405,32 @@ mod schedule_tests {
     }
 
     #[test]
-    fn proportional_damping_needs_the_blend_search() {
-        let mut c = TrainConfig {
-            proportional_damping: true,
-            ..TrainConfig::default()
-        };
-        let e = c.validate().unwrap_err().to_string();
-        assert!(
-            e.contains("`train.proportional_damping`") && e.contains("`train.blend_search`"),
-            "{e}"
-        );
-        c.blend_search = true;
-        c.validate().unwrap();
+    fn the_damping_searches_need_the_blend_search() {
+        for (key, on) in [
+            (
+                "proportional_damping",
+                TrainConfig {
+                    proportional_damping: true,
+                    ..TrainConfig::default()
+                },
+            ),
+            (
+                "viscosity_search",
+                TrainConfig {
+                    viscosity_search: true,
+                    ..TrainConfig::default()
+                },
+            ),
+        ] {
+            let mut c = on;
+            let e = c.validate().unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("`train.{key}`")) && e.contains("`train.blend_search`"),
+                "{e}"
+            );
+            c.blend_search = true;
+            c.validate().unwrap();
+        }
     }
 
     #[test]

@@ -134,6 +134,10 @@ pub(crate) struct BlendSearch {
     /// search, where it ran.
     #[serde(default)]
     pub damping: Option<ProportionalDamping>,
+    /// The search of an isotropic viscosity proportional to stiffness without drag
+    /// (`sim.viscosity`) after those, where it ran.
+    #[serde(default)]
+    pub viscosity: Option<ProportionalDamping>,
     /// Every map's blend, the kept one among them ([`MapScore`]); empty where one map was
     /// searched, or in a record written before the maps were judged on held-out takes.
     #[serde(default)]
@@ -545,6 +549,7 @@ impl Blender<'_> {
             polish: None,
             drag: None,
             damping: None,
+            viscosity: None,
             maps: Vec::new(),
         }
     }
@@ -920,8 +925,41 @@ pub fn drag_row(
 /// diverges (a stiff cloth's substeps leave room for `β ≈ h` at most).
 pub const BETA_STEPS: std::ops::RangeInclusive<i32> = -6..=12;
 
-/// Spring damping proportional to stiffness, `b_s = β k_s`, without drag (ours; `blend.json`'s
-/// `damping`): MuJoCo's flex cloth damps each edge along itself by `β k` (its `damping`), with no
+/// Which damping [`proportional_damping`] makes proportional to each spring's stiffness, with
+/// the drag at zero.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Proportional {
+    /// Each spring's `b` along itself: `b_s = β k_s` (MuJoCo's damping; `blend.json`'s
+    /// `damping`).
+    Springs,
+    /// An isotropic viscosity `β k_s (v_b − v_a)` on each spring besides its `b`
+    /// (`sim.viscosity`; Warp's FEM damping; `blend.json`'s `viscosity`).
+    Viscosity,
+}
+
+impl Proportional {
+    /// How the logs and the progress bar name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Springs => "proportional damping",
+            Self::Viscosity => "viscosity",
+        }
+    }
+
+    /// The form in words, for the logs.
+    pub fn form(self) -> &'static str {
+        match self {
+            Self::Springs => "b = β k without drag",
+            Self::Viscosity => "a viscosity β k on each spring without drag",
+        }
+    }
+}
+
+/// Damping proportional to stiffness without drag (ours; `blend.json`'s `damping` for the
+/// springs' `b`, [`Proportional::Springs`], and `viscosity` for an isotropic viscosity,
+/// [`Proportional::Viscosity`]).
+///
+/// Spring damping, `b_s = β k_s`: MuJoCo's flex cloth damps each edge along itself by `β k` (its `damping`), with no
 /// drag, and a cloth whose damping follows its stiffness map is damped by neither one learned
 /// `b` shape nor an air drag. On MuJoCo's stiff takes the learned map, replayed with
 /// `b = 2·10⁻⁵ s · k` and no drag, moves 28 % closer over the whole take than with the fitted
@@ -929,6 +967,11 @@ pub const BETA_STEPS: std::ops::RangeInclusive<i32> = -6..=12;
 /// `β` runs at the map's stiffness with the drag at zero, the map's size is searched around the
 /// best, then `β` once more; the result is kept only where the held-out training takes prefer it
 /// to the network kept so far ([`held_out_agrees`]).
+///
+/// Viscosity, `β k_s (v_b − v_a)` on each spring (`sim.viscosity`): Warp's FEM triangles damp
+/// the whole velocity gradient (`k_damp · dF/dt`, with `k_damp` following the stiffness map on
+/// the bench), rotations and bending included, which neither a spring's `b` nor a drag carries.
+/// The same search runs with the springs' `b` kept and the viscosity's `β` in place of theirs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProportionalDamping {
     /// `(β s, k factor, mean motion RMSE on the training takes)` of every stable candidate, in
@@ -959,29 +1002,44 @@ pub fn held_out_agrees(before: (f64, f64), after: (f64, f64)) -> bool {
     after.1 < before.1 && after.0 <= before.0 * (1.0 + SHORT_TIE)
 }
 
-/// The closest network with `b = β k` and no drag on the first training takes
-/// ([`ProportionalDamping`]): a row of `β` ([`BETA_STEPS`]) at `model`'s `k`, the factors
-/// `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network, the
-/// physics it runs at (the drag zero, `physics`' substeps) and the record (not yet judged on
-/// held-out takes); `None` where no candidate is stable.
+/// The closest network with damping proportional to stiffness (`form`) and no drag on the first
+/// training takes ([`ProportionalDamping`]): a row of `β` ([`BETA_STEPS`]) at `model`'s `k`, the
+/// factors `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network,
+/// the physics it runs at (the drag zero, `physics`' substeps, and for
+/// [`Proportional::Viscosity`] the viscosity `β`) and the record (not yet judged on held-out
+/// takes); `None` where no candidate is stable.
 pub fn proportional_damping(
     model: &SpringNet,
     physics: &Physics,
     train: &Takes,
+    form: Proportional,
 ) -> Option<(SpringNet, Physics, ProportionalDamping)> {
     let files = search_files(train);
-    let at = Physics {
-        rayleigh: 0.0,
-        ..*physics
-    };
     let sizes = Sizes::of(model);
+    let candidate = |beta: f64, fk: f64| match form {
+        Proportional::Springs => (
+            sizes.proportional(train, fk, beta),
+            Physics {
+                rayleigh: 0.0,
+                ..*physics
+            },
+        ),
+        Proportional::Viscosity => (
+            sizes.scaled(train, fk, 1.0),
+            Physics {
+                rayleigh: 0.0,
+                viscosity: beta,
+                ..*physics
+            },
+        ),
+    };
     let h = physics.frame_dt / physics.substeps as f64;
     let bar = train
         .progress
-        .bar(BETA_STEPS.count() as u64 + 6, "proportional damping");
+        .bar(BETA_STEPS.count() as u64 + 6, form.name());
     let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
     let consider = |beta: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
-        let net = sizes.proportional(train, fk, beta);
+        let (net, at) = candidate(beta, fk);
         let found =
             network_rollout_rmse(&net, train.topology, &at, &files, train.batch, train.device);
         if let Some(r) = found {
@@ -1011,8 +1069,9 @@ pub fn proportional_damping(
     }
     bar.finish();
     let (beta, k_factor, after) = closest(&candidates)?;
+    let (net, at) = candidate(beta, k_factor);
     Some((
-        sizes.proportional(train, k_factor, beta),
+        net,
         at,
         ProportionalDamping {
             candidates,

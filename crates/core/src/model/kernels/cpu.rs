@@ -5,13 +5,14 @@
 //! springs computes `L` clips at once in SIMD registers (L = 8 with AVX2, 4 otherwise); chunks
 //! run in parallel. For spring `s = (a, b)` with `d = x_b − x_a`, `w = v_b − v_a`, `L = |d|`:
 //!
-//! forward (Eq. 4, Eq. 2): `f_s = c_s d`, `c_s = k_s (1 − l0_s/L) + b_s (w·d)/L²`;
+//! forward (Eq. 4, Eq. 2): `f_s = c_s d + ν_s w`, `c_s = k_s (1 − l0_s/L) + b_s (w·d)/L²`,
+//! `ν_s = β k_s` (the step's isotropic viscosity `β`, 0 for the plain forces op);
 //! `F_a += f_s`, `F_b −= f_s`.
 //!
 //! backward, given `G = ∂ℓ/∂F` and `g = G_a − G_b = ∂ℓ/∂f_s`:
-//! - `∂ℓ/∂k_s = Σ_clips (g·d)(1 − l0/L)`, `∂ℓ/∂b_s = Σ_clips (g·d)(w·d)/L²`;
+//! - `∂ℓ/∂k_s = Σ_clips (g·d)(1 − l0/L) + β g·w`, `∂ℓ/∂b_s = Σ_clips (g·d)(w·d)/L²`;
 //! - `∂ℓ/∂d = c g + (g·d) ∂c/∂d`, `∂c/∂d = k l0 d/L³ + b (w/L² − 2 (w·d) d/L⁴)`;
-//! - `∂ℓ/∂w = (g·d) b d/L²`;
+//! - `∂ℓ/∂w = (g·d) b d/L² + ν_s g`;
 //! - `∂ℓ/∂x_b += ∂ℓ/∂d`, `∂ℓ/∂x_a −= ∂ℓ/∂d`, and the same for `v` with `∂ℓ/∂w`.
 //!
 //! The fused step adds semi-implicit Euler (Eq. 5) and the pins:
@@ -36,6 +37,9 @@ pub struct StepParams {
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
+    /// The springs' isotropic viscosity per unit stiffness `β`, s
+    /// ([`crate::sim::SimConfig::viscosity`]).
+    pub viscosity: f64,
 }
 
 /// The springs with checked indices, so that the loops can skip bounds checks.
@@ -46,6 +50,8 @@ pub(super) struct Springs<'a, T> {
     l0: Vec<T>,
     /// Per-particle factor on the spring forces ([`HostGraph::with_force_scale`]).
     scale: Option<Vec<T>>,
+    /// Isotropic viscosity per unit stiffness `β` ([`Springs::with_viscosity`]; 0: none).
+    visc: T,
 }
 
 impl<'a, T: Float> Springs<'a, T> {
@@ -62,7 +68,14 @@ impl<'a, T: Float> Springs<'a, T> {
                 .force_scale
                 .as_ref()
                 .map(|s| s.iter().map(|&v| T::from(v).expect("float")).collect()),
+            visc: T::zero(),
         }
+    }
+
+    /// The same springs with the isotropic viscosity `β k_s (v_b − v_a)` of a step's physics.
+    pub(super) fn with_viscosity(mut self, viscosity: f64) -> Self {
+        self.visc = T::from(viscosity).expect("float");
+        self
     }
 }
 
@@ -231,6 +244,7 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
         // SAFETY: endpoints < particles (HostGraph::new) and the caller's length contract.
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
+            let nu = c.sp.visc * ks;
             let mut coef = [T::zero(); L];
             for l in 0..L {
                 let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
@@ -242,6 +256,11 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
                 let mut f = [T::zero(); L];
                 for l in 0..L {
                     f[l] = coef[l] * d[c][l];
+                }
+                if nu != T::zero() {
+                    for l in 0..L {
+                        f[l] = f[l] + nu * w[c][l];
+                    }
                 }
                 scatter_pair(out, (a + c, bb + c), &f);
             }
@@ -267,6 +286,7 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
         // SAFETY: as in `chunk_forces`.
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
+            let nu = c.sp.visc * ks;
             let mut g = [[T::zero(); L]; 3];
             for c in 0..3 {
                 let (ga, gbb) = (gf.get_unchecked(a + c), gf.get_unchecked(bb + c));
@@ -294,16 +314,25 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
                 db = db + gdl * wd * inv2;
                 a1[l] = ks * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
                 a2[l] = bs * inv2;
+                if nu != T::zero() {
+                    let gw = g[0][l] * w[0][l] + g[1][l] * w[1][l] + g[2][l] * w[2][l];
+                    dk = dk + c.sp.visc * gw;
+                }
             }
             *gk.get_unchecked_mut(s) = *gk.get_unchecked(s) + dk;
             *gb.get_unchecked_mut(s) = *gb.get_unchecked(s) + db;
             for c in 0..3 {
-                // ∂ℓ/∂d = c g + (g·d)(a1 d + a2 w); ∂ℓ/∂w = (g·d) a2 d.
+                // ∂ℓ/∂d = c g + (g·d)(a1 d + a2 w); ∂ℓ/∂w = (g·d) a2 d + ν g.
                 let mut dd = [T::zero(); L];
                 let mut dw = [T::zero(); L];
                 for l in 0..L {
                     dd[l] = coef[l] * g[c][l] + gd[l] * (a1[l] * d[c][l] + a2[l] * w[c][l]);
                     dw[l] = gd[l] * a2[l] * d[c][l];
+                }
+                if nu != T::zero() {
+                    for l in 0..L {
+                        dw[l] = dw[l] + nu * g[c][l];
+                    }
                 }
                 scatter_pair(gx, (bb + c, a + c), &dd);
                 scatter_pair(gv, (bb + c, a + c), &dw);
@@ -639,7 +668,7 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
     out: &mut [T],
 ) {
     let Inputs { x, v, k, b } = s;
-    let sp = Springs::<T>::new(g);
+    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;
@@ -720,7 +749,7 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
 ) {
     let Inputs { x, v, k, b } = s;
     let (gx, gv, gk, gb) = (grads.x, grads.v, grads.k, grads.b);
-    let sp = Springs::<T>::new(g);
+    let sp = Springs::<T>::new(g).with_viscosity(step.map_or(0.0, |(_, p)| p.viscosity));
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;
