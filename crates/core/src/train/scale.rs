@@ -922,7 +922,8 @@ pub fn drag_row(
 
 /// Damping rates `β = b/k` the proportional-damping row tries: `h · 2^i` for `i` in this
 /// range, `h` the run's substep, up to the first that is unstable at the run's substeps or
-/// diverges (a stiff cloth's substeps leave room for `β ≈ h` at most).
+/// diverges (a stiff cloth's substeps leave room for `β ≈ h` at most), or the second in a row
+/// that moves farther than the one before.
 pub const BETA_STEPS: std::ops::RangeInclusive<i32> = -6..=12;
 
 /// Which damping [`proportional_damping`] makes proportional to each spring's stiffness, with
@@ -1056,6 +1057,13 @@ pub fn proportional_damping(
     };
     for i in BETA_STEPS {
         if !consider(h * 2f64.powi(i), 1.0, &mut candidates) {
+            break;
+        }
+        // Past the closest, two octaves in a row that move farther end the row.
+        if let [.., x, y, z] = candidates[..]
+            && z.2 > y.2
+            && y.2 > x.2
+        {
             break;
         }
     }
