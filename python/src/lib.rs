@@ -152,7 +152,8 @@ impl Run {
     /// The constants `simulate` steps with, as a dict: `frame_dt` (s), `substeps` per frame,
     /// `dt` (s per step), `mass` (kg, the mean particle's; see `masses`), `rayleigh` (N·s/m on
     /// a particle of the mean mass, the force `−rayleigh·v`; per unit mass the same on every
-    /// particle) and `gravity` (m/s², 3 components).
+    /// particle), `gravity` (m/s², 3 components) and `viscosity` (s: each spring's isotropic
+    /// damper `viscosity · k (v_b − v_a)`, `sim.viscosity`; 0 without).
     #[getter(physics)]
     fn physics_constants<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
         let p = Physics::new(
@@ -167,6 +168,7 @@ impl Run {
         d.set_item("mass", p.mass)?;
         d.set_item("rayleigh", p.rayleigh)?;
         d.set_item("gravity", p.gravity.to_vec())?;
+        d.set_item("viscosity", p.viscosity)?;
         Ok(d)
     }
 

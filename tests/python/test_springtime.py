@@ -82,6 +82,7 @@ def test_a_free_sheet_falls_as_its_centre_of_mass_must(trained):
     np.testing.assert_array_equal(positions[0], x0)
     g = np.array(phys["gravity"])
     h, damp = phys["dt"], phys["rayleigh"] / phys["mass"]
+    assert phys["viscosity"] == 0.0  # sim.viscosity: none in this run
     v = np.zeros(3)
     x = x0.astype(np.float64).mean(axis=0)
     for _ in range(frames * phys["substeps"]):

@@ -161,6 +161,13 @@ impl SpringGraph {
         let elastic = k.reshape([1, s, 1]) * (l0 * inv_len.clone()).neg().add_scalar(1.0);
         let damping = b.reshape([1, s, 1]) * (w * d.clone()).sum_dim(2) * inv_len.clone() * inv_len;
         let fs = d * (elastic + damping); // force on endpoint a, [B, S, 3]
+        self.on_particles(fs, batch, p)
+    }
+
+    /// Each spring's force on its first end `fs` (`[B, S, 3]`), with its opposite on the second,
+    /// summed on the particles (one scatter-add, Eq. 2) and, with particle masses, divided by
+    /// each particle's relative mass: `[B, P, 3]`.
+    fn on_particles(&self, fs: Tensor<3>, batch: usize, p: usize) -> Tensor<3> {
         let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1); // [B, 2S, 3]
         let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
             1,
@@ -173,9 +180,7 @@ impl SpringGraph {
             None => f,
         }
     }
-}
 
-impl SpringGraph {
     /// The forces of an isotropic viscosity on the springs as tensor ops, `[B, P, 3]`: spring
     /// `s = (a, b)` puts `β k_s (v_b − v_a)` on `a` and its opposite on `b` (the whole relative
     /// velocity, [`crate::sim::SimConfig::viscosity`]); with particle masses each particle's
@@ -189,17 +194,7 @@ impl SpringGraph {
         let s = self.num_springs;
         let w = v.clone().select(1, self.ib.clone()) - v.select(1, self.ia.clone());
         let fs = w * k.mul_scalar(viscosity).reshape([1, s, 1]); // on endpoint a, [B, S, 3]
-        let both = Tensor::cat(vec![fs.clone(), fs.neg()], 1);
-        let f = Tensor::zeros([batch, p, 3], &both.device()).select_assign(
-            1,
-            self.ends.clone(),
-            both,
-            burn::tensor::IndexingUpdateOp::Add,
-        );
-        match &self.force_scale {
-            Some(scale) => f * scale.clone(),
-            None => f,
-        }
+        self.on_particles(fs, batch, p)
     }
 }
 
