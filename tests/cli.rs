@@ -615,7 +615,7 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
 /// evaluation, which differs from the same run's without it); `export` refuses the run, naming
 /// the key, since `surrogate.json` has no viscosity.
 #[test]
-fn a_run_with_a_viscosity_keeps_it_and_export_refuses_it() {
+fn a_run_with_a_viscosity_keeps_it_and_exports_it() {
     let dir = setup("cli-viscosity");
     let motion = |text: &str| {
         text.lines()
@@ -639,9 +639,28 @@ fn a_run_with_a_viscosity_keeps_it_and_export_refuses_it() {
         motion(&out),
         "the viscosity changed nothing"
     );
-    fails(
-        &springtime(&["export", "runs/tiny", "--out", "e"], &dir),
-        &["sim.viscosity", "runs/tiny"],
+    // The export carries it under its own format tag (an older reader refuses the file rather
+    // than step it without the viscosity); the latent pipeline, which has none, refuses it.
+    ok(&springtime(&["export", "runs/tiny", "--out", "e"], &dir));
+    let json = springtime::export::SurrogateJson::read(&dir.join("e/surrogate.json")).unwrap();
+    assert_eq!(json.viscosity, 2e-3);
+    assert_eq!(json.format, springtime::export::FORMAT_VISCOSITY);
+    let npz = Npz::read(&dir.join("e/surrogate.npz")).unwrap();
+    assert_eq!(npz.scalar("viscosity").unwrap(), 2e-3);
+    let plain = springtime::export::SurrogateJson::read(&{
+        ok(&springtime(&["export", "runs/plain", "--out", "p"], &dir));
+        dir.join("p/surrogate.json")
+    })
+    .unwrap();
+    assert_eq!(plain.format, springtime::export::FORMAT);
+    assert!(
+        !std::fs::read_to_string(dir.join("p/surrogate.json"))
+            .unwrap()
+            .contains("viscosity"),
+        "a surrogate without a viscosity is written as before"
     );
-    assert!(!dir.join("e/surrogate.json").exists());
+    let err = springtime::latent::surrogate::SpringSheet::open(&dir.join("runs/tiny"))
+        .err()
+        .expect("the latent pipeline refuses a viscosity");
+    assert!(format!("{err:#}").contains("viscosity"), "{err:#}");
 }

@@ -10,7 +10,8 @@
 //!
 //! and always `surrogate.json` (topology, rest positions and lengths, `k`, `b`, masses, the
 //! rollout's pinned particles, simulation constants) and `surrogate.npz` (the same arrays for
-//! NumPy: `springs.npz`'s keys plus `mass`, `rest_positions`, `pinned`, `rayleigh`, `gravity`).
+//! NumPy: `springs.npz`'s keys plus `mass`, `rest_positions`, `pinned`, `rayleigh`, `gravity`,
+//! `viscosity`).
 //!
 //! Meshes are the grid's quads split into two counter-clockwise triangles (normals +z at
 //! rest); vertex `i` is particle `i`. OBJ, PLY and PC2 keep springtime's z-up metres; glTF is
@@ -34,7 +35,9 @@ use crate::import::pc2::PointCache;
 use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::run::Run;
-pub use crate::run::surrogate::{FORMAT, FORMAT_CURVATURE, StabilityJson, SurrogateJson};
+pub use crate::run::surrogate::{
+    FORMAT, FORMAT_CURVATURE, FORMAT_VISCOSITY, StabilityJson, SurrogateJson,
+};
 use crate::sim::Physics;
 
 /// Export file format.
@@ -574,8 +577,8 @@ impl<'a> Export<'a> {
     /// Returns the text of `surrogate.json`.
     fn write_surrogate(&self, pinned: &[usize], physics: Option<&Physics>) -> Result<String> {
         let topo = &self.run.topology;
-        let json = SurrogateJson::of(self.run, self.model, pinned, physics)?;
-        let (rayleigh, gravity) = (json.rayleigh, json.gravity);
+        let json = SurrogateJson::of(self.run, self.model, pinned, physics);
+        let (rayleigh, gravity, viscosity) = (json.rayleigh, json.gravity, json.viscosity);
         let p = topo.num_particles();
         let text = json.to_text()?;
         crate::io::write_text(&self.paths.json, &text)?;
@@ -589,6 +592,7 @@ impl<'a> Export<'a> {
         npz.insert("pinned", Array::bool(&[p], &pin_mask));
         npz.insert("rayleigh", Array::scalar(rayleigh));
         npz.insert("gravity", Array::f64(&[3], &gravity));
+        npz.insert("viscosity", Array::scalar(viscosity));
         npz.write(&self.paths.npz)?;
         Ok(text)
     }

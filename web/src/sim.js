@@ -13,6 +13,8 @@
  *   per substep, springs in file order, then curvature elements, then the mass scale:
  *     d = x_b − x_a, w = v_b − v_a, L² = d·d,  inv = 1/√L²,
  *     c = k (1 − l0·inv) + b (w·d) inv inv,   F_a += c d,  F_b −= c d        (Eq. 4, Eq. 2)
+ *     with a viscosity β (`viscosity`, format /3): ν = β k, F_a += ν w, F_b −= ν w (per component,
+ *     after c d)
  *     e = x_i − 2 x_j + x_l:  F_i −= κ e, F_j += 2 κ e, F_l −= κ e          (curvature)
  *     F_i *= 1/w_i  (w_i = m_i / m: a mesh surrogate's relative masses; none on a grid)
  *     f = F + m g − c_R v,  v ← v + (h/m) f,  x ← x + h v                  (Eq. 5)
@@ -37,8 +39,8 @@
 
   const fr = Math.fround;
 
-  /** The format tags this runtime reads (src/export/mod.rs FORMAT, FORMAT_CURVATURE). */
-  const FORMATS = ['springtime-surrogate/1', 'springtime-surrogate/2'];
+  /** The format tags this runtime reads (src/export/mod.rs FORMAT, FORMAT_CURVATURE, FORMAT_VISCOSITY). */
+  const FORMATS = ['springtime-surrogate/1', 'springtime-surrogate/2', 'springtime-surrogate/3'];
 
   /** Semi-implicit Euler is stable while dt²ω² + 2·dt·γ stays below this (src/sim/stability.rs). */
   const STABILITY_LIMIT = 4.0;
@@ -72,6 +74,11 @@
     }
     for (const [a, b] of json.springs) {
       if (!(a >= 0 && a < p && b >= 0 && b < p && a !== b)) fail('spring (' + a + ', ' + b + ') is not a pair of particles');
+    }
+    const viscosity = json.viscosity || 0;
+    if (!(isFinite(viscosity) && viscosity >= 0)) fail('key `viscosity` must be finite and non-negative');
+    if ((viscosity !== 0) !== (json.format === 'springtime-surrogate/3')) {
+      fail('key `viscosity` is ' + viscosity + ' with `format` ' + JSON.stringify(json.format) + ': a viscosity needs springtime-surrogate/3 and /3 one');
     }
     const curv = json.curvature || [];
     const curvK = json.curvature_k || [];
@@ -118,6 +125,7 @@
       massSource,
       rayleigh: json.rayleigh || 0,
       gravity: json.gravity || [0, 0, -9.81],
+      viscosity,
     };
   }
 
@@ -181,7 +189,9 @@
     const pos = (v) => Array.from(v, (x) => Math.max(x, 0));
     const weights = json.masses.every((m) => m === json.masses[0]) && json.grid ? null : json.masses.map((m) => m / c.mass);
     let omega2 = maxEigenvalue(json.rest_positions, json.springs, json.rest_length, pos(json.k), weights) / c.mass;
-    const gamma = (maxEigenvalue(json.rest_positions, json.springs, json.rest_length, pos(json.b), weights) + Math.max(c.rayleigh, 0)) / c.mass;
+    // A viscosity counts as damping β k along each spring (src/sim/mod.rs `stability_of`).
+    const damping = json.b.map((b, s) => b + c.viscosity * json.k[s]);
+    const gamma = (maxEigenvalue(json.rest_positions, json.springs, json.rest_length, pos(damping), weights) + Math.max(c.rayleigh, 0)) / c.mass;
     const curv = json.curvature || [];
     if (curv.length) {
       const row = new Float64Array(c.particles);
@@ -355,6 +365,8 @@
       this.h = fr(h);
       this.hm = fr(h / c.mass);
       this.cR = fr(c.rayleigh);
+      // The viscosity per unit stiffness, cast to f32 as src/model/kernels/cpu.rs `with_viscosity`.
+      this.visc = fr(c.viscosity);
       this.mg = new Float32Array(c.gravity.map((g) => g * c.mass));
       this.invFrameDt = fr(1 / c.frameDt);
       this.ia = new Int32Array(s);
@@ -601,7 +613,7 @@
     /** Internal forces at (x, v) into `out`: springs, curvature, mass scale (the fused kernel's order). */
     forces(x, v, out) {
       out.fill(0);
-      const { ia, ib, k, b, l0 } = this;
+      const { ia, ib, k, b, l0, visc } = this;
       const S = this.S;
       for (let s = 0; s < S; s++) {
         const a = 3 * ia[s];
@@ -616,9 +628,15 @@
         const wd = fr(fr(fr(w0 * d0) + fr(w1 * d1)) + fr(w2 * d2));
         const iv = fr(1 / fr(Math.sqrt(len2)));
         const coef = fr(fr(k[s] * fr(1 - fr(l0[s] * iv))) + fr(fr(fr(b[s] * wd) * iv) * iv));
-        const c0 = fr(coef * d0);
-        const c1 = fr(coef * d1);
-        const c2 = fr(coef * d2);
+        let c0 = fr(coef * d0);
+        let c1 = fr(coef * d1);
+        let c2 = fr(coef * d2);
+        const nu = fr(visc * k[s]);
+        if (nu !== 0) {
+          c0 = fr(c0 + fr(nu * w0));
+          c1 = fr(c1 + fr(nu * w1));
+          c2 = fr(c2 + fr(nu * w2));
+        }
         out[a] += c0;
         out[e] -= c0;
         out[a + 1] += c1;

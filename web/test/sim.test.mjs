@@ -74,6 +74,30 @@ test('damping along the spring resists the ends separating (one substep by hand)
   close(c.x[0], -0.0046, 1e-9, 'x_a');
 });
 
+test('a viscosity damps the whole relative velocity of the ends, across the spring too (one substep by hand)', () => {
+  // At rest length, b = 0, end a moving at 1 m/s across the spring (+y), β = 0.01 s:
+  // ν = β k = 0.1 N·s/m, w = v_b − v_a = (0, −1, 0), F_a = ν w = −0.1 N (y), F_b = +0.1 N.
+  const json = { ...pair({ k: 10, b: 0, len: 1 }), format: 'springtime-surrogate/3', viscosity: 0.01 };
+  const c = new Cloth(json);
+  c.v.set([0, 1, 0, 0, 0, 0]);
+  c.step(1);
+  // v_a' = 1 − h/m · 0.1 = 1 − 0.002; v_b' = +0.002; momentum is kept.
+  close(c.v[1], 0.998, 1e-7, 'v_a');
+  close(c.v[4], 0.002, 1e-7, 'v_b');
+  close(c.v[1] + c.v[4], 1, 1e-7, 'momentum');
+  // Without it a spring at rest length does nothing across itself.
+  const plain = new Cloth(pair({ k: 10, b: 0, len: 1 }));
+  plain.v.set([0, 1, 0, 0, 0, 0]);
+  plain.step(1);
+  assert.equal(plain.v[1], 1);
+  // It counts as damping β k along the spring in the stability number: γ = (2 (b + β k) + c) / m.
+  close(c.getStability().number, 0.01 * 0.01 * (20 / 0.5) + 2 * 0.01 * ((2 * 0.1) / 0.5), 1e-9, 'number');
+  // A viscosity needs the /3 tag, and /3 a viscosity.
+  assert.throws(() => new Cloth({ ...json, format: 'springtime-surrogate/1' }), /viscosity/);
+  assert.throws(() => new Cloth({ ...pair(), format: 'springtime-surrogate/3' }), /viscosity/);
+  assert.throws(() => new Cloth({ ...json, viscosity: -1 }), /viscosity/);
+});
+
 test('a damped spring stretched and let go comes to rest at its rest length', () => {
   const c = new Cloth(pair({ k: 10, b: 2, len: 1.5, frameDt: 0.001 }));
   c.step(5000);

@@ -41,7 +41,7 @@ impl SpringSheet {
         let surrogate = if path.is_dir() {
             let run = Run::open(path, &[], Some(springtime_core::backend::Backend::Flex))?;
             let physics = run.physics(run.meta.frame_dt);
-            SurrogateJson::of(&run, run.springs()?, &[], Some(&physics))?
+            SurrogateJson::of(&run, run.springs()?, &[], Some(&physics))
         } else {
             SurrogateJson::read(path)?
         };
@@ -59,6 +59,13 @@ impl SpringSheet {
     fn check(&self) -> Result<()> {
         let s = &self.surrogate;
         s.validate()?;
+        if s.viscosity != 0.0 {
+            bail!(
+                "key `viscosity` is {} s (`sim.viscosity`): the full-space model the latent \
+                 pipeline distills has no viscosity yet; distill a run trained without it",
+                s.viscosity
+            );
+        }
         let m = s.masses[0];
         if s.masses.iter().any(|&v| v != m) {
             bail!("key `masses` must hold one mass for every particle (a uniform sheet)");

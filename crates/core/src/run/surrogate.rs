@@ -16,6 +16,21 @@ pub const FORMAT: &str = "springtime-surrogate/1";
 /// The format tag of a surrogate with curvature elements: a reader of the first version, which
 /// knows springs only, must not take it for one.
 pub const FORMAT_CURVATURE: &str = "springtime-surrogate/2";
+/// The format tag of a surrogate with a viscosity (`viscosity`, with or without curvature
+/// elements): a reader of the earlier versions would step it without the viscosity, so it must
+/// not take it for one.
+pub const FORMAT_VISCOSITY: &str = "springtime-surrogate/3";
+
+/// The format tag of a surrogate with or without curvature elements and a viscosity.
+fn format_of(curvature: bool, viscosity: f64) -> &'static str {
+    if viscosity != 0.0 {
+        FORMAT_VISCOSITY
+    } else if curvature {
+        FORMAT_CURVATURE
+    } else {
+        FORMAT
+    }
+}
 
 /// `surrogate.json`: everything needed to simulate the learned cloth elsewhere (and what
 /// `springtime latent train --from` distills; [`SurrogateJson::read`]).
@@ -57,6 +72,10 @@ pub struct SurrogateJson {
     pub rayleigh: f64,
     /// Gravity, m/s².
     pub gravity: [f64; 3],
+    /// Isotropic viscosity per unit stiffness `β`, s (`sim.viscosity`): each spring also puts
+    /// `β k (v_b − v_a)` on its first end and the opposite on its second; absent where 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub viscosity: f64,
     /// Integration step the surrogate was trained with (frame time / substeps), s, when known.
     pub dt: Option<f64>,
     /// Curvature elements `(i, j, l)` of a grid (`cloth.curvature`), each with the energy
@@ -94,30 +113,16 @@ pub struct StabilityJson {
 impl SurrogateJson {
     /// The spring network `model` of `run`, with the particles `pinned`, stepped by `physics`
     /// (its frame time, substeps, mass and stability) when known.
-    ///
-    /// Errors on a run with a viscosity (`sim.viscosity`): the format, and the engines and the
-    /// web playground that step it, have none, and would move the cloth differently.
-    pub fn of(
-        run: &Run,
-        model: &SpringNet,
-        pinned: &[usize],
-        physics: Option<&Physics>,
-    ) -> Result<Self> {
+    pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], physics: Option<&Physics>) -> Self {
         let (topo, config) = (&run.topology, &run.config);
-        if config.sim.viscosity != 0.0 {
-            bail!(
-                "{}: `sim.viscosity` is {} s; the exported surrogate (surrogate.json) has no \
-                 viscosity yet, and without it the export would move differently from \
-                 `simulate`: export a run trained without it",
-                run.dir.dir.display(),
-                config.sim.viscosity
-            );
-        }
         let to_f32 = |values: Vec<f64>| values.iter().map(|&x| x as f32).collect();
-        Ok(Self {
+        let viscosity = config.sim.viscosity;
+        Self {
+            format: format_of(!topo.curvature.is_empty(), viscosity).into(),
             pinned: pinned.to_vec(),
             rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
             gravity: config.sim.gravity.or(crate::sim::GRAVITY),
+            viscosity,
             dt: physics.map(Physics::sim_dt),
             curvature_k: to_f32(model.curvature_values()),
             frame_dt: physics.map(|p| p.frame_dt),
@@ -133,7 +138,7 @@ impl SurrogateJson {
                 to_f32(model.k_values()),
                 to_f32(model.b_values()),
             )
-        })
+        }
     }
 
     /// The springs of `topology` with particle `masses` and per-spring `k`, `b`: nothing
@@ -142,12 +147,7 @@ impl SurrogateJson {
     pub fn springs(topology: &Topology, masses: Vec<f64>, k: Vec<f32>, b: Vec<f32>) -> Self {
         let topo = topology;
         Self {
-            format: if topo.curvature.is_empty() {
-                FORMAT
-            } else {
-                FORMAT_CURVATURE
-            }
-            .into(),
+            format: format_of(!topo.curvature.is_empty(), 0.0).into(),
             units: "SI: m, kg, s, N/m, N·s/m".into(),
             grid: topo.grid,
             triangles: topo.triangles.clone(),
@@ -163,6 +163,7 @@ impl SurrogateJson {
             pinned: Vec::new(),
             rayleigh: crate::sim::RAYLEIGH,
             gravity: crate::sim::GRAVITY,
+            viscosity: 0.0,
             dt: None,
             curvature: topo.curvature.clone(),
             curvature_k: Vec::new(),
@@ -196,11 +197,7 @@ impl SurrogateJson {
     /// Checks the format tag, the sheet's size and the per-particle arrays; returns the number
     /// of particles.
     fn validate_sheet(&self) -> Result<usize> {
-        let expected = if self.curvature.is_empty() {
-            FORMAT
-        } else {
-            FORMAT_CURVATURE
-        };
+        let expected = format_of(!self.curvature.is_empty(), self.viscosity);
         if self.format != expected {
             bail!("key `format` is {:?}, expected {expected:?}", self.format);
         }
@@ -275,7 +272,8 @@ impl SurrogateJson {
         Ok(())
     }
 
-    /// Checks the pinned particles (of `p`) and the ranges of masses, `k`, `b` and `rayleigh`.
+    /// Checks the pinned particles (of `p`) and the ranges of masses, `k`, `b`, `rayleigh` and
+    /// `viscosity`.
     fn validate_values(&self, p: usize) -> Result<()> {
         if let Some(i) = self.pinned.iter().find(|&&i| i >= p) {
             bail!("key `pinned` has particle {i}, past the {p} particles");
@@ -288,11 +286,10 @@ impl SurrogateJson {
                 bail!("key `{key}` holds {v}: every value must be finite and non-negative");
             }
         }
-        if !(self.rayleigh.is_finite() && self.rayleigh >= 0.0) {
-            bail!(
-                "key `rayleigh` is {}: finite and non-negative",
-                self.rayleigh
-            );
+        for (key, v) in [("rayleigh", self.rayleigh), ("viscosity", self.viscosity)] {
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("key `{key}` is {v}: finite and non-negative");
+            }
         }
         Ok(())
     }
@@ -354,6 +351,7 @@ impl SurrogateJson {
             pinned,
             rayleigh,
             gravity,
+            viscosity,
             dt,
             curvature,
             curvature_k,
@@ -384,6 +382,9 @@ impl SurrogateJson {
             ("gravity", j(gravity)?),
             ("dt", j(dt)?),
         ];
+        if *viscosity != 0.0 {
+            fields.push(("viscosity", j(viscosity)?));
+        }
         if !curvature.is_empty() {
             fields.push(("curvature", j(curvature)?));
             fields.push(("curvature_k", j(curvature_k)?));
@@ -406,6 +407,11 @@ impl SurrogateJson {
             .collect();
         Ok(format!("{{\n{}\n}}\n", body.join(",\n")))
     }
+}
+
+/// Serde's test for an absent `viscosity`.
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 #[cfg(test)]
@@ -434,5 +440,38 @@ mod tests {
         let back: serde_json::Value = serde_json::from_str(&text).unwrap();
         assert_eq!(back, serde_json::to_value(&j).unwrap());
         assert_eq!(text.lines().count(), 19);
+        j.validate().unwrap();
+
+        // A viscosity: one more line, its own format tag, read back the same; under an older
+        // tag the file is refused by key.
+        let v = SurrogateJson {
+            viscosity: 0.01,
+            format: FORMAT_VISCOSITY.into(),
+            ..j.clone()
+        };
+        let text = v.to_text().unwrap();
+        assert_eq!(text.lines().count(), 20);
+        let back: SurrogateJson = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, v);
+        v.validate().unwrap();
+        let old = SurrogateJson {
+            format: FORMAT.into(),
+            ..v.clone()
+        };
+        let err = old.validate().unwrap_err().to_string();
+        assert!(
+            err.contains("`format`") && err.contains(FORMAT_VISCOSITY),
+            "{err}"
+        );
+        let bad = SurrogateJson {
+            viscosity: -1.0,
+            ..v
+        };
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("`viscosity`")
+        );
     }
 }
