@@ -659,8 +659,8 @@ fn a_run_with_a_viscosity_keeps_it_and_exports_it() {
             .contains("viscosity"),
         "a surrogate without a viscosity is written as before"
     );
-    let err = springtime::latent::surrogate::SpringSheet::open(&dir.join("runs/tiny"))
-        .err()
-        .expect("the latent pipeline refuses a viscosity");
+    let Err(err) = springtime::latent::surrogate::SpringSheet::open(&dir.join("runs/tiny")) else {
+        panic!("the latent pipeline took a run with a viscosity");
+    };
     assert!(format!("{err:#}").contains("viscosity"), "{err:#}");
 }
