@@ -612,8 +612,8 @@ fn a_run_with_curvature_elements_learns_saves_reloads_and_exports_them() {
 
 /// A run with the springs' viscosity (`sim.viscosity`) trains through the fused rollout with it,
 /// keeps it in its `config.toml`, and `eval` reloads it (the same figure as training's
-/// evaluation, which differs from the same run's without it); `export` refuses the run, naming
-/// the key, since `surrogate.json` has no viscosity.
+/// evaluation, which differs from the same run's without it); `export` writes it into
+/// `surrogate.json` and `surrogate.npz`, and the latent pipeline, which has none, refuses it.
 #[test]
 fn a_run_with_a_viscosity_keeps_it_and_exports_it() {
     let dir = setup("cli-viscosity");
@@ -647,11 +647,8 @@ fn a_run_with_a_viscosity_keeps_it_and_exports_it() {
     assert_eq!(json.format, springtime::export::FORMAT_VISCOSITY);
     let npz = Npz::read(&dir.join("e/surrogate.npz")).unwrap();
     assert_eq!(npz.scalar("viscosity").unwrap(), 2e-3);
-    let plain = springtime::export::SurrogateJson::read(&{
-        ok(&springtime(&["export", "runs/plain", "--out", "p"], &dir));
-        dir.join("p/surrogate.json")
-    })
-    .unwrap();
+    ok(&springtime(&["export", "runs/plain", "--out", "p"], &dir));
+    let plain = springtime::export::SurrogateJson::read(&dir.join("p/surrogate.json")).unwrap();
     assert_eq!(plain.format, springtime::export::FORMAT);
     assert!(
         !std::fs::read_to_string(dir.join("p/surrogate.json"))
