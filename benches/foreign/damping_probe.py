@@ -6,7 +6,7 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
-        [--uniform K,B] [--damping-per-k BETA]
+        [--uniform K,B] [--damping-per-k BETA] [--substeps N]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
@@ -142,11 +142,12 @@ def main():
     p.add_argument("--uniform", help="K,B: one stiffness and damping on every spring")
     p.add_argument("--damping-per-k", type=float, metavar="BETA",
                    help="each spring's b = BETA * k (stiffness-proportional damping, s)")
+    p.add_argument("--substeps", type=int, help="substeps per frame (default: the run's)")
     a = p.parse_args()
 
     run = Path(a.run)
     config = (run / "config.toml").read_text()
-    substeps = int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
+    substeps = a.substeps or int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
     drag = a.drag if a.drag is not None else float(re.search(r"^rayleigh\s*=\s*(\S+)", config, re.M).group(1))
     net = np.load(run / "springs.npz")
     springs = net["springs"].astype(int)

@@ -16,6 +16,8 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
                                  # (the copies state their noise: `position_noise`)
     python3 benches/foreign/run.py --source-map             # + what the source's own map wins
+    python3 benches/foreign/run.py --sims newton --materials soft \
+        --variant "fps30=--fps 30 --res 21 --size 1.5 --seed 11"  # another configuration
 
 `--source-map` runs `springtime diagnose` on each finished run and adds its source-map
 reference to the table: the source's own stiffness map on the structural springs, sized on the
@@ -32,6 +34,7 @@ the table to `--out`/bench-<tag>.md and `.json`. Needs the springtime binary (`c
 
 import argparse
 import json
+import shlex
 import shutil
 import subprocess
 import sys
@@ -105,12 +108,18 @@ def generator_args(sim, material, a):
     spec = SIMS[sim]
     if sim == "tpcloth":
         return ["--rollouts", str(a.train), "--test", str(a.test), "--seconds", str(a.seconds),
-                "--seed", str(a.seed), *spec["args"][material]]
+                "--seed", str(a.seed), *spec["args"][material], *a.variant_args]
     args = ["--train", str(a.train), "--test", str(a.test), "--seconds", str(a.seconds),
-            "--material", material, "--seed", str(a.seed), *spec.get("extra", [])]
+            "--material", material, "--seed", str(a.seed), *spec.get("extra", []),
+            *a.variant_args]
     if spec.get("springtime"):
         args += ["--springtime", str(a.springtime)]
     return args
+
+
+def set_name(sim, material, a) -> str:
+    """A set's name: `<sim>-<material>`, and `-<variant>` for another configuration."""
+    return f"{sim}-{material}" + (f"-{a.variant_name}" if a.variant_name else "")
 
 
 def same_takes(recorded, args) -> bool:
@@ -124,7 +133,7 @@ def same_takes(recorded, args) -> bool:
 
 
 def generate(sim, material, a) -> Path:
-    out = a.out / "data" / f"{sim}-{material}"
+    out = a.out / "data" / set_name(sim, material, a)
     args = generator_args(sim, material, a)
     record = out / "bench-args.json"
     if (record.exists() and same_takes(json.loads(record.read_text()), args)
@@ -133,18 +142,18 @@ def generate(sim, material, a) -> Path:
     py = venv_python(a.venvs, sim)
     if out.exists():
         shutil.rmtree(out)
-    print(f"[{sim}-{material}] generating: {SIMS[sim]['script'].name} {' '.join(args)}", flush=True)
+    print(f"[{out.name}] generating: {SIMS[sim]['script'].name} {' '.join(args)}", flush=True)
     t0 = time.time()
     subprocess.run([str(py), str(SIMS[sim]["script"]), str(out), *args], check=True)
     record.write_text(json.dumps(args))
-    print(f"[{sim}-{material}] generated in {time.time() - t0:.0f} s", flush=True)
+    print(f"[{out.name}] generated in {time.time() - t0:.0f} s", flush=True)
     return out
 
 
 def capture(sim, material, data: Path, a) -> Path:
     """The capture-grade copy of a set (`capture.py`: noise, missing markers), made once."""
     noise, missing = a.capture
-    out = a.out / "data" / f"{sim}-{material}-capture-{noise:g}-{missing:g}"
+    out = a.out / "data" / f"{data.name}-capture-{noise:g}-{missing:g}"
     args = [str(data), str(out), "--noise", str(noise), "--missing", str(missing),
             "--seed", str(a.seed)]
     record = out / "capture-args.json"
@@ -159,22 +168,21 @@ def capture(sim, material, data: Path, a) -> Path:
 
 
 def train(sim, material, data: Path, a):
-    if a.capture:
-        material = f"{material}-capture"
-    run = a.out / "runs" / a.tag / f"{sim}-{material}"
+    name = set_name(sim, material, a) + ("-capture" if a.capture else "")
+    run = a.out / "runs" / a.tag / name
     cmd = [str(a.springtime), "train", str(a.config), "--out", str(run), "--force",
            "--set", f"data.dir={data / 'train'}", "--set", f"data.test_dir={data / 'test'}",
            "--set", "eval.uniform_baseline=true"]
     for s in a.set:
         cmd += ["--set", s]
-    print(f"[{sim}-{material}] {' '.join(cmd)}", flush=True)
+    print(f"[{name}] {' '.join(cmd)}", flush=True)
     t0 = time.time()
-    log = a.out / "runs" / a.tag / f"{sim}-{material}.log"
+    log = a.out / "runs" / a.tag / f"{name}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as fh:
         done = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT)
     wall = time.time() - t0
-    row = {"data": f"{sim}-{material}", "wall_s": wall, "log": str(log), "run": str(run)}
+    row = {"data": name, "wall_s": wall, "log": str(log), "run": str(run)}
     if done.returncode != 0:
         tail = log.read_text().strip().splitlines()[-3:]
         row["error"] = " / ".join(tail)
@@ -276,7 +284,18 @@ def main():
     ap.add_argument("--capture", metavar="NOISE,MISSING",
                     help="train and test on capture-grade copies of each set: NOISE m of position "
                          "noise and a MISSING share of markers hidden (capture.py), e.g. 0.002,0.1")
+    ap.add_argument("--variant", metavar="NAME=ARGS",
+                    help="another configuration of each simulator: ARGS appended to its "
+                         "generator's arguments (a later option wins), the sets named "
+                         "<sim>-<material>-NAME, e.g. \"fps30=--fps 30 --res 21 --seed 11\" (the "
+                         "generators' options: `python SCRIPT --help`)")
     a = ap.parse_args()
+    a.variant_name, a.variant_args = None, []
+    if a.variant:
+        name, sep, args = a.variant.partition("=")
+        if not sep or not name or not name.replace("-", "").isalnum():
+            die(f"--variant: expected NAME=ARGS with NAME letters, digits or '-', got {a.variant!r}")
+        a.variant_name, a.variant_args = name, shlex.split(args)
     if a.capture:
         try:
             a.capture = tuple(float(v) for v in a.capture.split(","))
@@ -303,7 +322,7 @@ def main():
             try:
                 data = generate(sim, material, a)
             except subprocess.CalledProcessError as e:
-                rows.append({"data": f"{sim}-{material}", "wall_s": 0.0,
+                rows.append({"data": set_name(sim, material, a), "wall_s": 0.0,
                              "error": f"generation failed ({e})"})
                 continue
             if a.capture:
