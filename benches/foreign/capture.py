@@ -64,6 +64,19 @@ def corrupt(take: dict, noise: float, missing: float, rng: np.random.Generator) 
     return out
 
 
+def load_take(f, dropped):
+    """A take's arrays; a foreign key stored as a pickled object array (tpcloth's `material`) is
+    left out and named in `dropped`, since unpickling a file runs code from it."""
+    take = {}
+    with np.load(f, allow_pickle=False) as d:
+        for k in d.files:
+            try:
+                take[k] = d[k]
+            except ValueError:
+                dropped.add(k)
+    return take
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("src", type=Path)
@@ -75,7 +88,7 @@ def main():
     if a.dst.exists():
         shutil.rmtree(a.dst)
     rng = np.random.default_rng(a.seed)
-    stats = []
+    stats, dropped = [], set()
     for split in ("train", "test"):
         src = a.src / split
         if not src.is_dir():
@@ -83,14 +96,16 @@ def main():
         (a.dst / split).mkdir(parents=True)
         for f in sorted(src.iterdir()):
             if f.suffix == ".npz":
-                with np.load(f, allow_pickle=False) as d:
-                    take = {k: d[k] for k in d.files}
+                take = load_take(f, dropped)
                 out = corrupt(take, a.noise, a.missing, rng)
                 free = ~np.asarray(take["pinned"]).astype(bool)
                 stats.append(float((~out["visible"][:, free]).mean()))
                 np.savez_compressed(a.dst / split / f.name, **out)
             else:
                 shutil.copy(f, a.dst / split / f.name)
+    if dropped:
+        print(f"not copied: {', '.join(sorted(dropped))} (pickled object arrays, read only with "
+              "allow_pickle; springtime ignores foreign keys)")
     source = a.src / "source.json"
     record = json.loads(source.read_text()) if source.exists() else {}
     record["capture"] = {"noise_m": a.noise, "missing": a.missing, "seed": a.seed,
