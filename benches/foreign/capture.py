@@ -72,7 +72,9 @@ def load_take(f, dropped):
         for k in d.files:
             try:
                 take[k] = d[k]
-            except ValueError:
+            except ValueError as e:
+                if "allow_pickle" not in str(e):  # a damaged array, not a pickled one
+                    raise SystemExit(f"{f}: key `{k}`: {e}")
                 dropped.add(k)
     return take
 

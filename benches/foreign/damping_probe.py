@@ -147,6 +147,8 @@ def main():
 
     run = Path(a.run)
     config = (run / "config.toml").read_text()
+    if a.substeps is not None and a.substeps < 1:
+        raise SystemExit(f"--substeps: expected 1 or more, got {a.substeps}")
     substeps = a.substeps or int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
     drag = a.drag if a.drag is not None else float(re.search(r"^rayleigh\s*=\s*(\S+)", config, re.M).group(1))
     net = np.load(run / "springs.npz")
