@@ -59,9 +59,10 @@ def test_the_data_mesh_learns_another_simulators_map_better_than_a_grid(data, tm
     assert mesh["stiffness_map_corr"] > 0.4, mesh["stiffness_map_corr"]
     assert gain["improvement_long"] > 0.1, gain
     assert gain["improvement_short"] > 0.1, gain
-    # The three maps' blends were judged on the held-out training takes too: the run keeps the
-    # mixed map unless another moves closer than it to the training takes and to the held-out
-    # takes at both horizons (of those, the closest on the training takes).
+    # The three maps' blends, each polished at the substeps it runs at, were judged on the
+    # held-out training takes too: the run keeps the mixed map unless another moves closer than
+    # it to the training takes and to the held-out takes at both horizons (of those, the closest
+    # on the training takes).
     maps = {m["map"]: m for m in mesh["blend"]["maps"]}
     assert list(maps) == ["trained", "compliance", "mixed"], maps
     mixed = maps["mixed"]
@@ -73,6 +74,8 @@ def test_the_data_mesh_learns_another_simulators_map_better_than_a_grid(data, tm
     ]
     kept = min(confirmed, key=lambda m: m["after"])["map"] if confirmed else "mixed"
     assert mesh["blend"]["map"] == kept, maps
+    # The kept map's figure is its polished blend's.
+    assert maps[kept]["after"] == mesh["blend"]["polish"]["after"], (maps, mesh["blend"])
 
     grid = train(
         data, tmp_path / "grid", ["cloth.layout=grid", "cloth.nx=13", "cloth.ny=13"]

@@ -726,7 +726,8 @@ impl AfterFit<'_> {
 
     /// The blend search on the maps to blend: the trained network, and with both starts on
     /// the compliance map and the two mixed ([`compliance::mixed`]) too, each smoothed by
-    /// `train.map_smoothing` first; the map is chosen by [`choose_map`].
+    /// `train.map_smoothing` first; each map's blend is polished at the substeps it runs at
+    /// ([`scale::polish`]) and the map is chosen by [`choose_map`] among the polished blends.
     fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
@@ -770,13 +771,21 @@ impl AfterFit<'_> {
                 &self.train_takes(),
             )?;
             record.map = name.to_string();
+            // Each map's blend at its best size and damping at the substeps it runs at, so
+            // that the maps are compared as the run would keep them.
+            let (net, polish) =
+                scale::polish(&net, &p, config.model.uniform_start(), &self.train_takes())?;
             if maps.len() > 1 {
                 progress.note(&format!(
-                    "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m",
+                    "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m; \
+                     polished at {} substep(s) per frame: {:.4e} m",
                     100.0 * record.alpha,
-                    record.after
+                    record.after,
+                    polish.substeps,
+                    polish.after
                 ));
             }
+            record.polish = Some(polish);
             found.push((net, p, record));
         }
         let scores = self.map_scores(&found)?;
@@ -818,12 +827,7 @@ impl AfterFit<'_> {
                  rollouts than the best uniform network; the run keeps that uniform network",
             );
         }
-        let (blended, polish) = scale::polish(
-            &blended,
-            &blended_physics,
-            config.model.uniform_start(),
-            &self.train_takes(),
-        )?;
+        let polish = record.polish.take().expect("polished above");
         progress.note(&format!(
             "polish at {} substep(s) per frame: the best uniform network there is k {:.4} N/m, b \
              {:.4e} N·s/m ({:.4e} m); the searched network {:.4e} m -> {}",
@@ -1064,7 +1068,7 @@ impl AfterFit<'_> {
                 Ok(scale::MapScore {
                     map: record.map.clone(),
                     alpha: record.alpha,
-                    after: record.after,
+                    after: record.polish.as_ref().map_or(record.after, |p| p.after),
                     held_out: if judge {
                         Some(self.held_out_rmse(net, p)?)
                     } else {

@@ -151,9 +151,12 @@ pub struct MapScore {
     pub map: String,
     /// The share of the map kept (0: uniform).
     pub alpha: f64,
-    /// Mean motion RMSE on the search's training takes (m).
+    /// Mean motion RMSE on the search's training takes (m) of its blend polished at the
+    /// substeps it runs at ([`polish`]; in a record written before the maps were polished, of
+    /// the blend).
     pub after: f64,
-    /// `(short, long)` motion RMSE on the held-out training takes (m); `None` where none were
+    /// `(short, long)` motion RMSE on the held-out training takes (m) of the polished blend;
+    /// `None` where none were
     /// held out or one map was searched.
     pub held_out: Option<(f64, f64)>,
 }
