@@ -156,8 +156,7 @@ pub struct MapScore {
     /// the blend).
     pub after: f64,
     /// `(short, long)` motion RMSE on the held-out training takes (m) of the polished blend;
-    /// `None` where none were
-    /// held out or one map was searched.
+    /// `None` where none were held out or one map was searched.
     pub held_out: Option<(f64, f64)>,
 }
 
