@@ -21,6 +21,7 @@ import numpy as np
 GRAVITY = 9.81
 DENSITY = 0.3  # kg/m^2
 MAP_RATIO = 8.0  # stiff regions / soft base
+PERTURB_STREAM = 7  # the SeedSequence key of --perturb's draws (beside the take's seed)
 
 # source.json wording shared by the generators
 SEED_RULE = "take seed = SeedSequence([seed, 0 for train / 1 for test, index]).generate_state(1)[0]"
@@ -46,12 +47,19 @@ def stiffness_map(u, v, width, height, ratio=MAP_RATIO):
     return np.where(stripe | band, ratio, 1.0)
 
 
-def map_tri_materials(mats, uv, tris, size, ke, ka_over_ke, beta):
+def map_tri_materials(mats, uv, tris, size, ke, ka_over_ke, beta, perturb=0.0, seed=0):
     """Scale the ke, ka = ke * ka_over_ke and kd = ke * beta columns of Warp-style per-triangle
     material rows mats [M, 5] (in place) by the stiffness map at the triangles' rest centroids
-    (uv: rest coordinates of a size x size sheet). Returns the map."""
+    (uv: rest coordinates of a size x size sheet), each triangle's three by 1 + perturb * N(0, 1)
+    where perturb > 0 (drawn from a stream of the take's seed of its own: the pins and their
+    paths stay the unperturbed take's). Returns the map (perturbed)."""
     cen = uv[tris].mean(axis=1)
     smap = stiffness_map(cen[:, 0], cen[:, 1], size, size)
+    if perturb > 0.0:
+        noise = np.random.default_rng(np.random.SeedSequence([seed, PERTURB_STREAM])).standard_normal(len(tris))
+        smap = smap * (1.0 + perturb * noise)
+        if (smap <= 0.0).any():
+            raise ValueError(f"--perturb {perturb}: a triangle's stiffness came out <= 0 (take seed {seed})")
     mats[:, 0] = ke * smap
     mats[:, 1] = ke * ka_over_ke * smap
     mats[:, 2] = ke * beta * smap
@@ -261,13 +269,31 @@ OUT_RULE = ("OUT must be empty or new, or hold an earlier output of this script 
             "which is then overwritten.")
 
 
-def setup(doc, script, materials, fps_lo, fps_hi, counts=False):
-    """Parse and check the common arguments (the description: doc's first paragraph) and prepare
-    the output folder for script. Returns the arguments."""
+def add_perturb_arg(ap):
+    """--perturb EPS of the Warp-style generators (see map_tri_materials)."""
+    ap.add_argument("--perturb", type=float, default=0.0, metavar="EPS",
+                    help="multiply each triangle's ke, ka and kd by 1 + EPS * N(0, 1), the same takes and pins "
+                         "otherwise: the source's own spread, against which a surrogate's error is read "
+                         "(benches/foreign/takes_rmse.py)")
+
+
+def check_perturb_arg(ap, args):
+    if not 0.0 <= args.perturb < 0.3:
+        ap.error(f"--perturb must lie in [0, 0.3), got {args.perturb}")
+
+
+def setup(doc, script, materials, fps_lo, fps_hi, counts=False, extra=None, check_extra=None):
+    """Parse and check the common arguments (the description: doc's first paragraph), plus the
+    generator's own (extra(ap) adds them, check_extra(ap, args) checks them), and prepare the
+    output folder for script. Returns the arguments."""
     ap = argparse.ArgumentParser(description=doc.split("\n\n")[0], epilog=OUT_RULE)
     add_common_args(ap, materials)
+    if extra:
+        extra(ap)
     args = ap.parse_args()
     check_common_args(ap, args, fps_lo, fps_hi, counts=counts)
+    if check_extra:
+        check_extra(ap, args)
     prepare_out(args.out, script)
     return args
 

@@ -16,6 +16,7 @@ surrogate's substeps and the training's wall time.
     python3 benches/foreign/run.py --capture 0.002,0.1 --tag capture   # capture-grade tracks
                                  # (the copies state their noise: `position_noise`)
     python3 benches/foreign/run.py --source-map             # + what the source's own map wins
+    python3 benches/foreign/run.py --sims warp,newton --spread 0.01   # + the source's own spread
     python3 benches/foreign/run.py --sims newton --materials soft \
         --variant "fps30=--fps 30 --res 21 --size 1.5 --seed 11"  # another configuration
 
@@ -23,6 +24,13 @@ surrogate's substeps and the training's wall time.
 reference to the table: the source's own stiffness map on the structural springs, sized on the
 training takes, against the best uniform network at its step on the test takes — what a
 perfectly ranked map wins with this surrogate (the book, "What the source's own map is worth").
+
+`--spread EPS` re-runs each set's test takes with every triangle's material times
+`1 + EPS·N(0, 1)` (the generators' `--perturb`; Warp and Newton only) and adds how far they land
+from the originals, as `eval` measures (`takes_rmse.py`), to the table: the source's own spread,
+how far the source misses its own takes with its material a per cent off. A surrogate is not
+expected to come closer than that; where the spread is near the best uniform network's error,
+no gain at that horizon is to be had from the map.
 
 Each simulator runs in a virtual environment of its own, made on first use under
 `--venvs` (default `~/.cache/springtime-foreign`) from PyPI with the pinned packages below;
@@ -56,12 +64,14 @@ SIMS = {
     "warp": {
         "script": HERE / "warp_cloth.py",
         "packages": ["warp-lang==1.7.2", "numpy"],
+        "perturb": True,  # takes --perturb EPS (--spread)
     },
     "newton": {
         "script": HERE / "newton_cloth.py",
         "packages": ["newton==1.8.0", "numpy"],
         # VBD at 25 x 25 costs ~2 min per stiff 4-s take on two cores: a coarser sheet.
         "extra": ["--res", "17"],
+        "perturb": True,
     },
     "mujoco": {
         "script": HERE / "mujoco_cloth.py",
@@ -167,6 +177,36 @@ def capture(sim, material, data: Path, a) -> Path:
     return out
 
 
+def spread(sim, material, data: Path, a):
+    """The source's own spread (`--spread EPS`): the set's test takes re-run with the material
+    perturbed (made once, beside the set), measured against the originals by takes_rmse.py."""
+    eps = a.spread
+    if not SIMS[sim].get("perturb"):
+        return {"spread_error": f"{sim}'s generator takes no --perturb"}
+    out = data.parent / f"{data.name}-perturb-{eps:g}"
+    args = [x for x in json.loads((data / "bench-args.json").read_text())]
+    # the same takes, test split only: the last --train/--test/--perturb win
+    args += ["--train", "0", "--perturb", str(eps)]
+    record = out / "bench-args.json"
+    py = venv_python(a.venvs, sim)
+    if not (record.exists() and json.loads(record.read_text()) == args and (out / "test").is_dir()):
+        if out.exists():
+            shutil.rmtree(out)
+        print(f"[{out.name}] generating: {SIMS[sim]['script'].name} {' '.join(args)}", flush=True)
+        done = subprocess.run([str(py), str(SIMS[sim]["script"]), str(out), *args])
+        if done.returncode != 0:
+            return {"spread_error": f"generation failed (exit {done.returncode})"}
+        record.write_text(json.dumps(args))
+    found = out / "spread.json"
+    done = subprocess.run([str(py), str(HERE / "takes_rmse.py"), str(data / "test"), str(out / "test"),
+                           "--json", str(found)], stdout=subprocess.DEVNULL)
+    if done.returncode != 0:
+        return {"spread_error": f"takes_rmse.py failed (exit {done.returncode})"}
+    c = json.loads(found.read_text())
+    return {"spread_eps": eps, "spread_short": c["short"], "spread_long": c["long"],
+            "spread_half_seconds": c["half_seconds"]}
+
+
 def train(sim, material, data: Path, a):
     name = set_name(sim, material, a) + ("-capture" if a.capture else "")
     run = a.out / "runs" / a.tag / name
@@ -234,22 +274,33 @@ def substeps_of(run: Path):
 
 
 def table(rows, a):
+    extra = [name for name, on in ((" source's map short / long |", a.source_map),
+                                   (f" source ±{100 * (a.spread or 0):g} %: short / whole take (m) |", a.spread))
+             if on]
     head = ("| data | trained: short / whole take (m) | best uniform (m) | gain short / long | "
-            "Spearman | substeps | wall |" + (" source's map short / long |" if a.source_map else "")
-            + "\n|---|---|---|---|---|---|---|" + ("---|" if a.source_map else "") + "\n")
+            "Spearman | substeps | wall |" + "".join(extra)
+            + "\n|---|---|---|---|---|---|---|" + "---|" * len(extra) + "\n")
     lines = []
     for r in rows:
         if "error" in r:
             lines.append(f"| {r['data']} | failed: {r['error']} | | | | | {r['wall_s']:.0f} s |"
-                         + (" |" if a.source_map else ""))
+                         + " |" * len(extra))
             continue
         sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
         lines.append(
             f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
             f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "
             f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {sp} | "
-            f"{r['substeps']} | {r['wall_s']:.0f} s |" + (cell(r) if a.source_map else ""))
+            f"{r['substeps']} | {r['wall_s']:.0f} s |" + (cell(r) if a.source_map else "")
+            + (spread_cell(r) if a.spread else ""))
     return head + "\n".join(lines) + "\n"
+
+
+def spread_cell(r):
+    """The source's own spread's cell of a row."""
+    if "spread_short" in r:
+        return f" {r['spread_short']:.3f} / {r['spread_long']:.3f} |"
+    return f" {r.get('spread_error', '—')} |"
 
 
 def cell(r):
@@ -284,6 +335,10 @@ def main():
     ap.add_argument("--capture", metavar="NOISE,MISSING",
                     help="train and test on capture-grade copies of each set: NOISE m of position "
                          "noise and a MISSING share of markers hidden (capture.py), e.g. 0.002,0.1")
+    ap.add_argument("--spread", type=float, metavar="EPS",
+                    help="also re-run each set's test takes with every triangle's material times "
+                         "1 + EPS * N(0, 1) (Warp and Newton) and add how far they land from the "
+                         "originals: the source's own spread, e.g. 0.01")
     ap.add_argument("--variant", metavar="NAME=ARGS",
                     help="another configuration of each simulator: ARGS appended to its "
                          "generator's arguments (a later option wins), the sets named "
@@ -302,6 +357,8 @@ def main():
             assert len(a.capture) == 2
         except (ValueError, AssertionError):
             die(f"--capture: expected NOISE,MISSING (e.g. 0.002,0.1), got {a.capture!r}")
+    if a.spread is not None and not 0.0 < a.spread < 0.3:
+        die(f"--spread: expected 0 < EPS < 0.3, got {a.spread}")
     if a.quick:
         a.train, a.test, a.seconds = 6, 2, 2.0
     sims = [s for s in a.sims.split(",") if s]
@@ -325,10 +382,14 @@ def main():
                 rows.append({"data": set_name(sim, material, a), "wall_s": 0.0,
                              "error": f"generation failed ({e})"})
                 continue
+            source = data
             if a.capture:
                 data = capture(sim, material, data, a)
             if not a.generate_only:
                 rows.append(train(sim, material, data, a))
+                if a.spread and "error" not in rows[-1]:
+                    # the spread of the source itself: against the takes before any capture noise
+                    rows[-1].update(spread(sim, material, source, a))
                 print(table(rows[-1:], a), flush=True)
     if a.generate_only:
         return

@@ -36,8 +36,9 @@ import time
 
 import numpy as np
 
-from foreign_common import (GRAVITY, PinPath, add_cloth_grid, drive_pins, frame_count, grid_cloth_parameters, grid_take,
-                            map_tri_materials, setup, substep_facts, take_facts, write_source, write_takes)
+from foreign_common import (GRAVITY, PinPath, add_cloth_grid, add_perturb_arg, check_perturb_arg, drive_pins, frame_count,
+                            grid_cloth_parameters, grid_take, map_tri_materials, setup, substep_facts, take_facts,
+                            write_source, write_takes)
 
 # Per material: base membrane stiffness ke (N/m, Warp's tri_ke = Lame mu times thickness),
 # area stiffness ka as a multiple of ke, stiffness-proportional damping kd = beta * ke (beta in s),
@@ -72,7 +73,7 @@ def run_take(wp, sim, args, mat, seed):
     model.particle_max_radius = 0.0  # no particle-particle contact
     tris = model.tri_indices.numpy().astype(np.int32)
     mats = model.tri_materials.numpy()
-    map_tri_materials(mats, uv, tris, size, ke, mat["ka_over_ke"], beta)
+    map_tri_materials(mats, uv, tris, size, ke, mat["ka_over_ke"], beta, args.perturb, seed)
     model.tri_materials = wp.array(mats, dtype=float, device="cpu")
 
     q0 = model.particle_q.numpy().astype(np.float64)
@@ -101,7 +102,7 @@ def run_take(wp, sim, args, mat, seed):
 
 
 def main():
-    args = setup(__doc__, __file__, MATERIALS, 24, 100)
+    args = setup(__doc__, __file__, MATERIALS, 24, 100, extra=add_perturb_arg, check_extra=check_perturb_arg)
 
     import warp as wp
 
@@ -124,6 +125,7 @@ def main():
             start="flat, at rest, horizontal (x-z plane), falls under gravity; no ground, no collisions"),
         **take_facts(args),
         **substep_facts(info),
+        perturb=args.perturb,
     )
 
 

@@ -15,6 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import springtime
@@ -45,3 +46,61 @@ def test_the_recipe_learns_a_mujoco_cloths_map_and_beats_uniform(tmp_path):
     assert gain["improvement_short"] > 0.05, gain
     # Two of the ten training takes were held out and checked against the best uniform network.
     assert len(ev["validation"]["rollouts"]) == 2, ev["validation"]
+
+
+BENCH = ROOT / "benches" / "foreign"
+
+
+def _grid_triangles(res):
+    """Two triangles per cell of a res x res grid (vertex j * res + i)."""
+    tris = []
+    for j in range(res - 1):
+        for i in range(res - 1):
+            a = j * res + i
+            tris += [[a, a + 1, a + res + 1], [a, a + res + 1, a + res]]
+    return np.array(tris)
+
+
+def test_perturb_scales_each_triangles_material_by_a_draw_of_its_take():
+    sys.path.insert(0, str(BENCH))
+    try:
+        from foreign_common import grid_uv, map_tri_materials
+    finally:
+        sys.path.remove(str(BENCH))
+    res, size, ke = 17, 2.0, 100.0
+    uv, tris = grid_uv(res, size), _grid_triangles(res)
+
+    def mapped(perturb, seed):
+        mats = np.zeros((len(tris), 5))
+        smap = map_tri_materials(mats, uv, tris, size, ke, 2.0, 1e-3, perturb, seed)
+        return smap, mats
+
+    base, base_mats = mapped(0.0, 1)
+    assert set(np.unique(base)) == {1.0, 8.0}  # the soft base and the 8x stripes and band
+    assert np.array_equal(base, mapped(0.0, 2)[0])  # no draw without --perturb
+    smap, mats = mapped(0.05, 1)
+    assert np.array_equal(smap, mapped(0.05, 1)[0])  # the take's seed decides the draw
+    assert not np.allclose(smap, mapped(0.05, 2)[0])
+    rel = smap / base - 1.0
+    assert abs(rel.mean()) < 0.015 and 0.04 < rel.std() < 0.06, (rel.mean(), rel.std())
+    # ke, ka and kd of a triangle move together
+    assert np.allclose(mats[:, 0], ke * smap) and np.allclose(mats[:, 1], 2.0 * ke * smap)
+    assert np.allclose(mats[:, 2] / base_mats[:, 2], smap / base)
+
+
+def test_takes_rmse_reads_a_known_offset_as_eval_does(tmp_path):
+    rng = np.random.default_rng(0)
+    frames, n, dt = 101, 20, 0.01
+    x = rng.standard_normal((frames, n, 3)).astype(np.float32)
+    shift = np.zeros_like(x)
+    shift[1:41, :, 0] = 0.03  # 3 cm along x for frames 1-40 (t <= 0.4 s), then none
+    for name, pos in (("a", x), ("b", x + shift)):
+        (tmp_path / name).mkdir()
+        np.savez(tmp_path / name / "take_000.npz", positions=pos, frame_dt=np.float64(dt))
+    out = subprocess.run(
+        [sys.executable, str(BENCH / "takes_rmse.py"), str(tmp_path / "a"), str(tmp_path / "b"), "--short", "0.8"],
+        check=True, capture_output=True, text=True,
+    ).stdout
+    last = out.strip().splitlines()[-1]
+    # frames 1-80 lie within 0.8 s: 40 of them 3 cm off; over the take 40 of 100
+    assert last.startswith("1 takes: short 0.0150 m, whole take 0.0120 m"), out
