@@ -28,7 +28,7 @@ perfectly ranked map wins with this surrogate (the book, "What the source's own 
 `--spread EPS` re-runs each set's test takes with every triangle's material times
 `1 + EPS·N(0, 1)` (the generators' `--perturb`; Warp and Newton only) and adds how far they land
 from the originals, as `eval` measures (`takes_rmse.py`), to the table: the source's own spread,
-how far the source misses its own takes with its material a per cent off. A surrogate is not
+how far the source misses its own takes with its material EPS off. A surrogate is not
 expected to come closer than that; where the spread is near the best uniform network's error,
 no gain at that horizon is to be had from the map.
 
@@ -184,7 +184,7 @@ def spread(sim, material, data: Path, a):
     if not SIMS[sim].get("perturb"):
         return {"spread_error": f"{sim}'s generator takes no --perturb"}
     out = data.parent / f"{data.name}-perturb-{eps:g}"
-    args = [x for x in json.loads((data / "bench-args.json").read_text())]
+    args = json.loads((data / "bench-args.json").read_text())
     # the same takes, test split only: the last --train/--test/--perturb win
     args += ["--train", "0", "--perturb", str(eps)]
     record = out / "bench-args.json"
