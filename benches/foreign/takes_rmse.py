@@ -11,9 +11,10 @@ and `frame_dt`. Made to read a source's own spread: the bench's generators re-ru
 takes with the material perturbed (`warp_cloth.py`, `newton_cloth.py`: `--perturb EPS`) or the
 solve refined (`newton_cloth.py --refine F`), the same pins and paths otherwise, and this
 prints how far those land from the originals: how far the source misses itself, which a
-surrogate of that data is not expected to beat at either horizon (the book, Across simulators); `run.py --spread EPS` adds it to the bench's
-table. `--json FILE` also writes the means and the windows there. Needs numpy only (any of the bench's
-environments: `~/.cache/springtime-foreign/venv-newton/bin/python`).
+surrogate of that data is not expected to beat at either horizon (the book, Across simulators);
+`run.py --spread EPS` adds it to the bench's table. `--json FILE` also writes the means and the
+windows there. Needs numpy only (any of the bench's environments:
+`~/.cache/springtime-foreign/venv-newton/bin/python`).
 """
 import argparse
 import json
