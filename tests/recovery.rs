@@ -597,6 +597,7 @@ fn the_run_searches_a_drag_the_data_does_not_state() {
         batch: run.config.eval.batch,
         device: &run.device,
         progress: &progress,
+        cache: None,
     };
     let row = springtime::train::scale::drag_row(run.springs().unwrap(), &physics, None, &takes);
     let found = row

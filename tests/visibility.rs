@@ -65,6 +65,7 @@ fn uniform_curves(
         batch: 1,
         device: &device,
         progress: &Progress::quiet(),
+        cache: None,
     };
     eval::motion_curves(&model, &physics, &takes)
         .unwrap()

@@ -91,12 +91,14 @@ pub fn source_map(
     let (start, k_uniform, b_uniform) = uniform_start(report.as_ref(), inputs);
     let physics = inputs.physics(first.frame_dt);
     let batch = inputs.config.eval.batch;
+    let cache = eval::TrackCache::default();
     let takes = |files| Takes {
         topology: &inputs.topology,
         files,
         batch,
         device: &inputs.device,
         progress,
+        cache: Some(&cache),
     };
     let Sized {
         net: sized,

@@ -367,6 +367,7 @@ fn simulate_curves(inputs: &Inputs, progress: &Progress) -> Result<Vec<Curve>> {
             batch: inputs.config.eval.batch,
             device: &inputs.device,
             progress,
+            cache: None,
         },
     )
     .map(|m| m.curves)

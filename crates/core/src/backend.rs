@@ -133,6 +133,11 @@ pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
     }
 }
 
+/// Whether `device` computes on the host CPU (flex, ndarray) rather than through a GPU runtime.
+pub fn is_host(device: &Device) -> bool {
+    max_buffer_bytes(device).is_none()
+}
+
 impl fmt::Display for Backend {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())

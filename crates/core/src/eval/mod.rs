@@ -3,11 +3,14 @@
 
 pub mod uniform;
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor, TensorData};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::cloth::{Resampler, SpringFamily, Topology};
@@ -216,6 +219,14 @@ impl TestTrack {
         })
     }
 
+    /// Memory its frames hold, bytes.
+    fn bytes(&self) -> usize {
+        let t = &self.track;
+        4 * (t.positions.len() + t.velocities.len())
+            + t.pinned.len()
+            + t.visible.as_ref().map_or(0, Vec::len)
+    }
+
     /// Frames a free rollout steps: from its first state frame to the last.
     pub fn steps(&self) -> usize {
         self.track.frames - 1 - self.first
@@ -256,11 +267,85 @@ pub struct Takes<'a> {
     pub device: &'a Device,
     /// Where the progress bars go.
     pub progress: &'a Progress,
+    /// Where the rollouts read are kept for the evaluations after (a search's); `None`: read
+    /// anew by each.
+    pub cache: Option<&'a TrackCache>,
 }
+
+impl Takes<'_> {
+    /// Rollout `path` on the surrogate's particles, from the cache where there is one.
+    fn track(&self, path: &Path) -> Result<Arc<TestTrack>> {
+        match self.cache {
+            Some(cache) => cache.load(path, self.topology),
+            None => TestTrack::load(path, self.topology).map(Arc::new),
+        }
+    }
+}
+
+/// Test rollouts read once and kept for the evaluations that follow: a search scores hundreds
+/// of networks on the same few takes, and reading (inflating the `.npz`) and resampling them
+/// anew for each took a fifth of its time. Kept by path and by the surrogate's particles they
+/// were resampled onto, up to [`TrackCache::BUDGET`] bytes; beyond it a take is read anew each
+/// time. The files are not expected to change while the cache lives (a training run).
+#[derive(Default)]
+pub struct TrackCache {
+    kept: Mutex<Kept>,
+}
+
+#[derive(Default)]
+struct Kept {
+    tracks: HashMap<(PathBuf, u64), Arc<TestTrack>>,
+    bytes: usize,
+}
+
+impl TrackCache {
+    /// The most memory the kept takes hold, bytes.
+    pub const BUDGET: usize = 512 << 20;
+
+    /// Rollout `path` resampled onto `topology`'s particles: the kept copy, else read (and
+    /// kept while within the budget).
+    pub fn load(&self, path: &Path, topology: &Topology) -> Result<Arc<TestTrack>> {
+        let key = (path.to_path_buf(), particles_key(topology));
+        if let Some(track) = self.lock().tracks.get(&key) {
+            return Ok(track.clone());
+        }
+        let track = Arc::new(TestTrack::load(path, topology)?);
+        let bytes = track.bytes();
+        let mut kept = self.lock();
+        if kept.bytes + bytes <= Self::BUDGET && !kept.tracks.contains_key(&key) {
+            kept.bytes += bytes;
+            kept.tracks.insert(key, track.clone());
+        }
+        Ok(track)
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Kept> {
+        self.kept.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// A hash of `topology`'s particles (their rest coordinates), which a take is resampled onto.
+fn particles_key(topology: &Topology) -> u64 {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    for uv in &topology.rest_uv {
+        uv.map(f64::to_bits).hash(&mut h);
+    }
+    h.finish()
+}
+
+/// Rollouts a piece of a batch holds on a CPU device: one chunk of the CPU kernels' narrow
+/// lanes, so that a piece steps on one thread and the pieces run side by side.
+const HOST_PIECE: usize = 4;
 
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
 /// particles following the data, and returns the per-frame motion RMSE of each (over the
 /// particles seen in that frame, where the rollout has a `visible` mask).
+///
+/// On a GPU the rollouts of one length step together, `takes.batch` at a time. On the CPU
+/// backends they step in pieces of at most four, the pieces on the threads side by side: a step
+/// of a few rollouts of a small cloth is too little work to split across threads every substep.
+/// Each rollout's curve is the same either way (its lanes do not mix with the others').
 pub fn motion_curves(
     model: &dyn ForceModel,
     physics_template: &Physics,
@@ -269,25 +354,27 @@ pub fn motion_curves(
     let tracks = takes
         .files
         .iter()
-        .map(|f| TestTrack::load(f, takes.topology))
+        .map(|f| takes.track(f))
         .collect::<Result<Vec<_>>>()?;
     // Every rollout is stepped from its first state frame to its last.
     let total_frames: usize = tracks.iter().map(|t| t.track.frames - 1 - t.first).sum();
     let bar = takes.progress.bar(total_frames as u64, "eval");
-    let mut out = MotionCurves {
-        curves: vec![Vec::new(); tracks.len()],
-        step_seconds: 0.0,
-        steps: 0,
-    };
     let mut order: Vec<usize> = (0..tracks.len()).collect();
     order.sort_by_key(|&i| (tracks[i].track.frames, tracks[i].first));
     let alike = |a: &usize, b: &usize| {
         tracks[*a].track.frames == tracks[*b].track.frames && tracks[*a].first == tracks[*b].first
     };
-    for group in order.chunk_by(alike) {
-        for chunk in group.chunks(takes.batch.max(1)) {
+    let host = crate::backend::is_host(takes.device);
+    let width = match host {
+        true => takes.batch.clamp(1, HOST_PIECE),
+        false => takes.batch.max(1),
+    };
+    let batches: Vec<EvalBatch> = order
+        .chunk_by(alike)
+        .flat_map(|group| group.chunks(width))
+        .map(|chunk| {
             let lead = &tracks[chunk[0]];
-            let batch = EvalBatch {
+            EvalBatch {
                 tracks: &tracks,
                 chunk,
                 particles: takes.topology.num_particles(),
@@ -295,9 +382,25 @@ pub fn motion_curves(
                 first: lead.first,
                 frame_dt: lead.frame_dt,
                 device: takes.device,
-            };
-            batch.simulate(model, physics_template, &mut out, &bar)?;
+            }
+        })
+        .collect();
+    let clock = Instant::now();
+    let simulate = |batch: &EvalBatch| batch.simulate(model, physics_template, &bar);
+    let done: Vec<Result<Vec<Curve>>> = match host {
+        true => batches.par_iter().map(simulate).collect(),
+        false => batches.iter().map(simulate).collect(),
+    };
+    let mut out = MotionCurves {
+        curves: vec![Vec::new(); tracks.len()],
+        step_seconds: clock.elapsed().as_secs_f64(),
+        steps: 0,
+    };
+    for (batch, curves) in batches.iter().zip(done) {
+        for (&i, curve) in batch.chunk.iter().zip(curves?) {
+            out.curves[i] = curve;
         }
+        out.steps += (batch.frames - 1 - batch.first) * batch.chunk.len();
     }
     bar.finish();
     Ok(out)
@@ -305,7 +408,7 @@ pub fn motion_curves(
 
 /// Test rollouts of one length and first frame, simulated side by side by [`motion_curves`].
 struct EvalBatch<'a> {
-    tracks: &'a [TestTrack],
+    tracks: &'a [Arc<TestTrack>],
     /// Which of `tracks`.
     chunk: &'a [usize],
     particles: usize,
@@ -316,28 +419,28 @@ struct EvalBatch<'a> {
 }
 
 impl EvalBatch<'_> {
-    /// Steps the rollouts from their first usable frame to their last and appends each frame's
-    /// RMSE to their curves; a non-finite one is refused naming the rollout and frame.
+    /// Steps the rollouts from their first usable frame to their last; returns each one's
+    /// per-frame RMSE curve (in the order of `chunk`); a non-finite error is refused naming the
+    /// rollout and frame.
     fn simulate(
         &self,
         model: &dyn ForceModel,
         physics_template: &Physics,
-        out: &mut MotionCurves,
         bar: &crate::progress::Bar,
-    ) -> Result<()> {
+    ) -> Result<Vec<Curve>> {
         let (b, first, frames) = (self.chunk.len(), self.first, self.frames);
         let physics = Physics {
             frame_dt: self.frame_dt,
             ..*physics_template
         };
         let pinned = self.pinned();
-        let clock = Instant::now();
         let mut state = State {
             x: self.frame(first, false),
             v: self.frame(first, true),
         };
         let mut here = self.frame(first, false);
         let mut errs: Vec<Tensor<1>> = Vec::new();
+        let mut curves = vec![Vec::new(); b];
         // Tracked markers: each frame's RMSE over the particles seen in it.
         let masked = self
             .chunk
@@ -367,16 +470,14 @@ impl EvalBatch<'_> {
             });
             here = next;
             if errs.len() == 100 {
-                self.flush(&mut errs, j, &mut out.curves)?;
+                self.flush(&mut errs, j, &mut curves)?;
                 bar.inc(100 * b as u64);
             }
         }
         let left = errs.len();
-        self.flush(&mut errs, frames - 2, &mut out.curves)?;
+        self.flush(&mut errs, frames - 2, &mut curves)?;
         bar.inc((left * b) as u64);
-        out.step_seconds += clock.elapsed().as_secs_f64();
-        out.steps += (frames - 1 - first) * b;
-        Ok(())
+        Ok(curves)
     }
 
     /// Frame `j`'s positions (or, with `vel`, velocities) of the batch, [B, P, 3].
@@ -420,7 +521,7 @@ impl EvalBatch<'_> {
     }
 
     /// Reads the pending per-frame errors (the last of them is frame `upto + 1`) into the
-    /// curves.
+    /// curves (one per rollout of `chunk`, in its order).
     fn flush(&self, errs: &mut Vec<Tensor<1>>, upto: usize, curves: &mut [Curve]) -> Result<()> {
         if errs.is_empty() {
             return Ok(());
@@ -433,15 +534,14 @@ impl EvalBatch<'_> {
         for (k, row) in data.chunks_exact(self.chunk.len()).enumerate() {
             let j = upto + k + 2 - n; // the frame this error belongs to
             for (slot, &e) in row.iter().enumerate() {
-                let i = self.chunk[slot];
                 if !e.is_finite() {
                     bail!(
                         "{}: the surrogate's rollout diverged at frame {j} (t = {:.3} s)",
-                        self.tracks[i].path.display(),
+                        self.tracks[self.chunk[slot]].path.display(),
                         j as f64 * self.frame_dt
                     );
                 }
-                curves[i].push(((j - self.first) as f64 * self.frame_dt, e as f64));
+                curves[slot].push(((j - self.first) as f64 * self.frame_dt, e as f64));
             }
         }
         Ok(())
@@ -609,7 +709,8 @@ impl GnnEval<'_> {
 pub struct MotionCurves {
     /// One curve per test rollout, in the order of the files.
     pub curves: Vec<Curve>,
-    /// Wall time of the model's steps (data loading and resampling excluded), s.
+    /// Wall time of the model's steps (data loading and resampling excluded; on the CPU, its
+    /// pieces side by side), s.
     pub step_seconds: f64,
     /// Rollout·steps simulated (a batch of `B` rollouts stepped once counts `B`).
     pub steps: usize,

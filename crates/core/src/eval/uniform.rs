@@ -25,46 +25,29 @@ const SEARCH_ROLLOUTS: usize = 8;
 /// Damping candidates as fractions of a spring's critical damping `√(2 k m)`.
 pub(crate) const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
 
-/// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `files` (`None` when it
+/// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `takes` (`None` when it
 /// is unstable at `physics`' step or a rollout diverges).
-pub(crate) fn rollout_rmse(
-    topology: &Topology,
-    physics: &Physics,
-    k: f64,
-    b: f64,
-    files: &[PathBuf],
-    batch: usize,
-    device: &Device,
-) -> Option<f64> {
-    let model = SpringNet::uniform(topology, k, b, device);
-    network_rollout_rmse(&model, topology, physics, files, batch, device)
+pub(crate) fn rollout_rmse(physics: &Physics, k: f64, b: f64, takes: &eval::Takes) -> Option<f64> {
+    let model = SpringNet::uniform(takes.topology, k, b, takes.device);
+    network_rollout_rmse(&model, physics, takes)
 }
 
-/// Mean motion RMSE of free rollouts of the spring network `model` on `files` (`None` when it is
-/// unstable at `physics`' step or a rollout diverges).
+/// Mean motion RMSE of free rollouts of the spring network `model` on `takes` (`None` when it is
+/// unstable at `physics`' step or a rollout diverges). Quiet: `takes.progress` is not used.
 pub(crate) fn network_rollout_rmse(
     model: &SpringNet,
-    topology: &Topology,
     physics: &Physics,
-    files: &[PathBuf],
-    batch: usize,
-    device: &Device,
+    takes: &eval::Takes,
 ) -> Option<f64> {
-    if !physics.stability_of(topology, model).is_stable() {
+    if !physics.stability_of(takes.topology, model).is_stable() {
         return None;
     }
-    let curves = eval::motion_curves(
-        model,
-        physics,
-        &eval::Takes {
-            topology,
-            files,
-            batch,
-            device,
-            progress: &Progress::quiet(),
-        },
-    )
-    .ok()?;
+    let quiet = Progress::quiet();
+    let takes = eval::Takes {
+        progress: &quiet,
+        ..*takes
+    };
+    let curves = eval::motion_curves(model, physics, &takes).ok()?;
     let mean = eval::summarize(&curves.curves, physics.frame_dt, 0.0, 0.0).mean;
     mean.is_finite().then_some(mean)
 }
@@ -107,8 +90,16 @@ pub fn search(
     progress: &Progress,
 ) -> Result<UniformBaseline> {
     let train: Vec<PathBuf> = train_files.iter().take(SEARCH_ROLLOUTS).cloned().collect();
-    let score =
-        |k: f64, b: f64| rollout_rmse(topology, physics, k, b, &train, eval_config.batch, device);
+    let cache = eval::TrackCache::default();
+    let takes = eval::Takes {
+        topology,
+        files: &train,
+        batch: eval_config.batch,
+        device,
+        progress,
+        cache: Some(&cache),
+    };
+    let score = |k: f64, b: f64| rollout_rmse(physics, k, b, &takes);
     let bar = progress.bar(DESCENT_CANDIDATES, "uniform search");
     let Descent {
         k,
@@ -128,6 +119,7 @@ pub fn search(
             batch: eval_config.batch,
             device,
             progress,
+            cache: None,
         },
     )?;
     let test = eval::summarize(

@@ -116,8 +116,9 @@ impl ModelConfig {
 }
 
 /// A model of the internal forces of a cloth, stepped by the shared integrator
-/// ([`crate::sim::step_frame`]): the spring network, or the Neural ODE baseline.
-pub trait ForceModel {
+/// ([`crate::sim::step_frame`]): the spring network, or the Neural ODE baseline. Shared between
+/// threads: the evaluation steps pieces of a batch side by side on the CPU.
+pub trait ForceModel: Sync {
     /// Internal forces `[B, P, 3]` at positions and velocities `[B, P, 3]`; `pinned` is
     /// `[B, P, 1]` (1 = pinned).
     fn internal_forces(&self, x: Tensor<3>, v: Tensor<3>, pinned: &Tensor<3>) -> Tensor<3>;

@@ -113,6 +113,7 @@ fn motion_curves(
         batch: config.eval.batch,
         device,
         progress,
+        cache: None,
     };
     Ok(match &loaded.model {
         Trained::Springs(_) | Trained::NeuralOde(_) => {

@@ -50,8 +50,13 @@ impl Stability {
     ) -> Self {
         let pos = |v: &[f64]| v.iter().map(|x| x.max(0.0)).collect::<Vec<_>>();
         let (k, b) = (pos(k), pos(b));
-        let omega2 = topology.max_eigenvalue(&k) / mass;
-        let gamma = (topology.max_eigenvalue(&b) + rayleigh.max(0.0)) / mass;
+        // The two power iterations are independent: side by side.
+        let (k_eig, b_eig) = rayon::join(
+            || topology.max_eigenvalue(&k),
+            || topology.max_eigenvalue(&b),
+        );
+        let omega2 = k_eig / mass;
+        let gamma = (b_eig + rayleigh.max(0.0)) / mass;
         let max = |v: &[f64]| v.iter().copied().fold(0.0, f64::max);
         let (k_max, b_max) = (max(&k), max(&b));
         Self {

@@ -44,6 +44,7 @@ pub fn validate(
             batch: config.batch,
             device,
             progress,
+            cache: None,
         },
     )?;
     let trained = eval::summarize(

@@ -88,6 +88,18 @@ pub(crate) fn search_stiffness(
     let topo = &clips.topology;
     let mass = clips.particle_mass();
     let files: Vec<std::path::PathBuf> = ctx.files.iter().take(SEARCH_FILES).cloned().collect();
+    let (cache, quiet) = (
+        crate::eval::TrackCache::default(),
+        crate::progress::Progress::quiet(),
+    );
+    let takes = crate::eval::Takes {
+        topology: topo,
+        files: &files,
+        batch: 16,
+        device: ctx.device,
+        progress: &quiet,
+        cache: Some(&cache),
+    };
     let s = topo.num_springs();
     let mut best: Option<(f64, usize, f64)> = None;
     let mut worse = 0;
@@ -122,8 +134,8 @@ pub(crate) fn search_stiffness(
             // The start's guess; the viscosity is searched (or given) at the run's map.
             viscosity: 0.0,
         };
-        let rmse = crate::eval::uniform::rollout_rmse(topo, &physics, k, b, &files, 16, ctx.device)
-            .unwrap_or(f64::INFINITY);
+        let rmse =
+            crate::eval::uniform::rollout_rmse(&physics, k, b, &takes).unwrap_or(f64::INFINITY);
         if best.is_none_or(|(_, _, r)| rmse < r) {
             best = Some((k, n, rmse));
             worse = 0;

@@ -569,6 +569,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                 resolution: &resolution,
                 split: &split,
                 device: &search_device,
+                tracks: Default::default(),
             };
             after.finish(model)?;
             summary
@@ -685,6 +686,8 @@ struct AfterFit<'a> {
     split: &'a Split,
     /// The device of the searches and the check (the config's backend).
     device: &'a Device,
+    /// The training takes the searches and the check have read.
+    tracks: crate::eval::TrackCache,
 }
 
 impl AfterFit<'_> {
@@ -721,6 +724,7 @@ impl AfterFit<'_> {
             batch: self.fit.job.config.eval.batch,
             device: self.device,
             progress: self.fit.progress,
+            cache: Some(&self.tracks),
         }
     }
 

@@ -583,15 +583,7 @@ pub fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Optio
             substeps: n,
             ..*physics
         };
-        network_rollout_rmse(
-            net,
-            takes.topology,
-            &p,
-            takes.files,
-            takes.batch,
-            takes.device,
-        )
-        .map(|r| (n, r))
+        network_rollout_rmse(net, &p, takes).map(|r| (n, r))
     })
 }
 
@@ -733,16 +725,11 @@ pub fn polish(
     train: &Takes,
 ) -> Result<(SpringNet, Polish)> {
     let files = search_files(train);
-    let rmse = |net: &SpringNet| {
-        network_rollout_rmse(
-            net,
-            train.topology,
-            physics,
-            &files,
-            train.batch,
-            train.device,
-        )
+    let takes = Takes {
+        files: &files,
+        ..*train
     };
+    let rmse = |net: &SpringNet| network_rollout_rmse(net, physics, &takes);
     let sizes = Sizes::of(model);
     let (k_mean, b_mean) = blend_means(&sizes.k, &sizes.b, physics.mass)?;
     let bar = train
@@ -883,6 +870,10 @@ pub fn drag_row(
     train: &Takes,
 ) -> Vec<(f64, f64)> {
     let files = search_files(train);
+    let takes = Takes {
+        files: &files,
+        ..*train
+    };
     let c0 = physics.rayleigh;
     let octaves = [-3, -2, -1, 1, 2, 3].map(|i| c0 * 2f64.powi(i));
     let rates = DRAG_RATES.map(|g| g * physics.mass);
@@ -904,14 +895,7 @@ pub fn drag_row(
                         rayleigh: c,
                         ..*physics
                     };
-                    network_rollout_rmse(
-                        model,
-                        train.topology,
-                        &p,
-                        &files,
-                        train.batch,
-                        train.device,
-                    )
+                    network_rollout_rmse(model, &p, &takes)
                 }
             };
             bar.inc(1);
@@ -1019,6 +1003,10 @@ pub fn proportional_damping(
     form: Proportional,
 ) -> Option<(SpringNet, Physics, ProportionalDamping)> {
     let files = search_files(train);
+    let takes = Takes {
+        files: &files,
+        ..*train
+    };
     let sizes = Sizes::of(model);
     let candidate = |beta: f64, fk: f64| match form {
         Proportional::Springs => (
@@ -1044,8 +1032,7 @@ pub fn proportional_damping(
     let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
     let consider = |beta: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
         let (net, at) = candidate(beta, fk);
-        let found =
-            network_rollout_rmse(&net, train.topology, &at, &files, train.batch, train.device);
+        let found = network_rollout_rmse(&net, &at, &takes);
         if let Some(r) = found {
             candidates.push((beta, fk, r));
         }
