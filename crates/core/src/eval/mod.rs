@@ -336,7 +336,7 @@ fn particles_key(topology: &Topology) -> u64 {
 
 /// Rollouts a piece of a batch holds on a CPU device: one chunk of the CPU kernels' narrow
 /// lanes, so that a piece steps on one thread and the pieces run side by side.
-const HOST_PIECE: usize = 4;
+const HOST_PIECE: usize = crate::model::kernels::cpu::NARROW_LANES;
 
 /// Simulates every test rollout from its first frame with a known velocity to its end, pinned
 /// particles following the data, and returns the per-frame motion RMSE of each (over the

@@ -481,13 +481,16 @@ pub(super) fn wide() -> bool {
     }
 }
 
+/// Clips a chunk of the narrow kernels holds (the wide ones, 8 with AVX2, take 16 clips or more).
+pub const NARROW_LANES: usize = 4;
+
 macro_rules! dispatch_lanes {
     ($batch:expr, $t:ty, $f:ident, ($($arg:expr),*)) => {{
         // 8 lanes with AVX2 when there are enough clips to keep both cores busy.
         if std::mem::size_of::<$t>() == 4 && wide() && $batch >= 16 {
             $f::<$t, 8>($($arg),*)
         } else {
-            $f::<$t, 4>($($arg),*)
+            $f::<$t, NARROW_LANES>($($arg),*)
         }
     }};
 }
