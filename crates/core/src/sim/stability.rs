@@ -97,7 +97,26 @@ impl Stability {
 
     /// `dt²ω² + 2·dt·γ`: the step is stable while this is below 4.
     pub fn number(&self) -> f64 {
-        self.dt * self.dt * self.omega2 + 2.0 * self.dt * self.gamma
+        self.number_at(self.dt)
+    }
+
+    /// The stability number at another step `dt`: `ω²` and `γ` do not depend on it, so one
+    /// estimate serves every substep count.
+    pub fn number_at(&self, dt: f64) -> f64 {
+        dt * dt * self.omega2 + 2.0 * dt * self.gamma
+    }
+
+    /// The fewest of `substeps` per `frame_dt` frame whose step keeps the stability number at or
+    /// below `target`, or `None` where none does.
+    pub fn fewest_substeps(
+        &self,
+        frame_dt: f64,
+        substeps: std::ops::RangeInclusive<usize>,
+        target: f64,
+    ) -> Option<usize> {
+        substeps
+            .into_iter()
+            .find(|&n| self.number_at(frame_dt / n as f64) <= target)
     }
 
     /// Whether the step is stable.
@@ -180,5 +199,26 @@ mod tests {
             ..light
         };
         assert!((at_limit.number() - 4.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn one_estimate_finds_the_fewest_substeps_an_estimate_per_step_finds() {
+        let topo = Topology::grid(&GridSpec::default(), 2.0, 2.0);
+        let s = topo.num_springs();
+        let (k, b) = (vec![400.0; s], vec![0.5; s]);
+        let (m, frame_dt) = (0.5 / 1024.0, 0.02);
+        let at = |dt: f64| Stability::estimate(&topo, &k, &b, m, 0.1, dt);
+        let n = at(frame_dt)
+            .fewest_substeps(frame_dt, 1..=10_000, 1.0)
+            .unwrap();
+        assert!(n > 1);
+        assert_eq!(
+            at(frame_dt / n as f64).number(),
+            at(frame_dt).number_at(frame_dt / n as f64)
+        );
+        assert!(at(frame_dt / n as f64).number() <= 1.0);
+        assert!(at(frame_dt / (n - 1) as f64).number() > 1.0);
+        // None within the range: the range's end is too few.
+        assert_eq!(at(frame_dt).fewest_substeps(frame_dt, 1..=n - 1, 1.0), None);
     }
 }

@@ -105,21 +105,13 @@ pub(crate) fn search_stiffness(
     let mut worse = 0;
     for i in -3..=13 {
         let k = 2f64.powi(i);
-        let number = |n: usize| {
-            Stability::estimate(
-                topo,
-                &vec![k; s],
-                &vec![b; s],
-                mass,
-                c,
-                clips.info.frame_dt / n as f64,
-            )
-            .number()
-        };
+        let frame_dt = clips.info.frame_dt;
+        let stability = Stability::estimate(topo, &vec![k; s], &vec![b; s], mass, c, frame_dt);
+        let number = |n: usize| stability.number_at(frame_dt / n as f64);
         let n = match fixed_substeps {
             Some(n) => n,
-            None => (1..=256)
-                .find(|&n| number(n) <= AUTO_SUBSTEPS_TARGET)
+            None => stability
+                .fewest_substeps(frame_dt, 1..=256, AUTO_SUBSTEPS_TARGET)
                 .unwrap_or(256),
         };
         if number(n) >= 4.0 {
@@ -652,7 +644,8 @@ struct UniformStability<'a> {
 }
 
 impl UniformStability<'_> {
-    fn number(&self, k: f64, b: f64, substeps: usize) -> f64 {
+    /// The estimate of uniform `k`, `b` at one substep per frame (its `number_at` any step).
+    fn of(&self, k: f64, b: f64) -> Stability {
         let s = self.topology.num_springs();
         Stability::estimate(
             self.topology,
@@ -660,9 +653,12 @@ impl UniformStability<'_> {
             &vec![b; s],
             self.mass,
             self.rayleigh,
-            self.frame_dt / substeps as f64,
+            self.frame_dt,
         )
-        .number()
+    }
+
+    fn number(&self, k: f64, b: f64, substeps: usize) -> f64 {
+        self.of(k, b).number_at(self.frame_dt / substeps as f64)
     }
 }
 
@@ -761,8 +757,9 @@ fn substeps_for(
             (Some(n), _) => (n, "config"),
             (None, Some(n)) => (n, "auto"),
             (None, None) => {
+                let of = stability.of(k, b);
                 let mut n = 1;
-                while stability.number(k, b, n) > AUTO_SUBSTEPS_TARGET {
+                while of.number_at(stability.frame_dt / n as f64) > AUTO_SUBSTEPS_TARGET {
                     n += 1;
                     if n > 10_000 {
                         bail!(

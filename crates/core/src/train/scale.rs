@@ -599,11 +599,11 @@ pub(crate) fn stable_substeps(
     physics: &Physics,
     model: &SpringNet,
 ) -> Option<usize> {
-    let mut p = *physics;
-    (physics.substeps..=physics.substeps * MAX_SUBSTEP_FACTOR).find(|&n| {
-        p.substeps = n;
-        p.stability_of(topology, model).number() <= AUTO_SUBSTEPS_TARGET
-    })
+    physics.stability_of(topology, model).fewest_substeps(
+        physics.frame_dt,
+        physics.substeps..=physics.substeps * MAX_SUBSTEP_FACTOR,
+        AUTO_SUBSTEPS_TARGET,
+    )
 }
 
 /// Searches the factors of `model`'s `k` and `b` on the training takes `train`; returns the scaled network,
