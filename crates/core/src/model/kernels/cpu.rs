@@ -697,23 +697,31 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
             // SAFETY: lane buffers hold 3P lanes; k, b hold S values (asserted by `step`).
             let chunk = LaneSprings::new(&sp, &xs, &vs, k, b);
             unsafe { run_forces(chunk, &mut f) };
-            let clips = ox.len() / stride;
-            for l in 0..clips {
+            // Per clip of the chunk, per particle: its pin read once, its three coordinates
+            // integrated from the lanes (no index arithmetic per coordinate).
+            let rows = ox
+                .chunks_exact_mut(stride)
+                .zip(ov.chunks_exact_mut(stride))
+                .zip(of.chunks_exact_mut(stride));
+            for (l, ((ox, ov), of)) in rows.enumerate() {
                 let clip = ch * L + l;
-                let row = clip * stride;
-                for i in 0..stride {
-                    let fi = f[i][l] + mg[i % 3] - c * vs[i][l];
-                    let vn = vs[i][l] + hm * fi;
-                    let xn = xs[i][l] + h * vn;
-                    let pinned = pins.pinned[clip * g.particles + i / 3] > T::zero();
-                    let o = l * stride + i;
-                    of[o] = fi;
-                    if pinned {
-                        ox[o] = pins.x[row + i];
-                        ov[o] = pins.v[row + i];
-                    } else {
-                        ox[o] = xn;
-                        ov[o] = vn;
+                let row = clip * stride..(clip + 1) * stride;
+                let pinned = &pins.pinned[clip * g.particles..(clip + 1) * g.particles];
+                let (px, pv) = (&pins.x[row.clone()], &pins.v[row]);
+                for (p, &pin) in pinned.iter().enumerate() {
+                    let pinned = pin > T::zero();
+                    for (d, &g) in mg.iter().enumerate() {
+                        let i = 3 * p + d;
+                        let fi = f[i][l] + g - c * vs[i][l];
+                        of[i] = fi;
+                        if pinned {
+                            ox[i] = px[i];
+                            ov[i] = pv[i];
+                        } else {
+                            let vn = vs[i][l] + hm * fi;
+                            ox[i] = xs[i][l] + h * vn;
+                            ov[i] = vn;
+                        }
                     }
                 }
             }
