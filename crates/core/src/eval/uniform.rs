@@ -42,6 +42,16 @@ pub(crate) fn network_rollout_rmse(
     if !physics.stability_of(takes.topology, model).is_stable() {
         return None;
     }
+    stable_rollout_rmse(model, physics, takes)
+}
+
+/// [`network_rollout_rmse`] of a network already known to be stable at `physics`' step (its
+/// stability estimate not repeated).
+pub(crate) fn stable_rollout_rmse(
+    model: &SpringNet,
+    physics: &Physics,
+    takes: &eval::Takes,
+) -> Option<f64> {
     let quiet = Progress::quiet();
     let takes = eval::Takes {
         progress: &quiet,

@@ -38,7 +38,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::cloth::{SpringFamily, Topology};
 use crate::eval::Takes;
-use crate::eval::uniform::{self, DAMPING_RATIOS, network_rollout_rmse};
+use crate::eval::uniform::{self, DAMPING_RATIOS, network_rollout_rmse, stable_rollout_rmse};
 use crate::model::SpringNet;
 use crate::sim::Physics;
 use crate::train::init::AUTO_SUBSTEPS_TARGET;
@@ -583,7 +583,8 @@ pub fn score_network(net: &SpringNet, physics: &Physics, takes: &Takes) -> Optio
             substeps: n,
             ..*physics
         };
-        network_rollout_rmse(net, &p, takes).map(|r| (n, r))
+        // Stable: its stability number at `n` substeps is at most 1.
+        stable_rollout_rmse(net, &p, takes).map(|r| (n, r))
     })
 }
 
