@@ -193,3 +193,106 @@ fn fused_step_with_viscosity_matches_tensor_ops() {
         assert!(apart > 1e-3, "the viscosity moves the cloth only {apart} m");
     }
 }
+
+/// A whole frame fused on the host (`sim::advance_frame`, which the evaluation and the searches
+/// step with) against `sim::step_frame`'s substep-by-substep fused steps, to the bit: 20 frames
+/// of 7 substeps with pinned particles moving along the data's path, Rayleigh drag and the
+/// springs' viscosity, on the grid and on the mesh layout (lumped masses), on both CPU backends.
+/// The pinned particles move, and the fused frame runs there (the test fails if it falls back).
+#[test]
+#[allow(deprecated)]
+fn fused_frame_steps_as_step_frame_does_to_the_bit() {
+    use springtime::model::ForceModel;
+    use springtime::sim::{self, Physics, State};
+    let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
+    let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
+    for topo in topologies(&cfg) {
+        let s = topo.num_springs();
+        let k: Vec<f64> = (0..s)
+            .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
+            .collect();
+        let b: Vec<f64> = (0..s)
+            .map(|i| 0.5 + 0.2 * ((i as f64) * 0.91).cos())
+            .collect();
+        let physics = Physics {
+            frame_dt: rollouts[0].frame_dt,
+            substeps: 7,
+            mass: rollouts[0].total_mass / topo.num_particles() as f64,
+            rayleigh: 0.05,
+            gravity: cfg.gravity,
+            viscosity: 2e-3,
+        };
+        for device in [Device::flex(), Device::ndarray()] {
+            let batch = common::batch(&cfg, &rollouts, 100, 20, &device);
+            let model = SpringNet::new(&topo, &k, &b, &device);
+            let [bsz, frames, p, _] = batch.positions.dims();
+            // The data's frames carried along a straight line, so that the pins move.
+            let frame = |j: usize| {
+                batch
+                    .positions
+                    .clone()
+                    .slice([0..bsz, j..j + 1, 0..p, 0..3])
+                    .reshape([bsz, p, 3])
+                    .add_scalar(0.013 * j as f64)
+            };
+            let start = || State {
+                x: frame(0),
+                v: batch
+                    .velocities
+                    .clone()
+                    .slice([0..bsz, 0..1, 0..p, 0..3])
+                    .reshape([bsz, p, 3]),
+            };
+            let (mut fused, mut stepped) = (start(), start());
+            for j in 0..frames - 1 {
+                let (here, next) = (frame(j), frame(j + 1));
+                let span = (physics.substeps, physics.frame_dt);
+                assert!(
+                    model
+                        .fused_frame(
+                            fused.x.clone(),
+                            fused.v.clone(),
+                            &batch.pinned,
+                            &here,
+                            &next,
+                            physics.step_params(),
+                            span,
+                        )
+                        .is_some(),
+                    "the whole-frame kernel runs on the host"
+                );
+                fused = sim::advance_frame(&model, &physics, fused, &batch.pinned, &here, &next);
+                stepped =
+                    sim::step_frame(&model, &physics, None, stepped, &batch.pinned, &here, &next).0;
+                for (name, a, b) in [
+                    ("positions", &fused.x, &stepped.x),
+                    ("velocities", &fused.v, &stepped.v),
+                ] {
+                    let (a, b) = (to_f64(a.clone()), to_f64(b.clone()));
+                    let apart = a.iter().zip(&b).filter(|(a, b)| a != b).count();
+                    assert_eq!(
+                        apart,
+                        0,
+                        "{name} of frame {} differ in {apart} values",
+                        j + 1
+                    );
+                }
+            }
+            // The pins carry their particles along the path: without them the test would not
+            // cover the pinned branch.
+            let pinned = to_f64(batch.pinned.clone());
+            let (first, last) = (to_f64(frame(0)), to_f64(fused.x.clone()));
+            let moved = pinned
+                .iter()
+                .enumerate()
+                .filter(|&(_, &q)| q > 0.0)
+                .map(|(i, _)| {
+                    (0..3)
+                        .map(|d| (last[3 * i + d] - first[3 * i + d]).abs())
+                        .sum::<f64>()
+                })
+                .fold(0.0f64, f64::max);
+            assert!(moved > 1e-3, "the pinned particles move {moved} m");
+        }
+    }
+}

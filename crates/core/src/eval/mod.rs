@@ -448,8 +448,7 @@ impl EvalBatch<'_> {
             .any(|&i| self.tracks[i].track.visible.is_some());
         for j in first..frames - 1 {
             let next = self.frame(j + 1, false);
-            let (s, _) = sim::step_frame(model, &physics, None, state, &pinned, &here, &next);
-            state = s;
+            state = sim::advance_frame(model, &physics, state, &pinned, &here, &next);
             let d = state.x.clone() - next.clone();
             errs.push(if masked {
                 let (mask, counts) = self.seen_at(j + 1);

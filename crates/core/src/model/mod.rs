@@ -143,6 +143,24 @@ pub trait ForceModel: Sync {
     ) -> Option<(Tensor<3>, Tensor<3>, Tensor<3>)> {
         None
     }
+
+    /// One whole data frame of `span = (substeps, frame_dt)` fused steps `(x', v')`, the pinned
+    /// particles moving from `here` to `next`, when the model has a kernel for it on this device
+    /// (see [`kernels::cloth_frame`]); `None` steps substep by substep
+    /// ([`crate::sim::step_frame`]). It keeps no mean force: for rollouts that keep positions.
+    #[allow(clippy::too_many_arguments)]
+    fn fused_frame(
+        &self,
+        _x: Tensor<3>,
+        _v: Tensor<3>,
+        _pinned: &Tensor<3>,
+        _here: &Tensor<3>,
+        _next: &Tensor<3>,
+        _params: StepParams,
+        _span: (usize, f64),
+    ) -> Option<(Tensor<3>, Tensor<3>)> {
+        None
+    }
 }
 
 impl ForceModel for SpringNet {
@@ -174,6 +192,29 @@ impl ForceModel for SpringNet {
                 [pinned.clone(), pin_x, pin_v],
                 &self.graph.host,
                 params,
+            )
+        })
+    }
+
+    fn fused_frame(
+        &self,
+        x: Tensor<3>,
+        v: Tensor<3>,
+        pinned: &Tensor<3>,
+        here: &Tensor<3>,
+        next: &Tensor<3>,
+        params: StepParams,
+        span: (usize, f64),
+    ) -> Option<(Tensor<3>, Tensor<3>)> {
+        let host = self.graph.fused_curvature() && self.graph.fused_on == FusedOn::Host;
+        host.then(|| {
+            kernels::cloth_frame(
+                (x, v),
+                self.kernel_params(),
+                [pinned, here, next],
+                &self.graph.host,
+                params,
+                span,
             )
         })
     }

@@ -117,6 +117,17 @@ impl Physics {
         self.frame_dt / self.substeps as f64
     }
 
+    /// The constants of one integration step ([`StepParams`]).
+    pub fn step_params(&self) -> StepParams {
+        StepParams {
+            h: self.sim_dt(),
+            mass: self.mass,
+            rayleigh: self.rayleigh,
+            gravity: self.gravity,
+            viscosity: self.viscosity,
+        }
+    }
+
     /// Net force at a state: the model's internal forces plus gravity, Rayleigh damping and the
     /// springs' viscosity, `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
     pub(crate) fn net_force(
@@ -211,13 +222,7 @@ pub fn step_frame(
     let pin_v = (next.clone() - here.clone()).mul_scalar(1.0 / physics.frame_dt) * pinned.clone();
     let State { mut x, mut v } = state;
     let mut f_sum: Option<Tensor<3>> = None;
-    let params = StepParams {
-        h,
-        mass: physics.mass,
-        rayleigh: physics.rayleigh,
-        gravity: physics.gravity,
-        viscosity: physics.viscosity,
-    };
+    let params = physics.step_params();
     for sub in 0..n {
         let target = if sub + 1 == n {
             next.clone()
@@ -266,6 +271,25 @@ pub fn step_frame(
         f_sum.div_scalar(n as f64)
     };
     (State { x, v }, f_mean)
+}
+
+/// Advances `state` by one data frame without contact, as [`step_frame`] does to the bit, for
+/// rollouts that keep positions only: the whole frame in one fused op where the model has one on
+/// this device ([`ForceModel::fused_frame`]), without the mean force.
+pub fn advance_frame(
+    model: &dyn ForceModel,
+    physics: &Physics,
+    state: State,
+    pinned: &Tensor<3>,
+    here: &Tensor<3>,
+    next: &Tensor<3>,
+) -> State {
+    let span = (physics.substeps.max(1), physics.frame_dt);
+    let (x, v) = (state.x.clone(), state.v.clone());
+    match model.fused_frame(x, v, pinned, here, next, physics.step_params(), span) {
+        Some((x, v)) => State { x, v },
+        None => step_frame(model, physics, None, state, pinned, here, next).0,
+    }
 }
 
 /// Simulates `frames` data frames from `drive`'s initial state (see [`step_frame`]), keeping

@@ -728,6 +728,127 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
         });
 }
 
+/// The pins of a whole frame: pin flags `[B, P]` (1 = pinned) and the frame's first and last
+/// positions `[B, P, 3]`, between which the pinned particles move at a constant velocity.
+#[derive(Clone, Copy)]
+pub struct FramePins<'a, T> {
+    /// 1 for pinned particles, `[B, P]`.
+    pub pinned: &'a [T],
+    /// Positions at the frame's start.
+    pub here: &'a [T],
+    /// Positions at the frame's end.
+    pub next: &'a [T],
+}
+
+/// One data frame of `frame_dt` in `substeps` fused steps of [`step`] (each of
+/// `params.h = frame_dt / substeps`), the clips kept as lanes from the first substep to the last:
+/// writes `x'`, `v'` `[B, P, 3]` stacked into `out` `[2, B, P, 3]`.
+///
+/// The pinned particles follow `crate::sim::step_frame` to the bit: after substep `s` of `n`
+/// at `here · (1 − t) + next · t`, `t = s / n`, each factor rounded to `T` as a tensor's scalar
+/// is, and at `next` after the last; their velocity `(next − here) / frame_dt`.
+pub fn frame<T: Float + Send + Sync>(
+    g: &HostGraph,
+    s: Inputs<T>,
+    pins: FramePins<T>,
+    params: StepParams,
+    (substeps, frame_dt): (usize, f64),
+    out: &mut [T],
+) {
+    let (stride, n) = (g.particles * 3, s.x.len());
+    s.check(g, n);
+    assert!(pins.here.len() == n && pins.next.len() == n && pins.pinned.len() * 3 == n);
+    assert!(out.len() == 2 * n && substeps > 0);
+    let span = (substeps, frame_dt);
+    dispatch_lanes!(n / stride, T, frame_lanes, (g, s, pins, params, span, out))
+}
+
+#[inline(always)]
+fn frame_lanes<T: Float + Send + Sync, const L: usize>(
+    g: &HostGraph,
+    s: Inputs<T>,
+    pins: FramePins<T>,
+    params: StepParams,
+    (substeps, frame_dt): (usize, f64),
+    out: &mut [T],
+) {
+    let Inputs { x, v, k, b } = s;
+    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
+    let (particles, stride) = (g.particles, g.particles * 3);
+    let n = x.len();
+    let batch = n / stride;
+    let (h, hm, c) = (
+        cast::<T>(params.h),
+        cast::<T>(params.h / params.mass),
+        cast::<T>(params.rayleigh),
+    );
+    let mg: [T; 3] = params.gravity.map(|a| cast::<T>(a * params.mass));
+    let inv_frame = cast::<T>(1.0 / frame_dt);
+    // The pins' weights on `here` and `next` after each substep but the last.
+    let weights: Vec<(T, T)> = (1..substeps)
+        .map(|s| {
+            let t = s as f64 / substeps as f64;
+            (cast::<T>(1.0 - t), cast::<T>(t))
+        })
+        .collect();
+    let (ox, ov) = out.split_at_mut(n);
+    ox.par_chunks_mut(L * stride)
+        .zip(ov.par_chunks_mut(L * stride))
+        .enumerate()
+        .for_each(|(ch, (ox, ov))| {
+            let lanes = |src: &[T]| {
+                let mut dst = Vec::new();
+                interleave::<T, L>(src, stride, ch * L, batch, &mut dst);
+                dst
+            };
+            let (mut xs, mut vs) = (lanes(x), lanes(v));
+            let (here, next) = (lanes(pins.here), lanes(pins.next));
+            // The pinned (particle, lane) pairs: every lane integrates every particle without a
+            // branch, then these are set to their path.
+            let pinned: Vec<(usize, usize)> = (0..particles)
+                .flat_map(|p| (0..L).map(move |l| (p, l)))
+                .filter(|&(p, l)| {
+                    let clip = (ch * L + l).min(batch - 1);
+                    pins.pinned[clip * particles + p] > T::zero()
+                })
+                .collect();
+            let mut f = vec![[T::zero(); L]; stride];
+            for sub in 0..substeps {
+                f.fill([T::zero(); L]);
+                // SAFETY: lane buffers hold 3P lanes; k, b hold S values (asserted by `frame`).
+                let chunk = LaneSprings::new(&sp, &xs, &vs, k, b);
+                unsafe { run_forces(chunk, &mut f) };
+                let particles = xs
+                    .chunks_exact_mut(3)
+                    .zip(vs.chunks_exact_mut(3))
+                    .zip(f.chunks_exact(3));
+                for ((x3, v3), f3) in particles {
+                    for (((x, v), f), &g) in x3.iter_mut().zip(v3).zip(f3).zip(&mg) {
+                        for l in 0..L {
+                            let fi = f[l] + g - c * v[l];
+                            let vn = v[l] + hm * fi;
+                            x[l] = x[l] + h * vn;
+                            v[l] = vn;
+                        }
+                    }
+                }
+                let weight = weights.get(sub).copied();
+                for &(p, l) in &pinned {
+                    for i in 3 * p..3 * p + 3 {
+                        let (from, to) = (here[i][l], next[i][l]);
+                        xs[i][l] = match weight {
+                            Some((w_from, w_to)) => from * w_from + to * w_to,
+                            None => to,
+                        };
+                        vs[i][l] = (to - from) * inv_frame;
+                    }
+                }
+            }
+            deinterleave(&xs, stride, ox);
+            deinterleave(&vs, stride, ov);
+        });
+}
+
 /// Gradients of [`step`]: given `gout = (∂ℓ/∂x', ∂ℓ/∂v', ∂ℓ/∂f)` stacked `[3, B, P, 3]`, writes
 /// `∂ℓ/∂x`, `∂ℓ/∂v` `[B, P, 3]` and `∂ℓ/∂k`, `∂ℓ/∂b` `[S]`.
 pub(crate) fn step_backward<T: Float + Send + Sync>(

@@ -278,6 +278,67 @@ pub fn cloth_step(
     (part(0), part(1), part(2))
 }
 
+/// One whole data frame of `substeps` fused steps on the CPU (see [`cpu::frame`]) from
+/// `(x, v)` with per-spring `k`, `b`: returns `(x', v')`. `pins` are `[pinned, here, next]`:
+/// the pin flags `[B, P, 1]` and the frame's first and last positions `[B, P, 3]`. The tensors
+/// are read to the host and the results uploaded to `x`'s device once per frame, not per step.
+pub fn cloth_frame(
+    (x, v): (Tensor<3>, Tensor<3>),
+    (k, b): (Tensor<1>, Tensor<1>),
+    pins: [&Tensor<3>; 3],
+    graph: &HostGraph,
+    params: StepParams,
+    span: (usize, f64),
+) -> (Tensor<3>, Tensor<3>) {
+    if x.dtype() == burn::tensor::DType::F64 {
+        cloth_frame_as::<f64>((x, v), (k, b), pins, graph, params, span)
+    } else {
+        cloth_frame_as::<f32>((x, v), (k, b), pins, graph, params, span)
+    }
+}
+
+fn cloth_frame_as<T: num_traits::Float + burn::tensor::Element + Send + Sync>(
+    (x, v): (Tensor<3>, Tensor<3>),
+    (k, b): (Tensor<1>, Tensor<1>),
+    [pinned, here, next]: [&Tensor<3>; 3],
+    graph: &HostGraph,
+    params: StepParams,
+    span: (usize, f64),
+) -> (Tensor<3>, Tensor<3>) {
+    fn host<T: burn::tensor::Element, const D: usize>(t: Tensor<D>) -> Vec<T> {
+        t.into_data()
+            .try_into_vec_as::<T>()
+            .expect("float tensor data")
+    }
+    let (dims, device) = (x.dims(), x.device());
+    let (x, v, k, b) = (host::<T, 3>(x), host(v), host::<T, 1>(k), host(b));
+    let [pinned, here, next] = [pinned, here, next].map(|t| host::<T, 3>(t.clone()));
+    let n = x.len();
+    let mut out = vec![T::zero(); 2 * n];
+    cpu::frame(
+        graph,
+        cpu::Inputs {
+            x: &x,
+            v: &v,
+            k: &k,
+            b: &b,
+        },
+        cpu::FramePins {
+            pinned: &pinned,
+            here: &here,
+            next: &next,
+        },
+        params,
+        span,
+        &mut out,
+    );
+    let vo = out.split_off(n);
+    let upload = |values: Vec<T>| {
+        Tensor::<3>::from_data(burn::tensor::TensorData::new(values, dims), &device)
+    };
+    (upload(out), upload(vo))
+}
+
 /// The fused rollout and loss (see [`SpringBackend::rollout_loss`]): `[L_f, L_J, L_x]` of the
 /// clips starting at `(x0, v0)` with per-spring `k`, `b`, `pinned` particles, the target
 /// positions `path` `[B, T + 1, P, 3]` and forces `target` `[B, T, P, 3]`.
