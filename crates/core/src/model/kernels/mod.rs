@@ -4,7 +4,10 @@
 //!
 //! Three ops, from small to whole: [`spring_forces`] (Eqs. 2, 4), [`cloth_step`] (one
 //! semi-implicit Euler step, Eq. 5, with pins) and [`rollout_loss`] (a batch of clips rolled out
-//! and scored by Eqs. 7–10, with the adjoint of the integrator as its backward).
+//! and scored by Eqs. 7–10, with the adjoint of the integrator as its backward). Beside them,
+//! for free rollouts that keep positions only (the evaluation and the recipe's searches),
+//! [`cloth_frame`] steps a whole data frame on the CPU with the clips kept in lanes across its
+//! substeps (no gradient).
 //!
 //! Backends: `Flex` and `NdArray` run the CPU kernels of [`cpu`] and [`rollout`] (SIMD across
 //! clips, chunks of clips in parallel; `host.rs`); `Cube` (wgpu) runs the CubeCL kernels of
