@@ -129,6 +129,17 @@ fn compare_losses(device: &Device, cases: &[(usize, f64, usize)]) {
     }
 }
 
+/// Per-spring `k` (15–65 N/m) and `b` (0.3–0.7 N·s/m) that vary smoothly along the spring list.
+fn varied_params(springs: usize) -> (Vec<f64>, Vec<f64>) {
+    let k = (0..springs)
+        .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
+        .collect();
+    let b = (0..springs)
+        .map(|i| 0.5 + 0.2 * ((i as f64) * 0.91).cos())
+        .collect();
+    (k, b)
+}
+
 /// The fused step with the springs' isotropic viscosity (`sim.viscosity`) against the tensor-op
 /// step, on every CPU backend and on wgpu (whose step falls back to tensor ops around its fused
 /// forces there): positions after 30 frames of 3 substeps and the gradients of a weighted sum of
@@ -141,13 +152,7 @@ fn fused_step_with_viscosity_matches_tensor_ops() {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
     let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
     let topo = common::grid_of(&cfg);
-    let s = topo.num_springs();
-    let k: Vec<f64> = (0..s)
-        .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
-        .collect();
-    let b: Vec<f64> = (0..s)
-        .map(|i| 0.5 + 0.2 * ((i as f64) * 0.91).cos())
-        .collect();
+    let (k, b) = varied_params(topo.num_springs());
     let physics = |viscosity: f64| Physics {
         frame_dt: rollouts[0].frame_dt,
         substeps: 3,
@@ -207,13 +212,7 @@ fn fused_frame_steps_as_step_frame_does_to_the_bit() {
     let cfg = common::source(6, &[10.0, 50.0, 100.0], 0.4);
     let rollouts: Vec<_> = (0..3).map(|i| common::rollout(&cfg, i).1).collect();
     for topo in topologies(&cfg) {
-        let s = topo.num_springs();
-        let k: Vec<f64> = (0..s)
-            .map(|i| 40.0 + 25.0 * ((i as f64) * 0.37).sin())
-            .collect();
-        let b: Vec<f64> = (0..s)
-            .map(|i| 0.5 + 0.2 * ((i as f64) * 0.91).cos())
-            .collect();
+        let (k, b) = varied_params(topo.num_springs());
         let physics = Physics {
             frame_dt: rollouts[0].frame_dt,
             substeps: 7,
