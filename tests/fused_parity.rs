@@ -260,7 +260,8 @@ fn fused_frame_steps_as_step_frame_does_to_the_bit() {
                         .is_some(),
                     "the whole-frame kernel runs on the host"
                 );
-                fused = sim::advance_frame(&model, &physics, fused, &batch.pinned, &here, &next);
+                fused =
+                    sim::advance_frame(&model, &physics, None, fused, &batch.pinned, &here, &next);
                 stepped =
                     sim::step_frame(&model, &physics, None, stepped, &batch.pinned, &here, &next).0;
                 for (name, a, b) in [

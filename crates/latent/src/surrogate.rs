@@ -5,7 +5,7 @@
 //! Rayleigh damping as a dissipation potential ([`super::energy`]), so the latent paper's
 //! self-supervised loss applies unchanged. The reference motion is the surrogate's own: the
 //! config's scenario on the surrogate's grid, stepped by springtime's explicit integrator
-//! ([`springtime_core::sim::step_frame`], the step the run was trained with) and recorded at the
+//! ([`springtime_core::sim::advance_frame`], the step the run was trained with) and recorded at the
 //! scenario's frame rate. The latent run keeps the surrogate as `surrogate.json` (the export
 //! format, [`SurrogateJson`]), so it needs neither the run nor its data afterwards.
 
@@ -23,7 +23,7 @@ use springtime_core::model::SpringNet;
 use springtime_core::progress::Progress;
 use springtime_core::run::Run;
 use springtime_core::run::surrogate::SurrogateJson;
-use springtime_core::sim::{Physics, SimConfig, State, step_frame};
+use springtime_core::sim::{Physics, SimConfig, State, advance_frame};
 
 /// A spring surrogate to distill.
 #[derive(Debug, Clone)]
@@ -297,7 +297,7 @@ impl SheetStepper {
         let mut out = Vec::with_capacity(frames);
         for f in 1..=frames {
             let next = placed(f);
-            (state, _) = step_frame(&self.net, &self.physics, None, state, &mask, &here, &next);
+            state = advance_frame(&self.net, &self.physics, None, state, &mask, &here, &next);
             here = next;
             let x: Vec<f32> = state
                 .x

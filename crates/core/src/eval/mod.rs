@@ -448,7 +448,7 @@ impl EvalBatch<'_> {
             .any(|&i| self.tracks[i].track.visible.is_some());
         for j in first..frames - 1 {
             let next = self.frame(j + 1, false);
-            state = sim::advance_frame(model, &physics, state, &pinned, &here, &next);
+            state = sim::advance_frame(model, &physics, None, state, &pinned, &here, &next);
             let d = state.x.clone() - next.clone();
             errs.push(if masked {
                 let (mask, counts) = self.seen_at(j + 1);
@@ -976,8 +976,7 @@ impl<'a> FreeRun<'a> {
                 contact,
                 time: j as f64 * physics.frame_dt,
             });
-            let (s, _) = sim::step_frame(model, physics, at, state, &pinned, &here, &next);
-            state = s;
+            state = sim::advance_frame(model, physics, at, state, &pinned, &here, &next);
             if keep.next_if_eq(&(j + 1)).is_some() {
                 out.record(j + 1, host(&state.x)?, host(&state.v)?, physics.frame_dt)?;
             }

@@ -273,22 +273,29 @@ pub fn step_frame(
     (State { x, v }, f_mean)
 }
 
-/// Advances `state` by one data frame without contact, as [`step_frame`] does to the bit, for
-/// rollouts that keep positions only: the whole frame in one fused op where the model has one on
-/// this device ([`ForceModel::fused_frame`]), without the mean force.
+/// Advances `state` by one data frame as [`step_frame`] does, to the bit, for rollouts that keep
+/// positions only (without the mean force): without `contact`, the whole frame in one fused op
+/// where the model has one on this device ([`ForceModel::fused_frame`]).
 pub fn advance_frame(
     model: &dyn ForceModel,
     physics: &Physics,
+    contact: Option<ContactAt>,
     state: State,
     pinned: &Tensor<3>,
     here: &Tensor<3>,
     next: &Tensor<3>,
 ) -> State {
     let span = (physics.substeps.max(1), physics.frame_dt);
-    let (x, v) = (state.x.clone(), state.v.clone());
-    match model.fused_frame(x, v, pinned, here, next, physics.step_params(), span) {
+    let fused = match contact {
+        Some(_) => None,
+        None => {
+            let (x, v) = (state.x.clone(), state.v.clone());
+            model.fused_frame(x, v, pinned, here, next, physics.step_params(), span)
+        }
+    };
+    match fused {
         Some((x, v)) => State { x, v },
-        None => step_frame(model, physics, None, state, pinned, here, next).0,
+        None => step_frame(model, physics, contact, state, pinned, here, next).0,
     }
 }
 
