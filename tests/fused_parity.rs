@@ -243,23 +243,23 @@ fn fused_frame_steps_as_step_frame_does_to_the_bit() {
                     .reshape([bsz, p, 3]),
             };
             let (mut fused, mut stepped) = (start(), start());
+            let span = (physics.substeps, physics.frame_dt);
+            assert!(
+                model
+                    .fused_frame(
+                        fused.x.clone(),
+                        fused.v.clone(),
+                        &batch.pinned,
+                        &frame(0),
+                        &frame(1),
+                        physics.step_params(),
+                        span,
+                    )
+                    .is_some(),
+                "the whole-frame kernel runs on the host"
+            );
             for j in 0..frames - 1 {
                 let (here, next) = (frame(j), frame(j + 1));
-                let span = (physics.substeps, physics.frame_dt);
-                assert!(
-                    model
-                        .fused_frame(
-                            fused.x.clone(),
-                            fused.v.clone(),
-                            &batch.pinned,
-                            &here,
-                            &next,
-                            physics.step_params(),
-                            span,
-                        )
-                        .is_some(),
-                    "the whole-frame kernel runs on the host"
-                );
                 fused =
                     sim::advance_frame(&model, &physics, None, fused, &batch.pinned, &here, &next);
                 stepped =

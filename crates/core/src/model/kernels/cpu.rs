@@ -662,6 +662,39 @@ pub(super) fn cast<T: Float>(v: f64) -> T {
     T::from(v).expect("float")
 }
 
+/// [`StepParams`] in the kernels' float type: the semi-implicit Euler update of one coordinate,
+/// written once so that [`step`] and [`frame`] round alike.
+#[derive(Clone, Copy)]
+struct StepConsts<T> {
+    h: T,
+    /// `h / m`.
+    hm: T,
+    /// The Rayleigh constant.
+    c: T,
+    /// Gravity's force per coordinate, `m g`.
+    mg: [T; 3],
+}
+
+impl<T: Float> StepConsts<T> {
+    fn new(params: &StepParams) -> Self {
+        Self {
+            h: cast(params.h),
+            hm: cast(params.h / params.mass),
+            c: cast(params.rayleigh),
+            mg: params.gravity.map(|a| cast(a * params.mass)),
+        }
+    }
+
+    /// Coordinate `d` of a free particle with spring force `f` at `(x, v)`: the net force
+    /// `f + m g − c v`, then `v' = v + h/m · net`, `x' = x + h v'`. Returns `(net, x', v')`.
+    #[inline(always)]
+    fn update(&self, d: usize, f: T, x: T, v: T) -> (T, T, T) {
+        let net = f + self.mg[d] - self.c * v;
+        let vn = v + self.hm * net;
+        (net, x + self.h * vn, vn)
+    }
+}
+
 #[inline(always)]
 fn step_lanes<T: Float + Send + Sync, const L: usize>(
     g: &HostGraph,
@@ -675,12 +708,7 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;
-    let (h, hm, c) = (
-        cast::<T>(params.h),
-        cast::<T>(params.h / params.mass),
-        cast::<T>(params.rayleigh),
-    );
-    let mg: [T; 3] = params.gravity.map(|a| cast::<T>(a * params.mass));
+    let consts = StepConsts::<T>::new(&params);
     let (ox, rest) = out.split_at_mut(n);
     let (ov, of) = rest.split_at_mut(n);
     ox.par_chunks_mut(L * stride)
@@ -710,18 +738,11 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
                 let (px, pv) = (&pins.x[row.clone()], &pins.v[row]);
                 for (p, &pin) in pinned.iter().enumerate() {
                     let pinned = pin > T::zero();
-                    for (d, &g) in mg.iter().enumerate() {
+                    for d in 0..3 {
                         let i = 3 * p + d;
-                        let fi = f[i][l] + g - c * vs[i][l];
-                        of[i] = fi;
-                        if pinned {
-                            ox[i] = px[i];
-                            ov[i] = pv[i];
-                        } else {
-                            let vn = vs[i][l] + hm * fi;
-                            ox[i] = xs[i][l] + h * vn;
-                            ov[i] = vn;
-                        }
+                        let (net, xn, vn) = consts.update(d, f[i][l], xs[i][l], vs[i][l]);
+                        of[i] = net;
+                        (ox[i], ov[i]) = if pinned { (px[i], pv[i]) } else { (xn, vn) };
                     }
                 }
             }
@@ -777,12 +798,7 @@ fn frame_lanes<T: Float + Send + Sync, const L: usize>(
     let (particles, stride) = (g.particles, g.particles * 3);
     let n = x.len();
     let batch = n / stride;
-    let (h, hm, c) = (
-        cast::<T>(params.h),
-        cast::<T>(params.h / params.mass),
-        cast::<T>(params.rayleigh),
-    );
-    let mg: [T; 3] = params.gravity.map(|a| cast::<T>(a * params.mass));
+    let consts = StepConsts::<T>::new(&params);
     let inv_frame = cast::<T>(1.0 / frame_dt);
     // The pins' weights on `here` and `next` after each substep but the last.
     let weights: Vec<(T, T)> = (1..substeps)
@@ -823,12 +839,9 @@ fn frame_lanes<T: Float + Send + Sync, const L: usize>(
                     .zip(vs.chunks_exact_mut(3))
                     .zip(f.chunks_exact(3));
                 for ((x3, v3), f3) in particles {
-                    for (((x, v), f), &g) in x3.iter_mut().zip(v3).zip(f3).zip(&mg) {
+                    for (d, ((x, v), f)) in x3.iter_mut().zip(v3).zip(f3).enumerate() {
                         for l in 0..L {
-                            let fi = f[l] + g - c * v[l];
-                            let vn = v[l] + hm * fi;
-                            x[l] = x[l] + h * vn;
-                            v[l] = vn;
+                            (_, x[l], v[l]) = consts.update(d, f[l], x[l], v[l]);
                         }
                     }
                 }
