@@ -49,8 +49,8 @@ const FOURTH_DIFFERENCE_GAIN: f64 = 70.0;
 /// out (a spring whose strain is all noise ranks as the most compliant, not as undefined).
 const NOISE_FLOOR: f64 = 0.01;
 
-/// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts in
-/// which both ends are seen (a spring seen in no frame gets 0: it takes its group's median),
+/// Per-spring RMS strain `|x_a − x_b| / l₀ − 1` over every frame of the training rollouts of
+/// `share` in which both ends are seen (a spring seen in no frame gets 0: it takes its group's median),
 /// less the strain noise of the positions.
 ///
 /// Measured positions (a capture's markers) carry noise, which adds its variance to every
@@ -59,7 +59,7 @@ const NOISE_FLOOR: f64 = 0.01;
 /// noise has 70 times its variance there: each spring's noise variance is its strain's mean
 /// square fourth difference inside the training clips over 70, and is subtracted (on clean
 /// simulator data it is a small share, reported in the log).
-pub(crate) fn rms_strains(clips: &ClipSet) -> Result<RmsStrains> {
+pub(crate) fn rms_strains(clips: &ClipSet, share: Share) -> Result<RmsStrains> {
     let topo = &clips.topology;
     let springs = topo.num_springs();
     let mut sum = vec![0.0; springs];
@@ -67,7 +67,7 @@ pub(crate) fn rms_strains(clips: &ClipSet) -> Result<RmsStrains> {
     let (mut d4_sum, mut d4_count) = (vec![0.0; springs], vec![0usize; springs]);
     let mut frames = 0usize;
     let all = clips.all_clips();
-    for r in 0..clips.len() {
+    for r in (0..clips.len()).filter(|&r| share.has(r)) {
         let track = clips.track(r)?;
         let p = track.particles;
         // Strain of every spring in every frame, NaN where an end is hidden.
@@ -173,28 +173,150 @@ pub fn stiffness(topo: &Topology, strains: &[f64], k_init: f64) -> Vec<f64> {
 }
 
 /// The fit's and the compliance map's stiffness together (ours): in each strain group, each
-/// map over its own mean, the two averaged, times the fit's mean there. The fit's values carry
-/// the frames' forces and the group sizes (hinge springs against edges), the compliance map the
-/// ranks where the forces are weakest — a stiff spring's strain is small and its force noisy, so
-/// the fit ranks it worst; the strains rank it best. A group one map leaves at zero takes the
-/// other's shape.
-pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64]) -> Vec<f64> {
+/// map over its own mean, the two averaged with the weights of `weights` (the fit's weight per
+/// group, in the order of the groups; [`MapWeights`]), times the fit's mean there. The fit's
+/// values carry the frames' forces and the group sizes (hinge springs against edges), the
+/// compliance map the ranks where the forces are weakest — a stiff spring's strain is small and
+/// its force noisy, so the fit ranks it worst; the strains rank it best. A group one map leaves
+/// at zero takes the other's shape.
+pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64], weights: &MapWeights) -> Vec<f64> {
     let mut k = fit.to_vec();
-    for members in strain_groups(topo) {
+    let groups = strain_groups(topo);
+    assert_eq!(
+        groups.len(),
+        weights.groups.len(),
+        "a weight per strain group"
+    );
+    for (members, weight) in groups.iter().zip(&weights.groups) {
         let mean = |v: &[f64]| members.iter().map(|&s| v[s]).sum::<f64>() / members.len() as f64;
-        // The maps with a shape here, each with its mean; the size is the fit's where it has one.
-        let shaped: Vec<(&[f64], f64)> = [(fit, mean(fit)), (compliance, mean(compliance))]
-            .into_iter()
-            .filter(|&(_, m)| m > 0.0)
-            .collect();
-        let Some(&(_, size)) = shaped.first() else {
+        // The maps with a shape here, each with its mean and weight; the size is the fit's
+        // where it has one.
+        let w = weight.fit_weight;
+        let shaped: Vec<(&[f64], f64, f64)> =
+            [(fit, mean(fit), w), (compliance, mean(compliance), 1.0 - w)]
+                .into_iter()
+                .filter(|&(_, m, _)| m > 0.0)
+                .collect();
+        let Some(&(_, size, _)) = shaped.first() else {
             continue;
         };
-        for &s in &members {
-            k[s] = size * shaped.iter().map(|&(v, m)| v[s] / m).sum::<f64>() / shaped.len() as f64;
+        let total: f64 = shaped.iter().map(|&(_, _, w)| w).sum();
+        for &s in members {
+            k[s] = size * shaped.iter().map(|&(v, m, w)| w * v[s] / m).sum::<f64>() / total;
         }
     }
     k
+}
+
+/// How far each map read off the training takes is the cloth's and how far the takes' chance
+/// (ours): per strain group, the Spearman correlation of each map read off one half of the
+/// training rollouts (alternate ones, [`Share::Half`]) with the same map read off the other
+/// half, and the fit's weight in the mixed map that follows from them.
+///
+/// Both maps estimate the same spatial stiffness, each with an error of its own. A map's
+/// split-half correlation `r` is its reliability on half the takes; on all of them it is
+/// `R = 2r / (1 + r)` (Spearman–Brown), and its ratio of signal to error variance `R / (1 − R)
+/// = 2r / (1 − r)`. Two estimates of one signal with independent errors are combined best with
+/// weights proportional to that ratio (inverse error variance): a map that half the takes read
+/// one way and the other half another is mostly error and weighs little; two maps the halves
+/// agree on equally weigh half each, today's mixed map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapWeights {
+    /// One per strain group, in the order of the groups (a data mesh's edges first).
+    pub groups: Vec<GroupWeight>,
+}
+
+/// One strain group's split-half correlations and the fit's weight ([`MapWeights`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GroupWeight {
+    /// Springs in the group.
+    pub springs: usize,
+    /// Spearman correlation of the fit's map on one half with the other's (`None`: not split).
+    pub fit_halves: Option<f64>,
+    /// The same of the compliance map.
+    pub compliance_halves: Option<f64>,
+    /// The fit's weight in the mixed map (the compliance map's is one less it).
+    pub fit_weight: f64,
+}
+
+/// The training rollouts a map is read off: every one, or one of two halves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Share {
+    /// Every training rollout.
+    All,
+    /// The even-numbered rollouts (`Half(0)`) or the odd ones (`Half(1)`).
+    Half(usize),
+}
+
+impl Share {
+    /// Whether training rollout `rollout` is in the share.
+    pub fn has(self, rollout: usize) -> bool {
+        match self {
+            Share::All => true,
+            Share::Half(h) => rollout % 2 == h,
+        }
+    }
+}
+
+impl MapWeights {
+    /// Equal weights in every group of `topo` (the two maps averaged, as without halves).
+    pub fn equal(topo: &Topology) -> Self {
+        MapWeights {
+            groups: strain_groups(topo)
+                .iter()
+                .map(|members| GroupWeight {
+                    springs: members.len(),
+                    fit_halves: None,
+                    compliance_halves: None,
+                    fit_weight: 0.5,
+                })
+                .collect(),
+        }
+    }
+
+    /// The weights from the maps read off the two halves: `fit[h]`, `compliance[h]` per spring.
+    pub fn from_halves(topo: &Topology, fit: [&[f64]; 2], compliance: [&[f64]; 2]) -> Self {
+        let correlation = |halves: [&[f64]; 2], members: &[usize]| {
+            let [a, b] = halves.map(|v| members.iter().map(|&s| v[s]).collect::<Vec<_>>());
+            // A map constant on a half (a group the fit left at zero) ranks nothing.
+            crate::eval::spearman(&a, &b).unwrap_or(0.0)
+        };
+        MapWeights {
+            groups: strain_groups(topo)
+                .iter()
+                .map(|members| {
+                    let (f, c) = (correlation(fit, members), correlation(compliance, members));
+                    let (sf, sc) = (signal_to_error(f), signal_to_error(c));
+                    GroupWeight {
+                        springs: members.len(),
+                        fit_halves: Some(f),
+                        compliance_halves: Some(c),
+                        fit_weight: if sf + sc > 0.0 { sf / (sf + sc) } else { 0.5 },
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    /// The group of the most springs (a data mesh's edges, a grid's structural springs).
+    pub fn largest(&self) -> Option<&GroupWeight> {
+        self.groups.iter().max_by_key(|g| g.springs)
+    }
+}
+
+/// The largest split-half correlation [`signal_to_error`] takes (a map the halves read alike
+/// to the last rank is not infinitely reliable).
+const MAX_HALVES_CORRELATION: f64 = 0.999;
+
+/// A map's ratio of signal to error variance on all the takes from its split-half correlation
+/// `r` ([`MapWeights`]): `2r / (1 − r)`, 0 where the halves do not agree.
+fn signal_to_error(r: f64) -> f64 {
+    let r = if r.is_finite() {
+        r.clamp(0.0, MAX_HALVES_CORRELATION)
+    } else {
+        0.0
+    };
+    2.0 * r / (1.0 - r)
 }
 
 /// `values` smoothed over the spring graph by `passes` rounds of averaging (ours,
@@ -377,7 +499,7 @@ mod tests {
         }
         fit[edges[0]] = 40.0;
         compliance[edges[1]] = 8.0;
-        let k = mixed(&topo, &fit, &compliance);
+        let k = mixed(&topo, &fit, &compliance, &MapWeights::equal(&topo));
         let fit_mean = 100.0 / 7.0;
         let expect = |f: f64, c: f64| fit_mean * (f / fit_mean + c / 2.0) / 2.0;
         assert!((k[edges[0]] - expect(40.0, 1.0)).abs() < 1e-12);
@@ -390,6 +512,61 @@ mod tests {
         );
         // A hinge group the fit left at zero: the compliance map's value.
         assert_eq!(k[hinge], 1.0);
+        // Weighted: the edges' shapes weigh 1/4 (the fit's) and 3/4, at the fit's size still;
+        // the hinge group, whose fit is at zero, the compliance map's whatever its weight.
+        let mut weights = MapWeights::equal(&topo);
+        for g in &mut weights.groups {
+            g.fit_weight = 0.25;
+        }
+        let k = mixed(&topo, &fit, &compliance, &weights);
+        let expect = |f: f64, c: f64| fit_mean * (0.25 * f / fit_mean + 0.75 * c / 2.0);
+        assert!((k[edges[0]] - expect(40.0, 1.0)).abs() < 1e-12);
+        assert!((k[edges[1]] - expect(10.0, 8.0)).abs() < 1e-12);
+        let edge_mean = edges.iter().map(|&s| k[s]).sum::<f64>() / edges.len() as f64;
+        assert!((edge_mean - fit_mean).abs() < 1e-12);
+        assert_eq!(k[hinge], 1.0);
+    }
+
+    /// The weights follow the halves' agreement: two maps whose halves agree alike weigh half
+    /// each; a map whose halves rank its springs in opposite orders weighs nothing, and the
+    /// other everything; `r` 0.8 against 0.4 weighs as `2r / (1 − r)`, 8 against 4/3.
+    #[test]
+    fn each_map_weighs_as_its_halves_agree() {
+        let uv = [
+            [0.0, 0.0],
+            [1.0, 0.0],
+            [1.0, 1.0],
+            [0.0, 1.0],
+            [2.0, 0.5],
+            [2.0, 1.5],
+        ];
+        let tris = [[0, 1, 2], [0, 3, 2], [1, 4, 2], [2, 4, 5]];
+        let topo = Topology::mesh(&uv, &tris, 2.0, 1.0, true).unwrap();
+        let edges = &strain_groups(&topo)[0];
+        let n = topo.num_springs();
+        let rising: Vec<f64> = (0..n).map(|s| 1.0 + s as f64).collect();
+        let falling: Vec<f64> = (0..n).map(|s| (n - s) as f64).collect();
+        let w = MapWeights::from_halves(&topo, [&rising, &rising], [&rising, &rising]);
+        assert_eq!(w.groups[0].fit_halves, Some(1.0));
+        assert_eq!(w.groups[0].fit_weight, 0.5);
+        let w = MapWeights::from_halves(&topo, [&rising, &falling], [&rising, &rising]);
+        assert_eq!(w.groups[0].fit_halves, Some(-1.0));
+        assert_eq!(w.groups[0].fit_weight, 0.0);
+        let w = MapWeights::from_halves(&topo, [&rising, &rising], [&falling, &rising]);
+        assert_eq!(w.groups[0].fit_weight, 1.0);
+        // Neither agrees: half each.
+        let w = MapWeights::from_halves(&topo, [&rising, &falling], [&falling, &rising]);
+        assert_eq!(w.groups[0].fit_weight, 0.5);
+        // A map constant on a half ranks nothing.
+        let flat = vec![2.0; n];
+        let w = MapWeights::from_halves(&topo, [&flat, &rising], [&rising, &rising]);
+        assert_eq!(w.groups[0].fit_halves, Some(0.0));
+        assert_eq!(w.groups[0].fit_weight, 0.0);
+        assert_eq!(w.largest().unwrap().springs, edges.len());
+        assert!((signal_to_error(0.8) - 8.0).abs() < 1e-12);
+        assert!((signal_to_error(0.4) - 4.0 / 3.0).abs() < 1e-12);
+        assert_eq!(signal_to_error(-0.3), 0.0);
+        assert_eq!(signal_to_error(f64::NAN), 0.0);
     }
 
     /// A spring the data left at zero takes half its neighbours' mean in one round; springs of

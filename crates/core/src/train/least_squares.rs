@@ -31,6 +31,7 @@ use anyhow::{Result, bail};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::compliance::Share;
 use crate::cloth::Topology;
 use crate::data::ClipSet;
 use crate::progress::Progress;
@@ -485,7 +486,7 @@ pub fn fit(
                     clips,
                     &pattern,
                     physics,
-                    w,
+                    (w, Share::All),
                     init,
                     &Progress::quiet(),
                 )?
@@ -512,10 +513,41 @@ pub fn fit(
             (best.stencil, trials)
         }
     };
-    let mut fit = fit_with(config, clips, &pattern, physics, stencil, init, progress)?;
+    let mut fit = fit_with(
+        config,
+        clips,
+        &pattern,
+        physics,
+        (stencil, Share::All),
+        init,
+        progress,
+    )?;
     fit.record.trials = trials;
     fit.record.seconds = start.elapsed().as_secs_f64();
     Ok(fit)
+}
+
+/// [`fit`] on the training rollouts of `share` alone, with the stencil `stencil` (the one the
+/// fit on all of them chose), without a progress bar.
+pub fn fit_share(
+    config: &LeastSquaresConfig,
+    clips: &ClipSet,
+    physics: &Physics,
+    init: (f64, f64),
+    stencil: usize,
+    share: Share,
+) -> Result<LeastSquaresFit> {
+    let pattern = Pattern::new(&clips.topology);
+    let quiet = Progress::quiet();
+    fit_with(
+        config,
+        clips,
+        &pattern,
+        physics,
+        (stencil, share),
+        init,
+        &quiet,
+    )
 }
 
 /// One stencil tried by `stencil = "auto"`.
@@ -527,20 +559,19 @@ pub struct StencilTrial {
     pub residual: f64,
 }
 
-/// [`fit`] with the stencil `stencil`.
+/// [`fit`] with the stencil `w` on the training rollouts of `share`.
 fn fit_with(
     config: &LeastSquaresConfig,
     clips: &ClipSet,
     pattern: &Pattern,
     physics: &Physics,
-    stencil: usize,
+    (w, share): (usize, Share),
     (k_init, b_init): (f64, f64),
     progress: &Progress,
 ) -> Result<LeastSquaresFit> {
     let start = Instant::now();
     let topo = &clips.topology;
-    let w = stencil;
-    let by_rollout = centres_by_rollout(config, clips, w)?;
+    let by_rollout = centres_by_rollout(config, clips, w, share)?;
     let (sums, velocity_frames) =
         accumulate_centres(config, clips, pattern, physics, w, &by_rollout, progress)?;
     if sums.samples == 0 {
@@ -623,12 +654,14 @@ fn fit_with(
     })
 }
 
-/// The centre frames of the fit, per training rollout in order: every frame whose stencil of
-/// half-width `w` lies inside a clip of `config.clips`, once, thinned to about `config.frames`.
+/// The centre frames of the fit, per training rollout of `share` in order: every frame whose
+/// stencil of half-width `w` lies inside a clip of `config.clips`, once, thinned to about
+/// `config.frames`.
 fn centres_by_rollout(
     config: &LeastSquaresConfig,
     clips: &ClipSet,
     w: usize,
+    share: Share,
 ) -> Result<Vec<(usize, Vec<usize>)>> {
     let t = clips.steps;
     if 2 * w > t {
@@ -651,7 +684,7 @@ fn centres_by_rollout(
             config.clips
         );
     }
-    for clip in pool {
+    for clip in pool.into_iter().filter(|c| share.has(c.rollout)) {
         centres.extend((clip.offset + w..=clip.offset + t - w).map(|j| (clip.rollout, j)));
     }
     let stride = centres.len().div_ceil(config.frames).max(1);

@@ -560,9 +560,8 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
     note_spring_only(config, progress);
     let summary = match config.model.kind {
         ModelKind::Springs => {
-            let model = fit
-                .initial_springs(&resolution)?
-                .with_kernel(config.model.kernel);
+            let start = fit.initial_springs(&resolution)?;
+            let model = start.net.with_kernel(config.model.kernel);
             let (summary, model) = fit.run(model)?;
             let after = AfterFit {
                 fit: &fit,
@@ -570,6 +569,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
                 split: &split,
                 device: &search_device,
                 tracks: Default::default(),
+                fit_stencil: start.fit_stencil,
             };
             after.finish(model)?;
             summary
@@ -688,6 +688,9 @@ struct AfterFit<'a> {
     device: &'a Device,
     /// The training takes the searches and the check have read.
     tracks: crate::eval::TrackCache,
+    /// The stencil of the least-squares fit training started from (`None`: it started from
+    /// none).
+    fit_stencil: Option<usize>,
 }
 
 impl AfterFit<'_> {
@@ -742,14 +745,13 @@ impl AfterFit<'_> {
                 .with_kernel(net.graph.kernel)
                 .with_curvature(&net.curvature_values())
         };
-        let smooth = |net: SpringNet| {
-            if passes == 0 {
-                return net;
-            }
-            with_k(
-                &net,
-                &compliance::smoothed(job.topology, &net.k_values(), passes),
-            )
+        let smooth_k = |k: &[f64]| match passes {
+            0 => k.to_vec(),
+            _ => compliance::smoothed(job.topology, k, passes),
+        };
+        let smooth = |net: SpringNet| match passes {
+            0 => net,
+            _ => with_k(&net, &smooth_k(&net.k_values())),
         };
         if passes > 0 {
             progress.note(&format!(
@@ -758,13 +760,21 @@ impl AfterFit<'_> {
             ));
         }
         let mut maps = vec![("trained", smooth(model))];
+        let mut weights = None;
         if config.train.compliance.enabled && config.train.least_squares.enabled {
             let compliance = smooth(self.fit.compliance_springs(self.resolution)?);
             let trained = &maps[0].1;
-            let k = compliance::mixed(job.topology, &trained.k_values(), &compliance.k_values());
+            let w = self.map_weights(&smooth_k)?;
+            let k = compliance::mixed(
+                job.topology,
+                &trained.k_values(),
+                &compliance.k_values(),
+                &w,
+            );
             let mixed = with_k(trained, &k);
             maps.push(("compliance", compliance));
             maps.push((MIXED_MAP, mixed));
+            weights = Some(w);
         }
         let mut found = Vec::new();
         for (name, map) in &maps {
@@ -807,6 +817,7 @@ impl AfterFit<'_> {
         }
         let (blended, blended_physics, mut record) = found.swap_remove(choice.kept);
         record.maps = scores;
+        record.weights = weights;
         progress.note(&format!(
             "blend search: the best uniform network on {} training rollouts is k {:.4} N/m, b \
              {:.4e} N·s/m ({:.4e} m); kept {:.0} % of the {} map, k × {:.3} (bending springs' \
@@ -1040,6 +1051,54 @@ impl AfterFit<'_> {
         } else {
             (net, physics, Some(record))
         })
+    }
+
+    /// The fit's weight in the mixed map per strain group ([`compliance::MapWeights`]): the
+    /// least-squares fit (at the stencil of the fit on every training rollout) and the
+    /// compliance map each read off the even and the odd training rollouts, smoothed by
+    /// `smooth` as the maps are, and each map's two halves compared. Equal weights where
+    /// training did not start from the fit or fewer than two rollouts were fitted.
+    fn map_weights(&self, smooth: &dyn Fn(&[f64]) -> Vec<f64>) -> Result<compliance::MapWeights> {
+        let (job, clips, progress) = (self.fit.job, self.fit.clips, self.fit.progress);
+        let topo = job.topology;
+        let Some(stencil) = self.fit_stencil.filter(|_| clips.len() >= 2) else {
+            progress.note(
+                "mixed map: the fit's and the compliance map's shapes weigh half each (training \
+                 did not start from a fit of two rollouts or more, so the maps' halves are not \
+                 compared)",
+            );
+            return Ok(compliance::MapWeights::equal(topo));
+        };
+        let (k0, b0) = (self.resolution.k_init, self.resolution.b_init);
+        let mut fit = Vec::new();
+        let mut strains = Vec::new();
+        for half in [0, 1].map(compliance::Share::Half) {
+            let config = &job.config.train.least_squares;
+            let f = least_squares::fit_share(config, clips, &job.physics, (k0, b0), stencil, half)?;
+            fit.push(smooth(&f.k));
+            let rms = compliance::rms_strains(clips, half)?.rms;
+            strains.push(smooth(&compliance::stiffness(topo, &rms, k0)));
+        }
+        let w = compliance::MapWeights::from_halves(
+            topo,
+            [&fit[0], &fit[1]],
+            [&strains[0], &strains[1]],
+        );
+        if let Some(g) = w.largest() {
+            progress.note(&format!(
+                "mixed map: read off the even and the odd training rollouts apart, the fit's map \
+                 of the {} springs of its largest strain group ranks alike on both at Spearman \
+                 {:.2}, the compliance map's at {:.2}; the fit's shape weighs {:.2} there, the \
+                 compliance map's {:.2} (weights as each map's signal to its error, \
+                 `blend.json` `weights`)",
+                g.springs,
+                g.fit_halves.unwrap_or(f64::NAN),
+                g.compliance_halves.unwrap_or(f64::NAN),
+                g.fit_weight,
+                1.0 - g.fit_weight
+            ));
+        }
+        Ok(w)
     }
 
     /// `(short, long)` motion RMSE of `net` on the held-out training rollouts (m).
@@ -1646,6 +1705,13 @@ pub(crate) fn gnn_windows(
 /// A least-squares fit leaving more than this relative force residual gets a warning.
 const UNRELIABLE_RESIDUAL: f64 = 0.9;
 
+/// The spring network training starts from, and the stencil of the least-squares fit it was
+/// read off (`None` where it was read off none).
+struct Start {
+    net: SpringNet,
+    fit_stencil: Option<usize>,
+}
+
 /// The training loop shared by every model family: passes of Adam over clip batches, metrics,
 /// checkpoints, resume and a clear stop on a non-finite loss.
 struct Fit<'a> {
@@ -1685,7 +1751,7 @@ impl Fit<'_> {
         let (topo, device) = (self.job.topology, self.job.device);
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
-        let strains = compliance::rms_strains(self.clips)?;
+        let strains = compliance::rms_strains(self.clips, compliance::Share::All)?;
         let k = compliance::stiffness(topo, &strains.rms, k0);
         let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
         self.progress.note(&format!(
@@ -1705,17 +1771,22 @@ impl Fit<'_> {
     /// per-spring least-squares fit of the data's forces, projected into the stable region;
     /// its record goes to `least_squares.json`. A run resumed from a checkpoint loads it over
     /// this network, so the fit is skipped there.
-    fn initial_springs(&self, resolution: &init::Resolution) -> Result<SpringNet> {
+    fn initial_springs(&self, resolution: &init::Resolution) -> Result<Start> {
         let (job, config) = (self.job, &self.job.config.train.least_squares);
         let (topo, device) = (job.topology, job.device);
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![job.config.model.curvature_init_for(k0); topo.curvature.len()];
         let checkpointed = self.previous.is_some_and(|s| s.checkpoint > 0);
+        let without_fit = |net| Start {
+            net,
+            fit_stencil: None,
+        };
         if job.config.train.compliance.enabled && !config.enabled && !checkpointed {
-            return self.compliance_springs(resolution);
+            return Ok(without_fit(self.compliance_springs(resolution)?));
         }
         if !config.enabled || checkpointed {
-            return Ok(SpringNet::uniform(topo, k0, b0, device).with_curvature(&kappa));
+            let net = SpringNet::uniform(topo, k0, b0, device).with_curvature(&kappa);
+            return Ok(without_fit(net));
         }
         if !job.topology.curvature.is_empty() {
             self.progress.note(
@@ -1789,7 +1860,10 @@ impl Fit<'_> {
                  (dt²ω² + 2·dt·γ ≤ {TRAIN_STABILITY_LIMIT})"
             ));
         }
-        Ok(model)
+        Ok(Start {
+            net: model,
+            fit_stencil: Some(r.stencil),
+        })
     }
 
     /// Says what training did besides plain Adam steps: skipped steps, clips left out of a

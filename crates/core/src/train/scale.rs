@@ -41,6 +41,7 @@ use crate::eval::Takes;
 use crate::eval::uniform::{self, DAMPING_RATIOS, network_rollout_rmse, stable_rollout_rmse};
 use crate::model::SpringNet;
 use crate::sim::Physics;
+use crate::train::compliance::MapWeights;
 use crate::train::init::AUTO_SUBSTEPS_TARGET;
 
 /// Training rollouts every candidate is simulated on (the first ones of the split).
@@ -142,6 +143,11 @@ pub(crate) struct BlendSearch {
     /// searched, or in a record written before the maps were judged on held-out takes.
     #[serde(default)]
     pub maps: Vec<MapScore>,
+    /// The fit's weight in the mixed map per strain group, from the two maps read off two
+    /// halves of the training takes ([`MapWeights`]); `None` where no mixed map was searched,
+    /// or in a record written before the maps were weighed.
+    #[serde(default)]
+    pub weights: Option<MapWeights>,
 }
 
 /// One map's blend in the blend search: what the search kept of it and how close it moves.
@@ -553,6 +559,7 @@ impl Blender<'_> {
             damping: None,
             viscosity: None,
             maps: Vec::new(),
+            weights: None,
         }
     }
 
