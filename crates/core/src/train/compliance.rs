@@ -26,6 +26,22 @@ pub struct ComplianceConfig {
     /// Start the spring network from the strain-compliance map instead of a uniform one (or
     /// the least-squares fit, which this replaces).
     pub enabled: bool,
+    /// How the mixed map (`compliance::mixed`, searched where the least-squares fit runs too)
+    /// weighs the fit's and this map's shapes: `"equal"` (half each) or `"halves"` (each as it
+    /// reads alike off the even and the odd training takes, [`MapWeights::from_halves`]).
+    pub weights: MapWeighting,
+}
+
+/// How the mixed map weighs its two shapes (`train.compliance.weights`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MapWeighting {
+    /// Half each.
+    #[default]
+    Equal,
+    /// Each map as its split-half reliability ([`MapWeights::from_halves`]); two least-squares
+    /// fits more.
+    Halves,
 }
 
 /// The largest ratio of a spring's `k` to its group's median, either way.

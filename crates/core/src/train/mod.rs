@@ -1053,14 +1053,18 @@ impl AfterFit<'_> {
         })
     }
 
-    /// The fit's weight in the mixed map per strain group ([`compliance::MapWeights`]): the
-    /// least-squares fit (at the stencil of the fit on every training rollout) and the
-    /// compliance map each read off the even and the odd training rollouts, smoothed by
-    /// `smooth` as the maps are, and each map's two halves compared. Equal weights where
-    /// training did not start from the fit or fewer than two rollouts were fitted.
+    /// The fit's weight in the mixed map per strain group ([`compliance::MapWeights`]): half
+    /// each unless `train.compliance.weights = "halves"`; then the least-squares fit (at the
+    /// stencil of the fit on every training rollout) and the compliance map each read off the
+    /// even and the odd training rollouts, smoothed by `smooth` as the maps are, and each map's
+    /// two halves compared. Equal weights where training did not start from the fit or fewer
+    /// than two rollouts were fitted.
     fn map_weights(&self, smooth: &dyn Fn(&[f64]) -> Vec<f64>) -> Result<compliance::MapWeights> {
         let (job, clips, progress) = (self.fit.job, self.fit.clips, self.fit.progress);
         let topo = job.topology;
+        if job.config.train.compliance.weights == compliance::MapWeighting::Equal {
+            return Ok(compliance::MapWeights::equal(topo));
+        }
         let Some(stencil) = self.fit_stencil.filter(|_| clips.len() >= 2) else {
             progress.note(
                 "mixed map: the fit's and the compliance map's shapes weigh half each (training \
