@@ -208,17 +208,20 @@ pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64], weights: &MapWeig
         // The maps with a shape here, each with its mean and weight; the size is the fit's
         // where it has one.
         let w = weight.fit_weight;
-        let shaped: Vec<(&[f64], f64, f64)> =
+        let mut shaped: Vec<(&[f64], f64, f64)> =
             [(fit, mean(fit), w), (compliance, mean(compliance), 1.0 - w)]
                 .into_iter()
                 .filter(|&(_, m, _)| m > 0.0)
                 .collect();
+        // Two maps weigh `w` and `1 − w`; one alone has the whole weight, whatever its own.
+        if let [alone] = shaped.as_mut_slice() {
+            alone.2 = 1.0;
+        }
         let Some(&(_, size, _)) = shaped.first() else {
             continue;
         };
-        let total: f64 = shaped.iter().map(|&(_, _, w)| w).sum();
         for &s in members {
-            k[s] = size * shaped.iter().map(|&(v, m, w)| w * v[s] / m).sum::<f64>() / total;
+            k[s] = size * shaped.iter().map(|&(v, m, w)| w * v[s] / m).sum::<f64>();
         }
     }
     k
@@ -235,7 +238,7 @@ pub fn mixed(topo: &Topology, fit: &[f64], compliance: &[f64], weights: &MapWeig
 /// = 2r / (1 − r)`. Two estimates of one signal with independent errors are combined best with
 /// weights proportional to that ratio (inverse error variance): a map that half the takes read
 /// one way and the other half another is mostly error and weighs little; two maps the halves
-/// agree on equally weigh half each, today's mixed map.
+/// agree on equally weigh half each, as in the default mixed map (`train.compliance.weights`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapWeights {
     /// One per strain group, in the order of the groups (a data mesh's edges first).
@@ -541,6 +544,14 @@ mod tests {
         let edge_mean = edges.iter().map(|&s| k[s]).sum::<f64>() / edges.len() as f64;
         assert!((edge_mean - fit_mean).abs() < 1e-12);
         assert_eq!(k[hinge], 1.0);
+        // A map alone in its group has the whole weight even where its own is zero: the hinge
+        // group, whose fit is at zero, with the compliance map weighing nothing.
+        for g in &mut weights.groups {
+            g.fit_weight = 1.0;
+        }
+        let k = mixed(&topo, &fit, &compliance, &weights);
+        assert_eq!(k[hinge], 1.0);
+        assert!((k[edges[0]] - 40.0).abs() < 1e-12, "the fit's shape alone");
     }
 
     /// The weights follow the halves' agreement: two maps whose halves agree alike weigh half
