@@ -117,7 +117,7 @@ pub fn search(
         search,
         b_search,
         ..
-    } = descend(&score, (k0, b0), physics.mass, &bar)?;
+    } = descend(&score, (k0, b0), physics.mass, Pick::Lowest, &bar)?;
     bar.finish();
     let model = SpringNet::uniform(topology, k, b, device);
     let curves = eval::motion_curves(
@@ -150,6 +150,37 @@ pub fn search(
     })
 }
 
+/// How a [`descend`] picks the best of a row of `(value, RMSE)` candidates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Pick {
+    /// The candidate of the lowest RMSE.
+    Lowest,
+    /// The candidate whose RMSE averaged with its row neighbours' (the next lower and higher
+    /// value tried) is the lowest: a free rollout's RMSE over a chaotic take jumps between
+    /// neighbouring candidates, and a minimum among such jumps is the takes' chance, not the
+    /// cloth's. Its own RMSE is returned.
+    Neighbourhood,
+}
+
+impl Pick {
+    /// The pick of `row` (any order), `(value, its own RMSE)`; `None` where it is empty.
+    pub(crate) fn of(self, row: &[(f64, f64)]) -> Option<(f64, f64)> {
+        let mut sorted = row.to_vec();
+        sorted.sort_by(|a, b| a.0.total_cmp(&b.0));
+        sorted.dedup_by(|a, b| a.0 == b.0);
+        let score = |i: usize| match self {
+            Self::Lowest => sorted[i].1,
+            Self::Neighbourhood => {
+                let near = &sorted[i.saturating_sub(1)..(i + 2).min(sorted.len())];
+                near.iter().map(|c| c.1).sum::<f64>() / near.len() as f64
+            }
+        };
+        (0..sorted.len())
+            .min_by(|&a, &b| score(a).total_cmp(&score(b)))
+            .map(|i| sorted[i])
+    }
+}
+
 /// Candidates a [`descend`] scores at most: its stiffness row, two damping rows and the
 /// stiffness around the best between them (a progress bar's length).
 pub(crate) const DESCENT_CANDIDATES: u64 = (2 * SPAN + 5) as u64 + 2 * DAMPING_RATIOS.len() as u64;
@@ -174,6 +205,7 @@ pub(crate) fn descend(
     score: &dyn Fn(f64, f64) -> Option<f64>,
     (k0, b0): (f64, f64),
     mass: f64,
+    pick: Pick,
     bar: &crate::progress::Bar,
 ) -> Result<Descent> {
     let mut tried: Vec<((f64, f64), Option<f64>)> = Vec::new();
@@ -186,9 +218,7 @@ pub(crate) fn descend(
         found
     };
     let best = |s: &[(f64, f64)]| {
-        s.iter()
-            .copied()
-            .min_by(|a, b| a.1.total_cmp(&b.1))
+        pick.of(s)
             .ok_or_else(|| anyhow::anyhow!("no uniform stiffness around {k0} N/m is stable"))
     };
     let mut search: Vec<(f64, f64)> = Vec::new();
@@ -242,4 +272,30 @@ pub(crate) fn descend(
         search,
         b_search,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Pick;
+
+    #[test]
+    fn the_neighbourhood_pick_prefers_a_basin_to_a_lone_dip() {
+        // A lone dip at 16 between high neighbours, a broad basin around 2; any order.
+        let row = [
+            (16.0, 0.200),
+            (1.0, 0.215),
+            (8.0, 0.250),
+            (2.0, 0.210),
+            (4.0, 0.214),
+            (32.0, 0.260),
+            (0.5, 0.230),
+        ];
+        assert_eq!(Pick::Lowest.of(&row), Some((16.0, 0.200)));
+        // Means with the neighbours: 2 → (0.215 + 0.210 + 0.214) / 3 = 0.2130; 16 → 0.2367;
+        // the ends average two: 32 → 0.2300.
+        assert_eq!(Pick::Neighbourhood.of(&row), Some((2.0, 0.210)));
+        // A row of one is its own pick; an empty row has none.
+        assert_eq!(Pick::Neighbourhood.of(&[(3.0, 0.1)]), Some((3.0, 0.1)));
+        assert_eq!(Pick::Neighbourhood.of(&[]), None);
+    }
 }

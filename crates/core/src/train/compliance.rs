@@ -30,6 +30,23 @@ pub struct ComplianceConfig {
     /// weighs the fit's and this map's shapes: `"equal"` (half each) or `"halves"` (each as it
     /// reads alike off the even and the odd training takes, [`MapWeights::from_halves`]).
     pub weights: MapWeighting,
+    /// Which map's blend the run keeps where the least-squares fit runs too: `"mixed"` (the
+    /// mixed map alone is searched) or `"closest"` (the fit's, this map's and the mixed map are
+    /// each searched and polished, and another than the mixed one is kept where it moves closer
+    /// to the training takes and the held-out takes agree).
+    pub keep: MapKeep,
+}
+
+/// Which map's blend the run keeps (`train.compliance.keep`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum MapKeep {
+    /// The three maps searched, the mixed one kept unless another moves closer to both kinds of
+    /// takes.
+    Closest,
+    /// The mixed map alone.
+    #[default]
+    Mixed,
 }
 
 /// How the mixed map weighs its two shapes (`train.compliance.weights`).
@@ -37,10 +54,10 @@ pub struct ComplianceConfig {
 #[serde(rename_all = "snake_case")]
 pub enum MapWeighting {
     /// Half each.
-    #[default]
     Equal,
     /// Each map as its split-half reliability ([`MapWeights::from_halves`]); two least-squares
     /// fits more.
+    #[default]
     Halves,
 }
 

@@ -731,10 +731,12 @@ impl AfterFit<'_> {
         }
     }
 
-    /// The blend search on the maps to blend: the trained network, and with both starts on
-    /// the compliance map and the two mixed ([`compliance::mixed`]) too, each smoothed by
-    /// `train.map_smoothing` first; each map's blend is polished at the substeps it runs at
-    /// ([`scale::polish`]) and the map is chosen by [`choose_map`] among the polished blends.
+    /// The blend search on the maps to blend: the trained network, or with both starts on the
+    /// two mixed ([`compliance::mixed`], each shape weighed by `train.compliance.weights`) —
+    /// with `train.compliance.keep = "closest"` the trained network, the compliance map and the
+    /// mixed one — each smoothed by `train.map_smoothing` first; each map's blend is polished at
+    /// the substeps it runs at ([`scale::polish`]) and the map is chosen by [`choose_map`] among
+    /// the polished blends.
     fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
@@ -772,8 +774,13 @@ impl AfterFit<'_> {
                 &w,
             );
             let mixed = with_k(trained, &k);
-            maps.push(("compliance", compliance));
-            maps.push((MIXED_MAP, mixed));
+            match config.train.compliance.keep {
+                compliance::MapKeep::Closest => {
+                    maps.push(("compliance", compliance));
+                    maps.push((MIXED_MAP, mixed));
+                }
+                compliance::MapKeep::Mixed => maps = vec![(MIXED_MAP, mixed)],
+            }
             weights = Some(w);
         }
         let mut found = Vec::new();

@@ -724,8 +724,12 @@ pub struct Polish {
 /// evaluation and its uniform yardstick all run at `physics`. So here every candidate runs at
 /// `physics` exactly: the best uniform network from `(k0, b0)` by the yardstick's own descent
 /// (`eval.uniform_baseline`), and the same descent over the map's mean `k` and `b` (its shape
-/// kept); the closer is kept, so on these takes the kept network never moves farther than the
-/// yardstick does. Returns the kept network and the record.
+/// kept), each of its rows picked by the candidates' figures averaged with their neighbours'
+/// ([`uniform::Pick::Neighbourhood`]: a free rollout's figure over a chaotic take jumps between
+/// neighbouring sizes and dampings by more than the map's worth, and a lone dip among the
+/// jumps is the training takes' chance); the closer by their own figures is kept, so on these
+/// takes the kept network never moves farther than the yardstick does. Returns the kept network
+/// and the record.
 pub fn polish(
     model: &SpringNet,
     physics: &Physics,
@@ -747,6 +751,7 @@ pub fn polish(
         &|k, b| rmse(&SpringNet::uniform(train.topology, k, b, train.device)),
         (k0, b0),
         physics.mass,
+        uniform::Pick::Lowest,
         &bar,
     )?;
     let before = rmse(model).unwrap_or(f64::INFINITY);
@@ -754,6 +759,7 @@ pub fn polish(
         &|k, b| rmse(&sizes.scaled(train, k / k_mean, b / b_mean)),
         (k_mean, b_mean),
         physics.mass,
+        uniform::Pick::Neighbourhood,
         &bar,
     )
     .ok();
