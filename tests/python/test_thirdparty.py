@@ -15,7 +15,10 @@ How far the mesh beats the uniform network depends on the takes' rounding: the s
 NumPy and recipe (1f55314) gave +19.1 % / +12.6 % (0.8 s / 3 s, Spearman 0.73) on one machine
 and +6.1 % / +3.4 % (Spearman 0.79; the grid -4.1 % / -4.7 %, Spearman 0.29, 0.2966 m against
 the mesh's 0.2958 m over the take) on another (2026-12-04; on the second, 12 test takes instead
-of 3 give +4.0 % / +3.4 %: the training takes decide it, not the test takes' few). So the test
+of 3 give +4.0 % / +3.4 %: the training takes decide it, not the test takes' few). On the
+second machine the recipe of 2026-12-05 (the mixed map weighed by its halves, kept alone; the
+polish's rows picked with their neighbours) gains +14.7 % / +5.4 %, Spearman 0.79, 0.2705 m over
+the take against the grid's 0.2913 m (grid Spearman 0.17). So the test
 asserts what the recipe promises on every machine: the learned map ranks the source's (> 0.4),
 the surrogate is not worse than the best uniform network at either horizon, and the data's own
 mesh beats the paper's grid; the bench (`benches/foreign/run.py`) measures by how much.
