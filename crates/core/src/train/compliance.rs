@@ -31,7 +31,7 @@ pub struct ComplianceConfig {
     /// reads alike off the even and the odd training takes, [`MapWeights::from_halves`]).
     pub weights: MapWeighting,
     /// Which map's blend the run keeps where the least-squares fit runs too: `"mixed"` (the
-    /// mixed map alone is searched) or `"closest"` (the fit's, this map's and the mixed map are
+    /// mixed map alone is searched, the other two as well where its blend stays uniform) or `"closest"` (the fit's, this map's and the mixed map are
     /// each searched and polished, and another than the mixed one is kept where it moves closer
     /// to the training takes and the held-out takes agree).
     pub keep: MapKeep,
@@ -44,7 +44,7 @@ pub enum MapKeep {
     /// The three maps searched, the mixed one kept unless another moves closer to both kinds of
     /// takes.
     Closest,
-    /// The mixed map alone.
+    /// The mixed map alone, unless its blend stays uniform; then as `Closest`.
     #[default]
     Mixed,
 }

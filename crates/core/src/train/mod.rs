@@ -762,6 +762,8 @@ impl AfterFit<'_> {
             ));
         }
         let mut maps = vec![("trained", smooth(model))];
+        // Searched only where the maps' first yields no share over the uniform network.
+        let mut fallback = Vec::new();
         let mut weights = None;
         if config.train.compliance.enabled && config.train.least_squares.enabled {
             let compliance = smooth(self.fit.compliance_springs(self.resolution)?);
@@ -779,35 +781,27 @@ impl AfterFit<'_> {
                     maps.push(("compliance", compliance));
                     maps.push((MIXED_MAP, mixed));
                 }
-                compliance::MapKeep::Mixed => maps = vec![(MIXED_MAP, mixed)],
+                compliance::MapKeep::Mixed => {
+                    fallback = std::mem::replace(&mut maps, vec![(MIXED_MAP, mixed)]);
+                    fallback.push(("compliance", compliance));
+                }
             }
             weights = Some(w);
         }
+        let several = maps.len() > 1 || !fallback.is_empty();
         let mut found = Vec::new();
         for (name, map) in &maps {
-            let (net, p, mut record) = scale::blend_search(
-                map,
-                (self.resolution.k_init, self.resolution.b_init),
-                &job.physics,
-                &self.train_takes(),
-            )?;
-            record.map = name.to_string();
-            // Each map's blend at its best size and damping at the substeps it runs at, so
-            // that the maps are compared as the run would keep them.
-            let (net, polish) =
-                scale::polish(&net, &p, config.model.uniform_start(), &self.train_takes())?;
-            if maps.len() > 1 {
-                progress.note(&format!(
-                    "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m; \
-                     polished at {} substep(s) per frame: {:.4e} m",
-                    100.0 * record.alpha,
-                    record.after,
-                    polish.substeps,
-                    polish.after
-                ));
+            found.push(self.blend_map(name, map, several)?);
+        }
+        if found.len() == 1 && !fallback.is_empty() && found[0].2.kept_uniform() {
+            progress.note(
+                "blend search: no share or size of the mixed map moves closer to the training \
+                 rollouts than the best uniform network; the fit's and the compliance map are \
+                 searched too (`train.compliance.keep`)",
+            );
+            for (name, map) in &fallback {
+                found.push(self.blend_map(name, map, several)?);
             }
-            record.polish = Some(polish);
-            found.push((net, p, record));
         }
         let scores = self.map_scores(&found)?;
         let choice = choose_map(&scores);
@@ -919,6 +913,48 @@ impl AfterFit<'_> {
             &record,
         )?;
         Ok((blended, blended_physics))
+    }
+
+    /// The blend search of the map `name` ([`scale::blend_search`]) and its blend polished at
+    /// the substeps it runs at ([`scale::polish`]), so that maps are compared as the run would
+    /// keep them; says so in the log where `several` maps may be searched.
+    fn blend_map(
+        &self,
+        name: &str,
+        map: &SpringNet,
+        several: bool,
+    ) -> Result<(SpringNet, Physics, scale::BlendSearch)> {
+        let job = self.fit.job;
+        let (net, p, mut record) = scale::blend_search(
+            map,
+            (self.resolution.k_init, self.resolution.b_init),
+            &job.physics,
+            &self.train_takes(),
+        )?;
+        record.map = name.to_string();
+        let (net, polish) = scale::polish(
+            &net,
+            &p,
+            job.config.model.uniform_start(),
+            &self.train_takes(),
+        )?;
+        if several {
+            self.fit.progress.note(&format!(
+                "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m; \
+                 polished at {} substep(s) per frame: {:.4e} m{}",
+                100.0 * record.alpha,
+                record.after,
+                polish.substeps,
+                polish.after,
+                if polish.kept_uniform {
+                    " (the uniform network kept)"
+                } else {
+                    ""
+                }
+            ));
+        }
+        record.polish = Some(polish);
+        Ok((net, p, record))
     }
 
     /// The drag searched after the polish ([`scale::DragSearch`]) where the run fitted it, the

@@ -139,8 +139,8 @@ pub(crate) struct BlendSearch {
     /// (`sim.viscosity`) after those, where it ran.
     #[serde(default)]
     pub viscosity: Option<ProportionalDamping>,
-    /// Every map's blend, the kept one among them ([`MapScore`]); empty where one map was
-    /// searched, or in a record written before the maps were judged on held-out takes.
+    /// Every map's blend searched, the kept one among them ([`MapScore`]); empty in a record
+    /// written before the maps were judged on held-out takes.
     #[serde(default)]
     pub maps: Vec<MapScore>,
     /// The fit's weight in the mixed map per strain group, from the two maps read off two
@@ -148,6 +148,14 @@ pub(crate) struct BlendSearch {
     /// or in a record written before the maps were weighed.
     #[serde(default)]
     pub weights: Option<MapWeights>,
+}
+
+impl BlendSearch {
+    /// Whether the search kept the uniform network: no share of the map, or no size or damping
+    /// of its blend in the polish, moved as close.
+    pub fn kept_uniform(&self) -> bool {
+        self.alpha == 0.0 || self.polish.as_ref().is_some_and(|p| p.kept_uniform)
+    }
 }
 
 /// One map's blend in the blend search: what the search kept of it and how close it moves.
