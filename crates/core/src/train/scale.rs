@@ -733,7 +733,7 @@ pub struct Polish {
 /// `physics` exactly: the best uniform network from `(k0, b0)` by the yardstick's own descent
 /// (`eval.uniform_baseline`), and the same descent over the map's mean `k` and `b` (its shape
 /// kept), each of its rows picked by the candidates' figures averaged with their neighbours'
-/// ([`uniform::Pick::Neighbourhood`]: a free rollout's figure over a chaotic take jumps between
+/// (`uniform::Pick::Neighbourhood`: a free rollout's figure over a chaotic take jumps between
 /// neighbouring sizes and dampings by more than the map's worth, and a lone dip among the
 /// jumps is the training takes' chance); the closer by their own figures is kept, so on these
 /// takes the kept network never moves farther than the yardstick does. Returns the kept network
