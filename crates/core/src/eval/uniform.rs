@@ -193,6 +193,9 @@ pub(crate) struct Descent {
     pub rmse: f64,
     pub search: Vec<(f64, f64)>,
     pub b_search: Vec<(f64, f64)>,
+    /// The pair of the lowest RMSE of every pair tried, `(k, b, RMSE)`: the pick itself under
+    /// [`Pick::Lowest`].
+    pub lowest: (f64, f64, f64),
 }
 
 /// Searches `k` on a row around `k0`, then by coordinate descent: the damping at the best
@@ -265,7 +268,13 @@ pub(crate) fn descend(
     // A pair met twice is one candidate.
     b_search.dedup();
     search.dedup();
+    let lowest = tried
+        .iter()
+        .filter_map(|&((k, b), r)| Some((k, b, r?)))
+        .min_by(|a, b| a.2.total_cmp(&b.2))
+        .unwrap_or((k, b, k_rmse));
     Ok(Descent {
+        lowest,
         k,
         b,
         rmse: k_rmse,

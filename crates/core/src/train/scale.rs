@@ -735,8 +735,10 @@ pub struct Polish {
 /// kept), each of its rows picked by the candidates' figures averaged with their neighbours'
 /// (`uniform::Pick::Neighbourhood`: a free rollout's figure over a chaotic take jumps between
 /// neighbouring sizes and dampings by more than the map's worth, and a lone dip among the
-/// jumps is the training takes' chance); the closer by their own figures is kept, so on these
-/// takes the kept network never moves farther than the yardstick does. Returns the kept network
+/// jumps is the training takes' chance); the closer by their own figures is kept (where the
+/// pick is farther than the uniform network but another size of the map tried is not, the
+/// closest of those), so on these takes the kept network never moves farther than the
+/// yardstick does. Returns the kept network
 /// and the record.
 pub fn polish(
     model: &SpringNet,
@@ -783,12 +785,22 @@ pub fn polish(
         search: map.as_ref().map_or(Vec::new(), |m| m.search.clone()),
         b_search: map.as_ref().map_or(Vec::new(), |m| m.b_search.clone()),
     };
-    Ok(match &map {
-        Some(m) if m.rmse <= flat.rmse => {
-            let (fk, fb) = (m.k / k_mean, m.b / b_mean);
-            (sizes.scaled(train, fk, fb), record(fk, fb, m.rmse, false))
+    // The map's pick where it moves as close as the uniform network; else, where a size and
+    // damping of it the descent tried does, the closest of those: the uniform network is kept
+    // only where no size of the map moves as close.
+    let kept = map.as_ref().and_then(|m| {
+        if m.rmse <= flat.rmse {
+            Some((m.k, m.b, m.rmse))
+        } else {
+            Some(m.lowest).filter(|l| l.2 <= flat.rmse)
         }
-        _ => (
+    });
+    Ok(match kept {
+        Some((k, b, rmse)) => {
+            let (fk, fb) = (k / k_mean, b / b_mean);
+            (sizes.scaled(train, fk, fb), record(fk, fb, rmse, false))
+        }
+        None => (
             SpringNet::uniform(train.topology, flat.k, flat.b, train.device),
             record(1.0, 1.0, flat.rmse, true),
         ),
