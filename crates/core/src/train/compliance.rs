@@ -31,9 +31,10 @@ pub struct ComplianceConfig {
     /// reads alike off the even and the odd training takes, [`MapWeights::from_halves`]).
     pub weights: MapWeighting,
     /// Which map's blend the run keeps where the least-squares fit runs too: `"mixed"` (the
-    /// mixed map alone is searched, the other two as well where its blend stays uniform) or `"closest"` (the fit's, this map's and the mixed map are
-    /// each searched and polished, and another than the mixed one is kept where it moves closer
-    /// to the training takes and the held-out takes agree).
+    /// mixed map alone is searched, the other two as well where its blend stays uniform) or
+    /// `"closest"` (the fit's, this map's and the mixed map are each searched and polished, and
+    /// another than the mixed one is kept where it moves closer to the training takes and the
+    /// held-out takes agree).
     pub keep: MapKeep,
 }
 

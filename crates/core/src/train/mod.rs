@@ -733,10 +733,10 @@ impl AfterFit<'_> {
 
     /// The blend search on the maps to blend: the trained network, or with both starts on the
     /// two mixed ([`compliance::mixed`], each shape weighed by `train.compliance.weights`) —
-    /// with `train.compliance.keep = "closest"` the trained network, the compliance map and the
-    /// mixed one — each smoothed by `train.map_smoothing` first; each map's blend is polished at
-    /// the substeps it runs at ([`scale::polish`]) and the map is chosen by [`choose_map`] among
-    /// the polished blends.
+    /// and the trained network and the compliance map too with `train.compliance.keep =
+    /// "closest"`, or where the mixed map's blend stays uniform — each smoothed by
+    /// `train.map_smoothing` first; each map's blend is polished at the substeps it runs at
+    /// ([`scale::polish`]) and the map is chosen by [`choose_map`] among the polished blends.
     fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
@@ -762,7 +762,8 @@ impl AfterFit<'_> {
             ));
         }
         let mut maps = vec![("trained", smooth(model))];
-        // Searched only where the maps' first yields no share over the uniform network.
+        // With `keep = "mixed"`, the maps searched only where the mixed map's blend stays
+        // uniform.
         let mut fallback = Vec::new();
         let mut weights = None;
         if config.train.compliance.enabled && config.train.least_squares.enabled {

@@ -738,8 +738,7 @@ pub struct Polish {
 /// jumps is the training takes' chance); the closer by their own figures is kept (where the
 /// pick is farther than the uniform network but another size of the map tried is not, the
 /// closest of those), so on these takes the kept network never moves farther than the
-/// yardstick does. Returns the kept network
-/// and the record.
+/// yardstick does. Returns the kept network and the record.
 pub fn polish(
     model: &SpringNet,
     physics: &Physics,
