@@ -498,6 +498,80 @@ fn a_second_training_process_on_the_same_run_refuses() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+#[test]
+fn a_learned_network_the_held_out_takes_turn_down_gives_way_to_the_best_uniform_one() {
+    let dir = setup("cli-fallback");
+    // No training step: the learned network is its start, k 2 N/m, far softer than the
+    // source's 10–100 N/m; the last training rollout is held out.
+    let soft = [
+        "--set",
+        "data.holdout=1",
+        "--set",
+        "model.k_init=2",
+        "--set",
+        "train.stiffness.iterations=0",
+        "--set",
+        "train.damping.iterations=0",
+        "--set",
+        "eval.uniform_baseline=true",
+        "--no-report",
+    ];
+    let k_of = |file: &str| {
+        Npz::read(&dir.join("runs/tiny").join(file))
+            .unwrap()
+            .f32("k", &[None])
+            .unwrap()
+            .0
+    };
+    let read = |file: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join("runs/tiny").join(file)).unwrap())
+            .unwrap()
+    };
+    let text = ok(&train_tiny(&soft, &dir));
+    assert!(
+        text.contains("the run keeps that uniform network"),
+        "{text}"
+    );
+    let v = read("validation.json");
+    assert_eq!(v["wins"], false, "{v}");
+    assert_eq!(v["kept_uniform"], true, "{v}");
+    for h in ["short", "long"] {
+        assert!(
+            v["uniform"]["test"][h]["mean"].as_f64().unwrap()
+                < v["trained"][h]["mean"].as_f64().unwrap(),
+            "{v}"
+        );
+    }
+    // The run's springs are the uniform network's; the learned ones are kept beside them.
+    let k = v["uniform"]["k"].as_f64().unwrap() as f32;
+    assert!(k > 2.0, "{v}");
+    assert!(k_of("springs.npz").iter().all(|&x| x == k), "{k}");
+    assert!(k_of("springs.learned.npz").iter().all(|&x| x == 2.0));
+    // `eval` simulates the kept network: the test takes' uniform baseline is the same network,
+    // searched on the same training takes, so it moves exactly as far.
+    let eval = read("eval.json");
+    assert_eq!(
+        eval["uniform_baseline"]["k"].as_f64().unwrap() as f32,
+        k,
+        "{text}"
+    );
+    for h in ["short", "long"] {
+        assert_eq!(
+            eval["motion_rmse"][h]["mean"], eval["uniform_baseline"]["test"][h]["mean"],
+            "{h}: {text}"
+        );
+    }
+    // Off, the learned network stays and says so.
+    let mut kept = soft.to_vec();
+    kept.extend(["--set", "train.uniform_fallback=false", "--force"]);
+    let text = ok(&train_tiny(&kept, &dir));
+    assert!(text.contains("does NOT beat"), "{text}");
+    assert_eq!(read("validation.json")["kept_uniform"], false);
+    assert!(k_of("springs.npz").iter().all(|&x| x == 2.0));
+    assert!(!dir.join("runs/tiny/springs.learned.npz").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// `k`, `b` of a finished run's `springs.npz`.
 fn learned(run: &std::path::Path) -> (Vec<f32>, Vec<f32>) {
     let npz = Npz::read(&run.join("springs.npz")).unwrap();

@@ -1105,9 +1105,25 @@ pub struct Validation {
     pub uniform: UniformBaseline,
     /// Whether the learned network beats the uniform one at both horizons.
     pub wins: bool,
+    /// Whether the run keeps the uniform network instead: it moves closer to the held-out
+    /// rollouts at both horizons and `train.uniform_fallback` is on (the learned network's
+    /// springs are then the run's `springs.learned.npz`).
+    #[serde(default)]
+    pub kept_uniform: bool,
 }
 
 impl Validation {
+    /// Whether the uniform network moves closer than the learned one to the held-out rollouts
+    /// at both horizons (a learned network that diverged there loses, a uniform one that
+    /// diverged wins nothing).
+    pub fn uniform_closer(&self) -> bool {
+        let closer = |learned: f64, uniform: f64| {
+            uniform.is_finite() && (uniform < learned || !learned.is_finite())
+        };
+        let (t, u) = (&self.trained, &self.uniform.test);
+        closer(t.short.mean, u.short.mean) && closer(t.long.mean, u.long.mean)
+    }
+
     /// The file in a run directory.
     pub fn path(run_dir: &Path) -> PathBuf {
         run_dir.join("validation.json")
@@ -1127,6 +1143,10 @@ impl Validation {
         let u = &self.uniform;
         let verdict = if self.wins {
             "the learned network beats it"
+        } else if self.kept_uniform {
+            "WARNING: the learned network does NOT beat the best uniform network at either \
+             horizon; the run keeps that uniform network (`train.uniform_fallback`; the learned \
+             springs are in springs.learned.npz)"
         } else {
             "WARNING: the learned network does NOT beat the best uniform network; a uniform \
              cloth with these k and b moves closer to the data"

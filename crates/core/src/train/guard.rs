@@ -5,7 +5,8 @@
 //! the best network with one `k` and one `b`. The held-out rollouts were seen by neither the fit
 //! nor the scale search, so the comparison is an honest estimate of what the test rollouts will
 //! say; `train` writes it to `validation.json`, says loudly in the log when the learned network
-//! does not win at both horizons, and `eval.json` and the report carry it.
+//! does not win at both horizons, and `eval.json` and the report carry it. Where the uniform
+//! network moves closer at both horizons, the run keeps it (`train.uniform_fallback`).
 
 use std::path::PathBuf;
 
@@ -70,5 +71,6 @@ pub fn validate(
         trained,
         uniform,
         wins,
+        kept_uniform: false,
     })
 }

@@ -193,6 +193,11 @@ pub struct TrainConfig {
     /// default), kept only where the held-out training takes prefer it. Needs
     /// `train.blend_search`; runs where the drag was searched.
     pub viscosity_search: bool,
+    /// Where training takes are held out (`data.holdout`) and the best uniform network moves
+    /// closer to them than the learned one at both horizons, keep that uniform network as the
+    /// run's model (ours; on by default): a learned map worse than one `k` and one `b` is not
+    /// worth shipping. The learned springs stay in the run's `springs.learned.npz`.
+    pub uniform_fallback: bool,
     /// Start a spring network from the strain-compliance map (ours; replaces the
     /// least-squares start).
     pub compliance: compliance::ComplianceConfig,
@@ -228,6 +233,7 @@ impl Default for TrainConfig {
             map_smoothing: 0,
             proportional_damping: false,
             viscosity_search: false,
+            uniform_fallback: true,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             refine: refine::RefineConfig::default(),
@@ -1256,11 +1262,13 @@ impl AfterFit<'_> {
     }
 
     /// The learned network against the best uniform one on the held-out training rollouts,
-    /// written to the run.
+    /// written to the run; where the uniform network moves closer at both horizons and
+    /// `train.uniform_fallback` is on, the run keeps it (the learned springs moved to
+    /// `springs.learned.npz`).
     fn validate(&self, model: &SpringNet, physics: &Physics) -> Result<()> {
         let job = self.fit.job;
-        let config = job.config;
-        let v = guard::validate(
+        let (config, progress, run) = (job.config, self.fit.progress, self.fit.run);
+        let mut v = guard::validate(
             model,
             job.topology,
             physics,
@@ -1269,12 +1277,26 @@ impl AfterFit<'_> {
             &self.split.validation,
             &config.eval,
             self.device,
-            self.fit.progress,
+            progress,
         )?;
-        self.fit
-            .progress
-            .note(&format!("validation: {}", v.summary()));
-        crate::io::write_json(&guard::Validation::path(&self.fit.run.dir), &v)
+        if config.train.uniform_fallback && v.uniform_closer() {
+            let uniform = SpringNet::uniform(job.topology, v.uniform.k, v.uniform.b, self.device)
+                .with_kernel(model.graph.kernel);
+            run::write_springs(
+                &run.learned_springs(),
+                job.topology,
+                model,
+                job.physics.mass,
+            )?;
+            run::write_springs(&run.springs(), job.topology, &uniform, job.physics.mass)?;
+            RunDir::save_module(&uniform, &run.model())?;
+            v.kept_uniform = true;
+        } else if run.learned_springs().exists() {
+            // A resumed run's, from a finish that kept the uniform network.
+            std::fs::remove_file(run.learned_springs())?;
+        }
+        progress.note(&format!("validation: {}", v.summary()));
+        crate::io::write_json(&guard::Validation::path(&run.dir), &v)
     }
 }
 

@@ -205,6 +205,11 @@ impl RunDir {
     pub fn springs(&self) -> PathBuf {
         self.dir.join("springs.npz")
     }
+    /// `springs.learned.npz`: the learned springs, where the run keeps the best uniform network
+    /// instead (`train.uniform_fallback`).
+    pub fn learned_springs(&self) -> PathBuf {
+        self.dir.join("springs.learned.npz")
+    }
     /// `model.json`: the model's family, size and constants ([`ModelMeta`]).
     pub fn meta(&self) -> PathBuf {
         self.dir.join("model.json")
