@@ -1713,6 +1713,12 @@ fn print_eval(r: &EvalReport) {
             "stiffness map: Spearman correlation {c:.4} (structural springs vs the source's triangles)"
         );
     }
+    if let Some(c) = r.learned_map_corr {
+        println!(
+            "stiffness map of the learned springs the run set aside for the uniform network \
+             (springs.learned.npz): Spearman correlation {c:.4}"
+        );
+    }
     println!(
         "motion RMSE over {} test rollouts: {:.4e} ± {:.4e} m (≤ {} s: {:.4e} ± {:.4e}; ≤ {} s: {:.4e} ± {:.4e})",
         m.rollouts,

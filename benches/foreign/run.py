@@ -241,6 +241,8 @@ def train(sim, material, data: Path, a):
         "gain_short": u["improvement_short"],
         "gain_long": u["improvement_long"],
         "spearman": ev.get("stiffness_map_corr"),
+        # Where the run kept the uniform network (`train.uniform_fallback`): its learned map's.
+        "learned_spearman": ev.get("learned_map_corr"),
         "test_takes": len(ev["test_rollouts"]),
         "substeps": substeps_of(run),
         "validation_wins": (ev.get("validation") or {}).get("wins"),
@@ -287,6 +289,8 @@ def table(rows, a):
                          + " |" * len(extra))
             continue
         sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
+        if r.get("learned_spearman") is not None:
+            sp += f" (uniform kept; learned {r['learned_spearman']:.2f})"
         lines.append(
             f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
             f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "

@@ -153,6 +153,11 @@ pub struct EvalReport {
     /// source's `tri_stiffness` at each spring's rest midpoint, when the data has a mesh.
     #[serde(default)]
     pub stiffness_map_corr: Option<f64>,
+    /// Where the run kept the best uniform network instead of the learned one
+    /// (`train.uniform_fallback`), the same correlation of the learned springs
+    /// (`springs.learned.npz`), whose map the uniform network no longer carries.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub learned_map_corr: Option<f64>,
     /// Motion RMSE over the test rollouts.
     pub motion_rmse: MotionRmse,
     /// The best uniform surrogate beside the trained one (`eval.uniform_baseline`).

@@ -66,6 +66,7 @@ pub fn evaluate(
         rmse_k,
         rmse_b,
         stiffness_map_corr,
+        learned_map_corr: learned_map_corr(&run.learned_springs(), topo, &first)?,
         uniform_baseline,
         validation: eval::Validation::read(&run.dir)?,
         motion_rmse: motion,
@@ -141,6 +142,18 @@ fn motion_curves(
 /// A spring surrogate against the ground truth of the first test rollout: the RMSE of `k` and
 /// of `b` (where the rollout has true springs) and the stiffness map correlation (where it
 /// has a mesh).
+/// The Spearman correlation of the learned springs a run set aside for the best uniform network
+/// (`springs.learned.npz`, `train.uniform_fallback`) with the source's map; `None` where the run
+/// kept its learned springs or the data carries no map.
+fn learned_map_corr(path: &Path, topo: &Topology, first: &Rollout) -> Result<Option<f64>> {
+    let Some(mesh) = first.mesh.as_ref().filter(|_| path.exists()) else {
+        return Ok(None);
+    };
+    let (k, _) = crate::data::npz::Npz::read(path)?.f32("k", &[Some(topo.num_springs())])?;
+    let k: Vec<f64> = k.into_iter().map(f64::from).collect();
+    Ok(eval::stiffness_map_corr(topo, &k, &first.rest_uv, mesh))
+}
+
 fn truth_metrics(
     model: &SpringNet,
     topo: &Topology,
