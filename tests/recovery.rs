@@ -513,21 +513,31 @@ fn the_run_finds_damping_proportional_to_stiffness() {
 /// held-out takes, and writes it (with no drag) to its `config.toml`.
 #[test]
 fn the_run_finds_a_viscosity_proportional_to_stiffness() {
-    use springtime::source::mass_spring::SpringCloth;
+    viscosity_recovered("blend-viscosity", 0.0, false);
+}
 
-    let dir = common::temp_dir("blend-viscosity");
-    let beta = 0.01;
-    let mut source = common::source(8, &[30.0, 90.0], 2.0);
-    source.damping = 0.5;
-    source.frame_stride = 10;
-    source.save_velocities = false;
-    let mut cloth = SpringCloth::from_config(&source);
-    cloth.rayleigh = 0.0;
-    cloth.viscosity = beta;
-    save_takes(&dir, &cloth, &source, 1, false);
-    let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "viscosity_search = true\n");
+/// Where the files state the source's drag (Blender's air damping beside its implicit solver's
+/// damping), the viscosity is searched beside that drag, which the run keeps: on the same source
+/// with a drag of 0.0625 N·s/m, stated, the held-out takes confirm a viscosity. Its `β` is not the
+/// source's (4.5e-6 s against 0.01 s): the springs' `b`, sized by the polish beside the drag,
+/// already carries the share of the damping the viscosity's takes along the springs.
+#[test]
+fn the_run_searches_a_viscosity_beside_the_drag_the_files_state() {
+    let (record, config) = viscosity_run("blend-viscosity-drag", 0.0625, true);
     let viscosity = &record["viscosity"];
-    eprintln!("source β {beta}; viscosity search: {viscosity}");
+    assert_eq!(viscosity["kept"].as_bool(), Some(true), "{viscosity}");
+    assert_eq!(config.sim.rayleigh.value(), Some(0.0625));
+    assert_eq!(Some(config.sim.viscosity), viscosity["beta"].as_f64());
+    // No drag was searched: the files state it.
+    assert!(record["drag"].is_null(), "{record}");
+}
+
+/// [`the_run_finds_a_viscosity_proportional_to_stiffness`] on a source of drag `rayleigh`, whose
+/// files state it where `state_drag`.
+fn viscosity_recovered(name: &str, rayleigh: f64, state_drag: bool) {
+    let (record, config) = viscosity_run(name, rayleigh, state_drag);
+    let beta = VISCOSITY;
+    let viscosity = &record["viscosity"];
     assert_eq!(viscosity["kept"].as_bool(), Some(true), "{viscosity}");
     let found = viscosity["beta"].as_f64().unwrap();
     assert!(
@@ -540,10 +550,39 @@ fn the_run_finds_a_viscosity_proportional_to_stiffness() {
         springtime::train::scale::held_out_agrees(pair(0), pair(1)),
         "{viscosity}"
     );
-    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
-    assert_eq!(config.sim.rayleigh.value(), Some(0.0));
+    assert_eq!(config.sim.rayleigh.value(), Some(rayleigh));
     assert_eq!(config.sim.viscosity, found);
+}
+
+/// The viscosity of the sources of [`viscosity_run`], s.
+const VISCOSITY: f64 = 0.01;
+
+/// A blend search with the viscosity search on takes of an 8 × 8 spring cloth (30 and 90 N/m,
+/// `b` 0.5 N·s/m, drag `rayleigh`, stated in the files where `state_drag`) whose springs also
+/// damp their ends' whole relative velocity with [`VISCOSITY`] `· k`: the run's `blend.json` and
+/// `config.toml`.
+fn viscosity_run(name: &str, rayleigh: f64, state_drag: bool) -> (serde_json::Value, Config) {
+    use springtime::source::mass_spring::SpringCloth;
+
+    let dir = common::temp_dir(name);
+    let mut source = common::source(8, &[30.0, 90.0], 2.0);
+    source.damping = 0.5;
+    source.frame_stride = 10;
+    source.save_velocities = false;
+    // The drag the files state is the source's.
+    source.rayleigh = rayleigh;
+    let mut cloth = SpringCloth::from_config(&source);
+    cloth.rayleigh = rayleigh;
+    cloth.viscosity = VISCOSITY;
+    save_takes(&dir, &cloth, &source, 1, state_drag);
+    let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "viscosity_search = true\n");
+    eprintln!(
+        "source β {VISCOSITY}; viscosity search: {}",
+        record["viscosity"]
+    );
+    let config = Config::load(&run_dir.join("config.toml"), &[]).unwrap();
     std::fs::remove_dir_all(&dir).ok();
+    (record, config)
 }
 
 /// Where neither the data nor the config states the drag, the run searches it after the polish:

@@ -877,7 +877,16 @@ impl AfterFit<'_> {
             );
         }
         let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
-        let searched = drag.as_ref().map(scale::DragSearch::held_out_kept);
+        // The damping searches below run where the drag was searched (in its place), and where
+        // the files or the config state it (beside it).
+        let stated_drag = self.resolution.rayleigh_from != "fit";
+        let searched = match &drag {
+            Some(d) => Some(d.held_out_kept()),
+            None if stated_drag && !polish.kept_uniform && !self.split.validation.is_empty() => {
+                Some(None)
+            }
+            None => None,
+        };
         record.polish = Some(polish);
         record.drag = drag;
         let (mut blended, mut blended_physics) = (blended, blended_physics);
@@ -897,7 +906,7 @@ impl AfterFit<'_> {
                     continue;
                 }
                 let (net, physics, found) =
-                    self.proportional_damping(blended, blended_physics, known, form)?;
+                    self.proportional_damping(blended, blended_physics, known, form, stated_drag)?;
                 (blended, blended_physics) = (net, physics);
                 // The held-out figures of the network kept now, for the next search.
                 known = found.as_ref().and_then(|r| {
@@ -1044,20 +1053,22 @@ impl AfterFit<'_> {
         })
     }
 
-    /// Damping proportional to stiffness without drag in `form` ([`scale::ProportionalDamping`]),
-    /// searched where the drag was; kept only where the held-out training takes agree
-    /// ([`scale::held_out_agrees`]). `known` is `net`'s `(short, long)` held-out RMSE where an
-    /// earlier search measured it. Returns the network and physics kept and the record.
+    /// Damping proportional to stiffness in `form` ([`scale::ProportionalDamping`]), without
+    /// drag where the drag was searched, beside it where it is stated (`keep_drag`); kept only
+    /// where the held-out training takes agree ([`scale::held_out_agrees`]). `known` is `net`'s
+    /// `(short, long)` held-out RMSE where an earlier search measured it. Returns the network and
+    /// physics kept and the record.
     fn proportional_damping(
         &self,
         net: SpringNet,
         physics: Physics,
         known: Option<(f64, f64)>,
         form: scale::Proportional,
+        keep_drag: bool,
     ) -> Result<(SpringNet, Physics, Option<scale::ProportionalDamping>)> {
         let progress = self.fit.progress;
         let Some((other, at, mut record)) =
-            scale::proportional_damping(&net, &physics, &self.train_takes(), form)
+            scale::proportional_damping(&net, &physics, &self.train_takes(), form, keep_drag)
         else {
             progress.note(&format!(
                 "{}: no {} is stable at the run's substeps",
@@ -1074,10 +1085,15 @@ impl AfterFit<'_> {
         record.kept = scale::held_out_agrees(before, after);
         record.held_out = Some((before, after));
         progress.note(&format!(
-            "{}: without drag the map moves closest to the training rollouts at {} = {:.3e} s · \
-             k, k × {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m \
-             (short / long) against {:.4e} / {:.4e} m as kept so far -> {}",
+            "{}: {} the map moves closest to the training rollouts at {} = {:.3e} s · k, k × \
+             {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / \
+             long) against {:.4e} / {:.4e} m as kept so far -> {}",
             form.name(),
+            if keep_drag {
+                format!("with the stated drag {:.4e} N·s/m", physics.rayleigh)
+            } else {
+                "without drag".to_string()
+            },
             match form {
                 scale::Proportional::Springs => "b",
                 scale::Proportional::Viscosity => "the viscosity",

@@ -945,8 +945,7 @@ pub fn drag_row(
 /// that moves farther than the one before.
 pub const BETA_STEPS: std::ops::RangeInclusive<i32> = -6..=12;
 
-/// Which damping [`proportional_damping`] makes proportional to each spring's stiffness, with
-/// the drag at zero.
+/// Which damping [`proportional_damping`] makes proportional to each spring's stiffness.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Proportional {
     /// Each spring's `b` along itself: `b_s = β k_s` (MuJoCo's damping; `blend.json`'s
@@ -969,15 +968,15 @@ impl Proportional {
     /// The form in words, for the logs.
     pub fn form(self) -> &'static str {
         match self {
-            Self::Springs => "b = β k without drag",
-            Self::Viscosity => "a viscosity β k on each spring without drag",
+            Self::Springs => "b = β k",
+            Self::Viscosity => "a viscosity β k on each spring",
         }
     }
 }
 
-/// Damping proportional to stiffness without drag (ours; `blend.json`'s `damping` for the
-/// springs' `b`, [`Proportional::Springs`], and `viscosity` for an isotropic viscosity,
-/// [`Proportional::Viscosity`]).
+/// Damping proportional to stiffness, in place of a searched drag (ours; `blend.json`'s
+/// `damping` for the springs' `b`, [`Proportional::Springs`], and `viscosity` for an isotropic
+/// viscosity, [`Proportional::Viscosity`]).
 ///
 /// Spring damping, `b_s = β k_s`: MuJoCo's flex cloth damps each edge along itself by `β k` (its `damping`), with no
 /// drag, and a cloth whose damping follows its stiffness map is damped by neither one learned
@@ -992,6 +991,12 @@ impl Proportional {
 /// the whole velocity gradient (`k_damp · dF/dt`, with `k_damp` following the stiffness map on
 /// the bench), rotations and bending included, which neither a spring's `b` nor a drag carries.
 /// The same search runs with the springs' `b` kept and the viscosity's `β` in place of theirs.
+///
+/// Both replace a drag the run searched (an air drag fitted to the frames stands in for the
+/// damping the source has); where the files or the config state the drag, it is kept beside
+/// them. An implicit solver's own damping is of this form: a backward Euler step of `h` damps
+/// a spring's mode like a viscosity `β ≈ h` times its stiffness, so a stiff cloth baked by
+/// Blender's implicit solver, whose files state its air drag, carries one too.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProportionalDamping {
     /// `(β s, k factor, mean motion RMSE on the training takes)` of every stable candidate, in
@@ -1023,18 +1028,21 @@ pub fn held_out_agrees(before: (f64, f64), after: (f64, f64)) -> bool {
     (after.0 / before.0) * (after.1 / before.1) < 1.0
 }
 
-/// The closest network with damping proportional to stiffness (`form`) and no drag on the first
-/// training takes ([`ProportionalDamping`]): a row of `β` ([`BETA_STEPS`]) at `model`'s `k`, the
-/// factors `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network,
-/// the physics it runs at (the drag zero, `physics`' substeps, and for
-/// [`Proportional::Viscosity`] the viscosity `β`) and the record (not yet judged on held-out
-/// takes); `None` where no candidate is stable.
+/// The closest network with damping proportional to stiffness (`form`) on the first training
+/// takes ([`ProportionalDamping`]), with `physics`' drag where `keep_drag` (the data or the
+/// config state it), else none: a row of `β` ([`BETA_STEPS`]) at `model`'s `k`, the factors
+/// `2^(±1/2, ±1)` of its `k` at the best `β`, then `β · 2^(±1/2)`. Returns the network, the
+/// physics it runs at (the drag, `physics`' substeps, and for [`Proportional::Viscosity`] the
+/// viscosity `β`) and the record (not yet judged on held-out takes); `None` where no candidate
+/// is stable.
 pub fn proportional_damping(
     model: &SpringNet,
     physics: &Physics,
     train: &Takes,
     form: Proportional,
+    keep_drag: bool,
 ) -> Option<(SpringNet, Physics, ProportionalDamping)> {
+    let rayleigh = if keep_drag { physics.rayleigh } else { 0.0 };
     let files = search_files(train);
     let takes = Takes {
         files: &files,
@@ -1045,14 +1053,14 @@ pub fn proportional_damping(
         Proportional::Springs => (
             sizes.proportional(train, fk, beta),
             Physics {
-                rayleigh: 0.0,
+                rayleigh,
                 ..*physics
             },
         ),
         Proportional::Viscosity => (
             sizes.scaled(train, fk, 1.0),
             Physics {
-                rayleigh: 0.0,
+                rayleigh,
                 viscosity: beta,
                 ..*physics
             },
