@@ -319,6 +319,14 @@ fn blend_run_with(
     let record =
         serde_json::from_str(&std::fs::read_to_string(summary.run_dir.join("blend.json")).unwrap())
             .unwrap();
+    // Every network a blend search keeps runs at half the explicit step's limit at most, at the
+    // substeps its `config.toml` names.
+    let run = springtime::run::Run::open(&summary.run_dir, &[], None).unwrap();
+    let physics = run.physics(run.meta.frame_dt);
+    let number = physics
+        .stability_of(&run.topology, run.springs().unwrap())
+        .number();
+    assert!(number <= 2.0, "stability number {number} at {physics:?}");
     (summary.run_dir, record)
 }
 
