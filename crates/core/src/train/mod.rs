@@ -184,14 +184,16 @@ pub struct TrainConfig {
     /// a particle). 0 (the default): the maps as fitted.
     pub map_smoothing: usize,
     /// After the blend search's drag search, also search spring damping proportional to
-    /// stiffness without drag, `b_s = β k_s` ([`scale::ProportionalDamping`]; ours, off by
+    /// stiffness, `b_s = β k_s` ([`scale::ProportionalDamping`]; ours, off by
     /// default), kept only where the held-out training takes prefer it. Needs
-    /// `train.blend_search`; runs where the drag was searched.
+    /// `train.blend_search`; runs where the drag was searched (in its place) or is stated by
+    /// the files or the config (beside it).
     pub proportional_damping: bool,
-    /// After those, also search an isotropic viscosity proportional to stiffness on the springs
-    /// without drag, `sim.viscosity` ([`scale::Proportional::Viscosity`]; ours, off by
+    /// After those, also search an isotropic viscosity proportional to stiffness on the springs,
+    /// `sim.viscosity` ([`scale::Proportional::Viscosity`]; ours, off by
     /// default), kept only where the held-out training takes prefer it. Needs
-    /// `train.blend_search`; runs where the drag was searched.
+    /// `train.blend_search`; runs where the drag was searched (in its place) or is stated by
+    /// the files or the config (beside it).
     pub viscosity_search: bool,
     /// Where training takes are held out (`data.holdout`) and the best uniform network moves
     /// closer to them than the learned one at both horizons, keep that uniform network as the
