@@ -139,12 +139,9 @@ fn motion_curves(
     })
 }
 
-/// A spring surrogate against the ground truth of the first test rollout: the RMSE of `k` and
-/// of `b` (where the rollout has true springs) and the stiffness map correlation (where it
-/// has a mesh).
-/// The Spearman correlation of the learned springs a run set aside for the best uniform network
-/// (`springs.learned.npz`, `train.uniform_fallback`) with the source's map; `None` where the run
-/// kept its learned springs or the data carries no map.
+/// The Spearman correlation with the source's map of the learned springs a run set aside for
+/// the best uniform network (`springs.learned.npz`, `train.uniform_fallback`); `None` where the
+/// run kept its learned springs or the data carries no map.
 fn learned_map_corr(path: &Path, topo: &Topology, first: &Rollout) -> Result<Option<f64>> {
     let Some(mesh) = first.mesh.as_ref().filter(|_| path.exists()) else {
         return Ok(None);
@@ -154,6 +151,9 @@ fn learned_map_corr(path: &Path, topo: &Topology, first: &Rollout) -> Result<Opt
     Ok(eval::stiffness_map_corr(topo, &k, &first.rest_uv, mesh))
 }
 
+/// A spring surrogate against the ground truth of the first test rollout: the RMSE of `k` and
+/// of `b` (where the rollout has true springs) and the stiffness map correlation (where it
+/// has a mesh).
 fn truth_metrics(
     model: &SpringNet,
     topo: &Topology,

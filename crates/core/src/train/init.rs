@@ -512,6 +512,11 @@ pub struct Resolution {
 }
 
 impl Resolution {
+    /// Whether the drag was fitted to the frames (neither the data nor the config states it).
+    pub fn drag_fitted(&self) -> bool {
+        self.rayleigh_from == "fit"
+    }
+
     /// One line per resolved value, for the console.
     pub fn lines(&self) -> Vec<String> {
         let mut out = vec![

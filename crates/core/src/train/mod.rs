@@ -761,7 +761,7 @@ impl AfterFit<'_> {
              substep(s) per frame; raised to {substeps} ({:.2}), so that a folded sheet stays \
              within the explicit step's limit of 4",
             physics.substeps,
-            raised.stability_of(job.topology, model).number()
+            stability.number_at(raised.sim_dt())
         ));
         write_physics(self.fit.run, job.config, &raised)?;
         Ok(raised)
@@ -921,7 +921,7 @@ impl AfterFit<'_> {
         let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
         // The damping searches below run where the drag was searched (in its place), and where
         // the files or the config state it (beside it).
-        let stated_drag = self.resolution.rayleigh_from != "fit";
+        let stated_drag = !self.resolution.drag_fitted();
         let searched = match &drag {
             Some(d) => Some(d.held_out_kept()),
             None if stated_drag && !polish.kept_uniform && !self.split.validation.is_empty() => {
@@ -1024,9 +1024,7 @@ impl AfterFit<'_> {
         physics: Physics,
         polish: &scale::Polish,
     ) -> Result<(SpringNet, Physics, Option<scale::DragSearch>)> {
-        if self.resolution.rayleigh_from != "fit"
-            || polish.kept_uniform
-            || self.split.validation.is_empty()
+        if !self.resolution.drag_fitted() || polish.kept_uniform || self.split.validation.is_empty()
         {
             return Ok((net, physics, None));
         }
