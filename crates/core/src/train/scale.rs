@@ -50,7 +50,13 @@ const SEARCH_ROLLOUTS: usize = 8;
 const K_STEPS: std::ops::RangeInclusive<i32> = -2..=8;
 /// Damping factors `2^i`, `i` in this range.
 const B_STEPS: std::ops::RangeInclusive<i32> = -4..=4;
-/// The search raises the substeps at most this many times over the run's.
+/// The search raises the substeps at most this many times over the run's. The cap also keeps
+/// the searches out of networks so overdamped that their damping alone sets the substeps: at 16,
+/// tried on the bench (2026-12-05), the mixed map of some stiff sets could be sized stiffer and
+/// moved closer, but on a spring cloth of known viscosity the chain of row searches settled on
+/// a soft network damped sixteen times its start's at 466 substeps, and the viscosity was no
+/// longer found (the book, Results → Other simulators, "The searches' substeps: 16 times the
+/// run's, tried").
 const MAX_SUBSTEP_FACTOR: usize = 8;
 
 /// A candidate's substeps and mean motion RMSE; `None` when it is unstable or diverged.
@@ -1125,7 +1131,48 @@ pub fn proportional_damping(
 
 #[cfg(test)]
 mod tests {
-    use super::held_out_agrees;
+    use burn::tensor::Device;
+
+    use super::{MAX_SUBSTEP_FACTOR, held_out_agrees, stable_substeps};
+    use crate::cloth::{GridSpec, Topology};
+    use crate::model::SpringNet;
+    use crate::sim::Physics;
+
+    #[test]
+    fn a_search_reaches_a_network_up_to_its_substep_cap_and_no_further() {
+        let topo = Topology::grid(&GridSpec::default(), 2.0, 2.0);
+        let physics = Physics {
+            frame_dt: 1.0 / 30.0,
+            substeps: 4,
+            mass: 0.5 / 1024.0,
+            rayleigh: 0.0,
+            gravity: [0.0, 0.0, -9.81],
+            viscosity: 0.0,
+        };
+        let device = Device::ndarray();
+        // The substeps a uniform network of stiffness k needs, uncapped.
+        let needs = |k: f64| {
+            let net = SpringNet::uniform(&topo, k, 0.0, &device);
+            physics
+                .stability_of(&topo, &net)
+                .fewest_substeps(physics.frame_dt, 1..=1_000_000, 1.0)
+                .unwrap()
+        };
+        let searched =
+            |k: f64| stable_substeps(&topo, &physics, &SpringNet::uniform(&topo, k, 0.0, &device));
+        // A network that asks for three quarters of the cap (ω ∝ √k) is reached at its fewest.
+        let near_cap = (1..)
+            .map(|i| 10.0 * 1.05f64.powi(i))
+            .find(|&k| 4 * needs(k) >= 3 * MAX_SUBSTEP_FACTOR * physics.substeps)
+            .unwrap();
+        assert!(needs(near_cap) > physics.substeps);
+        assert!(needs(near_cap) <= MAX_SUBSTEP_FACTOR * physics.substeps);
+        assert_eq!(searched(near_cap), Some(needs(near_cap)));
+        // One four times as stiff asks for about twice its substeps, past the cap: refused.
+        let beyond = near_cap * 4.0;
+        assert!(needs(beyond) > MAX_SUBSTEP_FACTOR * physics.substeps);
+        assert_eq!(searched(beyond), None);
+    }
 
     #[test]
     fn the_held_out_verdict_weighs_both_horizons_as_shares() {
