@@ -1149,7 +1149,7 @@ mod tests {
             gravity: [0.0, 0.0, -9.81],
             viscosity: 0.0,
         };
-        let device = Device::ndarray();
+        let device = Device::flex();
         // The substeps a uniform network of stiffness k needs, uncapped.
         let needs = |k: f64| {
             let net = SpringNet::uniform(&topo, k, 0.0, &device);
