@@ -1137,6 +1137,7 @@ mod tests {
     use crate::cloth::{GridSpec, Topology};
     use crate::model::SpringNet;
     use crate::sim::Physics;
+    use crate::train::init::AUTO_SUBSTEPS_TARGET;
 
     #[test]
     fn a_search_reaches_a_network_up_to_its_substep_cap_and_no_further() {
@@ -1155,7 +1156,7 @@ mod tests {
             let net = SpringNet::uniform(&topo, k, 0.0, &device);
             physics
                 .stability_of(&topo, &net)
-                .fewest_substeps(physics.frame_dt, 1..=1_000_000, 1.0)
+                .fewest_substeps(physics.frame_dt, 1..=1_000_000, AUTO_SUBSTEPS_TARGET)
                 .unwrap()
         };
         let searched =
