@@ -106,6 +106,12 @@ impl Stability {
         dt * dt * self.omega2 + 2.0 * dt * self.gamma
     }
 
+    /// Whether the stiffness term `dt²ω²` of the stability number at step `dt` is at least its
+    /// damping term `2·dt·γ`: the stiffness, not the damping, limits the step.
+    pub fn stiffness_limits_at(&self, dt: f64) -> bool {
+        dt * dt * self.omega2 >= 2.0 * dt * self.gamma
+    }
+
     /// The fewest of `substeps` per `frame_dt` frame whose step keeps the stability number at or
     /// below `target`, or `None` where none does.
     pub fn fewest_substeps(

@@ -636,9 +636,8 @@ pub(crate) fn stable_substeps(
         physics.substeps..=physics.substeps * STIFF_SUBSTEP_FACTOR,
         AUTO_SUBSTEPS_TARGET,
     )?;
-    let dt = physics.frame_dt / n as f64;
-    let stiffness_sets_it = dt * dt * stability.omega2 >= 2.0 * dt * stability.gamma;
-    (n <= physics.substeps * MAX_SUBSTEP_FACTOR || stiffness_sets_it).then_some(n)
+    let stiffness_limits = stability.stiffness_limits_at(physics.frame_dt / n as f64);
+    (n <= physics.substeps * MAX_SUBSTEP_FACTOR || stiffness_limits).then_some(n)
 }
 
 /// Searches the factors of `model`'s `k` and `b` on the training takes `train`; returns the scaled network,
