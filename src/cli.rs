@@ -1748,6 +1748,21 @@ fn print_eval(r: &EvalReport) {
             100.0 * u.improvement_long,
             100.0 * u.improvement_short
         );
+        if let Some(t) = &u.bending_apart {
+            println!(
+                "best bending-apart network (uniform, the bending springs' k × {:.4} of the others'): k {:.4} \
+                 N/m, b {:.4e} N·s/m: test motion RMSE {:.4e} m (short horizon {:.4e}, long \
+                 {:.4e}); training improves on it by {:.1} % (long) and {:.1} % (short)",
+                t.bending_factor,
+                t.k,
+                t.b,
+                t.test.mean,
+                t.test.short.mean,
+                t.test.long.mean,
+                100.0 * t.improvement_long,
+                100.0 * t.improvement_short
+            );
+        }
     }
     if let Some(v) = &r.validation {
         println!("validation (`data.holdout`): {}", v.summary());

@@ -353,6 +353,68 @@ fn the_blend_search_finds_the_bending_springs_share() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The bending-apart yardstick (`eval.json`'s `uniform_baseline.bending_apart`) finds how stiff a
+/// cloth's bending springs are beside its others, where the uniform yardstick cannot: on takes
+/// of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a sixteenth of
+/// that, a run that keeps a uniform network over every spring (no fit, no search) is beaten by
+/// the bending-apart network, which keeps the source's factor and moves far closer to the test takes
+/// than the uniform yardstick does.
+#[test]
+fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
+    let dir = common::temp_dir("bending-apart");
+    spring_cloth_takes(&dir, 1.0 / 16.0, true);
+    let text = "name = \"uniform\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 50\n\
+                b_init = 6\n[data]\nholdout = 0\n[train.stiffness]\niterations = 0\n\
+                [train.damping]\niterations = 0\n[eval]\nuniform_baseline = true\n";
+    let mut config = Config::parse(text, &[]).unwrap();
+    config.data.dir = dir.join("train");
+    config.data.test_dir = Some(dir.join("test"));
+    config.runs_dir = dir.join("runs");
+    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let report =
+        springtime::run::evaluate(&summary.run_dir, None, None, &[], &Progress::quiet()).unwrap();
+    let uniform = report.uniform_baseline.expect("asked for");
+    let two = uniform
+        .bending_apart
+        .as_ref()
+        .expect("the grid has bending springs");
+    eprintln!(
+        "uniform k {} b {}: {} m; bending-apart × {} k {} b {}: {} m; rows {:?}",
+        uniform.k,
+        uniform.b,
+        uniform.test.long.mean,
+        two.bending_factor,
+        two.k,
+        two.b,
+        two.test.long.mean,
+        two.factor_search
+    );
+    assert_eq!(two.bending_factor, 1.0 / 16.0, "{two:?}");
+    assert_eq!(two.k, 50.0, "{two:?}");
+    assert!(
+        two.test.long.mean < 0.1 * uniform.test.long.mean,
+        "bending-apart {} m, uniform {} m",
+        two.test.long.mean,
+        uniform.test.long.mean
+    );
+    // The run's network, uniform over every spring, loses to it.
+    assert!(two.improvement_long < 0.0, "{two:?}");
+    // Its factor 1 is the uniform yardstick itself: it moves as the yardstick did on the
+    // training takes.
+    let yardstick = uniform
+        .search
+        .iter()
+        .chain(&uniform.b_search)
+        .map(|c| c.1)
+        .fold(f64::INFINITY, f64::min);
+    assert_eq!(
+        two.factor_search.first(),
+        Some(&(1.0, yardstick)),
+        "{two:?}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// The blend search reaches a damping decades from its start: from a `b_init` a thousand times
 /// below the source's 6 N·s/m (three times a spring's critical damping here), where its rows
 /// of octaves reach 16 × 0.006 ≈ 0.1 N·s/m at most, the uniform end's damping row also tries

@@ -7,6 +7,7 @@ One command generates (once) takes from every simulator of the bench, trains
 set's training takes, evaluates it on the held-out test takes beside the best uniform network
 (`eval.uniform_baseline`), and prints the table: motion RMSE of the trained surrogate and of the
 best uniform network at the short horizon (0.8 s) and over the whole take, the gain, the
+gain over the best bending-apart network (uniform, its bending springs sized apart), the
 Spearman correlation of the learned structural `k` with the source's stiffness map, the
 surrogate's substeps and the training's wall time.
 
@@ -248,6 +249,17 @@ def train(sim, material, data: Path, a):
         "validation_wins": (ev.get("validation") or {}).get("wins"),
         "source": {k: source.get(k) for k in ("simulator", "version", "material") if k in source},
     })
+    two = u.get("bending_apart")
+    if two:
+        # The same network with its bending springs sized apart: what the map's spatial
+        # variation wins beyond the bending springs' share.
+        row.update({
+            "bending_apart_factor": two["bending_factor"],
+            "bending_apart_short": two["test"]["short"]["mean"],
+            "bending_apart_long": two["test"]["long"]["mean"],
+            "gain_bending_apart_short": two["improvement_short"],
+            "gain_bending_apart_long": two["improvement_long"],
+        })
     if a.source_map:
         row.update(source_map(run, a))
     return row
@@ -280,12 +292,12 @@ def table(rows, a):
                                    (f" source ±{100 * (a.spread or 0):g} %: short / whole take (m) |", a.spread))
              if on]
     head = ("| data | trained: short / whole take (m) | best uniform (m) | gain short / long | "
-            "Spearman | substeps | wall |" + "".join(extra)
-            + "\n|---|---|---|---|---|---|---|" + "---|" * len(extra) + "\n")
+            "over bending-apart short / long | Spearman | substeps | wall |" + "".join(extra)
+            + "\n|---|---|---|---|---|---|---|---|" + "---|" * len(extra) + "\n")
     lines = []
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | {r['wall_s']:.0f} s |"
+            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | | {r['wall_s']:.0f} s |"
                          + " |" * len(extra))
             continue
         sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
@@ -294,10 +306,19 @@ def table(rows, a):
         lines.append(
             f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
             f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "
-            f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {sp} | "
+            f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {bending_apart_cell(r)} | "
+            f"{sp} | "
             f"{r['substeps']} | {r['wall_s']:.0f} s |" + (cell(r) if a.source_map else "")
             + (spread_cell(r) if a.spread else ""))
     return head + "\n".join(lines) + "\n"
+
+
+def bending_apart_cell(r):
+    """The gains over the bending-apart network (`uniform_baseline.bending_apart`), with its factor."""
+    if "gain_bending_apart_short" not in r:
+        return "—"
+    return (f"{100 * r['gain_bending_apart_short']:+.1f} % / {100 * r['gain_bending_apart_long']:+.1f} % "
+            f"(× {r['bending_apart_factor']:g})")
 
 
 def spread_cell(r):

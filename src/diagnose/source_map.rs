@@ -133,6 +133,7 @@ pub fn source_map(
         &test_files,
         &mapped,
         eval_config,
+        true,
         &inputs.device,
         progress,
     )

@@ -12,7 +12,7 @@ use anyhow::Result;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::Topology;
+use crate::cloth::{SpringFamily, Topology};
 use crate::eval::{self, MotionRmse};
 use crate::model::SpringNet;
 use crate::progress::Progress;
@@ -24,6 +24,15 @@ const SPAN: i32 = 6;
 const SEARCH_ROLLOUTS: usize = 8;
 /// Damping candidates as fractions of a spring's critical damping `√(2 k m)`.
 pub(crate) const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
+/// Factors of the bending springs' `k` over the others' tried at the best share (1 is the
+/// share's own): the blend search's row ([`crate::train::scale`]) and the bending-apart yardstick's
+/// ([`search`] with `bending_apart`).
+pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
+/// The share of the bending springs moves only for a candidate this much closer (relative) to
+/// the training takes: a share chosen on less is chosen by chance.
+pub const BENDING_MARGIN: f64 = 0.01;
+/// Rounds of the bending springs' row and the sizes at most.
+pub const BENDING_ROUNDS: usize = 4;
 
 /// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `takes` (`None` when it
 /// is unstable at `physics`' step or a rollout diverges).
@@ -83,10 +92,43 @@ pub struct UniformBaseline {
     pub improvement_long: f64,
     /// The same for the short horizon.
     pub improvement_short: f64,
+    /// The best bending-apart network beside it: one `k` for the cells' springs, another for
+    /// the bending springs ([`BendingApart`]; `eval` only, where the network has bending springs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bending_apart: Option<BendingApart>,
 }
 
-/// Searches the uniform stiffness around `k0` (damping `b0`), then the damping, on `train_files` and evaluates the
-/// best on `test_files`; `trained` is the trained model's test RMSE to compare with.
+/// `eval.json`'s `uniform_baseline.bending_apart`: the best network whose structural and shear
+/// springs share one stiffness and whose bending springs (the hinge springs across a cell's
+/// side, which no other simulator has as such) share that times `bending_factor`, one damping
+/// for all; searched like the uniform one, at the same step and on the same training rollouts.
+/// A learned map's gain over it is what the map's spatial variation wins, not the bending
+/// springs' share.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BendingApart {
+    /// The bending springs' `k` over the others'.
+    pub bending_factor: f64,
+    /// The cells' springs' stiffness, N/m.
+    pub k: f64,
+    /// The damping of every spring, N·s/m.
+    pub b: f64,
+    /// `(factor, mean motion RMSE on the training rollouts)` of every factor tried at its best
+    /// sizes, the yardstick's own (factor 1) first.
+    pub factor_search: Vec<(f64, f64)>,
+    /// Its mean motion RMSE on the training rollouts.
+    pub train_rmse: f64,
+    /// It on the test rollouts.
+    pub test: MotionRmse,
+    /// `1 − trained / bending-apart` of the long-horizon test RMSE (positive: the map wins).
+    pub improvement_long: f64,
+    /// The same for the short horizon.
+    pub improvement_short: f64,
+}
+
+/// Searches the uniform stiffness around `k0` (damping `b0`), then the damping, on `train_files`
+/// and evaluates the best on `test_files`; `trained` is the trained model's test RMSE to compare
+/// with. With `bending_apart`, where the topology has bending springs, also the best
+/// bending-apart network beside it ([`BendingApart`]).
 #[allow(clippy::too_many_arguments)]
 pub fn search(
     topology: &Topology,
@@ -96,6 +138,7 @@ pub fn search(
     test_files: &[PathBuf],
     trained: &MotionRmse,
     eval_config: &eval::EvalConfig,
+    bending_apart: bool,
     device: &Device,
     progress: &Progress,
 ) -> Result<UniformBaseline> {
@@ -109,6 +152,11 @@ pub fn search(
         progress,
         cache: Some(&cache),
     };
+    let tests = eval::Takes {
+        files: test_files,
+        cache: None,
+        ..takes
+    };
     let score = |k: f64, b: f64| rollout_rmse(physics, k, b, &takes);
     let bar = progress.bar(DESCENT_CANDIDATES, "uniform search");
     let Descent {
@@ -119,25 +167,24 @@ pub fn search(
         ..
     } = descend(&score, (k0, b0), physics.mass, Pick::Lowest, &bar)?;
     bar.finish();
-    let model = SpringNet::uniform(topology, k, b, device);
-    let curves = eval::motion_curves(
-        &model,
+    let test = test_figures(
+        &SpringNet::uniform(topology, k, b, device),
         physics,
-        &eval::Takes {
-            topology,
-            files: test_files,
-            batch: eval_config.batch,
-            device,
-            progress,
-            cache: None,
-        },
+        &tests,
+        eval_config,
     )?;
-    let test = eval::summarize(
-        &curves.curves,
-        physics.frame_dt,
-        eval_config.short_seconds,
-        eval_config.long_seconds,
-    );
+    let bending_apart = if bending_apart && topology.family.contains(&SpringFamily::Bending) {
+        Some(bending_apart_search(
+            &takes,
+            &tests,
+            physics,
+            (k, b),
+            trained,
+            eval_config,
+        )?)
+    } else {
+        None
+    };
     Ok(UniformBaseline {
         k,
         b,
@@ -146,6 +193,100 @@ pub fn search(
         improvement_short: 1.0 - trained.short.mean / test.short.mean,
         search,
         search_rollouts: train.len(),
+        test,
+        bending_apart,
+    })
+}
+
+/// A yardstick's network `model` on the test rollouts `tests`, as `eval` measures the trained
+/// one.
+fn test_figures(
+    model: &SpringNet,
+    physics: &Physics,
+    tests: &eval::Takes,
+    eval_config: &eval::EvalConfig,
+) -> Result<MotionRmse> {
+    let curves = eval::motion_curves(model, physics, tests)?;
+    Ok(eval::summarize(
+        &curves.curves,
+        physics.frame_dt,
+        eval_config.short_seconds,
+        eval_config.long_seconds,
+    ))
+}
+
+/// The network of one `k` for every spring but the bending springs, which have `k · factor`,
+/// and one `b`.
+fn bending_apart_network(
+    topology: &Topology,
+    k: f64,
+    b: f64,
+    factor: f64,
+    device: &Device,
+) -> SpringNet {
+    let ks: Vec<f64> = topology
+        .family
+        .iter()
+        .map(|f| {
+            if *f == SpringFamily::Bending {
+                k * factor
+            } else {
+                k
+            }
+        })
+        .collect();
+    SpringNet::new(topology, &ks, &vec![b; ks.len()], device)
+}
+
+/// The best bending-apart network ([`BendingApart`]) beside the uniform yardstick `(k̄, b̄)` (searched at
+/// `physics` on `takes`), evaluated on `tests` against the trained model's test RMSE `trained`.
+/// Each of [`BENDING_FACTORS`] is sized by the yardstick's descent of `k` and `b` from
+/// `(k̄, b̄)`, and the closest kept where it moves [`BENDING_MARGIN`] closer to the training
+/// rollouts than the yardstick (factor 1) itself.
+fn bending_apart_search(
+    takes: &eval::Takes,
+    tests: &eval::Takes,
+    physics: &Physics,
+    (k_bar, b_bar): (f64, f64),
+    trained: &MotionRmse,
+    eval_config: &eval::EvalConfig,
+) -> Result<BendingApart> {
+    let network =
+        |k: f64, b: f64, f: f64| bending_apart_network(takes.topology, k, b, f, takes.device);
+    let score = |k: f64, b: f64, f: f64| network_rollout_rmse(&network(k, b, f), physics, takes);
+    let bar = takes.progress.bar(
+        1 + (BENDING_FACTORS.len() as u64) * DESCENT_CANDIDATES,
+        "bending-apart search",
+    );
+    // Factor 1 is the yardstick itself; every other factor is sized by the yardstick's own
+    // descent from the yardstick's sizes (a network whose bending springs are softer wants its
+    // others stiffer).
+    let yardstick = score(k_bar, b_bar, 1.0)
+        .ok_or_else(|| anyhow::anyhow!("the best uniform network is unstable at its own step"))?;
+    bar.inc(1);
+    let mut factor_search = vec![(1.0, yardstick)];
+    let (mut factor, mut k, mut b, mut rmse) = (1.0, k_bar, b_bar, yardstick);
+    for f in BENDING_FACTORS {
+        let at = |k: f64, b: f64| score(k, b, f);
+        // A factor no size keeps stable is not a candidate.
+        let Ok(d) = descend(&at, (k_bar, b_bar), physics.mass, Pick::Lowest, &bar) else {
+            continue;
+        };
+        factor_search.push((f, d.rmse));
+        if d.rmse < rmse && d.rmse < yardstick * (1.0 - BENDING_MARGIN) {
+            (factor, k, b, rmse) = (f, d.k, d.b, d.rmse);
+        }
+    }
+    bar.finish();
+    let test = test_figures(&network(k, b, factor), physics, tests, eval_config)?;
+    Ok(BendingApart {
+        bending_factor: factor,
+        k,
+        b,
+        factor_search,
+        train_rmse: rmse,
+        improvement_long: 1.0 - trained.long.mean / test.long.mean,
+        improvement_short: 1.0 - trained.short.mean / test.short.mean,
         test,
     })
 }

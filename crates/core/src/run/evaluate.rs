@@ -57,6 +57,7 @@ pub fn evaluate(
             &files,
             &motion,
             &config.eval,
+            true,
             device,
             progress,
         )?),

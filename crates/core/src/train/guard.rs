@@ -62,6 +62,7 @@ pub fn validate(
         validation_files,
         &trained,
         config,
+        false,
         device,
         progress,
     )?;

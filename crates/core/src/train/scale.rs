@@ -198,13 +198,7 @@ fn one() -> f64 {
     1.0
 }
 
-/// Factors of the bending springs' `k` tried at the best share (1 is the share's own).
-pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
-/// The share of the bending springs moves only for a candidate this much closer (relative) to
-/// the training takes: a share chosen on less is chosen by chance.
-pub const BENDING_MARGIN: f64 = 0.01;
-/// Rounds of the bending springs' row and the sizes at most.
-pub const BENDING_ROUNDS: usize = 4;
+pub use crate::eval::uniform::{BENDING_FACTORS, BENDING_MARGIN, BENDING_ROUNDS};
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
