@@ -6,11 +6,10 @@
 //! spring's rest midpoint (as `stiffness_map_corr` reads it) and `m̄` its mean; the bending
 //! springs at a share of `k̄`, every `b` at `b̄`, `(k̄, b̄)` the best uniform network of
 //! `eval.json` — and sized on the training takes: the scale search ([`train::scale::search`]:
-//! one factor for every `k`, one for every `b`), then a row of shares of the bending springs
-//! ([`train::scale::BENDING_FACTORS`]) and the scale search again, in turn until the share stays,
-//! as the blend search does. The best uniform network is searched again at the sized network's
-//! step (a finer explicit step alone moves a network closer), and both are simulated on the
-//! test takes as `eval` does.
+//! one factor for every `k`, one for every `b`) at each share of the bending springs
+//! ([`train::scale::BENDING_FACTORS`], and 1), the closest kept. The best uniform network is
+//! searched again at the sized network's step (a finer explicit step alone moves a network
+//! closer), and both are simulated on the test takes as `eval` does.
 //!
 //! Its gain over the best uniform network is what a perfectly ranked map (Spearman 1) wins when
 //! sized like the recipe's maps. It is a reference, not a bound: a learned map may beat it (on an
@@ -46,8 +45,8 @@ pub struct SourceMap {
     pub search: ScaleSearch,
     /// The share of the bending springs' stiffness kept (their `k` over the shear springs').
     pub bending_factor: f64,
-    /// `(share, mean motion RMSE on the training takes)` of every stable share tried, in the
-    /// order tried (each row at the sizes then kept).
+    /// `(share, mean motion RMSE on the training takes)` of every share sized, share 1 first
+    /// (each at its own sizes).
     pub bending_search: Vec<(f64, f64)>,
     /// The best uniform network at the map network's step, searched on the training takes
     /// from `(k̄, b̄)`, and its test figures.
@@ -213,50 +212,43 @@ struct Sized {
     bending: Vec<(f64, f64)>,
 }
 
-/// The sizes of the map network from `(k̄, b̄)`, then the bending springs' share (the
-/// surrogate's own: no source has them), in turn until the share stays, as the blend search
-/// does.
+/// The sizes of the map network from `(k̄, b̄)` at each share of the bending springs (the
+/// surrogate's own: no source has them), and the closest kept where it moves
+/// [`train::scale::BENDING_MARGIN`] closer than share 1. Each share is sized by its own scale
+/// search from `(k̄, b̄)`, as the bending-apart yardstick sizes each of its shares
+/// ([`eval::uniform::BendingApart`]): the size for one share is not the size for another, and a
+/// network without its bending springs moves closer only when stiffer.
 fn size_map(
     inputs: &Inputs,
     map: &[(usize, f64)],
-    (mut k, mut b): (f64, f64),
+    (k, b): (f64, f64),
     physics: &Physics,
     train_takes: &Takes,
 ) -> Result<Sized> {
-    let mut share = 1.0;
-    let mut bending = Vec::new();
-    let mut sized =
+    let size = |share: f64| {
         train::scale::search(&map_network(inputs, map, k, b, share), physics, train_takes)
-            .context("the source map's scale search")?;
-    for _ in 0..train::scale::BENDING_ROUNDS {
-        let (k_now, b_now) = (k * sized.2.k_factor, b * sized.2.b_factor);
-        let mut best = (share, sized.2.after);
-        for f in train::scale::BENDING_FACTORS.into_iter().chain([1.0]) {
-            let net = map_network(inputs, map, k_now, b_now, f);
-            if let Some((_, r)) = train::scale::score_network(&net, &sized.1, train_takes) {
-                bending.push((f, r));
-                if r < best.1 * (1.0 - train::scale::BENDING_MARGIN) {
-                    best = (f, r);
-                }
-            }
+            .context("the source map's scale search")
+    };
+    let mut kept = (1.0, size(1.0)?);
+    let whole = kept.1.2.after;
+    let mut bending = vec![(1.0, whole)];
+    for f in train::scale::BENDING_FACTORS {
+        // A share no size keeps stable is not a candidate.
+        let Ok(sized) = size(f) else {
+            continue;
+        };
+        let r = sized.2.after;
+        bending.push((f, r));
+        if r < kept.1.2.after && r < whole * (1.0 - train::scale::BENDING_MARGIN) {
+            kept = (f, sized);
         }
-        if best.0 == share {
-            break;
-        }
-        (k, b, share) = (k_now, b_now, best.0);
-        sized = train::scale::search(
-            &map_network(inputs, map, k, b, share),
-            &sized.1,
-            train_takes,
-        )
-        .context("the source map's scale search")?;
     }
-    let (net, physics, search) = sized;
+    let (bending_factor, (net, physics, search)) = kept;
     Ok(Sized {
         net,
         physics,
         search,
-        bending_factor: share,
+        bending_factor,
         bending,
     })
 }
