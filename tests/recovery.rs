@@ -374,7 +374,7 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
     let report =
         springtime::run::evaluate(&summary.run_dir, None, None, &[], &Progress::quiet()).unwrap();
     let uniform = report.uniform_baseline.expect("asked for");
-    let two = uniform
+    let apart = uniform
         .bending_apart
         .as_ref()
         .expect("the grid has bending springs");
@@ -383,22 +383,22 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
         uniform.k,
         uniform.b,
         uniform.test.long.mean,
-        two.bending_factor,
-        two.k,
-        two.b,
-        two.test.long.mean,
-        two.factor_search
+        apart.bending_factor,
+        apart.k,
+        apart.b,
+        apart.test.long.mean,
+        apart.factor_search
     );
-    assert_eq!(two.bending_factor, 1.0 / 16.0, "{two:?}");
-    assert_eq!(two.k, 50.0, "{two:?}");
+    assert_eq!(apart.bending_factor, 1.0 / 16.0, "{apart:?}");
+    assert_eq!(apart.k, 50.0, "{apart:?}");
     assert!(
-        two.test.long.mean < 0.1 * uniform.test.long.mean,
+        apart.test.long.mean < 0.1 * uniform.test.long.mean,
         "bending-apart {} m, uniform {} m",
-        two.test.long.mean,
+        apart.test.long.mean,
         uniform.test.long.mean
     );
     // The run's network, uniform over every spring, loses to it.
-    assert!(two.improvement_long < 0.0, "{two:?}");
+    assert!(apart.improvement_long < 0.0, "{apart:?}");
     // Its factor 1 is the uniform yardstick itself: it moves as the yardstick did on the
     // training takes.
     let yardstick = uniform
@@ -408,9 +408,9 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
         .map(|c| c.1)
         .fold(f64::INFINITY, f64::min);
     assert_eq!(
-        two.factor_search.first(),
+        apart.factor_search.first(),
         Some(&(1.0, yardstick)),
-        "{two:?}"
+        "{apart:?}"
     );
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -420,7 +420,7 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
 /// of octaves reach 16 × 0.006 ≈ 0.1 N·s/m at most, the uniform end's damping row also tries
 /// the fractions of critical damping and keeps one within a factor of 4 of the source's (the
 /// critical damping itself, 1.96 N·s/m: three times that needs more substeps than the search's
-/// cap), moving closer to the takes than any damping the octaves reach. Of its two chains (the
+/// cap), moving closer to the takes than any damping the octaves reach. Of its apart chains (the
 /// octaves alone, and with the descent) it keeps the closer: no candidate it lists moves closer
 /// than the network it kept.
 #[test]

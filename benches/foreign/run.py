@@ -249,16 +249,16 @@ def train(sim, material, data: Path, a):
         "validation_wins": (ev.get("validation") or {}).get("wins"),
         "source": {k: source.get(k) for k in ("simulator", "version", "material") if k in source},
     })
-    two = u.get("bending_apart")
-    if two:
+    apart = u.get("bending_apart")
+    if apart:
         # The same network with its bending springs sized apart: what the map's spatial
         # variation wins beyond the bending springs' share.
         row.update({
-            "bending_apart_factor": two["bending_factor"],
-            "bending_apart_short": two["test"]["short"]["mean"],
-            "bending_apart_long": two["test"]["long"]["mean"],
-            "gain_bending_apart_short": two["improvement_short"],
-            "gain_bending_apart_long": two["improvement_long"],
+            "bending_apart_factor": apart["bending_factor"],
+            "bending_apart_short": apart["test"]["short"]["mean"],
+            "bending_apart_long": apart["test"]["long"]["mean"],
+            "gain_bending_apart_short": apart["improvement_short"],
+            "gain_bending_apart_long": apart["improvement_long"],
         })
     if a.source_map:
         row.update(source_map(run, a))

@@ -312,7 +312,7 @@ fn source_map_row(c: &SourceMap, floor: &ChaosFloor) -> String {
     let run = c.run_gain.map_or(String::new(), |[s, l]| {
         format!("; the run: {} / {}", percent(s), percent(l))
     });
-    let two = c.uniform.bending_apart.as_ref().map_or(String::new(), |t| {
+    let apart = c.uniform.bending_apart.as_ref().map_or(String::new(), |t| {
         format!(
             "; over the best bending-apart network (bending × {}): {} / {}",
             t.bending_factor,
@@ -321,7 +321,7 @@ fn source_map_row(c: &SourceMap, floor: &ChaosFloor) -> String {
         )
     });
     format!(
-        "| the source's own stiffness map, sized: mean ≤ {} s / ≤ {} s (best uniform) | {:.3e} / {:.3e} m ({:.3e} / {:.3e}): {} / {}{two}{run} |\n",
+        "| the source's own stiffness map, sized: mean ≤ {} s / ≤ {} s (best uniform) | {:.3e} / {:.3e} m ({:.3e} / {:.3e}): {} / {}{apart}{run} |\n",
         floor.short_seconds,
         floor.long_seconds,
         c.map.short.mean,

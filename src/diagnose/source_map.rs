@@ -258,18 +258,8 @@ fn size_map(
 fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64, share: f64) -> SpringNet {
     let n = inputs.topology.num_springs();
     let mean = map.iter().map(|m| m.1).sum::<f64>() / map.len() as f64;
-    let mut ks: Vec<f64> = inputs
-        .topology
-        .family
-        .iter()
-        .map(|f| {
-            if *f == SpringFamily::Bending {
-                k * share
-            } else {
-                k
-            }
-        })
-        .collect();
+    let mut ks = vec![k; n];
+    inputs.topology.scale_bending(&mut ks, share);
     for &(s, v) in map {
         ks[s] = k * v / mean;
     }

@@ -194,6 +194,22 @@ pub struct Topology {
 }
 
 impl Topology {
+    /// Whether the network has bending springs ([`SpringFamily::Bending`]).
+    pub fn has_bending(&self) -> bool {
+        self.family.contains(&SpringFamily::Bending)
+    }
+
+    /// Multiplies the bending springs' entries of the per-spring values `k` by `factor`: the
+    /// bending springs' share of a network's stiffness (ours: the hinge or stride springs, which
+    /// no other simulator has as such, are sized apart from the rest).
+    pub fn scale_bending(&self, k: &mut [f64], factor: f64) {
+        for (k, family) in k.iter_mut().zip(&self.family) {
+            if *family == SpringFamily::Bending {
+                *k *= factor;
+            }
+        }
+    }
+
     /// Builds the grid network of `spec` over a `width × height` rectangle.
     ///
     /// Panics if the grid has fewer than 2 particles along a side or the rectangle is not

@@ -12,7 +12,7 @@ use anyhow::Result;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::{SpringFamily, Topology};
+use crate::cloth::Topology;
 use crate::eval::{self, MotionRmse};
 use crate::model::SpringNet;
 use crate::progress::Progress;
@@ -31,8 +31,6 @@ pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
 /// The share of the bending springs moves only for a candidate this much closer (relative) to
 /// the training takes: a share chosen on less is chosen by chance.
 pub const BENDING_MARGIN: f64 = 0.01;
-/// Rounds of the bending springs' row and the sizes at most.
-pub const BENDING_ROUNDS: usize = 4;
 
 /// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `takes` (`None` when it
 /// is unstable at `physics`' step or a rollout diverges).
@@ -162,6 +160,7 @@ pub fn search(
     let Descent {
         k,
         b,
+        rmse,
         search,
         b_search,
         ..
@@ -173,12 +172,12 @@ pub fn search(
         &tests,
         eval_config,
     )?;
-    let bending_apart = if bending_apart && topology.family.contains(&SpringFamily::Bending) {
+    let bending_apart = if bending_apart && topology.has_bending() {
         Some(bending_apart_search(
             &takes,
             &tests,
             physics,
-            (k, b),
+            (k, b, rmse),
             trained,
             eval_config,
         )?)
@@ -224,22 +223,15 @@ fn bending_apart_network(
     factor: f64,
     device: &Device,
 ) -> SpringNet {
-    let ks: Vec<f64> = topology
-        .family
-        .iter()
-        .map(|f| {
-            if *f == SpringFamily::Bending {
-                k * factor
-            } else {
-                k
-            }
-        })
-        .collect();
-    SpringNet::new(topology, &ks, &vec![b; ks.len()], device)
+    let n = topology.num_springs();
+    let mut ks = vec![k; n];
+    topology.scale_bending(&mut ks, factor);
+    SpringNet::new(topology, &ks, &vec![b; n], device)
 }
 
-/// The best bending-apart network ([`BendingApart`]) beside the uniform yardstick `(k̄, b̄)` (searched at
-/// `physics` on `takes`), evaluated on `tests` against the trained model's test RMSE `trained`.
+/// The best bending-apart network ([`BendingApart`]) beside the uniform yardstick `(k̄, b̄)`
+/// (searched at `physics` on `takes`, where it moved `yardstick` from them), evaluated on
+/// `tests` against the trained model's test RMSE `trained`.
 /// Each of [`BENDING_FACTORS`] is sized by the yardstick's descent of `k` and `b` from
 /// `(k̄, b̄)`, and the closest kept where it moves [`BENDING_MARGIN`] closer to the training
 /// rollouts than the yardstick (factor 1) itself.
@@ -247,7 +239,7 @@ fn bending_apart_search(
     takes: &eval::Takes,
     tests: &eval::Takes,
     physics: &Physics,
-    (k_bar, b_bar): (f64, f64),
+    (k_bar, b_bar, yardstick): (f64, f64, f64),
     trained: &MotionRmse,
     eval_config: &eval::EvalConfig,
 ) -> Result<BendingApart> {
@@ -255,15 +247,12 @@ fn bending_apart_search(
         |k: f64, b: f64, f: f64| bending_apart_network(takes.topology, k, b, f, takes.device);
     let score = |k: f64, b: f64, f: f64| network_rollout_rmse(&network(k, b, f), physics, takes);
     let bar = takes.progress.bar(
-        1 + (BENDING_FACTORS.len() as u64) * DESCENT_CANDIDATES,
+        (BENDING_FACTORS.len() as u64) * DESCENT_CANDIDATES,
         "bending-apart search",
     );
     // Factor 1 is the yardstick itself; every other factor is sized by the yardstick's own
     // descent from the yardstick's sizes (a network whose bending springs are softer wants its
     // others stiffer).
-    let yardstick = score(k_bar, b_bar, 1.0)
-        .ok_or_else(|| anyhow::anyhow!("the best uniform network is unstable at its own step"))?;
-    bar.inc(1);
     let mut factor_search = vec![(1.0, yardstick)];
     let (mut factor, mut k, mut b, mut rmse) = (1.0, k_bar, b_bar, yardstick);
     for f in BENDING_FACTORS {

@@ -36,7 +36,7 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::{SpringFamily, Topology};
+use crate::cloth::Topology;
 use crate::eval::Takes;
 use crate::eval::uniform::{self, DAMPING_RATIOS, network_rollout_rmse, stable_rollout_rmse};
 use crate::model::SpringNet;
@@ -198,7 +198,9 @@ fn one() -> f64 {
     1.0
 }
 
-pub use crate::eval::uniform::{BENDING_FACTORS, BENDING_MARGIN, BENDING_ROUNDS};
+pub use crate::eval::uniform::{BENDING_FACTORS, BENDING_MARGIN};
+/// Rounds of the bending springs' row and the sizes at most.
+pub const BENDING_ROUNDS: usize = 4;
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
@@ -388,11 +390,7 @@ impl Blender<'_> {
         };
         let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
         let (mut k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
-        for (k, family) in k.iter_mut().zip(&self.takes.topology.family) {
-            if *family == SpringFamily::Bending {
-                *k *= fh;
-            }
-        }
+        self.takes.topology.scale_bending(&mut k, fh);
         SpringNet::new(self.takes.topology, &k, &b, self.takes.device)
             .with_kernel(self.model.graph.kernel)
             .with_curvature(&kappa)
@@ -509,8 +507,7 @@ impl Blender<'_> {
     /// factor and the candidate kept (`share` and `best` when the network has no bending springs
     /// or no factor moves closer). `best` was scored with the bending springs' factor `share`.
     fn bending_search(&mut self, best: Candidate, share: f64) -> (f64, Candidate) {
-        let family = &self.takes.topology.family;
-        if !family.contains(&SpringFamily::Bending) {
+        if !self.takes.topology.has_bending() {
             return (share, best);
         }
         let mut kept = (share, best);
