@@ -353,6 +353,70 @@ fn the_blend_search_finds_the_bending_springs_share() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The polish sizes the map at each share of its bending springs too, each by its own descent
+/// at the run's substeps: on takes of a uniform 8 × 8 spring cloth (50 N/m, 6 N·s/m) whose
+/// bending springs have a sixteenth of that, from a uniform network over every spring at 25
+/// N/m (the uniform yardstick's size there: it softens every spring to make up for the stiff
+/// bending springs), it finds the sixteenth and the source's 50 N/m, where the sizes' descent at
+/// the network's own share stays a uniform network and moves a hundred times farther; it returns
+/// both (the run keeps the other share where the held-out takes agree).
+#[test]
+fn the_polish_finds_the_bending_springs_share() {
+    let dir = common::temp_dir("polish-bending");
+    spring_cloth_takes(&dir, 1.0 / 16.0, true);
+    let text = "name = \"uniform\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 25\n\
+                b_init = 6\n[data]\nholdout = 0\n[train.stiffness]\niterations = 0\n\
+                [train.damping]\niterations = 0\n";
+    let mut config = Config::parse(text, &[]).unwrap();
+    config.data.dir = dir.join("train");
+    config.data.test_dir = Some(dir.join("test"));
+    config.runs_dir = dir.join("runs");
+    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
+    let run = springtime::run::Run::open(&summary.run_dir, &[], None).unwrap();
+    let train_files = run.config.data.split().unwrap().train;
+    let first = springtime::data::Rollout::load(&train_files[0]).unwrap();
+    let physics = run.physics(first.frame_dt);
+    let progress = Progress::quiet();
+    let takes = springtime::eval::Takes {
+        topology: &run.topology,
+        files: &train_files,
+        batch: run.config.eval.batch,
+        device: &run.device,
+        progress: &progress,
+        cache: None,
+    };
+    let polished = springtime::train::scale::polish(
+        run.springs().unwrap(),
+        &physics,
+        (25.0, 6.0),
+        &takes,
+        true,
+    )
+    .unwrap();
+    let (net, polish) = polished.other_share.expect("a share moves closer");
+    eprintln!("polish: {polish:?}");
+    assert_eq!(polish.bending_factor, 1.0 / 16.0, "{polish:?}");
+    assert!(!polish.kept_uniform, "{polish:?}");
+    for (k, family) in net.k_values().iter().zip(&run.topology.family) {
+        let source = match family {
+            springtime::cloth::SpringFamily::Bending => 50.0 / 16.0,
+            _ => 50.0,
+        };
+        assert!(
+            (k / source - 1.0).abs() < 0.05,
+            "k {k} N/m, the source's {source} N/m"
+        );
+    }
+    // The network's own share (1) first, sized, as the polish returns it beside; the sixteenth
+    // moves a hundred times closer.
+    let own = polish.bending_search[0];
+    assert_eq!(own.0, 1.0, "{polish:?}");
+    assert!(polished.record.after <= own.1, "{:?}", polished.record);
+    assert_eq!(polished.record.bending_factor, 1.0);
+    assert!(polish.after < 0.01 * own.1, "{polish:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 /// The bending-apart yardstick (`eval.json`'s `uniform_baseline.bending_apart`) finds how stiff a
 /// cloth's bending springs are beside its others, where the uniform yardstick cannot: on takes
 /// of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a sixteenth of
