@@ -906,15 +906,8 @@ impl AfterFit<'_> {
                     .to_string()
             } else {
                 format!(
-                    "k × {:.3}, b × {:.3}{}: {:.4e} m",
-                    polish.k_factor,
-                    polish.b_factor,
-                    if polish.bending_factor == 1.0 {
-                        String::new()
-                    } else {
-                        format!(", bending springs' k × {} more", polish.bending_factor)
-                    },
-                    polish.after
+                    "k × {:.3}, b × {:.3}: {:.4e} m",
+                    polish.k_factor, polish.b_factor, polish.after
                 )
             }
         ));
@@ -997,14 +990,12 @@ impl AfterFit<'_> {
             &self.train_takes(),
         )?;
         record.map = name.to_string();
-        let polished = scale::polish(
+        let (net, polish) = scale::polish(
             &net,
             &p,
             job.config.model.uniform_start(),
             &self.train_takes(),
-            true,
         )?;
-        let (net, polish) = self.bending_share(name, polished, &p)?;
         if several {
             self.fit.progress.note(&format!(
                 "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m; \
@@ -1022,71 +1013,6 @@ impl AfterFit<'_> {
         }
         record.polish = Some(polish);
         Ok((net, p, record))
-    }
-
-    /// The polished map `polished` of the map `name` at its bending springs' share as searched,
-    /// or at the share that moved closer to the search's takes where the held-out training
-    /// takes agree ([`scale::held_out_agrees`]; none held out: the share searched); said in the
-    /// log where another share moved closer.
-    fn bending_share(
-        &self,
-        name: &str,
-        polished: scale::Polished,
-        physics: &Physics,
-    ) -> Result<(SpringNet, scale::Polish)> {
-        let scale::Polished {
-            net,
-            record,
-            other_share,
-        } = polished;
-        let Some((other, mut other_record)) = other_share else {
-            return Ok((net, record));
-        };
-        let progress = self.fit.progress;
-        if self.split.validation.is_empty() {
-            progress.note(&format!(
-                "polish of the {name} map: its bending springs' k × {} moves closer to the \
-                 training rollouts ({:.4e} m against {:.4e} m); no training rollout is held out \
-                 to confirm it, so the run keeps the share searched",
-                other_record.bending_factor, other_record.after, record.after
-            ));
-            return Ok((net, record));
-        }
-        let (before, after) = (
-            self.held_out_rmse(&net, physics)?,
-            self.held_out_rmse(&other, physics)?,
-        );
-        let agrees = scale::held_out_agrees(before, after);
-        progress.note(&format!(
-            "polish of the {name} map: its bending springs' k × {} moves closer to the training \
-             rollouts ({:.4e} m against {:.4e} m); on the {} held-out rollouts {:.4e} / {:.4e} m \
-             (short / long) against {:.4e} / {:.4e} m -> {}",
-            other_record.bending_factor,
-            other_record.after,
-            record.after,
-            self.split.validation.len(),
-            after.0,
-            after.1,
-            before.0,
-            before.1,
-            if agrees {
-                "the run keeps that share"
-            } else {
-                "the run keeps the share searched"
-            }
-        ));
-        Ok(if agrees {
-            other_record.bending_held_out = Some((before, after));
-            (other, other_record)
-        } else {
-            (
-                net,
-                scale::Polish {
-                    bending_held_out: Some((before, after)),
-                    ..record
-                },
-            )
-        })
     }
 
     /// The drag searched after the polish ([`scale::DragSearch`]) where the run fitted it, the
@@ -1129,16 +1055,11 @@ impl AfterFit<'_> {
             rayleigh: best,
             ..physics
         };
-        let scale::Polished {
-            net: other,
-            record: again,
-            ..
-        } = scale::polish(
+        let (other, again) = scale::polish(
             &net,
             &at_best,
             config.model.uniform_start(),
             &self.train_takes(),
-            false,
         )?;
         let (at_fitted, at_other) = (
             self.held_out_rmse(&net, &physics)?,

@@ -719,8 +719,7 @@ pub struct Polish {
     pub uniform: (f64, f64, f64),
     /// Mean motion RMSE of the searched network at these substeps, m.
     pub before: f64,
-    /// The factor of the searched network's `k` kept (its curvature elements' too), its bending
-    /// springs' already times [`Self::bending_factor`].
+    /// The factor of the searched network's `k` kept (its curvature elements' too).
     pub k_factor: f64,
     /// The factor of its `b` kept.
     pub b_factor: f64,
@@ -730,24 +729,8 @@ pub struct Polish {
     pub kept_uniform: bool,
     /// `(mean k, mean motion RMSE)` of every stable size of the map tried, sorted.
     pub search: Vec<(f64, f64)>,
-    /// `(mean b, mean motion RMSE)` of every stable damping of the map tried, sorted (at the
-    /// kept bending springs' factor).
+    /// `(mean b, mean motion RMSE)` of every stable damping of the map tried, sorted.
     pub b_search: Vec<(f64, f64)>,
-    /// The factor the map's bending springs' `k` was multiplied by beside the others' before
-    /// the sizes were descended (1: as searched; [`BENDING_FACTORS`] tried).
-    #[serde(default = "one")]
-    pub bending_factor: f64,
-    /// `(factor, mean motion RMSE)` of the map's descended sizes at every bending springs'
-    /// factor tried (1, the searched network's own, first); empty where the network has no
-    /// bending springs or they are all 0, and in a record written before they were tried.
-    #[serde(default)]
-    pub bending_search: Vec<(f64, f64)>,
-    /// `((short, long) at the share searched, (short, long) at the closer one)` motion RMSE on
-    /// the held-out training takes (m), where another share moved closer to the search's takes
-    /// and takes were held out: the other share is kept only where they agree
-    /// ([`held_out_agrees`]).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub bending_held_out: Option<((f64, f64), (f64, f64))>,
 }
 
 /// The searched network `model` polished at the substeps it runs at (`physics`, ours): the
@@ -764,17 +747,13 @@ pub struct Polish {
 /// jumps is the training takes' chance); the closer by their own figures is kept (where the
 /// pick is farther than the uniform network but another size of the map tried is not, the
 /// closest of those), so on these takes the kept network never moves farther than the
-/// yardstick does. With `shares`, the map's descent also runs at each of [`BENDING_FACTORS`] of
-/// its bending springs' share, and the closest share, where it moves [`BENDING_MARGIN`] closer,
-/// is returned beside the share searched ([`Polished::other_share`]). Returns the kept network
-/// and the record.
+/// yardstick does. Returns the kept network and the record.
 pub fn polish(
     model: &SpringNet,
     physics: &Physics,
     (k0, b0): (f64, f64),
     train: &Takes,
-    shares: bool,
-) -> Result<Polished> {
+) -> Result<(SpringNet, Polish)> {
     let files = search_files(train);
     let takes = Takes {
         files: &files,
@@ -782,12 +761,10 @@ pub fn polish(
     };
     let rmse = |net: &SpringNet| network_rollout_rmse(net, physics, &takes);
     let sizes = Sizes::of(model);
-    // The map needs some stiffness to be sized.
-    blend_means(&sizes.k, &sizes.b, physics.mass)?;
-    let descents = if shares { 2 + BENDING_FACTORS.len() } else { 2 };
+    let (k_mean, b_mean) = blend_means(&sizes.k, &sizes.b, physics.mass)?;
     let bar = train
         .progress
-        .bar(descents as u64 * uniform::DESCENT_CANDIDATES, "polish");
+        .bar(2 * uniform::DESCENT_CANDIDATES, "polish");
     let flat = uniform::descend(
         &|k, b| rmse(&SpringNet::uniform(train.topology, k, b, train.device)),
         (k0, b0),
@@ -796,115 +773,49 @@ pub fn polish(
         &bar,
     )?;
     let before = rmse(model).unwrap_or(f64::INFINITY);
-    // The map's sizes descended at its own bending springs' share, then (with `shares`) at each
-    // factor of it ([`BENDING_FACTORS`], of the share the search kept), each by its own
-    // descent: the blend search's bending rows move the share at the size it reached with the
-    // share before, and a network whose bending springs are off moves closest several times
-    // stiffer (MuJoCo stiff at 24 fps: the search kept the share 1 at 427 substeps, 0.277 m from
-    // the training takes sized here, the share 1/2 0.270 m; the book's Other simulators). A
-    // factor is kept where it moves [`BENDING_MARGIN`] closer than the share searched.
-    let descend_map = |sizes: &Sizes| {
-        let (k_mean, b_mean) = blend_means(&sizes.k, &sizes.b, physics.mass).ok()?;
-        let found = uniform::descend(
-            &|k, b| rmse(&sizes.scaled(train, k / k_mean, b / b_mean)),
-            (k_mean, b_mean),
-            physics.mass,
-            uniform::Pick::Neighbourhood,
-            &bar,
-        )
-        .ok()?;
-        Some(MapDescent {
-            k_mean,
-            b_mean,
-            found,
-        })
-    };
-    let own = descend_map(&sizes);
-    let mut other: Option<(f64, Sizes, MapDescent)> = None;
-    let mut bending_search = Vec::new();
-    if shares && sizes.bending_k(train.topology) > 0.0 {
-        bending_search.extend(own.as_ref().map(|m| (1.0, m.found.rmse)));
-        for factor in BENDING_FACTORS {
-            let scaled = sizes.with_bending(train.topology, factor);
-            let Some(found) = descend_map(&scaled) else {
-                continue;
-            };
-            bending_search.push((factor, found.found.rmse));
-            let to_beat = match (&other, &own) {
-                (Some(o), _) => o.2.found.rmse,
-                (None, Some(m)) => m.found.rmse * (1.0 - BENDING_MARGIN),
-                (None, None) => f64::INFINITY,
-            };
-            if found.found.rmse < to_beat {
-                other = Some((factor, scaled, found));
-            }
-        }
-    }
+    let map = uniform::descend(
+        &|k, b| rmse(&sizes.scaled(train, k / k_mean, b / b_mean)),
+        (k_mean, b_mean),
+        physics.mass,
+        uniform::Pick::Neighbourhood,
+        &bar,
+    )
+    .ok();
     bar.finish();
+    let record = |fk: f64, fb: f64, after: f64, kept_uniform: bool| Polish {
+        substeps: physics.substeps,
+        uniform: (flat.k, flat.b, flat.rmse),
+        before,
+        k_factor: fk,
+        b_factor: fb,
+        after,
+        kept_uniform,
+        search: map.as_ref().map_or(Vec::new(), |m| m.search.clone()),
+        b_search: map.as_ref().map_or(Vec::new(), |m| m.b_search.clone()),
+    };
     // The map's pick where it moves as close as the uniform network; else, where a size and
     // damping of it the descent tried does, the closest of those: the uniform network is kept
     // only where no size of the map moves as close.
-    let finish = |sizes: &Sizes, map: Option<&MapDescent>, bending_factor: f64| {
-        let record = |fk: f64, fb: f64, after: f64, kept_uniform: bool| Polish {
-            substeps: physics.substeps,
-            uniform: (flat.k, flat.b, flat.rmse),
-            before,
-            k_factor: fk,
-            b_factor: fb,
-            after,
-            kept_uniform,
-            search: map.map_or(Vec::new(), |m| m.found.search.clone()),
-            b_search: map.map_or(Vec::new(), |m| m.found.b_search.clone()),
-            bending_factor,
-            bending_search: bending_search.clone(),
-            bending_held_out: None,
-        };
-        let kept = map.and_then(|m| {
-            let d = &m.found;
-            let pick = if d.rmse <= flat.rmse {
-                Some((d.k, d.b, d.rmse))
-            } else {
-                Some(d.lowest).filter(|l| l.2 <= flat.rmse)
-            };
-            pick.map(|(k, b, r)| (k / m.k_mean, b / m.b_mean, r))
-        });
-        match kept {
-            Some((fk, fb, rmse)) => (sizes.scaled(train, fk, fb), record(fk, fb, rmse, false)),
-            None => (
-                SpringNet::uniform(train.topology, flat.k, flat.b, train.device),
-                record(1.0, 1.0, flat.rmse, true),
-            ),
+    let kept = map.as_ref().and_then(|m| {
+        if m.rmse <= flat.rmse {
+            Some((m.k, m.b, m.rmse))
+        } else {
+            Some(m.lowest).filter(|l| l.2 <= flat.rmse)
         }
-    };
-    let (net, record) = finish(&sizes, own.as_ref(), 1.0);
-    Ok(Polished {
-        other_share: other.map(|(factor, sizes, map)| finish(&sizes, Some(&map), factor)),
-        net,
-        record,
+    });
+    Ok(match kept {
+        Some((k, b, rmse)) => {
+            let (fk, fb) = (k / k_mean, b / b_mean);
+            (sizes.scaled(train, fk, fb), record(fk, fb, rmse, false))
+        }
+        None => (
+            SpringNet::uniform(train.topology, flat.k, flat.b, train.device),
+            record(1.0, 1.0, flat.rmse, true),
+        ),
     })
 }
 
-/// A map's sizes descended by [`polish`]: its means and the descent from them.
-struct MapDescent {
-    k_mean: f64,
-    b_mean: f64,
-    found: uniform::Descent,
-}
-
-/// What [`polish`] found: the map polished at its bending springs' share as searched, and at the
-/// share that moved closer where one did.
-pub struct Polished {
-    /// The network at the share searched.
-    pub net: SpringNet,
-    /// Its record.
-    pub record: Polish,
-    /// The network and record at the other share of the bending springs, where one moved
-    /// [`BENDING_MARGIN`] closer: the run keeps it where the held-out takes agree.
-    pub other_share: Option<(SpringNet, Polish)>,
-}
-
 /// A network's per-spring values, read once, for the searches that scale them as a whole.
-#[derive(Clone)]
 struct Sizes<'a> {
     model: &'a SpringNet,
     k: Vec<f64>,
@@ -920,20 +831,6 @@ impl<'a> Sizes<'a> {
             b: model.b_values(),
             kappa: model.curvature_values(),
         }
-    }
-
-    /// The sum of the bending springs' `k` on `topology` (0 where there are none).
-    fn bending_k(&self, topology: &Topology) -> f64 {
-        let mut others = self.k.clone();
-        topology.scale_bending(&mut others, 0.0);
-        self.k.iter().sum::<f64>() - others.iter().sum::<f64>()
-    }
-
-    /// The same values with the bending springs' `k` times `factor`.
-    fn with_bending(&self, topology: &Topology, factor: f64) -> Self {
-        let mut k = self.k.clone();
-        topology.scale_bending(&mut k, factor);
-        Self { k, ..self.clone() }
     }
 
     /// The network with every `k` times `fk` (the curvature elements too: they are
