@@ -229,21 +229,14 @@ fn size_map(
         train::scale::search(&map_network(inputs, map, k, b, share), physics, train_takes)
             .context("the source map's scale search")
     };
-    let mut kept = (1.0, size(1.0)?);
-    let whole = kept.1.2.after;
-    let mut bending = vec![(1.0, whole)];
-    for f in train::scale::BENDING_FACTORS {
+    let whole = size(1.0)?;
+    let shares = eval::uniform::closest_bending_share(whole.2.after, |f| {
         // A share no size keeps stable is not a candidate.
-        let Ok(sized) = size(f) else {
-            continue;
-        };
-        let r = sized.2.after;
-        bending.push((f, r));
-        if r < kept.1.2.after && r < whole * (1.0 - train::scale::BENDING_MARGIN) {
-            kept = (f, sized);
-        }
-    }
-    let (bending_factor, (net, physics, search)) = kept;
+        let sized = size(f).ok()?;
+        Some((sized.2.after, sized))
+    });
+    let (bending_factor, (net, physics, search)) = shares.kept.unwrap_or((1.0, whole));
+    let bending = shares.row;
     Ok(Sized {
         net,
         physics,

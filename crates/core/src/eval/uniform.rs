@@ -253,20 +253,18 @@ fn bending_apart_search(
     // Factor 1 is the yardstick itself; every other factor is sized by the yardstick's own
     // descent from the yardstick's sizes (a network whose bending springs are softer wants its
     // others stiffer).
-    let mut factor_search = vec![(1.0, yardstick)];
-    let (mut factor, mut k, mut b, mut rmse) = (1.0, k_bar, b_bar, yardstick);
-    for f in BENDING_FACTORS {
+    let shares = closest_bending_share(yardstick, |f| {
         let at = |k: f64, b: f64| score(k, b, f);
-        // A factor no size keeps stable is not a candidate.
-        let Ok(d) = descend(&at, (k_bar, b_bar), physics.mass, Pick::Lowest, &bar) else {
-            continue;
-        };
-        factor_search.push((f, d.rmse));
-        if d.rmse < rmse && d.rmse < yardstick * (1.0 - BENDING_MARGIN) {
-            (factor, k, b, rmse) = (f, d.k, d.b, d.rmse);
-        }
-    }
+        let d = descend(&at, (k_bar, b_bar), physics.mass, Pick::Lowest, &bar).ok()?;
+        Some((d.rmse, d))
+    });
     bar.finish();
+    let factor_search = shares.row;
+    let (factor, k, b, rmse) = shares
+        .kept
+        .map_or((1.0, k_bar, b_bar, yardstick), |(f, d)| {
+            (f, d.k, d.b, d.rmse)
+        });
     let test = test_figures(&network(k, b, factor), physics, tests, eval_config)?;
     Ok(BendingApart {
         bending_factor: factor,
@@ -278,6 +276,40 @@ fn bending_apart_search(
         improvement_short: 1.0 - trained.short.mean / test.short.mean,
         test,
     })
+}
+
+/// A row of the bending springs' shares ([`closest_bending_share`]).
+pub struct BendingShares<T> {
+    /// `(factor, mean motion RMSE on the training takes)` of every share sized, share 1 first.
+    pub row: Vec<(f64, f64)>,
+    /// The share kept and what sizing it found; `None`: share 1.
+    pub kept: Option<(f64, T)>,
+}
+
+/// Each of [`BENDING_FACTORS`] sized by `size` (its mean motion RMSE on the training takes and
+/// what it found; `None` where no size keeps it stable: not a candidate), beside share 1, which
+/// moved `own`; the closest is kept where it moves [`BENDING_MARGIN`] closer than share 1. The
+/// rule of the bending-apart yardstick and of `diagnose`'s source map.
+pub fn closest_bending_share<T>(
+    own: f64,
+    mut size: impl FnMut(f64) -> Option<(f64, T)>,
+) -> BendingShares<T> {
+    let mut row = vec![(1.0, own)];
+    let mut kept: Option<(f64, f64, T)> = None;
+    for f in BENDING_FACTORS {
+        let Some((r, found)) = size(f) else {
+            continue;
+        };
+        row.push((f, r));
+        let closest = kept.as_ref().map_or(own, |k| k.1);
+        if r < closest && r < own * (1.0 - BENDING_MARGIN) {
+            kept = Some((f, r, found));
+        }
+    }
+    BendingShares {
+        row,
+        kept: kept.map(|(f, _, found)| (f, found)),
+    }
 }
 
 /// How a [`descend`] picks the best of a row of `(value, RMSE)` candidates.
