@@ -1703,6 +1703,23 @@ fn parse_indices(spec: &str, n: usize) -> Result<Vec<usize>> {
     Ok(out)
 }
 
+/// A yardstick's test figures and the trained network's gains over it, for `eval`'s lines.
+fn against_yardstick(
+    test: &eval::MotionRmse,
+    improvement_long: f64,
+    improvement_short: f64,
+) -> String {
+    format!(
+        "test motion RMSE {:.4e} m (short horizon {:.4e}, long {:.4e}); training improves on it \
+         by {:.1} % (long) and {:.1} % (short)",
+        test.mean,
+        test.short.mean,
+        test.long.mean,
+        100.0 * improvement_long,
+        100.0 * improvement_short
+    )
+}
+
 fn print_eval(r: &EvalReport) {
     let m = &r.motion_rmse;
     if let (Some(k), Some(b)) = (r.rmse_k, r.rmse_b) {
@@ -1736,31 +1753,20 @@ fn print_eval(r: &EvalReport) {
     }
     if let Some(u) = &r.uniform_baseline {
         println!(
-            "best uniform network: k {:.4} N/m, b {:.4e} N·s/m (searched on {} training rollouts): test \
-             motion RMSE {:.4e} m (short horizon {:.4e}, long {:.4e}); training improves on it \
-             by {:.1} % (long) and {:.1} % (short)",
+            "best uniform network: k {:.4} N/m, b {:.4e} N·s/m (searched on {} training rollouts): {}",
             u.k,
             u.b,
             u.search_rollouts,
-            u.test.mean,
-            u.test.short.mean,
-            u.test.long.mean,
-            100.0 * u.improvement_long,
-            100.0 * u.improvement_short
+            against_yardstick(&u.test, u.improvement_long, u.improvement_short)
         );
         if let Some(t) = &u.bending_apart {
             println!(
-                "best bending-apart network (uniform, the bending springs' k × {:.4} of the others'): k {:.4} \
-                 N/m, b {:.4e} N·s/m: test motion RMSE {:.4e} m (short horizon {:.4e}, long \
-                 {:.4e}); training improves on it by {:.1} % (long) and {:.1} % (short)",
+                "best bending-apart network (uniform, the bending springs' k × {:.4} of the \
+                 others'): k {:.4} N/m, b {:.4e} N·s/m: {}",
                 t.bending_factor,
                 t.k,
                 t.b,
-                t.test.mean,
-                t.test.short.mean,
-                t.test.long.mean,
-                100.0 * t.improvement_long,
-                100.0 * t.improvement_short
+                against_yardstick(&t.test, t.improvement_long, t.improvement_short)
             );
         }
     }
