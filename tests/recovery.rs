@@ -330,6 +330,16 @@ fn blend_run_with(
     (summary.run_dir, record)
 }
 
+/// The uniform yardstick's mean motion RMSE on its training takes: the lowest of every candidate
+/// its search lists.
+fn yardstick_rmse(u: &springtime::eval::uniform::UniformBaseline) -> f64 {
+    u.search
+        .iter()
+        .chain(&u.b_search)
+        .map(|c| c.1)
+        .fold(f64::INFINITY, f64::min)
+}
+
 /// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
 /// others: takes of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a
 /// sixteenth of that, learned from a uniform network over every spring by no fit at all.
@@ -401,12 +411,7 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
     assert!(apart.improvement_long < 0.0, "{apart:?}");
     // Its factor 1 is the uniform yardstick itself: it moves as the yardstick did on the
     // training takes.
-    let yardstick = uniform
-        .search
-        .iter()
-        .chain(&uniform.b_search)
-        .map(|c| c.1)
-        .fold(f64::INFINITY, f64::min);
+    let yardstick = yardstick_rmse(&uniform);
     assert_eq!(
         apart.factor_search.first(),
         Some(&(1.0, yardstick)),
@@ -486,12 +491,7 @@ fn the_polish_measures_the_kept_network_against_the_yardstick() {
     );
     assert_eq!(polish["uniform"][0].as_f64(), Some(baseline.k), "{polish}");
     assert_eq!(polish["uniform"][1].as_f64(), Some(baseline.b), "{polish}");
-    let yardstick = baseline
-        .search
-        .iter()
-        .chain(&baseline.b_search)
-        .map(|c| c.1)
-        .fold(f64::INFINITY, f64::min);
+    let yardstick = yardstick_rmse(&baseline);
     assert_eq!(polish["uniform"][2].as_f64(), Some(yardstick), "{polish}");
     let after = polish["after"].as_f64().unwrap();
     assert!(
