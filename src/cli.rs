@@ -1769,6 +1769,21 @@ fn print_eval(r: &EvalReport) {
                 against_yardstick(&t.test, t.improvement_long, t.improvement_short)
             );
         }
+        if let Some(o) = &u.own_damping {
+            println!(
+                "best uniform network with its own damping ({}: drag {:.4e} N·s/m, viscosity \
+                 {:.3e} s · k): k {:.4} N/m, b {:.4e} N·s/m, {:.4e} m on the training rollouts \
+                 against the uniform network's {:.4e} m: {}",
+                o.found_by,
+                o.rayleigh,
+                o.viscosity,
+                o.k,
+                o.b,
+                o.train_rmse,
+                o.yardstick_train_rmse,
+                against_yardstick(&o.test, o.improvement_long, o.improvement_short)
+            );
+        }
     }
     if let Some(v) = &r.validation {
         println!("validation (`data.holdout`): {}", v.summary());

@@ -330,6 +330,21 @@ fn blend_run_with(
     (summary.run_dir, record)
 }
 
+/// A run of the uniform network of `dir`'s takes' source (50 N/m, 6 N·s/m), untrained, with the
+/// uniform yardstick asked for: its directory.
+fn uniform_run(dir: &std::path::Path) -> std::path::PathBuf {
+    let text = "name = \"uniform\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 50\n\
+                b_init = 6\n[data]\nholdout = 0\n[train.stiffness]\niterations = 0\n\
+                [train.damping]\niterations = 0\n[eval]\nuniform_baseline = true\n";
+    let mut config = Config::parse(text, &[]).unwrap();
+    config.data.dir = dir.join("train");
+    config.data.test_dir = Some(dir.join("test"));
+    config.runs_dir = dir.join("runs");
+    train(&config, &TrainOptions::default(), &Progress::quiet())
+        .unwrap()
+        .run_dir
+}
+
 /// The uniform yardstick's mean motion RMSE on its training takes: the lowest of every candidate
 /// its search lists.
 fn yardstick_rmse(u: &springtime::eval::uniform::UniformBaseline) -> f64 {
@@ -373,16 +388,8 @@ fn the_blend_search_finds_the_bending_springs_share() {
 fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
     let dir = common::temp_dir("bending-apart");
     spring_cloth_takes(&dir, 1.0 / 16.0, true);
-    let text = "name = \"uniform\"\n[cloth]\nnx = 8\nny = 8\n[model]\nk_init = 50\n\
-                b_init = 6\n[data]\nholdout = 0\n[train.stiffness]\niterations = 0\n\
-                [train.damping]\niterations = 0\n[eval]\nuniform_baseline = true\n";
-    let mut config = Config::parse(text, &[]).unwrap();
-    config.data.dir = dir.join("train");
-    config.data.test_dir = Some(dir.join("test"));
-    config.runs_dir = dir.join("runs");
-    let summary = train(&config, &TrainOptions::default(), &Progress::quiet()).unwrap();
-    let report =
-        springtime::run::evaluate(&summary.run_dir, None, None, &[], &Progress::quiet()).unwrap();
+    let run_dir = uniform_run(&dir);
+    let report = springtime::run::evaluate(&run_dir, None, None, &[], &Progress::quiet()).unwrap();
     let uniform = report.uniform_baseline.expect("asked for");
     let apart = uniform
         .bending_apart
@@ -417,6 +424,69 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
         Some(&(1.0, yardstick)),
         "{apart:?}"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The uniform yardstick with its own damping (`uniform_baseline.own_damping`) finds the drag
+/// the run's physics misses: on takes of a uniform spring cloth whose files do not state their
+/// drag, a run evaluated at eight times the source's drag searches the yardstick there (it is
+/// the run's kept physics), while the own-damping yardstick's drag row comes back to the
+/// source's drag within a factor of 2, at the source's stiffness within a factor of 2, and moves
+/// closer than the yardstick on the training takes and on the test takes.
+#[test]
+fn the_uniform_yardstick_with_its_own_damping_finds_the_drag_the_run_misses() {
+    let dir = common::temp_dir("own-damping");
+    let source = spring_cloth_takes(&dir, 1.0, false);
+    let run_dir = uniform_run(&dir);
+    let wrong = 8.0 * source.rayleigh;
+    let report = springtime::run::evaluate(
+        &run_dir,
+        None,
+        None,
+        &[format!("sim.rayleigh={wrong}")],
+        &Progress::quiet(),
+    )
+    .unwrap();
+    let uniform = report.uniform_baseline.expect("asked for");
+    let own = uniform.own_damping.as_ref().expect("eval searches it");
+    eprintln!(
+        "source drag {}, run's {wrong}: yardstick k {} b {} ({} m train, {} m test); own \
+         damping ({}) drag {} k {} b {} ({} m train, {} m test); drag row {:?}",
+        source.rayleigh,
+        uniform.k,
+        uniform.b,
+        yardstick_rmse(&uniform),
+        uniform.test.long.mean,
+        own.found_by,
+        own.rayleigh,
+        own.k,
+        own.b,
+        own.train_rmse,
+        own.test.long.mean,
+        own.drag_row
+    );
+    // It starts from the yardstick at the run's physics, as the yardstick moved there.
+    let own_text = format!(
+        "{} drag {} k {} b {}",
+        own.found_by, own.rayleigh, own.k, own.b
+    );
+    assert_eq!(
+        own.yardstick_train_rmse,
+        yardstick_rmse(&uniform),
+        "{own_text}"
+    );
+    assert_eq!(own.found_by, "drag", "{own_text}");
+    let ratio = own.rayleigh / source.rayleigh;
+    assert!(
+        (0.5..=2.0).contains(&ratio),
+        "drag {}: {own_text}",
+        own.rayleigh
+    );
+    assert!((25.0..=100.0).contains(&own.k), "k {}: {own_text}", own.k);
+    assert!(own.drag_row.len() >= 8, "{own_text}");
+    assert!(own.train_rmse < own.yardstick_train_rmse, "{own_text}");
+    assert!(own.test.long.mean < uniform.test.long.mean, "{own_text}");
+    assert!(own.test.short.mean < uniform.test.short.mean, "{own_text}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -7,8 +7,8 @@ One command generates (once) takes from every simulator of the bench, trains
 set's training takes, evaluates it on the held-out test takes beside the best uniform network
 (`eval.uniform_baseline`), and prints the table: motion RMSE of the trained surrogate and of the
 best uniform network at the short horizon (0.8 s) and over the whole take, the gain, the
-gain over the best bending-apart network (uniform, its bending springs sized apart), the
-Spearman correlation of the learned structural `k` with the source's stiffness map, the
+gain over the best bending-apart network (uniform, its bending springs sized apart), the gain
+over the best uniform network with its own drag and viscosity, the Spearman correlation of the learned structural `k` with the source's stiffness map, the
 surrogate's substeps and the training's wall time.
 
     python3 benches/foreign/run.py                      # every simulator, soft and stiff
@@ -249,20 +249,26 @@ def train(sim, material, data: Path, a):
         "validation_wins": (ev.get("validation") or {}).get("wins"),
         "source": {k: source.get(k) for k in ("simulator", "version", "material") if k in source},
     })
-    apart = u.get("bending_apart")
-    if apart:
-        # The same network with its bending springs sized apart: what the map's spatial
-        # variation wins beyond the bending springs' share.
-        row.update({
-            "bending_apart_factor": apart["bending_factor"],
-            "bending_apart_short": apart["test"]["short"]["mean"],
-            "bending_apart_long": apart["test"]["long"]["mean"],
-            "gain_bending_apart_short": apart["improvement_short"],
-            "gain_bending_apart_long": apart["improvement_long"],
-        })
+    # The same network with its bending springs sized apart: what the map's spatial variation
+    # wins beyond the bending springs' share.
+    row.update(yardstick_figures(u.get("bending_apart"), "bending_apart", "bending_factor", "factor"))
+    # The uniform network with its own drag and viscosity: the yardstick above runs at the run's
+    # kept physics, chosen for the map.
+    row.update(yardstick_figures(u.get("own_damping"), "own_damping", "found_by", "found_by"))
     if a.source_map:
         row.update(source_map(run, a))
     return row
+
+
+def yardstick_figures(y, name, what, label):
+    """A second yardstick's row entries (`uniform_baseline.<name>`): its test RMSE, the trained
+    network's gains over it, and `what` it found (as `<name>_<label>`); none where eval.json has
+    none."""
+    if not y:
+        return {}
+    return {f"{name}_{label}": y[what],
+            f"{name}_short": y["test"]["short"]["mean"], f"{name}_long": y["test"]["long"]["mean"],
+            f"gain_{name}_short": y["improvement_short"], f"gain_{name}_long": y["improvement_long"]}
 
 
 def source_map(run: Path, a):
@@ -292,12 +298,13 @@ def table(rows, a):
                                    (f" source ±{100 * (a.spread or 0):g} %: short / whole take (m) |", a.spread))
              if on]
     head = ("| data | trained: short / whole take (m) | best uniform (m) | gain short / long | "
-            "over bending-apart short / long | Spearman | substeps | wall |" + "".join(extra)
-            + "\n|---|---|---|---|---|---|---|---|" + "---|" * len(extra) + "\n")
+            "over bending-apart short / long | over uniform, own damping | Spearman | substeps | "
+            "wall |" + "".join(extra)
+            + "\n|---|---|---|---|---|---|---|---|---|" + "---|" * len(extra) + "\n")
     lines = []
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | | {r['wall_s']:.0f} s |"
+            lines.append(f"| {r['data']} | failed: {r['error']} | | | | | | | {r['wall_s']:.0f} s |"
                          + " |" * len(extra))
             continue
         sp = "—" if r["spearman"] is None else f"{r['spearman']:.2f}"
@@ -307,7 +314,7 @@ def table(rows, a):
             f"| {r['data']} | {r['trained_short']:.3f} / {r['trained_long']:.3f} | "
             f"k {r['uniform_k']:.4g}: {r['uniform_short']:.3f} / {r['uniform_long']:.3f} | "
             f"{100 * r['gain_short']:+.1f} % / {100 * r['gain_long']:+.1f} % | {bending_apart_cell(r)} | "
-            f"{sp} | "
+            f"{own_damping_cell(r)} | {sp} | "
             f"{r['substeps']} | {r['wall_s']:.0f} s |" + (cell(r) if a.source_map else "")
             + (spread_cell(r) if a.spread else ""))
     return head + "\n".join(lines) + "\n"
@@ -319,6 +326,15 @@ def bending_apart_cell(r):
         return "—"
     return (f"{100 * r['gain_bending_apart_short']:+.1f} % / {100 * r['gain_bending_apart_long']:+.1f} % "
             f"(× {r['bending_apart_factor']:g})")
+
+
+def own_damping_cell(r):
+    """The gains over the uniform network with its own damping (`uniform_baseline.own_damping`),
+    with the search that found it."""
+    if "gain_own_damping_short" not in r:
+        return "—"
+    return (f"{100 * r['gain_own_damping_short']:+.1f} % / {100 * r['gain_own_damping_long']:+.1f} % "
+            f"({r['own_damping_found_by']})")
 
 
 def spread_cell(r):

@@ -21,7 +21,7 @@ use crate::sim::Physics;
 /// Candidates are `k₀ · 2^(i/2)` for `i` in `−SPAN..=SPAN`, then `2^(±1/4)` around the best.
 const SPAN: i32 = 6;
 /// Training rollouts the search simulates (the first ones of the split).
-const SEARCH_ROLLOUTS: usize = 8;
+pub(crate) const SEARCH_ROLLOUTS: usize = 8;
 /// Damping candidates as fractions of a spring's critical damping `√(2 k m)`.
 pub(crate) const DAMPING_RATIOS: [f64; 7] = [0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0];
 /// Factors of the bending springs' `k` over the others' tried at the best share (1 is the
@@ -94,6 +94,46 @@ pub struct UniformBaseline {
     /// the bending springs ([`BendingApart`]; `eval` only, where the network has bending springs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bending_apart: Option<BendingApart>,
+    /// The best uniform network with its own drag and viscosity beside it ([`OwnDamping`];
+    /// `eval` only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub own_damping: Option<OwnDamping>,
+}
+
+/// `eval.json`'s `uniform_baseline.own_damping`: the best uniform network where it also chooses
+/// its own damping, as the recipe chooses the map's. The uniform yardstick above is searched at
+/// the run's kept physics: the drag (`sim.rayleigh`) and viscosity (`sim.viscosity`) the run chose
+/// for its map, which may move a uniform network farther than one of its own would. This one is
+/// searched as the recipe searches the map's (a drag row where the files state no drag, the
+/// uniform network's sizes at the closest drag, then an isotropic viscosity on each spring with
+/// the drag at zero, or beside the stated one) and the closest of those and the yardstick itself
+/// on the training takes is kept: the uniform network a user could have had, damped its own way.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OwnDamping {
+    /// Its drag, N·s/m per particle.
+    pub rayleigh: f64,
+    /// Its viscosity `β` on each spring, s.
+    pub viscosity: f64,
+    /// Its stiffness, N/m.
+    pub k: f64,
+    /// Its damping, N·s/m.
+    pub b: f64,
+    /// Which search found it: `"run's physics"` (the yardstick itself), `"drag"` (`"no
+    /// viscosity"` where the files state the drag) or `"viscosity"`.
+    pub found_by: String,
+    /// `(drag, mean motion RMSE on the training takes)` of the yardstick's network at each drag of
+    /// the rows, without viscosity, sorted by drag; empty where the files state the drag.
+    pub drag_row: Vec<(f64, f64)>,
+    /// Its mean motion RMSE on the training takes, m.
+    pub train_rmse: f64,
+    /// The yardstick's mean motion RMSE on the same training takes, m.
+    pub yardstick_train_rmse: f64,
+    /// It on the test rollouts.
+    pub test: MotionRmse,
+    /// `1 − trained / own-damping` of the long-horizon test RMSE (positive: training helps).
+    pub improvement_long: f64,
+    /// The same for the short horizon.
+    pub improvement_short: f64,
 }
 
 /// `eval.json`'s `uniform_baseline.bending_apart`: the best network whose structural and shear
@@ -194,12 +234,13 @@ pub fn search(
         search_rollouts: train.len(),
         test,
         bending_apart,
+        own_damping: None,
     })
 }
 
 /// A yardstick's network `model` on the test rollouts `tests`, as `eval` measures the trained
 /// one.
-fn test_figures(
+pub(crate) fn test_figures(
     model: &SpringNet,
     physics: &Physics,
     tests: &eval::Takes,

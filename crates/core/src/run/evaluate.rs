@@ -49,18 +49,33 @@ pub fn evaluate(
         _ => (None, None, None),
     };
     let uniform_baseline = match &loaded.model {
-        Trained::Springs(_) if config.eval.uniform_baseline => Some(eval::uniform::search(
-            topo,
-            &physics,
-            config.model.uniform_start(),
-            &split.train,
-            &files,
-            &motion,
-            &config.eval,
-            true,
-            device,
-            progress,
-        )?),
+        Trained::Springs(_) if config.eval.uniform_baseline => {
+            let mut yardstick = eval::uniform::search(
+                topo,
+                &physics,
+                config.model.uniform_start(),
+                &split.train,
+                &files,
+                &motion,
+                &config.eval,
+                true,
+                device,
+                progress,
+            )?;
+            let ground = super::yardstick::Ground {
+                topology: topo,
+                physics: &physics,
+                train: &split.train,
+                test: &files,
+                stated_drag: first.rayleigh.is_some(),
+                eval: &config.eval,
+                device,
+                progress,
+            };
+            yardstick.own_damping =
+                Some(super::yardstick::own_damping(&ground, &yardstick, &motion)?);
+            Some(yardstick)
+        }
         _ => None,
     };
     let report = EvalReport {

@@ -5,6 +5,7 @@
 
 mod evaluate;
 pub mod surrogate;
+mod yardstick;
 
 use crate::settings::Job;
 use std::path::{Path, PathBuf};
