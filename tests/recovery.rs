@@ -345,16 +345,6 @@ fn uniform_run(dir: &std::path::Path) -> std::path::PathBuf {
         .run_dir
 }
 
-/// The uniform yardstick's mean motion RMSE on its training takes: the lowest of every candidate
-/// its search lists.
-fn yardstick_rmse(u: &springtime::eval::uniform::UniformBaseline) -> f64 {
-    u.search
-        .iter()
-        .chain(&u.b_search)
-        .map(|c| c.1)
-        .fold(f64::INFINITY, f64::min)
-}
-
 /// The blend search's bending stage recovers how stiff a cloth's bending springs are beside its
 /// others: takes of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a
 /// sixteenth of that, learned from a uniform network over every spring by no fit at all.
@@ -418,7 +408,7 @@ fn the_bending_apart_yardstick_finds_the_bending_springs_share() {
     assert!(apart.improvement_long < 0.0, "{apart:?}");
     // Its factor 1 is the uniform yardstick itself: it moves as the yardstick did on the
     // training takes.
-    let yardstick = yardstick_rmse(&uniform);
+    let yardstick = uniform.train_rmse();
     assert_eq!(
         apart.factor_search.first(),
         Some(&(1.0, yardstick)),
@@ -455,7 +445,7 @@ fn the_uniform_yardstick_with_its_own_damping_finds_the_drag_the_run_misses() {
         source.rayleigh,
         uniform.k,
         uniform.b,
-        yardstick_rmse(&uniform),
+        uniform.train_rmse(),
         uniform.test.long.mean,
         own.found_by,
         own.rayleigh,
@@ -470,11 +460,7 @@ fn the_uniform_yardstick_with_its_own_damping_finds_the_drag_the_run_misses() {
         "{} drag {} k {} b {}",
         own.found_by, own.rayleigh, own.k, own.b
     );
-    assert_eq!(
-        own.yardstick_train_rmse,
-        yardstick_rmse(&uniform),
-        "{own_text}"
-    );
+    assert_eq!(own.yardstick_train_rmse, uniform.train_rmse(), "{own_text}");
     assert_eq!(own.found_by, "drag", "{own_text}");
     let ratio = own.rayleigh / source.rayleigh;
     assert!(
@@ -561,7 +547,7 @@ fn the_polish_measures_the_kept_network_against_the_yardstick() {
     );
     assert_eq!(polish["uniform"][0].as_f64(), Some(baseline.k), "{polish}");
     assert_eq!(polish["uniform"][1].as_f64(), Some(baseline.b), "{polish}");
-    let yardstick = yardstick_rmse(&baseline);
+    let yardstick = baseline.train_rmse();
     assert_eq!(polish["uniform"][2].as_f64(), Some(yardstick), "{polish}");
     let after = polish["after"].as_f64().unwrap();
     assert!(

@@ -100,6 +100,18 @@ pub struct UniformBaseline {
     pub own_damping: Option<OwnDamping>,
 }
 
+impl UniformBaseline {
+    /// Its mean motion RMSE on the training rollouts it was searched on: the lowest of the
+    /// candidates its search lists, its pick.
+    pub fn train_rmse(&self) -> f64 {
+        self.search
+            .iter()
+            .chain(&self.b_search)
+            .map(|c| c.1)
+            .fold(f64::INFINITY, f64::min)
+    }
+}
+
 /// `eval.json`'s `uniform_baseline.own_damping`: the best uniform network where it also chooses
 /// its own damping, as the recipe chooses the map's. The uniform yardstick above is searched at
 /// the run's kept physics: the drag (`sim.rayleigh`) and viscosity (`sim.viscosity`) the run chose

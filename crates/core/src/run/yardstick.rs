@@ -6,7 +6,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Result, anyhow};
+use anyhow::Result;
 use burn::tensor::Device;
 
 use crate::cloth::Topology;
@@ -43,7 +43,8 @@ pub(super) struct Ground<'a> {
 /// - where the files state no drag, the yardstick's network at each drag of the recipe's row
 ///   without viscosity (and of the row around its closest, where that is another drag), and its
 ///   sizes searched again at the closest (`"drag"`; where the files
-///   state the drag, at it without viscosity: `"no viscosity"`);
+///   state the drag, at it without viscosity: `"no viscosity"`), unless that is the run's
+///   physics, where the yardstick is those sizes;
 /// - that network with an isotropic viscosity on each spring, the drag at zero or the stated one
 ///   (`"viscosity"`: the recipe's row of `β`, then `k` around it).
 ///
@@ -66,9 +67,7 @@ pub(super) fn own_damping(
     let network = |k: f64, b: f64| SpringNet::uniform(ground.topology, k, b, ground.device);
     let run = *ground.physics;
     let (k_bar, b_bar) = (yardstick.k, yardstick.b);
-    let own = uniform::rollout_rmse(&run, k_bar, b_bar, &takes).ok_or_else(|| {
-        anyhow!("the uniform yardstick k {k_bar} N/m, b {b_bar} N·s/m is unstable on its own takes")
-    })?;
+    let own = yardstick.train_rmse();
     // (network, physics, training RMSE, found by)
     let mut candidates: Vec<(SpringNet, Physics, f64, &str)> =
         vec![(network(k_bar, b_bar), run, own, "run's physics")];
@@ -88,7 +87,8 @@ pub(super) fn own_damping(
                 .min_by(|a, b| a.1.total_cmp(&b.1))
                 .unwrap_or((run.rayleigh, own))
         };
-        let mut row = scale::drag_row(&yardstick_net, &no_viscosity, None, &takes);
+        let known = (no_viscosity == run).then_some(own);
+        let mut row = scale::drag_row(&yardstick_net, &no_viscosity, known, &takes);
         let first = closest(&row);
         if first.0 != run.rayleigh && first.0 > 0.0 {
             let around = Physics {
@@ -113,29 +113,36 @@ pub(super) fn own_damping(
             },
         )
     };
-    let bar = ground
-        .progress
-        .bar(DESCENT_CANDIDATES, "own-damping search");
-    let score = |k: f64, b: f64| uniform::rollout_rmse(&at_drag, k, b, &takes);
-    let found = uniform::descend(&score, (k_bar, b_bar), run.mass, Pick::Lowest, &bar);
-    bar.finish();
-    if let Ok(d) = found {
-        let net = network(d.k, d.b);
-        if let Some((with, at, record)) = scale::proportional_damping(
-            &net,
-            &at_drag,
-            &takes,
-            Proportional::Viscosity,
-            ground.stated_drag,
-        ) {
-            candidates.push((with, at, record.after, "viscosity"));
-        }
+    // The uniform network's sizes at that physics: the yardstick's own where it is the run's.
+    let sized = if at_drag == run {
+        Some((k_bar, b_bar))
+    } else {
+        let bar = ground
+            .progress
+            .bar(DESCENT_CANDIDATES, "own-damping search");
+        let score = |k: f64, b: f64| uniform::rollout_rmse(&at_drag, k, b, &takes);
+        let found = uniform::descend(&score, (k_bar, b_bar), run.mass, Pick::Lowest, &bar);
+        bar.finish();
         let name = if ground.stated_drag {
             "no viscosity"
         } else {
             "drag"
         };
-        candidates.push((net, at_drag, d.rmse, name));
+        found.ok().map(|d| {
+            candidates.push((network(d.k, d.b), at_drag, d.rmse, name));
+            (d.k, d.b)
+        })
+    };
+    if let Some((k, b)) = sized
+        && let Some((with, at, record)) = scale::proportional_damping(
+            &network(k, b),
+            &at_drag,
+            &takes,
+            Proportional::Viscosity,
+            ground.stated_drag,
+        )
+    {
+        candidates.push((with, at, record.after, "viscosity"));
     }
     let (net, physics, train_rmse, found_by) = candidates
         .into_iter()
