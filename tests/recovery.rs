@@ -763,6 +763,7 @@ fn the_run_searches_a_drag_the_data_does_not_state() {
         device: &run.device,
         progress: &progress,
         cache: None,
+        objective: springtime::eval::Objective::WholeTake,
     };
     let row = springtime::train::scale::drag_row(run.springs().unwrap(), &physics, None, &takes);
     let found = row

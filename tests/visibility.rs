@@ -66,6 +66,7 @@ fn uniform_curves(
         device: &device,
         progress: &Progress::quiet(),
         cache: None,
+        objective: eval::Objective::WholeTake,
     };
     eval::motion_curves(&model, &physics, &takes)
         .unwrap()

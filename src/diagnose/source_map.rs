@@ -98,6 +98,7 @@ pub fn source_map(
         device: &inputs.device,
         progress,
         cache: Some(&cache),
+        objective: eval::Objective::WholeTake,
     };
     let Sized {
         net: sized,
@@ -132,6 +133,7 @@ pub fn source_map(
         &test_files,
         &mapped,
         eval_config,
+        eval::Objective::WholeTake,
         true,
         &inputs.device,
         progress,

@@ -368,6 +368,7 @@ fn simulate_curves(inputs: &Inputs, progress: &Progress) -> Result<Vec<Curve>> {
             device: &inputs.device,
             progress,
             cache: None,
+            objective: eval::Objective::WholeTake,
         },
     )
     .map(|m| m.curves)

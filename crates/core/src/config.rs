@@ -176,6 +176,17 @@ impl Config {
         out.map_or_else(|| self.runs_dir.join(&self.name), Path::to_path_buf)
     }
 
+    /// How `train`'s searches score a network by its free rollouts (`train.search_objective`,
+    /// its short horizon `eval.short_seconds`).
+    pub fn search_objective(&self) -> crate::eval::Objective {
+        match self.train.search_objective {
+            crate::train::SearchObjective::WholeTake => crate::eval::Objective::WholeTake,
+            crate::train::SearchObjective::BothHorizons => crate::eval::Objective::BothHorizons {
+                short_seconds: self.eval.short_seconds,
+            },
+        }
+    }
+
     /// The config as TOML text.
     pub fn to_toml(&self) -> String {
         toml::to_string_pretty(self).expect("config serializes")

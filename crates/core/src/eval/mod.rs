@@ -257,9 +257,38 @@ pub fn frame_rmse(x: &[f32], target: &[f32]) -> f64 {
     (sum / (x.len() / 3).max(1) as f64).sqrt()
 }
 
+/// How a search scores a network by its free rollouts of [`Takes`] (lower is closer).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Objective {
+    /// The mean motion RMSE over every frame of the takes: the long horizon over the whole
+    /// take, as the uniform yardstick is searched.
+    WholeTake,
+    /// The geometric mean of the mean motion RMSE up to `short_seconds` and over the whole
+    /// takes: both of `eval`'s horizons weigh alike, so the late frames, where a cloth's
+    /// motion parts from any model's by chaos, do not alone decide (`train.search_objective =
+    /// "both_horizons"`).
+    BothHorizons {
+        /// The short horizon, s (`eval.short_seconds`).
+        short_seconds: f64,
+    },
+}
+
+impl Objective {
+    /// The score of the motion curves `curves` (frames `frame_dt` apart).
+    pub fn score(self, curves: &[Curve], frame_dt: f64) -> f64 {
+        match self {
+            Objective::WholeTake => summarize(curves, frame_dt, 0.0, 0.0).mean,
+            Objective::BothHorizons { short_seconds } => {
+                let s = summarize(curves, frame_dt, short_seconds, 0.0);
+                (s.short.mean * s.mean).sqrt()
+            }
+        }
+    }
+}
+
 /// Rollouts of the data to simulate from their own starts: the files, read onto `topology`,
 /// simulated `batch` at a time on `device` (the motion curves, the searches over free
-/// rollouts).
+/// rollouts, which score them by `objective`).
 #[derive(Clone, Copy)]
 pub struct Takes<'a> {
     /// The surrogate's particles and springs the files are read onto.
@@ -275,6 +304,8 @@ pub struct Takes<'a> {
     /// Where the rollouts read are kept for the evaluations after (a search's); `None`: read
     /// anew by each.
     pub cache: Option<&'a TrackCache>,
+    /// How a search over free rollouts of these takes scores a network.
+    pub objective: Objective,
 }
 
 impl Takes<'_> {
@@ -1178,6 +1209,33 @@ mod tests {
     use super::*;
     use crate::cloth::GridSpec;
     use crate::source::{Diagonal, fem::grid_triangles};
+
+    #[test]
+    fn the_both_horizons_objective_weighs_the_early_frames_the_whole_take_drowns() {
+        // Two networks' curves over a 2 s take: `early` is close for the first 0.8 s and far
+        // after (the late frames parting by chaos), `late` is farther early, a little closer late.
+        let curve = |first: f64, rest: f64| -> Vec<Curve> {
+            vec![
+                (1..=20)
+                    .map(|j| (j as f64 * 0.1, if j <= 8 { first } else { rest }))
+                    .collect(),
+            ]
+        };
+        let (early, late) = (curve(0.1, 0.5), curve(0.2, 0.45));
+        let whole = Objective::WholeTake;
+        let both = Objective::BothHorizons { short_seconds: 0.8 };
+        // The whole take: (8·0.1 + 12·0.5) / 20 = 0.34 against (8·0.2 + 12·0.45) / 20 = 0.35.
+        assert!((whole.score(&early, 0.1) - 0.34).abs() < 1e-12);
+        assert!((whole.score(&late, 0.1) - 0.35).abs() < 1e-12);
+        // Both horizons: √(0.1 · 0.34) against √(0.2 · 0.35).
+        assert!((both.score(&early, 0.1) - (0.1f64 * 0.34).sqrt()).abs() < 1e-12);
+        assert!((both.score(&late, 0.1) - (0.2f64 * 0.35).sqrt()).abs() < 1e-12);
+        // Where the two horizons agree, so do the objectives; here the late frames' small edge
+        // does not outweigh twice the error up to 0.8 s.
+        let nearly_early = curve(0.1, 0.52);
+        assert!(whole.score(&nearly_early, 0.1) > whole.score(&late, 0.1));
+        assert!(both.score(&nearly_early, 0.1) < both.score(&late, 0.1));
+    }
 
     #[test]
     fn motion_rmse_stores_horizons_with_their_seconds_and_reads_old_files() {

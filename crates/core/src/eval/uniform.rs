@@ -32,14 +32,15 @@ pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
 /// the training takes: a share chosen on less is chosen by chance.
 pub const BENDING_MARGIN: f64 = 0.01;
 
-/// Mean motion RMSE of free rollouts of the uniform network `(k, b)` on `takes` (`None` when it
+/// The score of free rollouts of the uniform network `(k, b)` on `takes` (`takes.objective`, the
+/// mean motion RMSE over the whole takes for the yardsticks; `None` when it
 /// is unstable at `physics`' step or a rollout diverges).
 pub(crate) fn rollout_rmse(physics: &Physics, k: f64, b: f64, takes: &eval::Takes) -> Option<f64> {
     let model = SpringNet::uniform(takes.topology, k, b, takes.device);
     network_rollout_rmse(&model, physics, takes)
 }
 
-/// Mean motion RMSE of free rollouts of the spring network `model` on `takes` (`None` when it is
+/// The score of free rollouts of the spring network `model` on `takes` (`takes.objective`; `None` when it is
 /// unstable at `physics`' step or a rollout diverges). Quiet: `takes.progress` is not used.
 pub(crate) fn network_rollout_rmse(
     model: &SpringNet,
@@ -65,8 +66,8 @@ pub(crate) fn stable_rollout_rmse(
         ..*takes
     };
     let curves = eval::motion_curves(model, physics, &takes).ok()?;
-    let mean = eval::summarize(&curves.curves, physics.frame_dt, 0.0, 0.0).mean;
-    mean.is_finite().then_some(mean)
+    let score = takes.objective.score(&curves.curves, physics.frame_dt);
+    score.is_finite().then_some(score)
 }
 
 /// `eval.json`'s `uniform_baseline`.
@@ -76,10 +77,11 @@ pub struct UniformBaseline {
     pub k: f64,
     /// The best uniform damping on the training rollouts, N·s/m.
     pub b: f64,
-    /// `(k, mean motion RMSE on the training rollouts)` of every stable stiffness candidate
+    /// `(k, score on the training rollouts)` of every stable stiffness candidate (the mean
+    /// motion RMSE for `eval`'s yardstick; `train`'s check scores as its searches do)
     /// (at the run's `b` for the coarse search, at the damping then best for the refinement).
     pub search: Vec<(f64, f64)>,
-    /// `(b, mean motion RMSE on the training rollouts)` of every stable damping candidate.
+    /// `(b, score on the training rollouts)` of every stable damping candidate.
     #[serde(default)]
     pub b_search: Vec<(f64, f64)>,
     /// Training rollouts the search used.
@@ -101,7 +103,8 @@ pub struct UniformBaseline {
 }
 
 impl UniformBaseline {
-    /// Its mean motion RMSE on the training rollouts it was searched on: the lowest of the
+    /// Its score on the training rollouts it was searched on (the mean motion RMSE for `eval`'s
+    /// yardstick): the lowest of the
     /// candidates its search lists, its pick.
     pub fn train_rmse(&self) -> f64 {
         self.search
@@ -176,9 +179,10 @@ pub struct BendingApart {
 }
 
 /// Searches the uniform stiffness around `k0` (damping `b0`), then the damping, on `train_files`
-/// and evaluates the best on `test_files`; `trained` is the trained model's test RMSE to compare
-/// with. With `bending_apart`, where the topology has bending springs, also the best
-/// bending-apart network beside it ([`BendingApart`]).
+/// (scored by `objective`: [`eval::Objective::WholeTake`] for `eval`'s yardstick) and evaluates
+/// the best on `test_files`; `trained` is the trained model's test RMSE to compare with. With
+/// `bending_apart`, where the topology has bending springs, also the best bending-apart
+/// network beside it ([`BendingApart`]).
 #[allow(clippy::too_many_arguments)]
 pub fn search(
     topology: &Topology,
@@ -188,6 +192,7 @@ pub fn search(
     test_files: &[PathBuf],
     trained: &MotionRmse,
     eval_config: &eval::EvalConfig,
+    objective: eval::Objective,
     bending_apart: bool,
     device: &Device,
     progress: &Progress,
@@ -201,6 +206,7 @@ pub fn search(
         device,
         progress,
         cache: Some(&cache),
+        objective,
     };
     let tests = eval::Takes {
         files: test_files,

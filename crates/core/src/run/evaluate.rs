@@ -58,6 +58,7 @@ pub fn evaluate(
                 &files,
                 &motion,
                 &config.eval,
+                eval::Objective::WholeTake,
                 true,
                 device,
                 progress,
@@ -131,6 +132,7 @@ fn motion_curves(
         device,
         progress,
         cache: None,
+        objective: eval::Objective::WholeTake,
     };
     Ok(match &loaded.model {
         Trained::Springs(_) | Trained::NeuralOde(_) => {

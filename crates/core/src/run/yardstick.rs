@@ -63,6 +63,7 @@ pub(super) fn own_damping(
         device: ground.device,
         progress: ground.progress,
         cache: Some(&cache),
+        objective: eval::Objective::WholeTake,
     };
     let network = |k: f64, b: f64| SpringNet::uniform(ground.topology, k, b, ground.device);
     let run = *ground.physics;

@@ -23,7 +23,8 @@ use crate::sim::Physics;
 pub use crate::eval::Validation;
 
 /// Compares `model` (at `physics`) with the best uniform network around `(k0, b0)`, searched on
-/// `train_files`, on the held-out `validation_files`.
+/// `train_files` (scored by `objective`, as the run's searches are), on the held-out
+/// `validation_files`.
 #[allow(clippy::too_many_arguments)]
 pub fn validate(
     model: &SpringNet,
@@ -33,6 +34,7 @@ pub fn validate(
     train_files: &[PathBuf],
     validation_files: &[PathBuf],
     config: &EvalConfig,
+    objective: eval::Objective,
     device: &Device,
     progress: &Progress,
 ) -> Result<Validation> {
@@ -46,6 +48,7 @@ pub fn validate(
             device,
             progress,
             cache: None,
+            objective,
         },
     )?;
     let trained = eval::summarize(
@@ -62,6 +65,7 @@ pub fn validate(
         validation_files,
         &trained,
         config,
+        objective,
         false,
         device,
         progress,

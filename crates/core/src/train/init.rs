@@ -72,6 +72,8 @@ pub struct SearchContext<'a> {
     pub files: &'a [std::path::PathBuf],
     /// Device for the rollouts.
     pub device: &'a burn::tensor::Device,
+    /// How the search scores its candidates (`train.search_objective`).
+    pub objective: crate::eval::Objective,
 }
 
 /// The uniform stiffness whose free rollouts best follow the training files (damping `b`,
@@ -99,6 +101,7 @@ pub(crate) fn search_stiffness(
         device: ctx.device,
         progress: &quiet,
         cache: Some(&cache),
+        objective: ctx.objective,
     };
     let s = topo.num_springs();
     let mut best: Option<(f64, usize, f64)> = None;

@@ -145,6 +145,19 @@ pub enum Mode {
     SingleThenDamping,
 }
 
+/// How the searches over free rollouts of the training takes score a network
+/// (`train.search_objective`; ours).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SearchObjective {
+    /// The mean motion RMSE over the whole takes, as `eval`'s uniform yardstick is searched.
+    #[default]
+    WholeTake,
+    /// The geometric mean of the mean up to `eval.short_seconds` and over the whole takes
+    /// ([`crate::eval::Objective::BothHorizons`]).
+    BothHorizons,
+}
+
 /// The `[train]` section.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -200,6 +213,14 @@ pub struct TrainConfig {
     /// run's model (ours; on by default): a learned map worse than one `k` and one `b` is not
     /// worth shipping. The learned springs stay in the run's `springs.learned.npz`.
     pub uniform_fallback: bool,
+    /// How the searches (the uniform start's, the scale and blend searches, the polish, the
+    /// drag and viscosity searches, and the uniform network `train` checks the kept one
+    /// against) score a network by its free rollouts of the training takes: `"whole_take"`
+    /// (the default: the mean motion RMSE over the whole takes) or `"both_horizons"` (the
+    /// geometric mean of the mean up to `eval.short_seconds` and over the whole takes, so that
+    /// the late frames, where a cloth parts from any model by chaos, do not alone decide).
+    /// `eval`'s yardsticks are searched over the whole takes either way.
+    pub search_objective: SearchObjective,
     /// Start a spring network from the strain-compliance map (ours; replaces the
     /// least-squares start).
     pub compliance: compliance::ComplianceConfig,
@@ -236,6 +257,7 @@ impl Default for TrainConfig {
             proportional_damping: false,
             viscosity_search: false,
             uniform_fallback: true,
+            search_objective: SearchObjective::WholeTake,
             compliance: compliance::ComplianceConfig::default(),
             least_squares: least_squares::LeastSquaresConfig::default(),
             refine: refine::RefineConfig::default(),
@@ -532,6 +554,7 @@ pub fn train(config: &Config, options: &TrainOptions, progress: &Progress) -> Re
         Some(&init::SearchContext {
             files: &split.train,
             device: &search_device,
+            objective: config.search_objective(),
         }),
     )?;
     let config = &resolved;
@@ -776,6 +799,7 @@ impl AfterFit<'_> {
             device: self.device,
             progress: self.fit.progress,
             cache: Some(&self.tracks),
+            objective: self.fit.job.config.search_objective(),
         }
     }
 
@@ -1332,6 +1356,7 @@ impl AfterFit<'_> {
             &self.split.train,
             &self.split.validation,
             &config.eval,
+            config.search_objective(),
             self.device,
             progress,
         )?;
