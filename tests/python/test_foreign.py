@@ -4,9 +4,9 @@ A tiny set from the cross-simulator bench's lightest simulator (benches/foreign/
 MuJoCo's flex cloth, a 9 x 9 sheet of 1 m with stripes and a band 8x stiffer than its base, two
 to four vertices pinned on random paths, 50 fps frames without velocities; 10 training and 3 test
 takes of 2 s, ~30 s to generate) trained with `configs/thirdparty_mesh.toml` must learn the map and
-beat the best uniform network. Measured (2 cores): Spearman 0.72, +24.7 % over the best uniform
-network over the take and +16.2 % at 0.8 s; the thresholds leave room for another machine's
-rounding of a chaotic cloth. Skipped with a note where `mujoco` is not installed (the Rust test
+beat the best uniform network. Measured (2 cores, the recipe of 2026-12-05, eighth session):
+Spearman 0.70, +37.4 % over the best uniform network over the take and +29.4 % at 0.8 s; the
+thresholds leave room for another machine's rounding of a chaotic cloth. Skipped with a note where `mujoco` is not installed (the Rust test
 that runs this file installs it, so CI runs it).
 """
 
