@@ -33,15 +33,16 @@ pub const BENDING_FACTORS: [f64; 5] = [0.0, 1.0 / 16.0, 0.25, 0.5, 2.0];
 pub const BENDING_MARGIN: f64 = 0.01;
 
 /// The score of free rollouts of the uniform network `(k, b)` on `takes` (`takes.objective`, the
-/// mean motion RMSE over the whole takes for the yardsticks; `None` when it
-/// is unstable at `physics`' step or a rollout diverges).
+/// mean motion RMSE over the whole takes for the yardsticks; `None` when it is unstable at
+/// `physics`' step or a rollout diverges).
 pub(crate) fn rollout_rmse(physics: &Physics, k: f64, b: f64, takes: &eval::Takes) -> Option<f64> {
     let model = SpringNet::uniform(takes.topology, k, b, takes.device);
     network_rollout_rmse(&model, physics, takes)
 }
 
-/// The score of free rollouts of the spring network `model` on `takes` (`takes.objective`; `None` when it is
-/// unstable at `physics`' step or a rollout diverges). Quiet: `takes.progress` is not used.
+/// The score of free rollouts of the spring network `model` on `takes` (`takes.objective`;
+/// `None` when it is unstable at `physics`' step or a rollout diverges). Quiet:
+/// `takes.progress` is not used.
 pub(crate) fn network_rollout_rmse(
     model: &SpringNet,
     physics: &Physics,
@@ -77,9 +78,9 @@ pub struct UniformBaseline {
     pub k: f64,
     /// The best uniform damping on the training rollouts, N·s/m.
     pub b: f64,
-    /// `(k, score on the training rollouts)` of every stable stiffness candidate (the mean
-    /// motion RMSE for `eval`'s yardstick; `train`'s check scores as its searches do)
-    /// (at the run's `b` for the coarse search, at the damping then best for the refinement).
+    /// `(k, score on the training rollouts)` of every stable stiffness candidate, at the run's
+    /// `b` for the coarse search, at the damping then best for the refinement (the score: the
+    /// mean motion RMSE for `eval`'s yardstick; `train`'s check scores as its searches do).
     pub search: Vec<(f64, f64)>,
     /// `(b, score on the training rollouts)` of every stable damping candidate.
     #[serde(default)]
@@ -104,8 +105,7 @@ pub struct UniformBaseline {
 
 impl UniformBaseline {
     /// Its score on the training rollouts it was searched on (the mean motion RMSE for `eval`'s
-    /// yardstick): the lowest of the
-    /// candidates its search lists, its pick.
+    /// yardstick): the lowest of the candidates its search lists, its pick.
     pub fn train_rmse(&self) -> f64 {
         self.search
             .iter()
