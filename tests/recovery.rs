@@ -352,7 +352,7 @@ fn uniform_run(dir: &std::path::Path) -> std::path::PathBuf {
 fn the_blend_search_finds_the_bending_springs_share() {
     let dir = common::temp_dir("bending-share");
     spring_cloth_takes(&dir, 1.0 / 16.0, true);
-    let record = blend_record(&dir, 50.0, 6.0);
+    let (run_dir, record) = blend_run(&dir, 50.0, 6.0);
     let factor = record["bending_factor"].as_f64().unwrap();
     eprintln!(
         "bending factor {factor}; candidates {}",
@@ -365,6 +365,19 @@ fn the_blend_search_finds_the_bending_springs_share() {
         Some(1.0 / 16.0),
         "{record}"
     );
+    // The map is the uniform start itself, so no share of it moves closer: the run keeps the
+    // uniform network with its bending springs sized, and sets the map aside beside it.
+    assert_eq!(record["alpha"].as_f64(), Some(0.0), "{record}");
+    let k_of = |file: &str| {
+        springtime::data::npz::Npz::read(&run_dir.join(file))
+            .unwrap()
+            .f32("k", &[None])
+            .unwrap()
+            .0
+    };
+    assert!(k_of("springs.learned.npz").iter().all(|&k| k == 50.0));
+    let kept = k_of("springs.npz");
+    assert!(kept.iter().any(|&k| k != 50.0), "{kept:?}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

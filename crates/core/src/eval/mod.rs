@@ -153,8 +153,9 @@ pub struct EvalReport {
     /// source's `tri_stiffness` at each spring's rest midpoint, when the data has a mesh.
     #[serde(default)]
     pub stiffness_map_corr: Option<f64>,
-    /// Where the run kept the best uniform network instead of the learned one
-    /// (`train.uniform_fallback`), the same correlation of the learned springs
+    /// Where the run kept a uniform network instead of what it learned (the best uniform one
+    /// on the held-out takes, `train.uniform_fallback`, or the blend search's, where no share
+    /// of the map moves closer), the same correlation of the springs it set aside
     /// (`springs.learned.npz`), whose map the uniform network no longer carries.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub learned_map_corr: Option<f64>,

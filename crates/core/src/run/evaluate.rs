@@ -158,8 +158,9 @@ fn motion_curves(
 }
 
 /// The Spearman correlation with the source's map of the learned springs a run set aside for
-/// the best uniform network (`springs.learned.npz`, `train.uniform_fallback`); `None` where the
-/// run kept its learned springs or the data carries no map.
+/// a uniform network (`springs.learned.npz`: `train.uniform_fallback`, or a blend search that
+/// kept no share of the map); `None` where the run kept its learned springs or the data carries
+/// no map.
 fn learned_map_corr(path: &Path, topo: &Topology, first: &Rollout) -> Result<Option<f64>> {
     let Some(mesh) = first.mesh.as_ref().filter(|_| path.exists()) else {
         return Ok(None);

@@ -729,8 +729,10 @@ impl AfterFit<'_> {
         let job = self.fit.job;
         let config = job.config;
         let mut final_physics = job.physics;
+        // The learned map the run sets aside where it keeps a uniform network instead.
+        let mut set_aside = None;
         if config.train.blend_search {
-            (model, final_physics) = self.blend(model)?;
+            (model, final_physics, set_aside) = self.blend(model)?;
         }
         if config.train.scale_search {
             (model, final_physics) = self.scale(&model)?;
@@ -747,8 +749,16 @@ impl AfterFit<'_> {
             &model,
             job.physics.mass,
         )?;
-        if !self.split.validation.is_empty() {
-            self.validate(&model, &final_physics)?;
+        if !self.split.validation.is_empty() && self.validate(&model, &final_physics)? {
+            // A map the blend kept stays the one set aside; else the network just turned down.
+            set_aside = set_aside.or(Some(model));
+        }
+        let learned = self.fit.run.learned_springs();
+        match set_aside {
+            Some(map) => run::write_springs(&learned, job.topology, &map, job.physics.mass)?,
+            // A resumed run's, from a finish that set a map aside.
+            None if learned.exists() => std::fs::remove_file(&learned)?,
+            None => {}
         }
         Ok(())
     }
@@ -809,7 +819,12 @@ impl AfterFit<'_> {
     /// "closest"`, or where the mixed map's blend stays uniform — each smoothed by
     /// `train.map_smoothing` first; each map's blend is polished at the substeps it runs at
     /// ([`scale::polish`]) and the map is chosen by [`choose_map`] among the polished blends.
-    fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics)> {
+    ///
+    /// Where the kept blend is a uniform network (no share of the map, or a polish that found
+    /// the uniform network closer), the chosen map itself, as the fit and the compliance map read
+    /// it (smoothed, before the blend sizes it), is returned as the map set aside
+    /// (`springs.learned.npz`).
+    fn blend(&self, model: SpringNet) -> Result<(SpringNet, Physics, Option<SpringNet>)> {
         let (job, progress) = (self.fit.job, self.fit.progress);
         let config = job.config;
         let passes = config.train.map_smoothing;
@@ -890,6 +905,14 @@ impl AfterFit<'_> {
             progress.note(&format!("blend search: {}", choice.why));
         }
         let (blended, blended_physics, mut record) = found.swap_remove(choice.kept);
+        let set_aside = if record.kept_uniform() {
+            maps.into_iter()
+                .chain(fallback)
+                .find(|(name, _)| *name == record.map)
+                .map(|(_, map)| map)
+        } else {
+            None
+        };
         record.maps = scores;
         record.weights = weights;
         progress.note(&format!(
@@ -913,7 +936,8 @@ impl AfterFit<'_> {
         if record.alpha == 0.0 {
             progress.note(
                 "WARNING: blend search: no share of the learned map moves closer to the training \
-                 rollouts than the best uniform network; the run keeps that uniform network",
+                 rollouts than the best uniform network; the run keeps that uniform network (the \
+                 map is set aside in springs.learned.npz)",
             );
         }
         let polish = record.polish.take().expect("polished above");
@@ -939,7 +963,7 @@ impl AfterFit<'_> {
             progress.note(
                 "WARNING: polish: at the substeps the learned map needs, the best uniform network \
                  moves closer to the training rollouts than any size of the map; the run keeps \
-                 that uniform network",
+                 that uniform network (the map is set aside in springs.learned.npz)",
             );
         }
         let (blended, blended_physics, drag) = self.drag(blended, blended_physics, &polish)?;
@@ -994,7 +1018,7 @@ impl AfterFit<'_> {
             "blend.json",
             &record,
         )?;
-        Ok((blended, blended_physics))
+        Ok((blended, blended_physics, set_aside))
     }
 
     /// The blend search of the map `name` ([`scale::blend_search`]) and its blend polished at
@@ -1343,9 +1367,9 @@ impl AfterFit<'_> {
 
     /// The learned network against the best uniform one on the held-out training rollouts,
     /// written to the run; where the uniform network moves closer at both horizons and
-    /// `train.uniform_fallback` is on, the run keeps it (the learned springs moved to
-    /// `springs.learned.npz`).
-    fn validate(&self, model: &SpringNet, physics: &Physics) -> Result<()> {
+    /// `train.uniform_fallback` is on, the run keeps it and this returns true (the caller sets
+    /// the learned springs aside in `springs.learned.npz`).
+    fn validate(&self, model: &SpringNet, physics: &Physics) -> Result<bool> {
         let job = self.fit.job;
         let (config, progress, run) = (job.config, self.fit.progress, self.fit.run);
         let mut v = guard::validate(
@@ -1363,21 +1387,13 @@ impl AfterFit<'_> {
         if config.train.uniform_fallback && v.uniform_closer() {
             let uniform = SpringNet::uniform(job.topology, v.uniform.k, v.uniform.b, self.device)
                 .with_kernel(model.graph.kernel);
-            run::write_springs(
-                &run.learned_springs(),
-                job.topology,
-                model,
-                job.physics.mass,
-            )?;
             run::write_springs(&run.springs(), job.topology, &uniform, job.physics.mass)?;
             RunDir::save_module(&uniform, &run.model())?;
             v.kept_uniform = true;
-        } else if run.learned_springs().exists() {
-            // A resumed run's, from a finish that kept the uniform network.
-            std::fs::remove_file(run.learned_springs())?;
         }
         progress.note(&format!("validation: {}", v.summary()));
-        crate::io::write_json(&guard::Validation::path(&run.dir), &v)
+        crate::io::write_json(&guard::Validation::path(&run.dir), &v)?;
+        Ok(v.kept_uniform)
     }
 }
 
