@@ -6,7 +6,8 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
-        [--uniform K,B] [--damping-per-k BETA] [--substeps N]
+        [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N]
+        [--bending KB[,KB...]] [--area KA[,KA...]]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
@@ -21,7 +22,15 @@ triangle's `kd * area * |dF/dt|^2` into its edges with the cotangent weights
 `--project` applies the viscosity along the springs instead (added to the matching springs' `b`),
 `--uniform K,B` replays one `k` and `b` on every spring instead of the run's, and
 `--damping-per-k BETA` sets each spring's `b` to `BETA * k` (stiffness-proportional damping, as
-MuJoCo's elasticity damping). A scratch tool for the book's damping measurements (Results, Other
+MuJoCo's elasticity damping), `--k-scale F` multiplies every spring's `k`.
+
+Two terms the surrogate does not have, to measure what they would be worth before building them:
+`--bending KB` adds a quadratic bending energy on every interior edge of the data's triangles
+(Bergou et al. 2006, discrete-shell weights: `1/2 KB 3|e|^2 / (A1 + A2) theta^2`, the hinge's
+angle `theta` linearised about the flat rest sheet, so the forces are linear in the positions and
+vanish under rigid motions), and `--area KA` an area term `1/2 KA (A - A0)^2 / A0` on every
+triangle (a membrane's resistance to changing its area, which springs carry only through their
+lengths). Each takes a comma-separated row and runs one rollout per value (per pair). A scratch tool for the book's damping measurements (Results, Other
 simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
 there). Needs numpy (any of the bench's environments:
 `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve 3 s takes at 189
@@ -63,6 +72,38 @@ def mesh_edges(triangles, rest_uv, kd=None):
     return np.array(list(weight.keys()), dtype=int), np.array(list(weight.values()))
 
 
+def hinge_stencils(triangles, rest_uv):
+    """Each interior edge's linearised dihedral angle on the flat rest sheet: the four vertices
+    (the edge's ends, then its two opposite vertices) and weights K with K . h the hinge's angle
+    for heights h off the sheet (K annihilates affine maps), and the discrete-shell weight
+    3 |e|^2 / (A1 + A2); the quadratic bending energy is 1/2 kb w |K . x|^2 (Bergou et al. 2006)."""
+    opposite, area = {}, {}
+    for tri in triangles:
+        e1, e2 = rest_uv[tri[1]] - rest_uv[tri[0]], rest_uv[tri[2]] - rest_uv[tri[0]]
+        a = 0.5 * abs(e1[0] * e2[1] - e1[1] * e2[0])
+        for i, j, o in ((tri[0], tri[1], tri[2]), (tri[1], tri[2], tri[0]), (tri[2], tri[0], tri[1])):
+            key = (min(i, j), max(i, j))
+            opposite.setdefault(key, []).append(o)
+            area[key] = area.get(key, 0.0) + a
+    quads, weights, scale = [], [], []
+    for (i, j), ops in opposite.items():
+        if len(ops) != 2:
+            continue
+        e = rest_uv[j] - rest_uv[i]
+        el2 = e @ e
+        ks = []
+        for o in ops:
+            r = rest_uv[o] - rest_uv[i]
+            d = abs(e[0] * r[1] - e[1] * r[0]) / np.sqrt(el2)
+            t = (r @ e) / el2
+            ks.append((1.0 / d, t))
+        (kc, tc), (kd, td) = ks
+        quads.append((i, j, ops[0], ops[1]))
+        weights.append((-(1 - tc) * kc - (1 - td) * kd, -tc * kc - td * kd, kc, kd))
+        scale.append(3.0 * el2 / area[(i, j)])
+    return np.array(quads, dtype=int), np.array(weights), np.array(scale)
+
+
 def particle_weights(config, first, n):
     """Each particle's mass over the mean (springtime's `cloth.masses`): lumped rest areas or 1."""
     if re.search(r'masses\s*=\s*"equal"', config):
@@ -85,7 +126,25 @@ def scatter(pair_force, ia, ib, size):
     return out
 
 
-def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu):
+def area_forces(pos, tri, area0, ka):
+    """An area term on every triangle, `1/2 ka (A - A0)^2 / A0`: its forces [B, N, 3]."""
+    a, b, c = pos[:, tri[:, 0]], pos[:, tri[:, 1]], pos[:, tri[:, 2]]
+    cross = np.cross(b - a, c - a)
+    twice = np.linalg.norm(cross, axis=-1, keepdims=True)
+    normal = cross / twice
+    coef = -ka * (0.5 * twice - area0[None, :, None]) / area0[None, :, None]
+    out = np.zeros(pos.shape)
+    # dA/dx_i = 1/2 n x (x_k - x_j) for the triangle (i, j, k) counter-clockwise about n
+    for i, j, l, (pi, pj, pl) in ((0, 1, 2, (a, b, c)), (1, 2, 0, (b, c, a)), (2, 0, 1, (c, a, b))):
+        g = 0.5 * np.cross(normal, pl - pj) * coef
+        for batch in range(pos.shape[0]):
+            for ax in range(3):
+                out[batch, :, ax] += np.bincount(tri[:, i], g[batch, :, ax], pos.shape[1])
+    return out
+
+
+def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
+            hinge=None, kb=0.0, area=None, ka=0.0):
     """Free rollouts from frame 0 of `x` [B, F, N, 3] (velocities by central differences), the
     pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1."""
     batch, frames, n, _ = x.shape
@@ -93,6 +152,9 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
     offset = (np.arange(batch) * n)[:, None]
     sa, sb = (offset + springs[:, 0]).ravel(), (offset + springs[:, 1]).ravel()
     ea, eb = (offset + edges[:, 0]).ravel(), (offset + edges[:, 1]).ravel()
+    if kb:
+        quads, kw, scale = hinge
+        hq = [(offset + quads[:, c]).ravel() for c in range(4)]
     h = dt / substeps
     free = (~pinned)[..., None].astype(np.float64)
     pin = 1.0 - free
@@ -115,6 +177,16 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             if nu is not None:
                 rel = (vel[:, edges[:, 1]] - vel[:, edges[:, 0]]) * nu[None, :, None]
                 f += scatter(rel, ea, eb, size).reshape(batch, n, 3)
+            if kb:
+                sk = sum(kw[None, :, c, None] * pos[:, quads[:, c]] for c in range(4))
+                sk = sk * (-kb * scale)[None, :, None]
+                fl = f.reshape(size, 3)
+                for c in range(4):
+                    g = (sk * kw[None, :, c, None]).reshape(-1, 3)
+                    for ax in range(3):
+                        fl[:, ax] += np.bincount(hq[c], g[:, ax], size)
+            if ka:
+                f += area_forces(pos, area[0], area[1], ka)
             acc = f * inv_w / mass + gravity[None, None] - (drag / mass) * vel
             vel = vel + h * acc
             pos = pos + h * vel
@@ -122,7 +194,7 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             vel = vel * free + pin_v
         out.append(pos.copy())
         if not np.isfinite(pos).all():
-            raise SystemExit(f"diverged at frame {j + 1}: the step is unstable with these constants")
+            return None
     return np.stack(out, 1)
 
 
@@ -142,7 +214,12 @@ def main():
     p.add_argument("--uniform", help="K,B: one stiffness and damping on every spring")
     p.add_argument("--damping-per-k", type=float, metavar="BETA",
                    help="each spring's b = BETA * k (stiffness-proportional damping, s)")
+    p.add_argument("--k-scale", type=float, default=1.0, help="every spring's k times this")
     p.add_argument("--substeps", type=int, help="substeps per frame (default: the run's)")
+    p.add_argument("--bending", default="0", help="KB[,KB...]: a dihedral bending stiffness (N m) on "
+                   "every interior edge of the data's triangles (quadratic bending), one rollout each")
+    p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
+                   "on every triangle, one rollout each (with each --bending)")
     a = p.parse_args()
 
     run = Path(a.run)
@@ -161,6 +238,7 @@ def main():
         k, b = net["k"].astype(np.float64), net["b"].astype(np.float64)
     if a.damping_per_k is not None:
         b = a.damping_per_k * k
+    k = k * a.k_scale
 
     first, x, pinned, dt = load_takes(a.data, a.takes)
     n = x.shape[2]
@@ -188,14 +266,31 @@ def main():
         np.add.at(b, spring_of, nu)
         nu, label = None, label + " (projected)"
 
+    hinge = hinge_stencils(first["triangles"].astype(int), first["rest_uv"].astype(np.float64))
+    tri = first["triangles"].astype(int)
+    uv = first["rest_uv"].astype(np.float64)
+    e1, e2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
+    area = (tri, 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]))
+    for kb in (float(v) for v in a.bending.split(",")):
+        for ka in (float(v) for v in a.area.split(",")):
+            report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges,
+                   nu, hinge, kb, area, ka, label)
+
+
+def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
+           hinge, kb, area, ka, label):
     start = time.time()
-    sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu)
+    sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
+                  hinge, kb, area, ka)
+    if sim is None:
+        print(f"bending {kb:g}, area {ka:g}: diverged")
+        return
     target = x[:, 1:]
     per = np.sqrt(((sim - target) ** 2).sum(-1).mean(-1))  # B, F
     t = np.arange(per.shape[1]) * dt
     windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
     print(
-        f"{len(x)} takes, drag {drag:.4g}, viscosity {label}"
+        f"{len(x)} takes, drag {drag:.4g}, viscosity {label}, bending {kb:g}, area {ka:g}"
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "

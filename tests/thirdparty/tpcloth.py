@@ -362,7 +362,8 @@ def main():
             total += 1
     with open(os.path.join(a.out, "tpcloth.json"), "w") as fh:
         json.dump({**vars(a), "substeps_used": substeps, "vertices": len(rest), "triangles": len(tris),
-                   "total_mass": float(cloth.mass.sum()), "seconds_wall": time.time() - t0}, fh, indent=1)
+                   "total_mass": float(cloth.mass.sum()), "seconds_wall": time.time() - t0,
+                   "numpy": np.__version__}, fh, indent=1)
     print(f"tpcloth: wrote {total} rollouts to {a.out} ({substeps} RK4 steps per frame, {time.time() - t0:.1f} s)")
 
 
