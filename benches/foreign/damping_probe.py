@@ -30,8 +30,8 @@ Two terms the surrogate does not have, to measure what they would be worth befor
 angle `theta` linearised about the flat rest sheet, so the forces are linear in the positions and
 vanish under rigid motions), and `--area KA` an area term `1/2 KA (A - A0)^2 / A0` on every
 triangle (a membrane's resistance to changing its area, which springs carry only through their
-lengths). Each takes a comma-separated row and runs one rollout per value (per pair). A scratch tool for the book's damping measurements (Results, Other
-simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
+lengths). Each takes a comma-separated row and runs one rollout per value (per pair). A scratch
+tool for the book's damping measurements (Results, Other simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
 there). Needs numpy (any of the bench's environments:
 `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve 3 s takes at 189
 substeps on one core.
@@ -72,15 +72,20 @@ def mesh_edges(triangles, rest_uv, kd=None):
     return np.array(list(weight.keys()), dtype=int), np.array(list(weight.values()))
 
 
+def triangle_areas(triangles, rest_uv):
+    """Each triangle's rest area."""
+    e1 = rest_uv[triangles[:, 1]] - rest_uv[triangles[:, 0]]
+    e2 = rest_uv[triangles[:, 2]] - rest_uv[triangles[:, 0]]
+    return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+
 def hinge_stencils(triangles, rest_uv):
     """Each interior edge's linearised dihedral angle on the flat rest sheet: the four vertices
     (the edge's ends, then its two opposite vertices) and weights K with K . h the hinge's angle
     for heights h off the sheet (K annihilates affine maps), and the discrete-shell weight
     3 |e|^2 / (A1 + A2); the quadratic bending energy is 1/2 kb w |K . x|^2 (Bergou et al. 2006)."""
     opposite, area = {}, {}
-    for tri in triangles:
-        e1, e2 = rest_uv[tri[1]] - rest_uv[tri[0]], rest_uv[tri[2]] - rest_uv[tri[0]]
-        a = 0.5 * abs(e1[0] * e2[1] - e1[1] * e2[0])
+    for tri, a in zip(triangles, triangle_areas(triangles, rest_uv)):
         for i, j, o in ((tri[0], tri[1], tri[2]), (tri[1], tri[2], tri[0]), (tri[2], tri[0], tri[1])):
             key = (min(i, j), max(i, j))
             opposite.setdefault(key, []).append(o)
@@ -108,39 +113,45 @@ def particle_weights(config, first, n):
     """Each particle's mass over the mean (springtime's `cloth.masses`): lumped rest areas or 1."""
     if re.search(r'masses\s*=\s*"equal"', config):
         return np.ones(n)
-    uv, tri = first["rest_uv"].astype(np.float64), first["triangles"].astype(int)
-    e1, e2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
-    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    tri = first["triangles"].astype(int)
+    area = triangle_areas(tri, first["rest_uv"].astype(np.float64))
     w = np.zeros(n)
     for c in range(3):
         w += np.bincount(tri[:, c], area / 3.0, n)
     return w / w.mean()
 
 
+def batch_rows(index, batch, n):
+    """The rows of the flattened [B * N] particles that `index` [M] names in every clip, [B * M]."""
+    return ((np.arange(batch) * n)[:, None] + index).ravel()
+
+
+def add_at(out, rows, force):
+    """Adds `force` [B, M, 3] onto the rows `rows` [B * M] of `out` [B * N, 3]."""
+    flat = force.reshape(-1, 3)
+    for c in range(3):
+        out[:, c] += np.bincount(rows, flat[:, c], len(out))
+
+
 def scatter(pair_force, ia, ib, size):
     """Sums `pair_force` [B, E, 3] (the force on each pair's first end) onto both ends."""
-    out = np.empty((size, 3))
-    flat = pair_force.reshape(-1, 3)
-    for c in range(3):
-        out[:, c] = np.bincount(ia, flat[:, c], size) - np.bincount(ib, flat[:, c], size)
+    out = np.zeros((size, 3))
+    add_at(out, ia, pair_force)
+    add_at(out, ib, -pair_force)
     return out
 
 
-def area_forces(pos, tri, area0, ka):
-    """An area term on every triangle, `1/2 ka (A - A0)^2 / A0`: its forces [B, N, 3]."""
+def area_forces(pos, tri, corners, area0, ka, out):
+    """Adds the forces of an area term on every triangle, `1/2 ka (A - A0)^2 / A0`, at `pos`
+    [B, N, 3] to `out` [B * N, 3] (`corners`: each corner's rows, `batch_rows`)."""
     a, b, c = pos[:, tri[:, 0]], pos[:, tri[:, 1]], pos[:, tri[:, 2]]
     cross = np.cross(b - a, c - a)
     twice = np.linalg.norm(cross, axis=-1, keepdims=True)
     normal = cross / twice
     coef = -ka * (0.5 * twice - area0[None, :, None]) / area0[None, :, None]
-    out = np.zeros(pos.shape)
     # dA/dx_i = 1/2 n x (x_k - x_j) for the triangle (i, j, k) counter-clockwise about n
-    for i, j, l, (pi, pj, pl) in ((0, 1, 2, (a, b, c)), (1, 2, 0, (b, c, a)), (2, 0, 1, (c, a, b))):
-        g = 0.5 * np.cross(normal, pl - pj) * coef
-        for batch in range(pos.shape[0]):
-            for ax in range(3):
-                out[batch, :, ax] += np.bincount(tri[:, i], g[batch, :, ax], pos.shape[1])
-    return out
+    for rows, pj, pl in ((corners[0], b, c), (corners[1], c, a), (corners[2], a, b)):
+        add_at(out, rows, 0.5 * np.cross(normal, pl - pj) * coef)
 
 
 def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
@@ -149,12 +160,14 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
     pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1."""
     batch, frames, n, _ = x.shape
     size = batch * n
-    offset = (np.arange(batch) * n)[:, None]
-    sa, sb = (offset + springs[:, 0]).ravel(), (offset + springs[:, 1]).ravel()
-    ea, eb = (offset + edges[:, 0]).ravel(), (offset + edges[:, 1]).ravel()
+    sa, sb = batch_rows(springs[:, 0], batch, n), batch_rows(springs[:, 1], batch, n)
+    ea, eb = batch_rows(edges[:, 0], batch, n), batch_rows(edges[:, 1], batch, n)
     if kb:
         quads, kw, scale = hinge
-        hq = [(offset + quads[:, c]).ravel() for c in range(4)]
+        hq = [batch_rows(quads[:, c], batch, n) for c in range(4)]
+    if ka:
+        tri, area0 = area
+        corners = [batch_rows(tri[:, c], batch, n) for c in range(3)]
     h = dt / substeps
     free = (~pinned)[..., None].astype(np.float64)
     pin = 1.0 - free
@@ -177,16 +190,15 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             if nu is not None:
                 rel = (vel[:, edges[:, 1]] - vel[:, edges[:, 0]]) * nu[None, :, None]
                 f += scatter(rel, ea, eb, size).reshape(batch, n, 3)
+            if kb or ka:
+                fl = f.reshape(size, 3)
             if kb:
                 sk = sum(kw[None, :, c, None] * pos[:, quads[:, c]] for c in range(4))
                 sk = sk * (-kb * scale)[None, :, None]
-                fl = f.reshape(size, 3)
                 for c in range(4):
-                    g = (sk * kw[None, :, c, None]).reshape(-1, 3)
-                    for ax in range(3):
-                        fl[:, ax] += np.bincount(hq[c], g[:, ax], size)
+                    add_at(fl, hq[c], sk * kw[None, :, c, None])
             if ka:
-                f += area_forces(pos, area[0], area[1], ka)
+                area_forces(pos, tri, corners, area0, ka, fl)
             acc = f * inv_w / mass + gravity[None, None] - (drag / mass) * vel
             vel = vel + h * acc
             pos = pos + h * vel
@@ -216,8 +228,8 @@ def main():
                    help="each spring's b = BETA * k (stiffness-proportional damping, s)")
     p.add_argument("--k-scale", type=float, default=1.0, help="every spring's k times this")
     p.add_argument("--substeps", type=int, help="substeps per frame (default: the run's)")
-    p.add_argument("--bending", default="0", help="KB[,KB...]: a dihedral bending stiffness (N m) on "
-                   "every interior edge of the data's triangles (quadratic bending), one rollout each")
+    p.add_argument("--bending", default="0", help="KB[,KB...]: a quadratic hinge bending stiffness (N m) "
+                   "on every interior edge of the data's triangles, one rollout each")
     p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
                    "on every triangle, one rollout each (with each --bending)")
     a = p.parse_args()
@@ -266,11 +278,9 @@ def main():
         np.add.at(b, spring_of, nu)
         nu, label = None, label + " (projected)"
 
-    hinge = hinge_stencils(first["triangles"].astype(int), first["rest_uv"].astype(np.float64))
-    tri = first["triangles"].astype(int)
-    uv = first["rest_uv"].astype(np.float64)
-    e1, e2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
-    area = (tri, 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]))
+    tri, uv = first["triangles"].astype(int), first["rest_uv"].astype(np.float64)
+    hinge = hinge_stencils(tri, uv)
+    area = (tri, triangle_areas(tri, uv))
     for kb in (float(v) for v in a.bending.split(",")):
         for ka in (float(v) for v in a.area.split(",")):
             report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges,

@@ -6,8 +6,8 @@ to four vertices pinned on random paths, 50 fps frames without velocities; 10 tr
 takes of 2 s, ~30 s to generate) trained with `configs/thirdparty_mesh.toml` must learn the map and
 beat the best uniform network. Measured (2 cores, the recipe of 2026-12-05, eighth session):
 Spearman 0.70, +37.4 % over the best uniform network over the take and +29.4 % at 0.8 s; the
-thresholds leave room for another machine's rounding of a chaotic cloth. Skipped with a note where `mujoco` is not installed (the Rust test
-that runs this file installs it, so CI runs it).
+thresholds leave room for another machine's rounding of a chaotic cloth. Skipped with a note
+where `mujoco` is not installed (the Rust test that runs this file installs it, so CI runs it).
 """
 
 import json
