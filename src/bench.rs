@@ -123,6 +123,7 @@ pub fn run(options: &BenchOptions) -> Result<BenchReport> {
             rayleigh: cfg.rayleigh,
             gravity: cfg.gravity,
             viscosity: 0.0,
+            shear_compression: 1.0,
         },
         batch: b,
         steps: t,

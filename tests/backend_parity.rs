@@ -48,6 +48,7 @@ fn run(device: &Device, rollouts: &[Rollout], on: ForceOn, curvature: bool) -> O
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
         viscosity: 0.0,
+        shear_compression: 1.0,
     };
     let frames = batch.positions.dims()[1];
     let drive = common::clip_drive(&batch);

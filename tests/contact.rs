@@ -345,6 +345,7 @@ fn the_surrogate_with_the_true_springs_matches_the_source_through_contact() {
         rayleigh: cloth.rayleigh,
         gravity: cloth.gravity,
         viscosity: 0.0,
+        shear_compression: 1.0,
     };
     let track = Track::at_rest(&x0);
     let tensor_contact = contact.clone();

@@ -34,6 +34,7 @@ fn gradients_through_contact_match_central_differences() {
         rayleigh: 0.1,
         gravity: springtime::sim::GRAVITY,
         viscosity: 0.0,
+        shear_compression: 1.0,
     };
     let tilt = 20f64.to_radians();
     let params = ContactParams {

@@ -148,6 +148,7 @@ fn a_data_mesh_surrogate_with_the_true_springs_follows_a_source_of_its_masses() 
             rayleigh: truth.rayleigh,
             gravity: truth.gravity,
             viscosity: 0.0,
+            shear_compression: 1.0,
         };
         let gap = |masses: ParticleMasses, kernel: Kernel| {
             let topology = truth.topology.clone().with_masses(masses);

@@ -92,6 +92,7 @@ fn free_flight_conserves_momentum_and_rest_is_an_equilibrium() {
         rayleigh: 0.0,
         gravity: [0.0; 3],
         viscosity: 0.0,
+        shear_compression: 1.0,
     };
     let pinned = Tensor::<3>::zeros([1, p, 1], &device);
     // At rest, with no gravity, nothing moves.
@@ -155,6 +156,7 @@ fn viscosity_matches_the_f64_sum_conserves_momentum_and_dissipates() {
         rayleigh: 0.0,
         gravity: [0.0; 3],
         viscosity,
+        shear_compression: 1.0,
     };
     let pinned = Tensor::<3>::zeros([1, p, 1], &device);
     let (x, v) = random_state(p, 1, 3);

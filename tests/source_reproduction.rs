@@ -45,6 +45,7 @@ fn ground_truth_parameters_reproduce_the_source() {
         rayleigh: cfg.rayleigh,
         gravity: cfg.gravity,
         viscosity: 0.0,
+        shear_compression: 1.0,
     };
     let refs: Vec<_> = set.regular.clone();
     let batch = set.batch(&refs, &device).unwrap();

@@ -299,8 +299,8 @@ fn parity(dir: &Path, test_rollout: &str) -> Option<(f32, f32)> {
 }
 
 /// The tiny job on an 8 × 8 cloth 3.5 m square, over 1 s rollouts, from 50 N/m and 3 N·s/m at
-/// 2 substeps a frame with a viscosity (`sim.viscosity`, the page's `springtime-surrogate/3`),
-/// without checkpoints.
+/// 2 substeps a frame with a viscosity (`sim.viscosity`) and shear springs softer in compression
+/// (`sim.shear_compression`; the page's `springtime-surrogate/4`), without checkpoints.
 fn grid() -> String {
     common::tiny_with(&[
         ("name = \"tiny\"", "name = \"web\""),
@@ -311,7 +311,7 @@ fn grid() -> String {
         (
             "[train]\ncheckpoint_every = 5\n",
             "[model]\nk_init = 50.0\nb_init = 3.0\n[sim]\nsubsteps = 2\nrayleigh = 0.1\n\
-             viscosity = 0.004\n",
+             viscosity = 0.004\nshear_compression = 0.3\n",
         ),
     ])
 }
@@ -331,7 +331,11 @@ fn the_page_simulates_a_grid_run_as_springtime_simulate_does() {
     }
     let json = springtime::export::SurrogateJson::read(&dir.join("web/surrogate.json")).unwrap();
     assert_eq!(json.viscosity, 0.004, "the page steps the run's viscosity");
-    assert_eq!(json.format, springtime::export::FORMAT_VISCOSITY);
+    assert_eq!(
+        json.shear_compression, 0.3,
+        "and its shear springs' compression"
+    );
+    assert_eq!(json.format, springtime::export::FORMAT_COMPRESSION);
 }
 
 #[test]

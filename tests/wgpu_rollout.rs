@@ -49,6 +49,7 @@ fn fused_steps_on_wgpu_are_as_accurate_as_tensor_ops() {
                 rollouts: &rollouts,
                 substeps,
                 viscosity: 0.0,
+                shear_compression: 1.0,
                 budget: 1024,
             };
             let (_, ek, eb) = case.evaluate(Kernel::Reference, &cpu);

@@ -153,7 +153,9 @@ impl Run {
     /// `dt` (s per step), `mass` (kg, the mean particle's; see `masses`), `rayleigh` (N·s/m on
     /// a particle of the mean mass, the force `−rayleigh·v`; per unit mass the same on every
     /// particle), `gravity` (m/s², 3 components) and `viscosity` (s: each spring's isotropic
-    /// damper `viscosity · k (v_b − v_a)`, `sim.viscosity`; 0 without).
+    /// damper `viscosity · k (v_b − v_a)`, `sim.viscosity`; 0 without) and `shear_compression`
+    /// (the shear springs' stiffness in compression per unit `k`, `sim.shear_compression`; 1:
+    /// linear springs).
     #[getter(physics)]
     fn physics_constants<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
         let p = Physics::new(
@@ -169,6 +171,7 @@ impl Run {
         d.set_item("rayleigh", p.rayleigh)?;
         d.set_item("gravity", p.gravity.to_vec())?;
         d.set_item("viscosity", p.viscosity)?;
+        d.set_item("shear_compression", p.shear_compression)?;
         Ok(d)
     }
 

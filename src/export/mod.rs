@@ -36,7 +36,7 @@ use crate::model::SpringNet;
 use crate::progress::Progress;
 use crate::run::Run;
 pub use crate::run::surrogate::{
-    FORMAT, FORMAT_CURVATURE, FORMAT_VISCOSITY, StabilityJson, SurrogateJson,
+    FORMAT, FORMAT_COMPRESSION, FORMAT_CURVATURE, FORMAT_VISCOSITY, StabilityJson, SurrogateJson,
 };
 use crate::sim::Physics;
 

@@ -350,6 +350,7 @@ fn surrogate_setup(cfg: &FoldConfig, run_dir: &Path) -> Result<Setup> {
         rayleigh: cfg.fold.settle.damping_rate * mass,
         gravity: run.config.sim.gravity.or(crate::sim::GRAVITY),
         viscosity: run.config.sim.viscosity,
+        shear_compression: run.config.sim.shear_compression,
         topology: run.topology.clone(),
     };
     Ok(Setup {

@@ -26,6 +26,7 @@ pub fn physics(r: &Rollout, topo: &Topology) -> Physics {
         rayleigh: 0.1,
         gravity: springtime::sim::GRAVITY,
         viscosity: 0.0,
+        shear_compression: 1.0,
     }
 }
 

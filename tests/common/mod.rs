@@ -277,6 +277,7 @@ pub struct LossCase<'a> {
     pub rollouts: &'a [Rollout],
     pub substeps: usize,
     pub viscosity: f64,
+    pub shear_compression: f64,
     pub budget: usize,
 }
 
@@ -308,6 +309,7 @@ impl LossCase<'_> {
             rayleigh: self.cfg.rayleigh,
             gravity: self.cfg.gravity,
             viscosity: self.viscosity,
+            shear_compression: self.shear_compression,
         };
         let model = SpringNet::new(self.topo, &k, &b, &device).with_kernel(kernel);
         let terms = loss_with_budget(

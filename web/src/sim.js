@@ -15,6 +15,8 @@
  *     c = k (1 − l0·inv) + b (w·d) inv inv,   F_a += c d,  F_b −= c d        (Eq. 4, Eq. 2)
  *     with a viscosity β (`viscosity`, format /3): ν = β k, F_a += ν w, F_b −= ν w (per component,
  *     after c d)
+ *     with shear springs softer in compression κ (`shear_compression`, format /4): a spring of
+ *     `family` "shear" with 1 − l0·inv < 0 has k·κ in place of k in c (ν keeps k)
  *     e = x_i − 2 x_j + x_l:  F_i −= κ e, F_j += 2 κ e, F_l −= κ e          (curvature)
  *     F_i *= 1/w_i  (w_i = m_i / m: a mesh surrogate's relative masses; none on a grid)
  *     f = F + m g − c_R v,  v ← v + (h/m) f,  x ← x + h v                  (Eq. 5)
@@ -39,8 +41,8 @@
 
   const fr = Math.fround;
 
-  /** The format tags this runtime reads (src/export/mod.rs FORMAT, FORMAT_CURVATURE, FORMAT_VISCOSITY). */
-  const FORMATS = ['springtime-surrogate/1', 'springtime-surrogate/2', 'springtime-surrogate/3'];
+  /** The format tags this runtime reads (src/export/mod.rs FORMAT, FORMAT_CURVATURE, FORMAT_VISCOSITY, FORMAT_COMPRESSION). */
+  const FORMATS = ['springtime-surrogate/1', 'springtime-surrogate/2', 'springtime-surrogate/3', 'springtime-surrogate/4'];
 
   /** Semi-implicit Euler is stable while dt²ω² + 2·dt·γ stays below this (src/sim/stability.rs). */
   const STABILITY_LIMIT = 4.0;
@@ -77,8 +79,15 @@
     }
     const viscosity = json.viscosity || 0;
     if (!(isFinite(viscosity) && viscosity >= 0)) fail('key `viscosity` must be finite and non-negative');
-    if ((viscosity !== 0) !== (json.format === 'springtime-surrogate/3')) {
-      fail('key `viscosity` is ' + viscosity + ' with `format` ' + JSON.stringify(json.format) + ': a viscosity needs springtime-surrogate/3 and /3 one');
+    const shearCompression = json.shear_compression == null ? 1 : json.shear_compression;
+    if (!(shearCompression >= 0 && shearCompression <= 1)) fail('key `shear_compression` must be from 0 to 1');
+    const compressed = shearCompression !== 1;
+    if (compressed !== (json.format === 'springtime-surrogate/4')) {
+      fail('key `shear_compression` is ' + shearCompression + ' with `format` ' + JSON.stringify(json.format) + ': shear springs softer in compression need springtime-surrogate/4 and /4 them');
+    }
+    if (compressed && !(isArr(json.family) && json.family.length === s)) fail('key `family` needs one entry per spring');
+    if (!compressed && (viscosity !== 0) !== (json.format === 'springtime-surrogate/3')) {
+      fail('key `viscosity` is ' + viscosity + ' with `format` ' + JSON.stringify(json.format) + ': a viscosity needs springtime-surrogate/3 (or /4) and /3 one');
     }
     const curv = json.curvature || [];
     const curvK = json.curvature_k || [];
@@ -126,6 +135,7 @@
       rayleigh: json.rayleigh || 0,
       gravity: json.gravity || [0, 0, -9.81],
       viscosity,
+      shearCompression,
     };
   }
 
@@ -367,6 +377,13 @@
       this.cR = fr(c.rayleigh);
       // The viscosity per unit stiffness, cast to f32 as src/model/kernels/cpu.rs `with_viscosity`.
       this.visc = fr(c.viscosity);
+      // Each spring's stiffness in compression per unit k, f32 as cpu.rs `with_compression`.
+      this.comp = new Float32Array(s).fill(1);
+      if (c.shearCompression !== 1) {
+        json.family.forEach((f, i) => {
+          if (f === 'shear') this.comp[i] = c.shearCompression;
+        });
+      }
       this.mg = new Float32Array(c.gravity.map((g) => g * c.mass));
       this.invFrameDt = fr(1 / c.frameDt);
       this.ia = new Int32Array(s);
@@ -613,7 +630,7 @@
     /** Internal forces at (x, v) into `out`: springs, curvature, mass scale (the fused kernel's order). */
     forces(x, v, out) {
       out.fill(0);
-      const { ia, ib, k, b, l0, visc } = this;
+      const { ia, ib, k, b, l0, visc, comp } = this;
       const S = this.S;
       for (let s = 0; s < S; s++) {
         const a = 3 * ia[s];
@@ -627,7 +644,9 @@
         const len2 = fr(fr(fr(d0 * d0) + fr(d1 * d1)) + fr(d2 * d2));
         const wd = fr(fr(fr(w0 * d0) + fr(w1 * d1)) + fr(w2 * d2));
         const iv = fr(1 / fr(Math.sqrt(len2)));
-        const coef = fr(fr(k[s] * fr(1 - fr(l0[s] * iv))) + fr(fr(fr(b[s] * wd) * iv) * iv));
+        const st = fr(1 - fr(l0[s] * iv));
+        const kl = st < 0 ? fr(k[s] * comp[s]) : k[s];
+        const coef = fr(fr(kl * st) + fr(fr(fr(b[s] * wd) * iv) * iv));
         let c0 = fr(coef * d0);
         let c1 = fr(coef * d1);
         let c2 = fr(coef * d2);

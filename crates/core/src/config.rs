@@ -103,6 +103,20 @@ impl Job for Config {
                 self.model.kind.name()
             );
         }
+        let kc = self.sim.shear_compression;
+        if !(0.0..=1.0).contains(&kc) {
+            bail!(
+                "`sim.shear_compression` is the shear springs' stiffness in compression per unit \
+                 k, from 0 (they pull only) to 1 (linear springs); is {kc}"
+            );
+        }
+        if kc != 1.0 && self.model.kind != ModelKind::Springs {
+            bail!(
+                "`sim.shear_compression` acts on the shear springs of the spring surrogate; \
+                 `model.kind` is {:?}",
+                self.model.kind.name()
+            );
+        }
         self.model.validate()?;
         let c = &self.data.clips;
         if c.steps.value().is_some_and(|t| t < 2) {
@@ -227,6 +241,10 @@ fn key_help(key: &str) -> Option<&'static str> {
             "isotropic viscosity per unit stiffness β, s: each spring damps its ends' whole \
              relative velocity with β k (0 = none)"
         }
+        ("sim.shear_compression", _) => {
+            "the shear springs' stiffness in compression per unit k: 1 = linear springs, 0 = they \
+             pull only (Blender's shear springs)"
+        }
         ("sim.allow_unstable", _) => "run even when the stability guard refuses",
         ("data", _) => "the rollouts (see `springtime data check DIR`)",
         ("data.dir", _) => "folder of .npz rollouts (with index.json, or every file trains)",
@@ -314,6 +332,26 @@ mod tests {
         );
         let ok = Config::parse("", &["sim.viscosity=1e-5".into()]).unwrap();
         assert_eq!(ok.sim.viscosity, 1e-5);
+        for bad in [
+            "sim.shear_compression=-0.1",
+            "sim.shear_compression=1.5",
+            "sim.shear_compression=nan",
+        ] {
+            let err = Config::parse("", &[bad.into()]).unwrap_err().to_string();
+            assert!(err.contains("sim.shear_compression"), "{bad}: {err}");
+        }
+        let err = Config::parse(
+            "[model]\nkind = \"gnn\"\n",
+            &["sim.shear_compression=0".into()],
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("sim.shear_compression") && err.contains("gnn"),
+            "{err}"
+        );
+        let ok = Config::parse("", &["sim.shear_compression=0".into()]).unwrap();
+        assert_eq!(ok.sim.shear_compression, 0.0);
         let err = Config::parse("", &["train.least_squares.stencil=0".into()])
             .unwrap_err()
             .to_string();

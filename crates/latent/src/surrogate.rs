@@ -66,6 +66,14 @@ impl SpringSheet {
                 s.viscosity
             );
         }
+        if s.shear_compression != 1.0 {
+            bail!(
+                "key `shear_compression` is {} (`sim.shear_compression`): the full-space model \
+                 the latent pipeline distills has linear springs only; distill a run trained \
+                 with linear shear springs",
+                s.shear_compression
+            );
+        }
         let m = s.masses[0];
         if s.masses.iter().any(|&v| v != m) {
             bail!("key `masses` must hold one mass for every particle (a uniform sheet)");
@@ -177,6 +185,7 @@ impl SpringSheet {
             rayleigh: springtime_core::settings::Auto::Value(s.rayleigh),
             gravity: springtime_core::settings::Auto::Value(s.gravity),
             viscosity: 0.0,
+            shear_compression: 1.0,
             allow_unstable: false,
         };
         Physics::new(&sim, frame_dt, s.masses[0])

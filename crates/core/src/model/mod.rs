@@ -130,6 +130,14 @@ pub trait ForceModel: Sync {
         panic!("`sim.viscosity` acts on a spring network's springs only")
     }
 
+    /// What softening the shear springs in compression to `shear_compression · k` changes in the
+    /// forces at positions `x` (`[B, P, 3]`; [`crate::sim::SimConfig::shear_compression`]), added
+    /// to [`ForceModel::internal_forces`]. Only spring networks have shear springs: the config
+    /// refuses `sim.shear_compression` for the other models.
+    fn compression_forces(&self, _x: Tensor<3>, _shear_compression: f64) -> Tensor<3> {
+        panic!("`sim.shear_compression` acts on a spring network's shear springs only")
+    }
+
     /// One fused semi-implicit Euler step `(x', v', f)` when the model has a kernel for it on
     /// this device (see [`kernels::cloth_step`]); `None` steps with tensor ops.
     fn fused_step(
@@ -172,6 +180,11 @@ impl ForceModel for SpringNet {
         self.graph.viscous_forces(v, self.k.val(), viscosity)
     }
 
+    fn compression_forces(&self, x: Tensor<3>, shear_compression: f64) -> Tensor<3> {
+        self.graph
+            .compression_forces(x, self.k.val(), shear_compression)
+    }
+
     fn fused_step(
         &self,
         x: Tensor<3>,
@@ -181,9 +194,11 @@ impl ForceModel for SpringNet {
         pin_v: Tensor<3>,
         params: StepParams,
     ) -> Option<(Tensor<3>, Tensor<3>, Tensor<3>)> {
-        // The CubeCL step has no viscosity: its tensor-op step adds it to the fused forces.
+        // The CubeCL step has no viscosity and linear shear springs: its tensor-op step adds
+        // those terms to the fused forces.
         let fused = self.graph.fused_curvature()
-            && (params.viscosity == 0.0 || self.graph.fused_on == FusedOn::Host);
+            && ((params.viscosity == 0.0 && params.shear_compression == 1.0)
+                || self.graph.fused_on == FusedOn::Host);
         fused.then(|| {
             let (k, b) = self.kernel_params();
             kernels::cloth_step(

@@ -41,6 +41,9 @@ pub struct SpringGraph {
     /// `1 / w` per particle, `[1, P, 1]`, for relative masses `w`
     /// ([`Topology::mass_weight`]); `None`: equal masses.
     pub force_scale: Option<Tensor<3>>,
+    /// 1 on every shear spring ([`crate::cloth::SpringFamily::Shear`]), 0 elsewhere, `[S]`: the
+    /// springs [`SpringGraph::compression_forces`] softens.
+    pub shear: Tensor<1>,
     /// The same springs on the host, for the fused kernels.
     #[module(skip)]
     pub host: Arc<HostGraph>,
@@ -86,6 +89,11 @@ impl SpringGraph {
         let ends: Vec<i64> = ia.iter().chain(&ib).copied().collect();
         let l0 = topology.rest_length.clone();
         let scale = topology.force_scale();
+        let shear: Vec<bool> = topology
+            .family
+            .iter()
+            .map(|f| *f == crate::cloth::SpringFamily::Shear)
+            .collect();
         let int = |v: Vec<i64>| {
             Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), device)
         };
@@ -94,6 +102,16 @@ impl SpringGraph {
             ib: int(ib),
             ends: int(ends),
             rest_length: Tensor::from_data(TensorData::new(l0, [s]), device),
+            shear: Tensor::from_data(
+                TensorData::new(
+                    shear
+                        .iter()
+                        .map(|&m| if m { 1.0f32 } else { 0.0 })
+                        .collect(),
+                    [s],
+                ),
+                device,
+            ),
             num_particles: topology.num_particles(),
             num_springs: s,
             force_scale: scale.clone().map(|f| {
@@ -107,7 +125,8 @@ impl SpringGraph {
                     topology.num_particles(),
                 )
                 .with_force_scale(scale)
-                .with_curvature(&topology.curvature),
+                .with_curvature(&topology.curvature)
+                .with_shear(&shear),
             ),
             kernel: Kernel::Fused,
             fused_on: FusedOn::of(device),
@@ -194,6 +213,32 @@ impl SpringGraph {
         let s = self.num_springs;
         let w = v.clone().select(1, self.ib.clone()) - v.select(1, self.ia.clone());
         let fs = w * k.mul_scalar(viscosity).reshape([1, s, 1]); // on endpoint a, [B, S, 3]
+        self.on_particles(fs, batch, p)
+    }
+
+    /// What softening the shear springs in compression changes in the spring forces, as tensor
+    /// ops, `[B, P, 3]`: a shear spring `s = (a, b)` shorter than at rest pushes with
+    /// `shear_compression · k_s` instead of `k_s` ([`crate::sim::SimConfig::shear_compression`]),
+    /// so `(shear_compression − 1) k_s min(0, 1 − l0/|d|) d` is added on `a` and its opposite on
+    /// `b`; with particle masses divided by each particle's relative mass, as the springs' forces
+    /// are. The fused CPU step and rollout soften the springs in their kernels; this is their
+    /// reference, and what the tensor-op step adds to the (linear) spring forces.
+    ///
+    /// `x`: positions `[B, P, 3]`; `k`: the springs' stiffness `[S]`.
+    pub fn compression_forces(
+        &self,
+        x: Tensor<3>,
+        k: Tensor<1>,
+        shear_compression: f64,
+    ) -> Tensor<3> {
+        let [batch, p, _] = x.dims();
+        let s = self.num_springs;
+        let d = x.clone().select(1, self.ib.clone()) - x.select(1, self.ia.clone());
+        let inv_len = (d.clone() * d.clone()).sum_dim(2).sqrt().recip(); // [B, S, 1]
+        let l0 = self.rest_length.clone().reshape([1, s, 1]);
+        let compressed = (l0 * inv_len).neg().add_scalar(1.0).clamp_max(0.0);
+        let extra = (k * self.shear.clone()).mul_scalar(shear_compression - 1.0);
+        let fs = d * (compressed * extra.reshape([1, s, 1])); // on endpoint a, [B, S, 3]
         self.on_particles(fs, batch, p)
     }
 }

@@ -20,10 +20,17 @@ pub const FORMAT_CURVATURE: &str = "springtime-surrogate/2";
 /// elements): a reader of the earlier versions would step it without the viscosity, so it must
 /// not take it for one.
 pub const FORMAT_VISCOSITY: &str = "springtime-surrogate/3";
+/// The format tag of a surrogate whose shear springs are softer in compression
+/// (`shear_compression` below 1, with or without curvature elements and a viscosity): a reader
+/// of the earlier versions would step them as linear springs, so it must not take it for one.
+pub const FORMAT_COMPRESSION: &str = "springtime-surrogate/4";
 
-/// The format tag of a surrogate with or without curvature elements and a viscosity.
-fn format_of(curvature: bool, viscosity: f64) -> &'static str {
-    if viscosity != 0.0 {
+/// The format tag of a surrogate with or without curvature elements, a viscosity and shear
+/// springs softer in compression.
+fn format_of(curvature: bool, viscosity: f64, shear_compression: f64) -> &'static str {
+    if shear_compression != 1.0 {
+        FORMAT_COMPRESSION
+    } else if viscosity != 0.0 {
         FORMAT_VISCOSITY
     } else if curvature {
         FORMAT_CURVATURE
@@ -76,6 +83,11 @@ pub struct SurrogateJson {
     /// `β k (v_b − v_a)` on its first end and the opposite on its second; absent where 0.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression per unit `k` (`sim.shear_compression`): a
+    /// spring of `family` `"shear"` shorter than its rest length pushes with
+    /// `shear_compression · k`; absent where 1 (linear springs).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub shear_compression: f64,
     /// Integration step the surrogate was trained with (frame time / substeps), s, when known.
     pub dt: Option<f64>,
     /// Curvature elements `(i, j, l)` of a grid (`cloth.curvature`), each with the energy
@@ -116,13 +128,14 @@ impl SurrogateJson {
     pub fn of(run: &Run, model: &SpringNet, pinned: &[usize], physics: Option<&Physics>) -> Self {
         let (topo, config) = (&run.topology, &run.config);
         let to_f32 = |values: Vec<f64>| values.iter().map(|&x| x as f32).collect();
-        let viscosity = config.sim.viscosity;
+        let (viscosity, shear_compression) = (config.sim.viscosity, config.sim.shear_compression);
         Self {
-            format: format_of(!topo.curvature.is_empty(), viscosity).into(),
+            format: format_of(!topo.curvature.is_empty(), viscosity, shear_compression).into(),
             pinned: pinned.to_vec(),
             rayleigh: config.sim.rayleigh.or(crate::sim::RAYLEIGH),
             gravity: config.sim.gravity.or(crate::sim::GRAVITY),
             viscosity,
+            shear_compression,
             dt: physics.map(Physics::sim_dt),
             curvature_k: to_f32(model.curvature_values()),
             frame_dt: physics.map(|p| p.frame_dt),
@@ -147,7 +160,7 @@ impl SurrogateJson {
     pub fn springs(topology: &Topology, masses: Vec<f64>, k: Vec<f32>, b: Vec<f32>) -> Self {
         let topo = topology;
         Self {
-            format: format_of(!topo.curvature.is_empty(), 0.0).into(),
+            format: format_of(!topo.curvature.is_empty(), 0.0, 1.0).into(),
             units: "SI: m, kg, s, N/m, N·s/m".into(),
             grid: topo.grid,
             triangles: topo.triangles.clone(),
@@ -164,6 +177,7 @@ impl SurrogateJson {
             rayleigh: crate::sim::RAYLEIGH,
             gravity: crate::sim::GRAVITY,
             viscosity: 0.0,
+            shear_compression: 1.0,
             dt: None,
             curvature: topo.curvature.clone(),
             curvature_k: Vec::new(),
@@ -197,7 +211,11 @@ impl SurrogateJson {
     /// Checks the format tag, the sheet's size and the per-particle arrays; returns the number
     /// of particles.
     fn validate_sheet(&self) -> Result<usize> {
-        let expected = format_of(!self.curvature.is_empty(), self.viscosity);
+        let expected = format_of(
+            !self.curvature.is_empty(),
+            self.viscosity,
+            self.shear_compression,
+        );
         if self.format != expected {
             bail!("key `format` is {:?}, expected {expected:?}", self.format);
         }
@@ -291,6 +309,10 @@ impl SurrogateJson {
                 bail!("key `{key}` is {v}: finite and non-negative");
             }
         }
+        let kc = self.shear_compression;
+        if !(0.0..=1.0).contains(&kc) {
+            bail!("key `shear_compression` is {kc}: from 0 to 1");
+        }
         Ok(())
     }
 
@@ -352,6 +374,7 @@ impl SurrogateJson {
             rayleigh,
             gravity,
             viscosity,
+            shear_compression,
             dt,
             curvature,
             curvature_k,
@@ -385,6 +408,9 @@ impl SurrogateJson {
         if *viscosity != 0.0 {
             fields.push(("viscosity", j(viscosity)?));
         }
+        if *shear_compression != 1.0 {
+            fields.push(("shear_compression", j(shear_compression)?));
+        }
         if !curvature.is_empty() {
             fields.push(("curvature", j(curvature)?));
             fields.push(("curvature_k", j(curvature_k)?));
@@ -412,6 +438,16 @@ impl SurrogateJson {
 /// Serde's test for an absent `viscosity`.
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
+}
+
+/// Serde's test for an absent `shear_compression`.
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
+}
+
+/// Serde's default of an absent `shear_compression`: linear springs.
+fn one() -> f64 {
+    1.0
 }
 
 #[cfg(test)]

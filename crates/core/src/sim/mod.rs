@@ -42,6 +42,12 @@ pub struct SimConfig {
     /// triangles, `k_damp · dF/dt`) does; a spring's `b` damps only the stretching along it.
     /// Spring networks only; `train.viscosity_search` searches it.
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression, a fraction of their `k` (ours; 1: linear
+    /// springs): a shear spring ([`crate::cloth::SpringFamily::Shear`], a cell's diagonal)
+    /// shorter than at rest pushes back with `shear_compression · k_s`, and pulls with `k_s` when
+    /// longer. 0: the shear springs pull only, as Blender's cloth's do (its shear springs resist
+    /// no compression). Spring networks only; `train.compression_search` searches it.
+    pub shear_compression: f64,
     /// Run even when the stability guard predicts a blow-up.
     pub allow_unstable: bool,
 }
@@ -53,6 +59,7 @@ impl Default for SimConfig {
             rayleigh: Auto::Auto,
             gravity: Auto::Auto,
             viscosity: 0.0,
+            shear_compression: 1.0,
             allow_unstable: false,
         }
     }
@@ -73,6 +80,8 @@ pub struct Physics {
     pub gravity: [f64; 3],
     /// The springs' isotropic viscosity per unit stiffness `β`, s ([`SimConfig::viscosity`]).
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression per unit `k` ([`SimConfig::shear_compression`]).
+    pub shear_compression: f64,
 }
 
 impl Physics {
@@ -86,12 +95,14 @@ impl Physics {
             rayleigh: sim.rayleigh.or(RAYLEIGH),
             gravity: sim.gravity.or(GRAVITY),
             viscosity: sim.viscosity,
+            shear_compression: sim.shear_compression,
         }
     }
 
     /// The explicit-step stability estimate of a spring network at this step (`.check(..)` it
     /// before simulating). The viscosity counts as damping `β k` along each spring: its rate on
-    /// any mode is at most that of such a damper's.
+    /// any mode is at most that of such a damper's. Shear springs softer in compression
+    /// ([`SimConfig::shear_compression`] < 1) count at their full `k`: the bound still holds.
     pub fn stability_of(
         &self,
         topology: &crate::cloth::Topology,
@@ -125,11 +136,13 @@ impl Physics {
             rayleigh: self.rayleigh,
             gravity: self.gravity,
             viscosity: self.viscosity,
+            shear_compression: self.shear_compression,
         }
     }
 
-    /// Net force at a state: the model's internal forces plus gravity, Rayleigh damping and the
-    /// springs' viscosity, `[B, P, 3]` (`pinned`: `[B, P, 1]`, 1 = pinned).
+    /// Net force at a state: the model's internal forces plus gravity, Rayleigh damping, the
+    /// springs' viscosity and the shear springs' softening in compression, `[B, P, 3]`
+    /// (`pinned`: `[B, P, 1]`, 1 = pinned).
     pub(crate) fn net_force(
         &self,
         model: &dyn ForceModel,
@@ -147,7 +160,10 @@ impl Physics {
             &device,
         )
         .reshape([1, 1, 3]);
-        let mut f = model.internal_forces(x, v.clone(), pinned) + g;
+        let mut f = model.internal_forces(x.clone(), v.clone(), pinned) + g;
+        if self.shear_compression != 1.0 {
+            f = f + model.compression_forces(x, self.shear_compression);
+        }
         if self.viscosity != 0.0 {
             f = f + model.viscous_forces(v.clone(), self.viscosity);
         }

@@ -2,7 +2,7 @@
 //! varying stiffness and uniform damping, stepped in f64 with the same semi-implicit Euler as
 //! the surrogate, so that a surrogate with the true `k`, `b` reproduces it exactly.
 
-use crate::cloth::{GridSpec, SpringLayout, Topology};
+use crate::cloth::{GridSpec, SpringFamily, SpringLayout, Topology};
 use crate::data::SpringTruth;
 use crate::sim::Stability;
 
@@ -28,6 +28,9 @@ pub struct SpringCloth {
     /// Isotropic viscosity per unit stiffness `β`, s: each spring also puts `β k_s (v_b − v_a)`
     /// on `a` and its opposite on `b` (the surrogate's `sim.viscosity`; 0 from a config).
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression per unit `k` (the surrogate's
+    /// `sim.shear_compression`; 1, linear springs, from a config).
+    pub shear_compression: f64,
 }
 
 impl SpringCloth {
@@ -72,11 +75,12 @@ impl SpringCloth {
             rayleigh: cfg.rayleigh,
             gravity: cfg.gravity,
             viscosity: 0.0,
+            shear_compression: 1.0,
         }
     }
 
     /// Net force on every particle at `(x, v)` (Eq. 4, Eq. 2, gravity, Rayleigh damping, the
-    /// springs' viscosity).
+    /// springs' viscosity, the shear springs softer in compression).
     pub fn forces(&self, x: &[[f64; 3]], v: &[[f64; 3]], out: &mut [[f64; 3]]) {
         for (i, (o, vi)) in out.iter_mut().zip(v).enumerate() {
             let w = self.weight(i);
@@ -89,8 +93,14 @@ impl SpringCloth {
             let w = [v[b][0] - v[a][0], v[b][1] - v[a][1], v[b][2] - v[a][2]];
             let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
             let inv = 1.0 / len2.sqrt();
-            let coef = self.k[s] * (1.0 - self.topology.rest_length[s] * inv)
-                + self.b[s] * (w[0] * d[0] + w[1] * d[1] + w[2] * d[2]) * inv * inv;
+            let stretch = 1.0 - self.topology.rest_length[s] * inv;
+            let k = if stretch < 0.0 && self.topology.family[s] == SpringFamily::Shear {
+                self.k[s] * self.shear_compression
+            } else {
+                self.k[s]
+            };
+            let coef =
+                k * stretch + self.b[s] * (w[0] * d[0] + w[1] * d[1] + w[2] * d[2]) * inv * inv;
             let nu = self.viscosity * self.k[s];
             for c in 0..3 {
                 out[a][c] += coef * d[c] + nu * w[c];

@@ -128,6 +128,7 @@ pub(crate) fn search_stiffness(
             gravity,
             // The start's guess; the viscosity is searched (or given) at the run's map.
             viscosity: 0.0,
+            shear_compression: 1.0,
         };
         let rmse =
             crate::eval::uniform::rollout_rmse(&physics, k, b, &takes).unwrap_or(f64::INFINITY);

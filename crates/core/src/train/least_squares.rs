@@ -1124,6 +1124,7 @@ mod tests {
             rayleigh: 0.1,
             gravity: [0.0, 0.0, -9.81],
             viscosity: 0.0,
+            shear_compression: 1.0,
         }
     }
 

@@ -373,6 +373,7 @@ fn fused_loss(
         rayleigh: physics.rayleigh,
         gravity: physics.gravity,
         viscosity: physics.viscosity,
+        shear_compression: physics.shear_compression,
         state_budget: budget_mib << 20,
     };
     let (k, b) = model.kernel_params();

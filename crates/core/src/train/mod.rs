@@ -208,6 +208,13 @@ pub struct TrainConfig {
     /// `train.blend_search`; runs where the drag was searched (in its place) or is stated by
     /// the files or the config (beside it).
     pub viscosity_search: bool,
+    /// Last, also search the shear springs' stiffness in compression, `sim.shear_compression`
+    /// ([`scale::shear_compression`]; ours, off by default): from linear springs to springs that
+    /// pull only, as Blender's cloth's shear springs do; kept only where the held-out training
+    /// takes prefer it ([`scale::held_out_agrees`]). Needs `train.blend_search` and held-out
+    /// training takes (`data.holdout`); runs on a network with shear springs (a grid's cell
+    /// diagonals, a data mesh's quad cells' diagonals).
+    pub compression_search: bool,
     /// Where training takes are held out (`data.holdout`) and the best uniform network moves
     /// closer to them than the learned one at both horizons, keep that uniform network as the
     /// run's model (ours; on by default): a learned map worse than one `k` and one `b` is not
@@ -256,6 +263,7 @@ impl Default for TrainConfig {
             map_smoothing: 0,
             proportional_damping: false,
             viscosity_search: false,
+            compression_search: false,
             uniform_fallback: true,
             search_objective: SearchObjective::WholeTake,
             compliance: compliance::ComplianceConfig::default(),
@@ -346,6 +354,12 @@ impl TrainConfig {
             bail!(
                 "`train.proportional_damping` is searched after the blend search's drag search; \
                  turn on `train.blend_search`, or set `train.proportional_damping = false`"
+            );
+        }
+        if self.compression_search && !self.blend_search {
+            bail!(
+                "`train.compression_search` is searched after the blend search; turn on \
+                 `train.blend_search`, or set `train.compression_search = false`"
             );
         }
         if self.viscosity_search && !self.blend_search {
@@ -1009,6 +1023,11 @@ impl AfterFit<'_> {
                 }
             }
         }
+        if config.train.compression_search && !self.split.validation.is_empty() {
+            let found;
+            (blended, blended_physics, found) = self.shear_compression(blended, blended_physics)?;
+            record.shear_compression = found;
+        }
         let run = self.fit.run;
         keep_searched(
             run,
@@ -1194,6 +1213,59 @@ impl AfterFit<'_> {
             after.1,
             before.0,
             before.1,
+            if record.kept {
+                "the run keeps it"
+            } else {
+                "the run keeps the network as it was"
+            }
+        ));
+        Ok(if record.kept {
+            (other, at, Some(record))
+        } else {
+            (net, physics, Some(record))
+        })
+    }
+
+    /// The shear springs' stiffness in compression ([`scale::shear_compression`]), kept only
+    /// where the held-out training takes agree ([`scale::held_out_agrees`]). Returns the network
+    /// and physics kept and the record.
+    fn shear_compression(
+        &self,
+        net: SpringNet,
+        physics: Physics,
+    ) -> Result<(SpringNet, Physics, Option<scale::CompressionSearch>)> {
+        let progress = self.fit.progress;
+        let Some((other, at, mut record)) =
+            scale::shear_compression(&net, &physics, &self.train_takes())
+        else {
+            return Ok((net, physics, None));
+        };
+        if record.shear_compression == physics.shear_compression {
+            progress.note(&format!(
+                "shear compression search: the network moves closest to the training rollouts \
+                 with its shear springs as they are (sim.shear_compression {}); kept",
+                physics.shear_compression
+            ));
+            return Ok((net, physics, Some(record)));
+        }
+        let before = self.held_out_rmse(&net, &physics)?;
+        let after = self.held_out_rmse(&other, &at)?;
+        record.kept = scale::held_out_agrees(before, after);
+        record.held_out = Some((before, after));
+        progress.note(&format!(
+            "shear compression search: the network moves closest to the training rollouts with \
+             its shear springs pushing at {} of their k when compressed, k × {:.3} ({:.4e} m); \
+             on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / long) against \
+             {:.4e} / {:.4e} m at sim.shear_compression {} -> {}",
+            record.shear_compression,
+            record.k_factor,
+            record.after,
+            self.split.validation.len(),
+            after.0,
+            after.1,
+            before.0,
+            before.1,
+            physics.shear_compression,
             if record.kept {
                 "the run keeps it"
             } else {
@@ -1509,17 +1581,19 @@ fn keep_searched(
     RunDir::save_module(net, &run.model())
 }
 
-/// Writes `physics`' substeps, drag and viscosity into the run's `config.toml` where they differ
-/// from the config's.
+/// Writes `physics`' substeps, drag, viscosity and shear springs' compression into the run's
+/// `config.toml` where they differ from the config's.
 fn write_physics(run: &RunDir, config: &Config, physics: &Physics) -> Result<()> {
     if config.sim.substeps.value() != Some(physics.substeps)
         || config.sim.rayleigh.value() != Some(physics.rayleigh)
         || config.sim.viscosity != physics.viscosity
+        || config.sim.shear_compression != physics.shear_compression
     {
         let mut updated = config.clone();
         updated.sim.substeps = crate::settings::Auto::Value(physics.substeps);
         updated.sim.rayleigh = crate::settings::Auto::Value(physics.rayleigh);
         updated.sim.viscosity = physics.viscosity;
+        updated.sim.shear_compression = physics.shear_compression;
         crate::io::write_text(&run.config(), &updated.to_toml())?;
     }
     Ok(())

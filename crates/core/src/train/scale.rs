@@ -153,6 +153,10 @@ pub(crate) struct BlendSearch {
     /// (`sim.viscosity`) after those, where it ran.
     #[serde(default)]
     pub viscosity: Option<ProportionalDamping>,
+    /// The search of the shear springs' stiffness in compression (`sim.shear_compression`)
+    /// after those, where it ran ([`CompressionSearch`]).
+    #[serde(default)]
+    pub shear_compression: Option<CompressionSearch>,
     /// Every map's blend searched, the kept one among them ([`MapScore`]); empty in a record
     /// written before the maps were judged on held-out takes.
     #[serde(default)]
@@ -571,6 +575,7 @@ impl Blender<'_> {
             drag: None,
             damping: None,
             viscosity: None,
+            shear_compression: None,
             maps: Vec::new(),
             weights: None,
         }
@@ -1132,6 +1137,114 @@ pub fn proportional_damping(
     ))
 }
 
+/// The shear springs' stiffness in compression per unit `k` that [`shear_compression`] tries
+/// beside the run's ([`crate::sim::SimConfig::shear_compression`]): from linear springs to
+/// springs that pull only.
+pub const SHEAR_COMPRESSIONS: [f64; 4] = [1.0, 0.5, 0.25, 0.0];
+
+/// The search of the shear springs' stiffness in compression (`sim.shear_compression`; ours;
+/// `blend.json`'s `shear_compression`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CompressionSearch {
+    /// `(shear_compression, k factor, mean motion RMSE on the training takes)` of every stable
+    /// candidate, in the order tried.
+    pub candidates: Vec<(f64, f64, f64)>,
+    /// The closest candidate's stiffness in compression per unit `k`.
+    pub shear_compression: f64,
+    /// The closest candidate's factor on the network's `k` (its curvature elements' too).
+    pub k_factor: f64,
+    /// The closest candidate's mean motion RMSE on the training takes, m.
+    pub after: f64,
+    /// `(short, long)` motion RMSE on the held-out training takes of the network kept before,
+    /// and of the closest candidate (m); `None` where the closest is the network as it was.
+    pub held_out: Option<((f64, f64), (f64, f64))>,
+    /// Whether the run keeps it.
+    pub kept: bool,
+}
+
+/// The closest softening of `model`'s shear springs in compression on the first training takes
+/// ([`CompressionSearch`]): every value of [`SHEAR_COMPRESSIONS`] (and `physics`' own) at
+/// `model`'s `k` and `b`, then the factors `2^(±1/2)` of its `k` at the closest where that is
+/// not `physics`' own. Returns the network, the physics it runs at (`physics` with the closest
+/// `shear_compression`) and the record (not yet judged on held-out takes); `None` where the
+/// network has no shear springs or no candidate is stable.
+pub fn shear_compression(
+    model: &SpringNet,
+    physics: &Physics,
+    train: &Takes,
+) -> Option<(SpringNet, Physics, CompressionSearch)> {
+    if !train
+        .topology
+        .family
+        .contains(&crate::cloth::SpringFamily::Shear)
+    {
+        return None;
+    }
+    let files = search_files(train);
+    let takes = Takes {
+        files: &files,
+        ..*train
+    };
+    let sizes = Sizes::of(model);
+    let candidate = |kc: f64, fk: f64| {
+        (
+            sizes.scaled(train, fk, 1.0),
+            Physics {
+                shear_compression: kc,
+                ..*physics
+            },
+        )
+    };
+    let mut row: Vec<f64> = vec![physics.shear_compression];
+    row.extend(
+        SHEAR_COMPRESSIONS
+            .iter()
+            .copied()
+            .filter(|&kc| kc != physics.shear_compression),
+    );
+    let bar = train
+        .progress
+        .bar(row.len() as u64 + 2, "shear compression search");
+    let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
+    let consider = |kc: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
+        let (net, at) = candidate(kc, fk);
+        if let Some(r) = network_rollout_rmse(&net, &at, &takes) {
+            candidates.push((kc, fk, r));
+        }
+        bar.inc(1);
+    };
+    let closest = |candidates: &[(f64, f64, f64)]| {
+        candidates
+            .iter()
+            .copied()
+            .min_by(|a, b| a.2.total_cmp(&b.2))
+    };
+    for &kc in &row {
+        consider(kc, 1.0, &mut candidates);
+    }
+    let (kc, _, _) = closest(&candidates)?;
+    if kc != physics.shear_compression {
+        for f in [-0.5, 0.5] {
+            consider(kc, 2f64.powf(f), &mut candidates);
+        }
+    }
+    bar.finish();
+    let (kc, k_factor, after) = closest(&candidates)?;
+    let (net, at) = candidate(kc, k_factor);
+    Some((
+        net,
+        at,
+        CompressionSearch {
+            candidates,
+            shear_compression: kc,
+            k_factor,
+            after,
+            held_out: None,
+            kept: false,
+        },
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use burn::tensor::Device;
@@ -1152,6 +1265,7 @@ mod tests {
             rayleigh: 0.0,
             gravity: [0.0, 0.0, -9.81],
             viscosity: 0.0,
+            shear_compression: 1.0,
         };
         let device = Device::flex();
         let net = |k: f64, b: f64| SpringNet::uniform(&topo, k, b, &device);

@@ -7,7 +7,9 @@
 //!
 //! forward (Eq. 4, Eq. 2): `f_s = c_s d + ν_s w`, `c_s = k_s (1 − l0_s/L) + b_s (w·d)/L²`,
 //! `ν_s = β k_s` (the step's isotropic viscosity `β`, 0 for the plain forces op);
-//! `F_a += f_s`, `F_b −= f_s`.
+//! `F_a += f_s`, `F_b −= f_s`. A shear spring shorter than at rest (`L < l0`) has `k_s κ` in
+//! place of `k_s` in `c_s` and in the backward (the step's `shear_compression` `κ`, 1 for the
+//! plain forces op); `ν_s` keeps `k_s`.
 //!
 //! backward, given `G = ∂ℓ/∂F` and `g = G_a − G_b = ∂ℓ/∂f_s`:
 //! - `∂ℓ/∂k_s = Σ_clips (g·d)(1 − l0/L) + β g·w`, `∂ℓ/∂b_s = Σ_clips (g·d)(w·d)/L²`;
@@ -40,6 +42,9 @@ pub struct StepParams {
     /// The springs' isotropic viscosity per unit stiffness `β`, s
     /// ([`crate::sim::SimConfig::viscosity`]).
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression per unit `k`
+    /// ([`crate::sim::SimConfig::shear_compression`]; 1: linear springs).
+    pub shear_compression: f64,
 }
 
 /// The springs with checked indices, so that the loops can skip bounds checks.
@@ -52,6 +57,11 @@ pub(super) struct Springs<'a, T> {
     scale: Option<Vec<T>>,
     /// Isotropic viscosity per unit stiffness `β` ([`Springs::with_viscosity`]; 0: none).
     visc: T,
+    /// Each spring's stiffness in compression per unit `k` ([`Springs::with_compression`]):
+    /// empty where every spring is linear.
+    comp: Vec<T>,
+    /// The graph's shear springs.
+    shear: &'a [bool],
 }
 
 impl<'a, T: Float> Springs<'a, T> {
@@ -69,6 +79,8 @@ impl<'a, T: Float> Springs<'a, T> {
                 .as_ref()
                 .map(|s| s.iter().map(|&v| T::from(v).expect("float")).collect()),
             visc: T::zero(),
+            comp: Vec::new(),
+            shear: &g.shear,
         }
     }
 
@@ -76,6 +88,34 @@ impl<'a, T: Float> Springs<'a, T> {
     pub(super) fn with_viscosity(mut self, viscosity: f64) -> Self {
         self.visc = T::from(viscosity).expect("float");
         self
+    }
+
+    /// The same springs with the shear springs pushing with `shear_compression · k_s` when
+    /// shorter than at rest (a step's physics; 1: linear springs).
+    pub(super) fn with_compression(mut self, shear_compression: f64) -> Self {
+        self.comp = if shear_compression == 1.0 || self.shear.is_empty() {
+            Vec::new()
+        } else {
+            let soft = T::from(shear_compression).expect("float");
+            self.shear
+                .iter()
+                .map(|&s| if s { soft } else { T::one() })
+                .collect()
+        };
+        self
+    }
+
+    /// A step's physics on these springs: the viscosity `β` and the shear springs' stiffness in
+    /// compression per unit `k`.
+    pub(super) fn with_physics(self, viscosity: f64, shear_compression: f64) -> Self {
+        self.with_viscosity(viscosity)
+            .with_compression(shear_compression)
+    }
+
+    /// Spring `s`'s stiffness in compression per unit `k` (1 unless softened).
+    #[inline(always)]
+    fn compression(&self, s: usize) -> T {
+        self.comp.get(s).copied().unwrap_or_else(T::one)
     }
 }
 
@@ -245,12 +285,15 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let nu = c.sp.visc * ks;
+            let soft = c.sp.compression(s);
             let mut coef = [T::zero(); L];
             for l in 0..L {
                 let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
                 let wd = w[0][l] * d[0][l] + w[1][l] * d[1][l] + w[2][l] * d[2][l];
                 let inv = T::one() / len2.sqrt();
-                coef[l] = ks * (T::one() - l0 * inv) + bs * wd * inv * inv;
+                let stretch = T::one() - l0 * inv;
+                let kl = if stretch < T::zero() { ks * soft } else { ks };
+                coef[l] = kl * stretch + bs * wd * inv * inv;
             }
             for c in 0..3 {
                 let mut f = [T::zero(); L];
@@ -287,6 +330,7 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let nu = c.sp.visc * ks;
+            let soft = c.sp.compression(s);
             let mut g = [[T::zero(); L]; 3];
             for c in 0..3 {
                 let (ga, gbb) = (gf.get_unchecked(a + c), gf.get_unchecked(bb + c));
@@ -308,11 +352,14 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
                 let inv = T::one() / len2.sqrt();
                 let inv2 = inv * inv;
                 let stretch = T::one() - l0 * inv;
-                coef[l] = ks * stretch + bs * wd * inv2;
+                // A softened spring in compression: k_s · soft in place of k_s.
+                let f = if stretch < T::zero() { soft } else { T::one() };
+                let kl = ks * f;
+                coef[l] = kl * stretch + bs * wd * inv2;
                 gd[l] = gdl;
-                dk = dk + gdl * stretch;
+                dk = dk + gdl * stretch * f;
                 db = db + gdl * wd * inv2;
-                a1[l] = ks * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
+                a1[l] = kl * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
                 a2[l] = bs * inv2;
                 if nu != T::zero() {
                     let gw = g[0][l] * w[0][l] + g[1][l] * w[1][l] + g[2][l] * w[2][l];
@@ -704,7 +751,7 @@ fn step_lanes<T: Float + Send + Sync, const L: usize>(
     out: &mut [T],
 ) {
     let Inputs { x, v, k, b } = s;
-    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
+    let sp = Springs::<T>::new(g).with_physics(params.viscosity, params.shear_compression);
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;
@@ -794,7 +841,7 @@ fn frame_lanes<T: Float + Send + Sync, const L: usize>(
     out: &mut [T],
 ) {
     let Inputs { x, v, k, b } = s;
-    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
+    let sp = Springs::<T>::new(g).with_physics(params.viscosity, params.shear_compression);
     let (particles, stride) = (g.particles, g.particles * 3);
     let n = x.len();
     let batch = n / stride;
@@ -894,7 +941,10 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
 ) {
     let Inputs { x, v, k, b } = s;
     let (gx, gv, gk, gb) = (grads.x, grads.v, grads.k, grads.b);
-    let sp = Springs::<T>::new(g).with_viscosity(step.map_or(0.0, |(_, p)| p.viscosity));
+    let sp = match step {
+        Some((_, p)) => Springs::<T>::new(g).with_physics(p.viscosity, p.shear_compression),
+        None => Springs::<T>::new(g),
+    };
     let stride = g.particles * 3;
     let n = x.len();
     let batch = n / stride;

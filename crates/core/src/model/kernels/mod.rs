@@ -49,6 +49,9 @@ pub struct HostGraph {
     particles: usize,
     /// `1 / w` on each particle's spring forces (relative masses `w`); `None`: equal masses.
     force_scale: Option<Vec<f64>>,
+    /// Which springs are shear springs ([`HostGraph::with_shear`]; empty: none), the ones a
+    /// step's `shear_compression` softens in compression.
+    shear: Vec<bool>,
     /// The graph's buffers on the CubeCL devices it ran on.
     #[cfg(feature = "wgpu")]
     cube: cube::CubeCache<cube::DeviceGraph>,
@@ -77,9 +80,25 @@ impl HostGraph {
             rest_length: rest_length.to_vec(),
             particles,
             force_scale: None,
+            shear: Vec::new(),
             #[cfg(feature = "wgpu")]
             cube: Default::default(),
         }
+    }
+
+    /// The same graph with the shear springs marked (`shear[s]`: whether spring `s` is one, see
+    /// [`crate::cloth::SpringFamily::Shear`]): the fused step and rollout soften them in
+    /// compression by [`StepParams::shear_compression`].
+    ///
+    /// Panics unless `shear` holds one flag per spring.
+    pub(crate) fn with_shear(mut self, shear: &[bool]) -> Self {
+        assert_eq!(shear.len(), self.ends.len(), "one shear flag per spring");
+        self.shear = if shear.contains(&true) {
+            shear.to_vec()
+        } else {
+            Vec::new()
+        };
+        self
     }
 
     /// The same graph with every particle's spring forces multiplied by `scale` (one factor

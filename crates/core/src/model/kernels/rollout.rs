@@ -45,6 +45,9 @@ pub struct RolloutParams {
     /// The springs' isotropic viscosity per unit stiffness, s
     /// ([`crate::sim::SimConfig::viscosity`]).
     pub viscosity: f64,
+    /// The shear springs' stiffness in compression per unit `k`
+    /// ([`crate::sim::SimConfig::shear_compression`]).
+    pub shear_compression: f64,
     /// Memory the forward pass may keep for the backward, bytes; beyond it, states are
     /// checkpointed every `⌈√T⌉` frames and recomputed.
     pub state_budget: usize,
@@ -292,7 +295,7 @@ fn forward_lanes<T: Float + Send + Sync, const L: usize>(
     data: RolloutData<T>,
     params: RolloutParams,
 ) -> ([f64; 3], Arc<Tape<T>>) {
-    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
+    let sp = Springs::<T>::new(g).with_physics(params.viscosity, params.shear_compression);
     let (t, n, stride) = (data.frames, params.substeps.max(1), g.particles * 3);
     let params = RolloutParams {
         substeps: n,
@@ -402,7 +405,7 @@ fn backward_lanes<T: Float + Send + Sync, const L: usize>(
     tape: &Tape<T>,
     w: [f64; 3],
 ) -> (Vec<T>, Vec<T>) {
-    let sp = Springs::<T>::new(g).with_viscosity(params.viscosity);
+    let sp = Springs::<T>::new(g).with_physics(params.viscosity, params.shear_compression);
     let (t, n, stride) = (data.frames, params.substeps.max(1), g.particles * 3);
     let params = RolloutParams {
         substeps: n,
