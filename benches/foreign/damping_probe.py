@@ -155,7 +155,7 @@ def area_forces(pos, tri, corners, area0, ka, out):
 
 
 def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-            hinge=None, kb=0.0, area=None, ka=0.0):
+            hinge=None, kb=0.0, area=None, ka=0.0, kc=None):
     """Free rollouts from frame 0 of `x` [B, F, N, 3] (velocities by central differences), the
     pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1."""
     batch, frames, n, _ = x.shape
@@ -183,7 +183,8 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             d = pos[:, springs[:, 1]] - pos[:, springs[:, 0]]
             w = vel[:, springs[:, 1]] - vel[:, springs[:, 0]]
             length = np.linalg.norm(d, axis=-1, keepdims=True)
-            coef = k[None, :, None] * (1.0 - rest[None, :, None] / length) + b[None, :, None] * (
+            stiff = k[None, :, None] if kc is None else np.where(length < rest[None, :, None], kc[None, :, None], k[None, :, None])
+            coef = stiff * (1.0 - rest[None, :, None] / length) + b[None, :, None] * (
                 (w * d).sum(-1, keepdims=True) / length**2
             )
             f = scatter(d * coef, sa, sb, size).reshape(batch, n, 3)
@@ -232,6 +233,11 @@ def main():
                    "on every interior edge of the data's triangles, one rollout each")
     p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
                    "on every triangle, one rollout each (with each --bending)")
+    p.add_argument("--compression", default="1", help="C[,C...]: the springs along the data's mesh edges "
+                   "pull with k but push with C k when compressed (0: tension only), one rollout each")
+    p.add_argument("--compression-on", choices=("edges", "diagonals", "all"), default="edges",
+                   help="which springs --compression softens: the data's mesh edges, the cells' "
+                   "diagonals (rest length within 5 %% of sqrt(2) times the shortest spring's), every spring")
     a = p.parse_args()
 
     run = Path(a.run)
@@ -265,12 +271,17 @@ def main():
     edges, source_nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64), kd)
     index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
     spring_of = np.array([index[(i, j)] for i, j in edges])  # the spring along each edge
+    mesh_springs = spring_of
     if kd is not None:
         nu, label = source_nu, f"source x {a.viscosity_source:g}"
     elif a.viscosity is not None:
         nu, label = np.full(len(edges), a.viscosity), f"{a.viscosity}"
     elif a.viscosity_per_k is not None:
         nu, label = a.viscosity_per_k * k[spring_of], f"{a.viscosity_per_k:g} k"
+    elif (beta := float(re.search(r"^viscosity\s*=\s*(\S+)", config, re.M).group(1))) > 0.0:
+        # the run's own isotropic viscosity (`sim.viscosity`): beta k on every spring
+        edges, spring_of = springs, np.arange(len(springs))
+        nu, label = beta * k, f"the run's {beta:.3g} k"
     else:
         nu, label = None, "none"
     if nu is not None and a.project:
@@ -283,15 +294,25 @@ def main():
     area = (tri, triangle_areas(tri, uv))
     for kb in (float(v) for v in a.bending.split(",")):
         for ka in (float(v) for v in a.area.split(",")):
-            report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges,
-                   nu, hinge, kb, area, ka, label)
+            for c in (float(v) for v in a.compression.split(",")):
+                kc = None
+                if c != 1.0:
+                    kc = k.copy()
+                    if a.compression_on == "edges":
+                        kc[mesh_springs] *= c
+                    elif a.compression_on == "diagonals":
+                        kc[np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)] *= c
+                    else:
+                        kc *= c
+                report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges,
+                       nu, hinge, kb, area, ka, label, kc, c)
 
 
 def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-           hinge, kb, area, ka, label):
+           hinge, kb, area, ka, label, kc=None, compression=1.0):
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-                  hinge, kb, area, ka)
+                  hinge, kb, area, ka, kc)
     if sim is None:
         print(f"bending {kb:g}, area {ka:g}: diverged")
         return
@@ -301,6 +322,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
     windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
     print(
         f"{len(x)} takes, drag {drag:.4g}, viscosity {label}, bending {kb:g}, area {ka:g}"
+        + (f", compression {compression:g}" if compression != 1.0 else "")
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
