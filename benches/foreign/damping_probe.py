@@ -7,11 +7,13 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
         [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N]
-        [--bending KB[,KB...]] [--area KA[,KA...]]
+        [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
+        [--compression-on edges|diagonals|all]]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
-bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring and
-the drag `-c v` (`sim.rayleigh`, the run's by default). The viscosity is a damper
+bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring, the
+drag `-c v` (`sim.rayleigh`, the run's by default) and, without a viscosity option, the run's own
+isotropic viscosity `sim.viscosity` (`beta k_s (v_b - v_a)` on every spring). The viscosity is a damper
 `nu (v_j - v_i)` on every edge of the data's triangles: the whole relative velocity, rotations
 and out-of-plane motion included, as Warp's FEM triangles damp (`k_damp * dF/dt`, rest area
 weighted). `--viscosity NU` puts the same `nu` on every edge, `--viscosity-per-k BETA` BETA times
@@ -30,7 +32,10 @@ Two terms the surrogate does not have, to measure what they would be worth befor
 angle `theta` linearised about the flat rest sheet, so the forces are linear in the positions and
 vanish under rigid motions), and `--area KA` an area term `1/2 KA (A - A0)^2 / A0` on every
 triangle (a membrane's resistance to changing its area, which springs carry only through their
-lengths). Each takes a comma-separated row and runs one rollout per value (per pair). A scratch
+lengths). `--compression C` makes springs push back with `C k` when shorter than at rest (0:
+they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals, or
+every spring; the surrogate has it since as `sim.shear_compression` on its shear springs).
+Each takes a comma-separated row and runs one rollout per value (per pair). A scratch
 tool for the book's damping measurements (Results, Other simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
 there). Needs numpy (any of the bench's environments:
 `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve 3 s takes at 189
