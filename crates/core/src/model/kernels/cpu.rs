@@ -273,26 +273,35 @@ unsafe fn spring_lanes<T: Float, const L: usize>(
     }
 }
 
-/// Accumulates the spring forces of one chunk into `out` (`[P·3][L]`).
+/// Accumulates the spring forces of one chunk into `out` (`[P·3][L]`); `SOFT`: whether some
+/// springs are softer in compression ([`Springs::with_compression`]; `false` builds the loop
+/// without that test, the springs all linear).
 ///
 /// # Safety
 /// `x`, `v` and `out` hold `3 · sp.particles` lanes, `k` and `b` one value per spring.
 #[inline(always)]
-unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut [Lane<T, L>]) {
+unsafe fn chunk_forces<T: Float, const L: usize, const SOFT: bool>(
+    c: LaneSprings<T, L>,
+    out: &mut [Lane<T, L>],
+) {
     for (s, &(a, bb)) in c.sp.ends.iter().enumerate() {
         let (a, bb) = (3 * a as usize, 3 * bb as usize);
         // SAFETY: endpoints < particles (HostGraph::new) and the caller's length contract.
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let nu = c.sp.visc * ks;
-            let soft = c.sp.compression(s);
+            let soft = if SOFT { c.sp.compression(s) } else { T::one() };
             let mut coef = [T::zero(); L];
             for l in 0..L {
                 let len2 = d[0][l] * d[0][l] + d[1][l] * d[1][l] + d[2][l] * d[2][l];
                 let wd = w[0][l] * d[0][l] + w[1][l] * d[1][l] + w[2][l] * d[2][l];
                 let inv = T::one() / len2.sqrt();
                 let stretch = T::one() - l0 * inv;
-                let kl = if stretch < T::zero() { ks * soft } else { ks };
+                let kl = if SOFT && stretch < T::zero() {
+                    ks * soft
+                } else {
+                    ks
+                };
                 coef[l] = kl * stretch + bs * wd * inv * inv;
             }
             for c in 0..3 {
@@ -317,7 +326,7 @@ unsafe fn chunk_forces<T: Float, const L: usize>(c: LaneSprings<T, L>, out: &mut
 /// # Safety
 /// As [`chunk_forces`], and `gk`, `gb` hold one value per spring.
 #[inline(always)]
-unsafe fn chunk_backward<T: Float, const L: usize>(
+unsafe fn chunk_backward<T: Float, const L: usize, const SOFT: bool>(
     c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
     g: &mut LaneGrads<T, L>,
@@ -330,7 +339,7 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
         unsafe {
             let SpringLanes { ks, bs, l0, d, w } = spring_lanes(&c, s, (a, bb));
             let nu = c.sp.visc * ks;
-            let soft = c.sp.compression(s);
+            let soft = if SOFT { c.sp.compression(s) } else { T::one() };
             let mut g = [[T::zero(); L]; 3];
             for c in 0..3 {
                 let (ga, gbb) = (gf.get_unchecked(a + c), gf.get_unchecked(bb + c));
@@ -353,11 +362,20 @@ unsafe fn chunk_backward<T: Float, const L: usize>(
                 let inv2 = inv * inv;
                 let stretch = T::one() - l0 * inv;
                 // A softened spring in compression: k_s · soft in place of k_s.
-                let f = if stretch < T::zero() { soft } else { T::one() };
-                let kl = ks * f;
+                let f = if SOFT && stretch < T::zero() {
+                    soft
+                } else {
+                    T::one()
+                };
+                let kl = if SOFT { ks * f } else { ks };
                 coef[l] = kl * stretch + bs * wd * inv2;
                 gd[l] = gdl;
-                dk = dk + gdl * stretch * f;
+                dk = dk
+                    + if SOFT {
+                        gdl * stretch * f
+                    } else {
+                        gdl * stretch
+                    };
                 db = db + gdl * wd * inv2;
                 a1[l] = kl * l0 * inv2 * inv - two * bs * wd * inv2 * inv2;
                 a2[l] = bs * inv2;
@@ -547,12 +565,12 @@ macro_rules! dispatch_lanes {
 /// # Safety
 /// As [`chunk_forces`], and the CPU supports AVX2.
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
-unsafe fn chunk_forces_wide<T: Float, const L: usize>(
+unsafe fn chunk_forces_wide<T: Float, const L: usize, const SOFT: bool>(
     c: LaneSprings<T, L>,
     out: &mut [Lane<T, L>],
 ) {
     // SAFETY: forwarded contract.
-    unsafe { chunk_forces(c, out) }
+    unsafe { chunk_forces::<T, L, SOFT>(c, out) }
 }
 
 /// [`chunk_backward`] compiled with AVX2.
@@ -560,13 +578,13 @@ unsafe fn chunk_forces_wide<T: Float, const L: usize>(
 /// # Safety
 /// As [`chunk_backward`], and the CPU supports AVX2.
 #[cfg_attr(target_arch = "x86_64", target_feature(enable = "avx2"))]
-unsafe fn chunk_backward_wide<T: Float, const L: usize>(
+unsafe fn chunk_backward_wide<T: Float, const L: usize, const SOFT: bool>(
     c: LaneSprings<T, L>,
     gf: &[Lane<T, L>],
     g: &mut LaneGrads<T, L>,
 ) {
     // SAFETY: forwarded contract.
-    unsafe { chunk_backward(c, gf, g) }
+    unsafe { chunk_backward::<T, L, SOFT>(c, gf, g) }
 }
 
 /// Spring forces of one chunk, with the AVX2 build of the loop for 8 lanes.
@@ -579,10 +597,11 @@ pub(super) unsafe fn run_forces<T: Float, const L: usize>(
 ) {
     // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
     unsafe {
-        if L == 8 {
-            chunk_forces_wide(c, out)
-        } else {
-            chunk_forces(c, out)
+        match (L == 8, c.sp.comp.is_empty()) {
+            (true, true) => chunk_forces_wide::<T, L, false>(c, out),
+            (true, false) => chunk_forces_wide::<T, L, true>(c, out),
+            (false, true) => chunk_forces::<T, L, false>(c, out),
+            (false, false) => chunk_forces::<T, L, true>(c, out),
         }
         if !c.sp.triples.is_empty() {
             chunk_curvature(c.sp, c.x, c.k, out)
@@ -620,10 +639,11 @@ pub(super) unsafe fn run_backward<T: Float, const L: usize>(
     };
     // SAFETY: forwarded contract; 8 lanes are only dispatched on AVX2 machines.
     unsafe {
-        if L == 8 {
-            chunk_backward_wide(c, gf, g)
-        } else {
-            chunk_backward(c, gf, g)
+        match (L == 8, c.sp.comp.is_empty()) {
+            (true, true) => chunk_backward_wide::<T, L, false>(c, gf, g),
+            (true, false) => chunk_backward_wide::<T, L, true>(c, gf, g),
+            (false, true) => chunk_backward::<T, L, false>(c, gf, g),
+            (false, false) => chunk_backward::<T, L, true>(c, gf, g),
         }
         if !c.sp.triples.is_empty() {
             chunk_curvature_backward(c.sp, c.x, c.k, gf, g.x, g.k)
