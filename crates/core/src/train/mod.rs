@@ -994,7 +994,9 @@ impl AfterFit<'_> {
         record.polish = Some(polish);
         record.drag = drag;
         let (mut blended, mut blended_physics) = (blended, blended_physics);
-        if let Some(mut known) = searched {
+        // The held-out figures of the network kept so far, where a search measured them.
+        let mut known = searched.flatten();
+        if searched.is_some() {
             let forms = [
                 (
                     scale::Proportional::Springs,
@@ -1025,7 +1027,8 @@ impl AfterFit<'_> {
         }
         if config.train.compression_search && !self.split.validation.is_empty() {
             let found;
-            (blended, blended_physics, found) = self.shear_compression(blended, blended_physics)?;
+            (blended, blended_physics, found) =
+                self.shear_compression(blended, blended_physics, known)?;
             record.shear_compression = found;
         }
         let run = self.fit.run;
@@ -1184,13 +1187,12 @@ impl AfterFit<'_> {
             ));
             return Ok((net, physics, None));
         };
-        let before = match known {
-            Some(r) => r,
-            None => self.held_out_rmse(&net, &physics)?,
-        };
-        let after = self.held_out_rmse(&other, &at)?;
-        record.kept = scale::held_out_agrees(before, after);
-        record.held_out = Some((before, after));
+        let HeldOutVerdict {
+            before,
+            after,
+            kept,
+        } = self.held_out_verdict((&net, &physics), (&other, &at), known)?;
+        (record.kept, record.held_out) = (kept, Some((before, after)));
         progress.note(&format!(
             "{}: {} the map moves closest to the training rollouts at {} = {:.3e} s · k, k × \
              {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / \
@@ -1226,13 +1228,36 @@ impl AfterFit<'_> {
         })
     }
 
+    /// The held-out training takes' `(short, long)` motion RMSE of `net` at `physics` (`known`
+    /// where an earlier search measured it) and of `other` at `at`, and whether they prefer
+    /// `other` ([`scale::held_out_agrees`]).
+    fn held_out_verdict(
+        &self,
+        (net, physics): (&SpringNet, &Physics),
+        (other, at): (&SpringNet, &Physics),
+        known: Option<(f64, f64)>,
+    ) -> Result<HeldOutVerdict> {
+        let before = match known {
+            Some(r) => r,
+            None => self.held_out_rmse(net, physics)?,
+        };
+        let after = self.held_out_rmse(other, at)?;
+        Ok(HeldOutVerdict {
+            before,
+            after,
+            kept: scale::held_out_agrees(before, after),
+        })
+    }
+
     /// The shear springs' stiffness in compression ([`scale::shear_compression`]), kept only
-    /// where the held-out training takes agree ([`scale::held_out_agrees`]). Returns the network
-    /// and physics kept and the record.
+    /// where the held-out training takes agree ([`scale::held_out_agrees`]). `known` is `net`'s
+    /// `(short, long)` held-out RMSE where an earlier search measured it. Returns the network and
+    /// physics kept and the record.
     fn shear_compression(
         &self,
         net: SpringNet,
         physics: Physics,
+        known: Option<(f64, f64)>,
     ) -> Result<(SpringNet, Physics, Option<scale::CompressionSearch>)> {
         let progress = self.fit.progress;
         let Some((other, at, mut record)) =
@@ -1248,10 +1273,12 @@ impl AfterFit<'_> {
             ));
             return Ok((net, physics, Some(record)));
         }
-        let before = self.held_out_rmse(&net, &physics)?;
-        let after = self.held_out_rmse(&other, &at)?;
-        record.kept = scale::held_out_agrees(before, after);
-        record.held_out = Some((before, after));
+        let HeldOutVerdict {
+            before,
+            after,
+            kept,
+        } = self.held_out_verdict((&net, &physics), (&other, &at), known)?;
+        (record.kept, record.held_out) = (kept, Some((before, after)));
         progress.note(&format!(
             "shear compression search: the network moves closest to the training rollouts with \
              its shear springs pushing at {} of their k when compressed, k × {:.3} ({:.4e} m); \
@@ -1579,6 +1606,17 @@ fn keep_searched(
     write_physics(run, config, physics)?;
     crate::io::write_json(&run.dir.join(file), record)?;
     RunDir::save_module(net, &run.model())
+}
+
+/// What the held-out training takes say of a search's closest network
+/// ([`AfterFit::held_out_verdict`]).
+struct HeldOutVerdict {
+    /// `(short, long)` motion RMSE of the network kept before, m.
+    before: (f64, f64),
+    /// `(short, long)` motion RMSE of the search's closest network, m.
+    after: (f64, f64),
+    /// Whether they prefer the closest ([`scale::held_out_agrees`]).
+    kept: bool,
 }
 
 /// Writes `physics`' substeps, drag, viscosity and shear springs' compression into the run's

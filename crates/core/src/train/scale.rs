@@ -1094,12 +1094,6 @@ pub fn proportional_damping(
         bar.inc(1);
         found.is_some()
     };
-    let closest = |candidates: &[(f64, f64, f64)]| {
-        candidates
-            .iter()
-            .copied()
-            .min_by(|a, b| a.2.total_cmp(&b.2))
-    };
     for i in BETA_STEPS {
         if !consider(h * 2f64.powi(i), 1.0, &mut candidates) {
             break;
@@ -1135,6 +1129,14 @@ pub fn proportional_damping(
             kept: false,
         },
     ))
+}
+
+/// The closest of a row's candidates `(value, k factor, mean motion RMSE)`: the least RMSE.
+fn closest(candidates: &[(f64, f64, f64)]) -> Option<(f64, f64, f64)> {
+    candidates
+        .iter()
+        .copied()
+        .min_by(|a, b| a.2.total_cmp(&b.2))
 }
 
 /// The shear springs' stiffness in compression per unit `k` that [`shear_compression`] tries
@@ -1212,12 +1214,6 @@ pub fn shear_compression(
             candidates.push((kc, fk, r));
         }
         bar.inc(1);
-    };
-    let closest = |candidates: &[(f64, f64, f64)]| {
-        candidates
-            .iter()
-            .copied()
-            .min_by(|a, b| a.2.total_cmp(&b.2))
     };
     for &kc in &row {
         consider(kc, 1.0, &mut candidates);
