@@ -8,7 +8,8 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
         [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N]
         [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
-        [--compression-on edges|diagonals|all]]
+        [--compression-on edges|diagonals|all]] [--map source|FILE [--map-share S[,S...]]
+        [--map-on sides|all]] [--diagonals-from-sides]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring, the
@@ -35,7 +36,16 @@ triangle (a membrane's resistance to changing its area, which springs carry only
 lengths). `--compression C` makes springs push back with `C k` when shorter than at rest (0:
 they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals, or
 every spring; the surrogate has it since as `sim.shear_compression` on its shear springs).
-Each takes a comma-separated row and runs one rollout per value (per pair). A scratch
+Each takes a comma-separated row and runs one rollout per value (per pair).
+
+What a stiffness map is worth to the motion: `--map source` blends the takes' own map
+(`tri_stiffness`, each vertex the mean of its triangles', each spring the mean of its ends') into
+the run's `k` by each share of `--map-share` (each family, the cells' sides and their diagonals,
+keeps its mean `k`: `k (1 - S + S m / mean m)`), `--map FILE` a springs `.npz`'s `k` instead (the
+run's `springs.learned.npz`, the map a run set aside), `--map-on sides` on the sides alone; and
+`--diagonals-from-sides` shapes each shear spring (a cell's diagonal) by its cell's sides, the
+diagonals' mean kept (the run's `k`, or with `--map` the map's): one map for the cell, where a
+source's diagonals are read worse than its sides. A scratch
 tool for the book's damping measurements (Results, Other simulators): it does not replace `eval`, which it matches to a few per cent (f64 here, f32
 there). Needs numpy (any of the bench's environments:
 `~/.cache/springtime-foreign/venv-warp/bin/python`); about 3 minutes for twelve 3 s takes at 189
@@ -216,6 +226,53 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
     return np.stack(out, 1)
 
 
+def source_map(first, springs):
+    """The source's own stiffness map on the springs: each vertex the mean `tri_stiffness` of its
+    triangles, each spring the mean of its ends'."""
+    if "tri_stiffness" not in first.files:
+        raise SystemExit("--map source: the takes carry no tri_stiffness")
+    tri = first["triangles"].astype(int)
+    n = first["rest_uv"].shape[0]
+    acc, count = np.zeros(n), np.zeros(n)
+    for c in range(3):
+        acc += np.bincount(tri[:, c], first["tri_stiffness"].astype(np.float64), n)
+        count += np.bincount(tri[:, c], None, n)
+    vertex = acc / np.maximum(count, 1)
+    return 0.5 * (vertex[springs[:, 0]] + vertex[springs[:, 1]])
+
+
+def diagonals_from_sides(values, springs, family):
+    """`values` with each shear spring's (a cell's diagonal) replaced by the mean of its cell's
+    sides' values over the sides' mean, times the diagonals' mean: one map for the cell."""
+    side_of = {}
+    for s in np.flatnonzero(family == 0):
+        i, j = springs[s]
+        side_of.setdefault(i, {})[j] = s
+        side_of.setdefault(j, {})[i] = s
+    rel = values / values[family == 0].mean()
+    shear = np.flatnonzero(family == 1)
+    shape = np.ones(len(shear))
+    for n, s in enumerate(shear):
+        i, j = springs[s]
+        corners = set(side_of.get(i, {})) & set(side_of.get(j, {}))
+        sides = [side_of[i][c] for c in corners] + [side_of[j][c] for c in corners]
+        if sides:
+            shape[n] = rel[sides].mean()
+    out = values.copy()
+    out[shear] = shape / shape.mean() * values[shear].mean()
+    return out
+
+
+def with_map(k, shape, family, share, families):
+    """`k` with `share` of the map `shape` blended in per family (each family's map over its own
+    mean), so each family's mean stiffness stays: `k (1 - share + share m / mean m)`."""
+    out = k.copy()
+    for f in families:
+        sel = family == f
+        out[sel] = k[sel] * (1.0 - share + share * shape[sel] / shape[sel].mean())
+    return out
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run")
@@ -243,6 +300,16 @@ def main():
     p.add_argument("--compression-on", choices=("edges", "diagonals", "all"), default="edges",
                    help="which springs --compression softens: the data's mesh edges, the cells' "
                    "diagonals (rest length within 5 %% of sqrt(2) times the shortest spring's), every spring")
+    p.add_argument("--map", metavar="source|FILE",
+                   help="a stiffness map to blend into the run's k: the takes' own (tri_stiffness) or "
+                   "a springs .npz's k (e.g. the run's springs.learned.npz)")
+    p.add_argument("--map-share", default="1", metavar="S[,S...]",
+                   help="shares of --map blended in, one rollout each (each family keeps its mean k)")
+    p.add_argument("--map-on", choices=("sides", "all"), default="all",
+                   help="which springs --map shapes: the cells' sides, or the sides and diagonals")
+    p.add_argument("--diagonals-from-sides", action="store_true",
+                   help="each shear spring's (a cell's diagonal) k shaped by its cell's sides' instead of "
+                   "its own (the diagonals' mean kept); with --map, the map's")
     a = p.parse_args()
 
     run = Path(a.run)
@@ -264,6 +331,22 @@ def main():
     k = k * a.k_scale
 
     first, x, pinned, dt = load_takes(a.data, a.takes)
+    family = net["family"].astype(int)
+    shape = None
+    if a.map == "source":
+        shape = source_map(first, springs)
+    elif a.map:
+        shape = np.load(a.map)["k"].astype(np.float64)
+        if shape.shape != k.shape:
+            raise SystemExit(f"--map {a.map}: {len(shape)} springs, the run has {len(k)}")
+    if a.diagonals_from_sides:
+        if shape is None:
+            k = diagonals_from_sides(k, springs, family)
+        else:
+            shape = diagonals_from_sides(shape, springs, family)
+    shares = [None] if shape is None else [float(v) for v in a.map_share.split(",")]
+    map_families = (0,) if a.map_on == "sides" else (0, 1)
+    k_run = k
     n = x.shape[2]
     mass = float(first["total_mass"]) / n
     weight = particle_weights(config, first, n)
@@ -273,45 +356,55 @@ def main():
         if "tri_kd" not in first.files:
             raise SystemExit(f"{a.data}: the takes carry no tri_kd (only warp_cloth.py writes it)")
         kd = first["tri_kd"].astype(np.float64) * a.viscosity_source
-    edges, source_nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64), kd)
+    mesh, source_nu = mesh_edges(first["triangles"], first["rest_uv"].astype(np.float64), kd)
     index = {(min(i, j), max(i, j)): s for s, (i, j) in enumerate(springs)}
-    spring_of = np.array([index[(i, j)] for i, j in edges])  # the spring along each edge
-    mesh_springs = spring_of
-    if kd is not None:
-        nu, label = source_nu, f"source x {a.viscosity_source:g}"
-    elif a.viscosity is not None:
-        nu, label = np.full(len(edges), a.viscosity), f"{a.viscosity}"
-    elif a.viscosity_per_k is not None:
-        nu, label = a.viscosity_per_k * k[spring_of], f"{a.viscosity_per_k:g} k"
-    elif (beta := float(re.search(r"^viscosity\s*=\s*(\S+)", config, re.M).group(1))) > 0.0:
-        # the run's own isotropic viscosity (`sim.viscosity`): beta k on every spring
-        edges, spring_of = springs, np.arange(len(springs))
-        nu, label = beta * k, f"the run's {beta:.3g} k"
-    else:
-        nu, label = None, "none"
-    if nu is not None and a.project:
-        b = b.copy()
-        np.add.at(b, spring_of, nu)
-        nu, label = None, label + " (projected)"
+    mesh_springs = np.array([index[(i, j)] for i, j in mesh])  # the spring along each edge
+    beta = float(re.search(r"^viscosity\s*=\s*(\S+)", config, re.M).group(1))
+
+    def damping(k):
+        """The viscosity's edges, `nu` and label, and the springs' `b`, for the stiffness `k`."""
+        edges, spring_of = mesh, mesh_springs
+        if kd is not None:
+            nu, label = source_nu, f"source x {a.viscosity_source:g}"
+        elif a.viscosity is not None:
+            nu, label = np.full(len(edges), a.viscosity), f"{a.viscosity}"
+        elif a.viscosity_per_k is not None:
+            nu, label = a.viscosity_per_k * k[spring_of], f"{a.viscosity_per_k:g} k"
+        elif beta > 0.0:
+            # the run's own isotropic viscosity (`sim.viscosity`): beta k on every spring
+            edges, spring_of = springs, np.arange(len(springs))
+            nu, label = beta * k, f"the run's {beta:.3g} k"
+        else:
+            nu, label = None, "none"
+        bb = b
+        if nu is not None and a.project:
+            bb = b.copy()
+            np.add.at(bb, spring_of, nu)
+            nu, label = None, label + " (projected)"
+        return edges, nu, label, bb
 
     tri, uv = first["triangles"].astype(int), first["rest_uv"].astype(np.float64)
     hinge = hinge_stencils(tri, uv)
     area = (tri, triangle_areas(tri, uv))
-    for kb in (float(v) for v in a.bending.split(",")):
-        for ka in (float(v) for v in a.area.split(",")):
-            for c in (float(v) for v in a.compression.split(",")):
-                kc = None
-                if c != 1.0:
-                    kc = k.copy()
-                    if a.compression_on == "edges":
-                        kc[mesh_springs] *= c
-                    elif a.compression_on == "diagonals":
-                        kc[np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)] *= c
-                    else:
-                        kc *= c
-                report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges,
-                       nu, hinge, kb, area, ka, label, kc, c)
-
+    diagonals = np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)
+    for share in shares:
+        k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
+        a.share = share
+        edges, nu, label, bb = damping(k)
+        for kb in (float(v) for v in a.bending.split(",")):
+            for ka in (float(v) for v in a.area.split(",")):
+                for c in (float(v) for v in a.compression.split(",")):
+                    kc = None
+                    if c != 1.0:
+                        kc = k.copy()
+                        if a.compression_on == "edges":
+                            kc[mesh_springs] *= c
+                        elif a.compression_on == "diagonals":
+                            kc[diagonals] *= c
+                        else:
+                            kc *= c
+                    report(a, x, pinned, dt, substeps, springs, k, bb, rest, mass, weight, gravity, drag,
+                           edges, nu, hinge, kb, area, ka, label, kc, c)
 
 def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
            hinge, kb, area, ka, label, kc=None, compression=1.0):
@@ -330,6 +423,8 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
         + (f", compression {compression:g}" if compression != 1.0 else "")
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
+        + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")
+        + (", diagonals from sides" if a.diagonals_from_sides else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
         + " ".join(f"{w:.3f}" for w in windows)
         + f" ({time.time() - start:.0f} s)"
