@@ -1,0 +1,144 @@
+"""The issue's goals counted over bench runs: which sets meet them and how many of each kind.
+
+    python3 benches/foreign/goals.py data/foreign/runs/s28a data/foreign/runs/s28b ...
+    python3 benches/foreign/goals.py 'data/foreign/runs/s28*' --markdown
+
+Each argument is a run folder of `springtime train` (with `eval.json`) or a folder of them, as
+`benches/foreign/run.py --tag T` writes to `data/foreign/runs/T/` (a quoted glob is expanded
+here). A set's name is its run folder's: `<sim>-<material>` is one of the bench's ten sets,
+`<sim>-<material>-capture-<noise>-<missing>` a capture-grade copy, any other suffix another
+configuration (`run.py --variant`). Where a set was run more than once, the last argument that
+holds it wins, so later tags override earlier ones.
+
+The goals (all on the held-out test takes, `eval.json`): the trained surrogate beats the best
+uniform network (`uniform_baseline.test`) by at least 20 % at the short horizon (0.8 s) and over
+the whole take, and the learned structural `k` ranks with the source's stiffness map at Spearman
+(`stiffness_map_corr`) 0.7 or more; on the capture copies 10 % and 0.6. A run that kept a
+uniform network has no rank (`—`); the map it set aside (`learned_map_corr`) is shown beside, in
+parentheses, and does not count. Needs only the standard library.
+"""
+import argparse
+import glob
+import json
+import re
+import sys
+from pathlib import Path
+
+SIMS = ("blender", "warp", "newton", "mujoco", "tpcloth")
+MATERIALS = ("soft", "stiff")
+GOALS = {"bench": (0.20, 0.70), "other configurations": (0.20, 0.70), "capture copies": (0.10, 0.60)}
+
+
+def kind(name):
+    """The set's kind: one of the bench's ten sets, a capture copy or another configuration."""
+    if re.fullmatch(rf"({'|'.join(SIMS)})-({'|'.join(MATERIALS)})", name):
+        return "bench"
+    if "-capture-" in name:
+        return "capture copies"
+    return "other configurations"
+
+
+def run_folders(arguments):
+    """Every run folder the arguments name, in order (a folder of runs: its runs, sorted)."""
+    for argument in arguments:
+        paths = sorted(glob.glob(argument)) or [argument]
+        for path in map(Path, paths):
+            if (path / "eval.json").is_file():
+                yield path
+            elif path.is_dir():
+                yield from sorted(p.parent for p in path.glob("*/eval.json"))
+            else:
+                sys.exit(f"{path}: neither a run folder (eval.json) nor a folder of runs")
+
+
+def row(run):
+    """The goal's figures of one run, or exits naming the file and key it lacks."""
+    source = run / "eval.json"
+    try:
+        e = json.loads(source.read_text())
+        trained, uniform = e["motion_rmse"], e["uniform_baseline"]["test"]
+        figures = {
+            "trained": (trained["short"]["mean"], trained["long"]["mean"]),
+            "uniform": (uniform["short"]["mean"], uniform["long"]["mean"]),
+        }
+    except (OSError, ValueError) as err:
+        sys.exit(f"{source}: {err}")
+    except (KeyError, TypeError) as err:
+        sys.exit(f"{source}: no {err} (an eval with `eval.uniform_baseline = true` writes it)")
+    gains = tuple(1.0 - t / u for t, u in zip(figures["trained"], figures["uniform"]))
+    compression = None
+    blend = run / "blend.json"
+    if blend.is_file():
+        found = json.loads(blend.read_text()).get("shear_compression")
+        if found:
+            compression = found["shear_compression"] if found["kept"] else 1.0
+    return {
+        "set": run.name,
+        "run": str(run),
+        "gains": gains,
+        "spearman": e.get("stiffness_map_corr"),
+        "set_aside": e.get("learned_map_corr"),
+        "compression": compression,
+        **figures,
+    }
+
+
+def met(r):
+    gain, rank = GOALS[kind(r["set"])]
+    return min(r["gains"]) >= gain and (r["spearman"] or -1.0) >= rank
+
+
+def misses(r):
+    """What the set misses, in words."""
+    gain, rank = GOALS[kind(r["set"])]
+    out = [h for h, g in zip(("0.8 s", "the take"), r["gains"]) if g < gain]
+    if r["spearman"] is None:
+        out.append("rank (a uniform network kept)")
+    elif r["spearman"] < rank:
+        out.append("rank")
+    return ", ".join(out)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", help="run folders, folders of runs, or quoted globs")
+    p.add_argument("--markdown", action="store_true", help="a Markdown table")
+    a = p.parse_args()
+    latest = {}
+    for run in run_folders(a.runs):
+        r = row(run)
+        latest.pop(r["set"], None)
+        latest[r["set"]] = r
+    if not latest:
+        sys.exit("no runs with eval.json among the arguments")
+    rows = sorted(latest.values(), key=lambda r: (list(GOALS).index(kind(r["set"])), r["set"]))
+    rank = lambda v: "—" if v is None else f"{v:.2f}"
+    if a.markdown:
+        print("| set | trained, m | best uniform, m | gain 0.8 s / take | Spearman | κ | goals |")
+        print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        spearman = rank(r["spearman"]) + (f" ({rank(r['set_aside'])})" if r["set_aside"] is not None else "")
+        cells = [
+            r["set"],
+            "{:.4f} / {:.4f}".format(*r["trained"]),
+            "{:.4f} / {:.4f}".format(*r["uniform"]),
+            "{:+.1f} % / {:+.1f} %".format(*(100 * g for g in r["gains"])),
+            spearman,
+            "" if r["compression"] is None else f"{r['compression']:g}",
+            "✓" if met(r) else "misses " + misses(r),
+        ]
+        if a.markdown:
+            print("| " + " | ".join(cells) + " |")
+        else:
+            print("  ".join(f"{c:<{w}}" for c, w in zip(cells, (28, 17, 17, 19, 12, 5, 0))).rstrip())
+    print()
+    for k in GOALS:
+        of_kind = [r for r in rows if kind(r["set"]) == k]
+        if of_kind:
+            gain, rank_goal = GOALS[k]
+            print(f"{k}: {sum(map(met, of_kind))} of {len(of_kind)} meet the goals "
+                  f"(≥ {100 * gain:.0f} % at both horizons, Spearman ≥ {rank_goal})")
+
+
+if __name__ == "__main__":
+    main()
