@@ -6,7 +6,7 @@
 Each argument is a run folder of `springtime train` (with `eval.json`) or a folder of them, as
 `benches/foreign/run.py --tag T` writes to `data/foreign/runs/T/` (a quoted glob is expanded
 here). A set's name is its run folder's: `<sim>-<material>` is one of the bench's ten sets,
-`<sim>-<material>-capture-<noise>-<missing>` a capture-grade copy, any other suffix another
+`<sim>-<material>-capture…` a capture-grade copy (`run.py --capture`), any other suffix another
 configuration (`run.py --variant`). Where a set was run more than once, the last argument that
 holds it wins, so later tags override earlier ones.
 
@@ -33,7 +33,7 @@ def kind(name):
     """The set's kind: one of the bench's ten sets, a capture copy or another configuration."""
     if re.fullmatch(rf"({'|'.join(SIMS)})-({'|'.join(MATERIALS)})", name):
         return "bench"
-    if "-capture-" in name:
+    if re.search(r"-capture(-|$)", name):
         return "capture copies"
     return "other configurations"
 
