@@ -1187,19 +1187,17 @@ impl AfterFit<'_> {
             ));
             return Ok((net, physics, None));
         };
-        let HeldOutVerdict {
-            before,
-            after,
-            kept,
-        } = self.held_out_verdict((&net, &physics), (&other, &at), known)?;
-        (record.kept, record.held_out) = (kept, Some((before, after)));
+        let drag = physics.rayleigh;
+        let (net, physics, verdict) = self.judge((net, physics), (other, at), known)?;
+        let (before, after) = (verdict.before, verdict.after);
+        (record.kept, record.held_out) = (verdict.kept, Some((before, after)));
         progress.note(&format!(
             "{}: {} the map moves closest to the training rollouts at {} = {:.3e} s · k, k × \
              {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / \
              long) against {:.4e} / {:.4e} m as kept so far -> {}",
             form.name(),
             if keep_drag {
-                format!("with the stated drag {:.4e} N·s/m", physics.rayleigh)
+                format!("with the stated drag {drag:.4e} N·s/m")
             } else {
                 "without drag".to_string()
             },
@@ -1215,38 +1213,37 @@ impl AfterFit<'_> {
             after.1,
             before.0,
             before.1,
-            if record.kept {
-                "the run keeps it"
-            } else {
-                "the run keeps the network as it was"
-            }
+            verdict.outcome()
         ));
-        Ok(if record.kept {
-            (other, at, Some(record))
-        } else {
-            (net, physics, Some(record))
-        })
+        Ok((net, physics, Some(record)))
     }
 
-    /// The held-out training takes' `(short, long)` motion RMSE of `net` at `physics` (`known`
-    /// where an earlier search measured it) and of `other` at `at`, and whether they prefer
-    /// `other` ([`scale::held_out_agrees`]).
-    fn held_out_verdict(
+    /// `current` or a search's `candidate`, whichever the held-out training takes prefer
+    /// ([`scale::held_out_agrees`]: the candidate only where they agree), with the verdict:
+    /// both networks' `(short, long)` held-out motion RMSE, `current`'s taken from `known` where
+    /// an earlier search measured it.
+    fn judge(
         &self,
-        (net, physics): (&SpringNet, &Physics),
-        (other, at): (&SpringNet, &Physics),
+        current: (SpringNet, Physics),
+        candidate: (SpringNet, Physics),
         known: Option<(f64, f64)>,
-    ) -> Result<HeldOutVerdict> {
+    ) -> Result<(SpringNet, Physics, HeldOutVerdict)> {
         let before = match known {
             Some(r) => r,
-            None => self.held_out_rmse(net, physics)?,
+            None => self.held_out_rmse(&current.0, &current.1)?,
         };
-        let after = self.held_out_rmse(other, at)?;
-        Ok(HeldOutVerdict {
-            before,
-            after,
-            kept: scale::held_out_agrees(before, after),
-        })
+        let after = self.held_out_rmse(&candidate.0, &candidate.1)?;
+        let kept = scale::held_out_agrees(before, after);
+        let (net, physics) = if kept { candidate } else { current };
+        Ok((
+            net,
+            physics,
+            HeldOutVerdict {
+                before,
+                after,
+                kept,
+            },
+        ))
     }
 
     /// The shear springs' stiffness in compression ([`scale::shear_compression`]), kept only
@@ -1273,12 +1270,10 @@ impl AfterFit<'_> {
             ));
             return Ok((net, physics, Some(record)));
         }
-        let HeldOutVerdict {
-            before,
-            after,
-            kept,
-        } = self.held_out_verdict((&net, &physics), (&other, &at), known)?;
-        (record.kept, record.held_out) = (kept, Some((before, after)));
+        let before_kappa = physics.shear_compression;
+        let (net, physics, verdict) = self.judge((net, physics), (other, at), known)?;
+        let (before, after) = (verdict.before, verdict.after);
+        (record.kept, record.held_out) = (verdict.kept, Some((before, after)));
         progress.note(&format!(
             "shear compression search: the network moves closest to the training rollouts with \
              its shear springs pushing at {} of their k when compressed, k × {:.3} ({:.4e} m); \
@@ -1292,18 +1287,10 @@ impl AfterFit<'_> {
             after.1,
             before.0,
             before.1,
-            physics.shear_compression,
-            if record.kept {
-                "the run keeps it"
-            } else {
-                "the run keeps the network as it was"
-            }
+            before_kappa,
+            verdict.outcome()
         ));
-        Ok(if record.kept {
-            (other, at, Some(record))
-        } else {
-            (net, physics, Some(record))
-        })
+        Ok((net, physics, Some(record)))
     }
 
     /// The fit's weight in the mixed map per strain group ([`compliance::MapWeights`]): half
@@ -1617,6 +1604,17 @@ struct HeldOutVerdict {
     after: (f64, f64),
     /// Whether they prefer the closest ([`scale::held_out_agrees`]).
     kept: bool,
+}
+
+impl HeldOutVerdict {
+    /// What the run does, for the log.
+    fn outcome(&self) -> &'static str {
+        if self.kept {
+            "the run keeps it"
+        } else {
+            "the run keeps the network as it was"
+        }
+    }
 }
 
 /// Writes `physics`' substeps, drag, viscosity and shear springs' compression into the run's
