@@ -47,6 +47,19 @@ def stiffness_map(u, v, width, height, ratio=MAP_RATIO):
     return np.where(stripe | band, ratio, 1.0)
 
 
+def perturbed(smap, perturb, seed):
+    """The per-triangle map smap times 1 + perturb * N(0, 1) where perturb > 0, drawn from a
+    stream of the take's seed of its own (the pins and their paths stay the unperturbed take's):
+    the generators' --perturb."""
+    if perturb <= 0.0:
+        return smap
+    noise = np.random.default_rng(np.random.SeedSequence([seed, PERTURB_STREAM])).standard_normal(len(smap))
+    out = smap * (1.0 + perturb * noise)
+    if (out <= 0.0).any():
+        raise ValueError(f"--perturb {perturb}: a triangle's stiffness came out <= 0 (take seed {seed})")
+    return out
+
+
 def map_tri_materials(mats, uv, tris, size, ke, ka_over_ke, beta, perturb=0.0, seed=0):
     """Scale the ke, ka = ke * ka_over_ke and kd = ke * beta columns of Warp-style per-triangle
     material rows mats [M, 5] (in place) by the stiffness map at the triangles' rest centroids
@@ -54,12 +67,7 @@ def map_tri_materials(mats, uv, tris, size, ke, ka_over_ke, beta, perturb=0.0, s
     where perturb > 0 (drawn from a stream of the take's seed of its own: the pins and their
     paths stay the unperturbed take's). Returns the map (perturbed)."""
     cen = uv[tris].mean(axis=1)
-    smap = stiffness_map(cen[:, 0], cen[:, 1], size, size)
-    if perturb > 0.0:
-        noise = np.random.default_rng(np.random.SeedSequence([seed, PERTURB_STREAM])).standard_normal(len(tris))
-        smap = smap * (1.0 + perturb * noise)
-        if (smap <= 0.0).any():
-            raise ValueError(f"--perturb {perturb}: a triangle's stiffness came out <= 0 (take seed {seed})")
+    smap = perturbed(stiffness_map(cen[:, 0], cen[:, 1], size, size), perturb, seed)
     mats[:, 0] = ke * smap
     mats[:, 1] = ke * ka_over_ke * smap
     mats[:, 2] = ke * beta * smap
@@ -270,9 +278,9 @@ OUT_RULE = ("OUT must be empty or new, or hold an earlier output of this script 
 
 
 def add_perturb_arg(ap):
-    """--perturb EPS of the Warp-style generators (see map_tri_materials)."""
+    """--perturb EPS of the generators (see perturbed)."""
     ap.add_argument("--perturb", type=float, default=0.0, metavar="EPS",
-                    help="multiply each triangle's ke, ka and kd by 1 + EPS * N(0, 1), the same takes and pins "
+                    help="multiply each triangle's stiffness and damping by 1 + EPS * N(0, 1), the same takes and pins "
                          "otherwise: the source's own spread, against which a surrogate's error is read "
                          "(benches/foreign/takes_rmse.py)")
 

@@ -54,9 +54,9 @@ import time
 
 import numpy as np
 
-from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, choose_pins,
-                            frame_count, rollout, setup, stiffness_map, take_facts, write_source,
-                            write_takes)
+from foreign_common import (DENSITY, GRAVITY, MAP_RATIO, MAP_REGIONS, PIN_MOTION, PinPath, add_perturb_arg,
+                            check_perturb_arg, choose_pins, frame_count, perturbed, rollout, setup, stiffness_map,
+                            take_facts, write_source, write_takes)
 
 PIN_MASS_FACTOR = 1.0e6  # driven vertices: inert inside MuJoCo's implicit step
 THICKNESS = 1.0e-3  # m; membrane stiffness = young * thickness, bending ~ young * thickness^3
@@ -181,19 +181,25 @@ def run_take(mujoco, model, facts, args, seed):
 
     # the pinned vertices are driven, not simulated: within a step MuJoCo's implicit solve must
     # not move them, so they get PIN_MASS_FACTOR x their mass and gravity compensation for the
-    # take (both read from the model at run time); restored afterwards
+    # take (both read from the model at run time); with --perturb every element's metric (its
+    # stiffness and the damping folded into it) gets the take's own factor; restored afterwards
     vb = facts["vertbody"][pins]
     mass0, grav0 = model.body_mass[vb].copy(), model.body_gravcomp[vb].copy()
+    metric = element_stiffness(model)
+    metric0 = metric.copy()
+    factor = perturbed(np.ones(len(metric)), args.perturb, seed)
     model.body_mass[vb] = mass0 * PIN_MASS_FACTOR
     model.body_gravcomp[vb] = 1.0
+    metric *= factor[:, None]
     try:
-        return _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p)
+        return _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p, facts["smap"] * factor)
     finally:
         model.body_mass[vb] = mass0
         model.body_gravcomp[vb] = grav0
+        metric[...] = metric0
 
 
-def _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p):
+def _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p, smap):
     size, n, uv = args.size, facts["n"], facts["uv"]
     data = mujoco.MjData(model)
     k_before = model.flex_stiffness.copy()
@@ -227,11 +233,11 @@ def _simulate(mujoco, model, facts, args, seed, pins, path, pq, pd, rest_p):
         out[f] = data.flexvert_xpos[vadr:vadr + n]
         if not np.isfinite(out[f]).all():
             raise RuntimeError(f"take with seed {seed} blew up at frame {f} (non-finite positions); lower the timestep")
-    ke = mat_ke(args) * facts["smap"]
+    ke = mat_ke(args) * smap
     take = rollout(out, uv, pins, frame_dt, facts["total_mass"], size, [0.0, 0.0, -GRAVITY], facts["tris"],
                    ke.astype(np.float32))
     take.update(
-        tri_map=facts["smap"].astype(np.float32),
+        tri_map=smap.astype(np.float32),
         pin_indices=pins.astype(np.int32),
         seed=np.int64(seed),
         pin_step_drift=np.float64(drift),
@@ -244,7 +250,8 @@ def mat_ke(args):
 
 
 def main():
-    args = setup(__doc__, __file__, MATERIALS, 10, 1000, counts=True)
+    args = setup(__doc__, __file__, MATERIALS, 10, 1000, counts=True, extra=add_perturb_arg,
+                 check_extra=check_perturb_arg)
 
     import mujoco
 
@@ -275,6 +282,7 @@ def main():
             start="flat, at rest, horizontal (x-y plane, z up), falls under gravity; no ground, contacts disabled",
         ),
         integrator=integrator_name(mujoco),
+        perturb=args.perturb,
         timestep_s=facts["timestep"],
         steps_per_frame=facts["steps"],
         **take_facts(args),

@@ -27,7 +27,7 @@ training takes, against the best uniform network at its step on the test takes �
 perfectly ranked map wins with this surrogate (the book, "What the source's own map is worth").
 
 `--spread EPS` re-runs each set's test takes with every triangle's material times
-`1 + EPS·N(0, 1)` (the generators' `--perturb`; Warp and Newton only) and adds how far they land
+`1 + EPS·N(0, 1)` (the generators' `--perturb`; Warp, Newton and MuJoCo) and adds how far they land
 from the originals, as `eval` measures (`takes_rmse.py`), to the table: the source's own spread,
 how far the source misses its own takes with its material EPS off. A surrogate is not
 expected to come closer than that; where the spread is near the best uniform network's error,
@@ -80,6 +80,7 @@ SIMS = {
     "mujoco": {
         "script": HERE / "mujoco_cloth.py",
         "packages": ["mujoco==4.0.0", "numpy==2.4.6"],
+        "perturb": True,
     },
     # The team's own independent NumPy simulator (tests/thirdparty/tpcloth.py): a jittered
     # irregular mesh, neo-Hookean membrane, RK4; not a tool users have, kept as the reference.
