@@ -88,6 +88,36 @@ def test_perturb_scales_each_triangles_material_by_a_draw_of_its_take():
     assert np.allclose(mats[:, 2] / base_mats[:, 2], smap / base)
 
 
+def test_mujoco_perturb_scales_each_elements_metric_for_its_take_only():
+    mujoco = pytest.importorskip("mujoco", reason="needs `pip install mujoco` (the bench's MuJoCo cloth)")
+    import argparse
+
+    sys.path.insert(0, str(BENCH))
+    try:
+        import mujoco_cloth as mc
+        from foreign_common import perturbed
+    finally:
+        sys.path.remove(str(BENCH))
+
+    def args(eps):
+        return argparse.Namespace(res=5, size=1.0, fps=50.0, seconds=0.2, material="soft", perturb=eps)
+
+    model, facts = mc.build(mujoco, args(0.0), mc.MATERIALS["soft"])
+    metric0 = model.flex_stiffness.copy()
+    plain = mc.run_take(mujoco, model, facts, args(0.0), 7)
+    assert np.array_equal(model.flex_stiffness, metric0)
+    assert np.array_equal(mc.run_take(mujoco, model, facts, args(0.0), 7)["positions"], plain["positions"])
+    moved = mc.run_take(mujoco, model, facts, args(0.05), 7)
+    # the model is itself again after the take, and the take records its own perturbed map
+    assert np.array_equal(model.flex_stiffness, metric0)
+    factor = perturbed(np.ones(len(facts["tris"])), 0.05, 7)
+    assert 0.02 < factor.std() < 0.08
+    assert np.allclose(moved["tri_stiffness"], plain["tri_stiffness"] * factor, rtol=1e-6)
+    assert np.array_equal(moved["pin_indices"], plain["pin_indices"])  # the same pins and paths
+    assert np.array_equal(moved["positions"][0], plain["positions"][0])
+    assert not np.array_equal(moved["positions"][-1], plain["positions"][-1])  # the material moved the sheet
+
+
 def test_takes_rmse_reads_a_known_offset_as_eval_does(tmp_path):
     rng = np.random.default_rng(0)
     frames, n, dt = 101, 20, 0.01
