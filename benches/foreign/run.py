@@ -68,26 +68,29 @@ SIMS = {
     "warp": {
         "script": HERE / "warp_cloth.py",
         "packages": ["warp-lang==1.7.2", "numpy==2.4.6"],
-        "perturb": True,  # takes --perturb EPS (--spread)
+        # --spread: the arguments that re-run the set's test takes with the material perturbed by
+        # EPS (appended; the last --train/--perturb win)
+        "perturb": ["--train", "0", "--perturb"],
     },
     "newton": {
         "script": HERE / "newton_cloth.py",
         "packages": ["newton==1.8.0", "numpy==2.4.6"],
         # VBD at 25 x 25 costs ~2 min per stiff 4-s take on two cores: a coarser sheet.
         "extra": ["--res", "17"],
-        "perturb": True,
+        "perturb": ["--train", "0", "--perturb"],
     },
     "mujoco": {
         "script": HERE / "mujoco_cloth.py",
         "packages": ["mujoco==4.0.0", "numpy==2.4.6"],
-        "perturb": True,
+        "perturb": ["--train", "0", "--perturb"],
     },
     # The team's own independent NumPy simulator (tests/thirdparty/tpcloth.py): a jittered
     # irregular mesh, neo-Hookean membrane, RK4; not a tool users have, kept as the reference.
     "tpcloth": {
         "script": ROOT / "tests" / "thirdparty" / "tpcloth.py",
         "packages": ["numpy==2.4.6"],
-        "perturb": True,
+        # one random stream for all its rollouts: the training takes are made again too
+        "perturb": ["--perturb"],
         "args": {
             "soft": ["--res", "17", "--size", "2", "--young", "66", "266", "666", "--fps", "50",
                      "--pin-radius", "0.2"],
@@ -191,12 +194,7 @@ def spread(sim, material, data: Path, a):
         return {"spread_error": f"{sim}'s generator takes no --perturb"}
     out = data.parent / f"{data.name}-perturb-{eps:g}"
     args = json.loads((data / "bench-args.json").read_text())
-    if sim == "tpcloth":
-        # one random stream for all its rollouts: the training takes are made again too
-        args += ["--perturb", str(eps)]
-    else:
-        # the same takes, test split only: the last --train/--test/--perturb win
-        args += ["--train", "0", "--perturb", str(eps)]
+    args += [*SIMS[sim]["perturb"], str(eps)]
     record = out / "bench-args.json"
     py = venv_python(a.venvs, sim)
     if not (record.exists() and json.loads(record.read_text()) == args and (out / "test").is_dir()):
