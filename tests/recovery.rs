@@ -425,6 +425,72 @@ fn the_compression_search_finds_shear_springs_that_pull_only() {
     }
 }
 
+/// The blend search past the whole map (`train.blend_contrast`): on takes of a two-level 8 × 8
+/// spring cloth (20 and 80 N/m in stripes), the least-squares map smoothed six times over the spring
+/// graph (`train.map_smoothing`) is flatter than the source's, so the blend search keeps all of
+/// it (`α = 1`) and stops there; with the contrast search it goes on to a map whose contrast is
+/// raised (`α > 1`), closer to the training takes, and a map closer to the source's `k`.
+#[test]
+fn the_blend_search_raises_the_contrast_of_a_flattened_map() {
+    use springtime::source::mass_spring::SpringCloth;
+    let lines = "map_smoothing = 6\n[train.least_squares]\nenabled = true\n";
+    let mut found = Vec::new();
+    for contrast in [false, true] {
+        let dir = common::temp_dir("blend-contrast");
+        let mut source = common::source(8, &[20.0, 80.0], 2.0);
+        source.frame_stride = 10;
+        source.save_velocities = false;
+        let cloth = SpringCloth::from_config(&source);
+        save_takes(&dir, &cloth, &source, 2, true);
+        let (run_dir, record) = blend_run_with(
+            &dir,
+            50.0,
+            6.0,
+            0,
+            &format!("blend_contrast = {contrast}\n{lines}"),
+        );
+        let k = springtime::data::npz::Npz::read(&run_dir.join("springs.npz"))
+            .unwrap()
+            .f32("k", &[None])
+            .unwrap()
+            .0;
+        // The structural springs' spread about their mean, against the source's.
+        let spread = |v: &[f64]| {
+            let m = v.iter().sum::<f64>() / v.len() as f64;
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64).sqrt() / m
+        };
+        let structural: Vec<usize> = (0..cloth.k.len())
+            .filter(|&s| cloth.topology.family[s] == springtime::cloth::SpringFamily::Structural)
+            .collect();
+        let kept: Vec<f64> = structural.iter().map(|&s| k[s] as f64).collect();
+        let truth: Vec<f64> = structural.iter().map(|&s| cloth.k[s]).collect();
+        eprintln!(
+            "contrast search {contrast}: alpha {}, after {}, spread {:.3} (source {:.3})",
+            record["alpha"],
+            record["after"],
+            spread(&kept),
+            spread(&truth)
+        );
+        found.push((
+            record["alpha"].as_f64().unwrap(),
+            record["after"].as_f64().unwrap(),
+            spread(&kept),
+            spread(&truth),
+        ));
+        std::fs::remove_dir_all(&dir).ok();
+    }
+    let (flat, raised) = (found[0], found[1]);
+    assert_eq!(flat.0, 1.0, "{found:?}");
+    assert!(raised.0 > 1.0, "{found:?}");
+    assert!(raised.1 < flat.1, "{found:?}");
+    // The flattened map's spread is short of the source's; the raised one's is closer to it.
+    assert!(flat.2 < flat.3, "{found:?}");
+    assert!(
+        (raised.2 - raised.3).abs() < (flat.2 - flat.3).abs(),
+        "{found:?}"
+    );
+}
+
 /// The bending-apart yardstick (`eval.json`'s `uniform_baseline.bending_apart`) finds how stiff a
 /// cloth's bending springs are beside its others, where the uniform yardstick cannot: on takes
 /// of a uniform 8 × 8 spring cloth (50 N/m) whose stride-2 bending springs have a sixteenth of

@@ -191,6 +191,11 @@ pub struct TrainConfig {
     /// uniform network is a candidate, so the kept one is never worse on those rollouts;
     /// replaces `scale_search`, whose candidates are the blend's `α = 1`).
     pub blend_search: bool,
+    /// Where the blend search keeps the whole learned map (`α = 1`), also try it with its
+    /// contrast within each spring family raised, `α = 1.5` then `2` while each moves closer to
+    /// the training takes ([`scale::blend_search`]; ours, off by default). Needs
+    /// `train.blend_search`.
+    pub blend_contrast: bool,
     /// Rounds of averaging over the spring graph applied to each stiffness map before the
     /// blend search blends it ([`compliance::smoothed`]; ours): each round, each spring takes
     /// the mean of its own `k` and its neighbours' (the springs of its strain group that share
@@ -260,6 +265,7 @@ impl Default for TrainConfig {
             project_stable: true,
             scale_search: false,
             blend_search: false,
+            blend_contrast: false,
             map_smoothing: 0,
             proportional_damping: false,
             viscosity_search: false,
@@ -342,6 +348,12 @@ impl TrainConfig {
                 "`train.compliance.enabled` and `train.least_squares.enabled` both choose the \
                  start of the spring network; keep one, or turn on `train.blend_search`, which \
                  blends each map into the uniform network and keeps the better"
+            );
+        }
+        if self.blend_contrast && !self.blend_search {
+            bail!(
+                "`train.blend_contrast` raises the contrast of the blend search's map; turn on \
+                 `train.blend_search`, or set `train.blend_contrast = false`"
             );
         }
         if self.map_smoothing > 0 && !self.blend_search {
@@ -1058,6 +1070,7 @@ impl AfterFit<'_> {
             (self.resolution.k_init, self.resolution.b_init),
             &job.physics,
             &self.train_takes(),
+            job.config.train.blend_contrast,
         )?;
         record.map = name.to_string();
         let (net, polish) = scale::polish(
@@ -2788,6 +2801,13 @@ mod schedule_tests {
                 "viscosity_search",
                 TrainConfig {
                     viscosity_search: true,
+                    ..TrainConfig::default()
+                },
+            ),
+            (
+                "blend_contrast",
+                TrainConfig {
+                    blend_contrast: true,
                     ..TrainConfig::default()
                 },
             ),

@@ -36,7 +36,7 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::Topology;
+use crate::cloth::{SpringFamily, Topology};
 use crate::eval::Takes;
 use crate::eval::uniform::{self, DAMPING_RATIOS, network_rollout_rmse, stable_rollout_rmse};
 use crate::model::SpringNet;
@@ -208,6 +208,11 @@ pub const BENDING_ROUNDS: usize = 4;
 
 /// Blend shares searched between the ends `α = 0` (uniform) and `α = 1` (the learned map).
 const ALPHAS: [f64; 3] = [0.25, 0.5, 0.75];
+/// Shares past the learned end (`train.blend_contrast`), tried in turn while the last moved
+/// closer: the map's contrast within each spring family raised to the power `α`
+/// ([`amplified`]). The fit shrinks a map's values and the smoothing and the mixing of two maps
+/// flatten it, so a share of 1 can still be short of the source's contrast.
+const CONTRASTS: [f64; 2] = [1.5, 2.0];
 
 /// A row search's reach: stiffness factors `2^(i/2)` and damping factors `2^i` around its start,
 /// `i` in these, and with `critical` also the uniform search's coordinate descent over
@@ -263,7 +268,9 @@ const BENDING_CANDIDATES: usize =
     BENDING_ROUNDS * (BENDING_FACTORS.len() + 1 + BENDING_ROW.candidates());
 /// Candidates of one chain at most, from its ends' rows `wide`.
 const fn chain_candidates(wide: &Span) -> usize {
-    2 * wide.candidates() + ALPHAS.len() * NARROW.candidates() + 2 * BENDING_CANDIDATES
+    2 * wide.candidates()
+        + (ALPHAS.len() + CONTRASTS.len()) * NARROW.candidates()
+        + 2 * BENDING_CANDIDATES
 }
 /// Candidates the search considers at most (some twice, simulated once): the bar's length.
 const BLEND_CANDIDATES: usize = chain_candidates(&WIDE) + chain_candidates(&WIDE_CRITICAL);
@@ -292,6 +299,7 @@ pub(crate) fn blend_search(
     (k_init, b_init): (f64, f64),
     physics: &Physics,
     train: &Takes,
+    contrast: bool,
 ) -> Result<(SpringNet, Physics, BlendSearch)> {
     let files = search_files(train);
     let (k, b) = (model.k_values(), model.b_values());
@@ -308,6 +316,7 @@ pub(crate) fn blend_search(
             files: &files,
             ..*train
         },
+        contrast,
         tried: Vec::new(),
         bar: train.progress.bar(BLEND_CANDIDATES as u64, "blend search"),
     };
@@ -349,6 +358,33 @@ pub(crate) fn blend_search(
     ))
 }
 
+/// `k` with its contrast within each spring family raised to the power `alpha`: each spring's
+/// `k (k / k̄_f)^(α − 1)`, rescaled so that each family keeps its mean `k̄_f` (springs at zero
+/// stay there, and the ranks within a family do not change).
+fn amplified(k: &[f64], family: &[SpringFamily], alpha: f64) -> Vec<f64> {
+    let mut out = k.to_vec();
+    for f in [
+        SpringFamily::Structural,
+        SpringFamily::Shear,
+        SpringFamily::Bending,
+    ] {
+        let members: Vec<usize> = (0..k.len()).filter(|&s| family[s] == f).collect();
+        let mean = members.iter().map(|&s| k[s]).sum::<f64>() / members.len().max(1) as f64;
+        if mean <= 0.0 {
+            continue;
+        }
+        let raised: Vec<f64> = members
+            .iter()
+            .map(|&s| mean * (k[s] / mean).powf(alpha))
+            .collect();
+        let scale = mean / (raised.iter().sum::<f64>() / members.len() as f64);
+        for (&s, r) in members.iter().zip(raised) {
+            out[s] = r * scale;
+        }
+    }
+    out
+}
+
 /// The means the blend search blends towards: the learned `k`'s (which must be positive) and
 /// `b`'s, or for a network without damping a tenth of a mean spring's critical damping.
 fn blend_means(k: &[f64], b: &[f64], mass: f64) -> Result<(f64, f64)> {
@@ -378,6 +414,8 @@ struct Blender<'a> {
     physics: &'a Physics,
     /// The training takes of the search ([`search_files`]).
     takes: Takes<'a>,
+    /// Whether shares past the learned end are searched ([`CONTRASTS`]).
+    contrast: bool,
     /// `((α, k factor, b factor, bending factor), score)` of every candidate simulated.
     tried: Vec<((f64, f64, f64, f64), Scored)>,
     bar: crate::progress::Bar,
@@ -385,15 +423,27 @@ struct Blender<'a> {
 
 impl Blender<'_> {
     /// The network keeping the share `alpha` of the learned map (the rest uniform at the
-    /// means), its `k` scaled by `fk` (the bending springs' by `fk · fh`) and its `b` by `fb`.
+    /// means; past 1, the learned `k` with its contrast raised, [`amplified`], and the learned
+    /// `b`), its `k` scaled by `fk` (the bending springs' by `fk · fh`) and its `b` by `fb`.
     fn blended(&self, alpha: f64, fk: f64, fb: f64, fh: f64) -> SpringNet {
-        let mix = |v: &[f64], m: f64, f: f64| -> Vec<f64> {
+        let mix = |v: &[f64], m: f64, f: f64, alpha: f64| -> Vec<f64> {
             v.iter()
                 .map(|x| f * ((1.0 - alpha) * m + alpha * x))
                 .collect()
         };
         let kappa: Vec<f64> = self.kappa.iter().map(|x| x * fk).collect();
-        let (mut k, b) = (mix(&self.k, self.k_mean, fk), mix(&self.b, self.b_mean, fb));
+        let (mut k, b) = if alpha > 1.0 {
+            let k = amplified(&self.k, &self.takes.topology.family, alpha);
+            (
+                mix(&k, self.k_mean, fk, 1.0),
+                mix(&self.b, self.b_mean, fb, 1.0),
+            )
+        } else {
+            (
+                mix(&self.k, self.k_mean, fk, alpha),
+                mix(&self.b, self.b_mean, fb, alpha),
+            )
+        };
         self.takes.topology.scale_bending(&mut k, fh);
         SpringNet::new(self.takes.topology, &k, &b, self.takes.device)
             .with_kernel(self.model.graph.kernel)
@@ -430,10 +480,19 @@ impl Blender<'_> {
             let centre = (at(start.1, far.1), at(start.2, far.2));
             rows.extend(self.rows(alpha, centre, fh, NARROW));
         }
-        let best = rows
+        let mut best = rows
             .into_iter()
             .min_by(|a, b| a.4.total_cmp(&b.4))
             .expect("the uniform network is a candidate");
+        // Past the learned end, while each share moves closer than the last (from its factors).
+        if self.contrast && best.0 == 1.0 {
+            for alpha in CONTRASTS {
+                match self.rows(alpha, (best.1, best.2), fh, NARROW) {
+                    Some(c) if c.4 < best.4 => best = c,
+                    _ => break,
+                }
+            }
+        }
         let (bending_factor, best) = self.bending_search(best, fh);
         Some(Chain {
             name,
@@ -1245,11 +1304,50 @@ pub fn shear_compression(
 mod tests {
     use burn::tensor::Device;
 
-    use super::{MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, held_out_agrees, stable_substeps};
-    use crate::cloth::{GridSpec, Topology};
+    use super::{
+        MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, amplified, held_out_agrees, stable_substeps,
+    };
+    use crate::cloth::{GridSpec, SpringFamily, Topology};
     use crate::model::SpringNet;
     use crate::sim::Physics;
     use crate::train::init::AUTO_SUBSTEPS_TARGET;
+
+    #[test]
+    fn a_map_s_contrast_is_raised_within_each_family_keeping_its_mean_ranks_and_zeros() {
+        use SpringFamily::{Bending, Shear, Structural};
+        let family = [
+            Structural, Structural, Structural, Shear, Shear, Bending, Bending,
+        ];
+        let k = [10.0, 20.0, 60.0, 5.0, 15.0, 0.0, 2.0];
+        // α = 1 is the map itself.
+        for (a, b) in amplified(&k, &family, 1.0).iter().zip(&k) {
+            assert!((a - b).abs() < 1e-12, "{a} vs {b}");
+        }
+        let out = amplified(&k, &family, 2.0);
+        let mean =
+            |idx: &[usize], v: &[f64]| idx.iter().map(|&i| v[i]).sum::<f64>() / idx.len() as f64;
+        for idx in [&[0, 1, 2][..], &[3, 4], &[5, 6]] {
+            assert!(
+                (mean(idx, &out) - mean(idx, &k)).abs() < 1e-9,
+                "a family's mean moved"
+            );
+        }
+        // Squared contrast: 10, 20, 60 (mean 30) -> k² / 30 = 10/3, 40/3, 120, rescaled to the
+        // mean 30.
+        let want = [10.0 / 3.0, 40.0 / 3.0, 120.0];
+        let scale = 30.0 / ((want[0] + want[1] + want[2]) / 3.0);
+        for (i, w) in want.iter().enumerate() {
+            assert!(
+                (out[i] - w * scale).abs() < 1e-9,
+                "spring {i}: {} vs {}",
+                out[i],
+                w * scale
+            );
+        }
+        assert!(out[2] / out[0] > k[2] / k[0], "the contrast did not rise");
+        assert_eq!(out[5], 0.0, "a spring at zero left zero");
+        assert!(out[6] > 0.0 && out[3] < out[4]);
+    }
 
     #[test]
     fn a_search_reaches_a_network_up_to_its_substep_caps_and_no_further() {
