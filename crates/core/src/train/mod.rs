@@ -193,8 +193,7 @@ pub struct TrainConfig {
     pub blend_search: bool,
     /// Where the blend search keeps the whole learned map (`α = 1`), also try it with its
     /// contrast within each spring family raised, `α = 1.5` then `2` while each moves closer to
-    /// the training takes ([`scale::blend_search`]; ours, off by default). Needs
-    /// `train.blend_search`.
+    /// the training takes (ours, off by default). Needs `train.blend_search`.
     pub blend_contrast: bool,
     /// Rounds of averaging over the spring graph applied to each stiffness map before the
     /// blend search blends it ([`compliance::smoothed`]; ours): each round, each spring takes
