@@ -429,13 +429,16 @@ fn the_compression_search_finds_shear_springs_that_pull_only() {
 /// spring cloth (20 and 80 N/m in stripes), the least-squares map smoothed six times over the spring
 /// graph (`train.map_smoothing`) is flatter than the source's, so the blend search keeps all of
 /// it (`α = 1`) and stops there; with the contrast search it goes on to a map whose contrast is
-/// raised (`α > 1`), closer to the training takes, and a map closer to the source's `k`.
+/// raised (`α > 1`), closer to the training takes, and a map closer to the source's `k`. With
+/// two takes held out, that share is checked against the share kept without it, both polished
+/// (`blend.json`'s `contrast`), and the run keeps the one the held-out takes prefer.
 #[test]
 fn the_blend_search_raises_the_contrast_of_a_flattened_map() {
     use springtime::source::mass_spring::SpringCloth;
     let lines = "map_smoothing = 6\n[train.least_squares]\nenabled = true\n";
     let mut found = Vec::new();
-    for contrast in [false, true] {
+    let mut checked = None;
+    for (contrast, holdout) in [(false, 0), (true, 0), (true, 2)] {
         let dir = common::temp_dir("blend-contrast");
         let mut source = common::source(8, &[20.0, 80.0], 2.0);
         source.frame_stride = 10;
@@ -446,9 +449,14 @@ fn the_blend_search_raises_the_contrast_of_a_flattened_map() {
             &dir,
             50.0,
             6.0,
-            0,
+            holdout,
             &format!("blend_contrast = {contrast}\n{lines}"),
         );
+        if holdout > 0 {
+            checked = Some(record);
+            std::fs::remove_dir_all(&dir).ok();
+            continue;
+        }
         let k = springtime::data::npz::Npz::read(&run_dir.join("springs.npz"))
             .unwrap()
             .f32("k", &[None])
@@ -479,6 +487,29 @@ fn the_blend_search_raises_the_contrast_of_a_flattened_map() {
         ));
         std::fs::remove_dir_all(&dir).ok();
     }
+    // With takes held out, the share past the whole map is checked against the share kept
+    // without it, both polished, and kept where the held-out takes prefer it; the run keeps
+    // what its record says.
+    let record = checked.expect("the run with held-out takes");
+    let check = &record["contrast"];
+    let value = |key: &str| check[key].as_f64().unwrap();
+    assert!(
+        value("alpha") > 1.0 && value("plain_alpha") <= 1.0,
+        "{check}"
+    );
+    let pair = |v: &serde_json::Value| (v[0].as_f64().unwrap(), v[1].as_f64().unwrap());
+    let (without, with) = (pair(&check["held_out"][0]), pair(&check["held_out"][1]));
+    let kept = (with.0 / without.0) * (with.1 / without.1) < 1.0;
+    assert_eq!(check["kept"].as_bool(), Some(kept), "{check}");
+    let share = if kept { "alpha" } else { "plain_alpha" };
+    assert_eq!(record["alpha"], check[share], "{record}");
+    let polished = record["polish"]["after"].as_f64().unwrap();
+    let want = if kept {
+        value("after")
+    } else {
+        value("plain_after")
+    };
+    assert_eq!(polished, want, "{record}");
     let (flat, raised) = (found[0], found[1]);
     assert_eq!(flat.0, 1.0, "{found:?}");
     assert!(raised.0 > 1.0, "{found:?}");

@@ -193,7 +193,8 @@ pub struct TrainConfig {
     pub blend_search: bool,
     /// Where the blend search keeps the whole learned map (`α = 1`), also try it with its
     /// contrast within each spring family raised, `α = 1.5` then `2` while each moves closer to
-    /// the training takes (ours, off by default). Needs `train.blend_search`.
+    /// the training takes; kept where, polished beside the share kept without it, the held-out
+    /// takes prefer it (ours, off by default). Needs `train.blend_search`.
     pub blend_contrast: bool,
     /// Rounds of averaging over the spring graph applied to each stiffness map before the
     /// blend search blends it ([`compliance::smoothed`]; ours): each round, each spring takes
@@ -1064,20 +1065,16 @@ impl AfterFit<'_> {
         several: bool,
     ) -> Result<(SpringNet, Physics, scale::BlendSearch)> {
         let job = self.fit.job;
-        let (net, p, mut record) = scale::blend_search(
+        let found = scale::blend_search(
             map,
             (self.resolution.k_init, self.resolution.b_init),
             &job.physics,
             &self.train_takes(),
             job.config.train.blend_contrast,
         )?;
+        let (net, p, mut record) = self.contrast_check(name, found)?;
         record.map = name.to_string();
-        let (net, polish) = scale::polish(
-            &net,
-            &p,
-            job.config.model.uniform_start(),
-            &self.train_takes(),
-        )?;
+        let polish = record.polish.as_ref().expect("polished");
         if several {
             self.fit.progress.note(&format!(
                 "blend search of the {name} map: {:.0} % kept, mean motion RMSE {:.4e} m; \
@@ -1093,8 +1090,83 @@ impl AfterFit<'_> {
                 }
             ));
         }
-        record.polish = Some(polish);
         Ok((net, p, record))
+    }
+
+    /// The blend search's closest network polished, or where its share lies past the whole map
+    /// (`train.blend_contrast`), that share checked against the network kept without it, both
+    /// polished: kept where the held-out takes prefer it ([`scale::held_out_agrees`]), or
+    /// without held-out takes where it is still the closer to the training takes; the verdict
+    /// in the record ([`scale::ContrastCheck`]) and the log.
+    fn contrast_check(
+        &self,
+        name: &str,
+        found: scale::BlendFound,
+    ) -> Result<(SpringNet, Physics, scale::BlendSearch)> {
+        let closest = self.polished(found.closest)?;
+        let Some(plain) = found.plain else {
+            return Ok(closest);
+        };
+        let plain = self.polished(plain)?;
+        let polished_after =
+            |r: &scale::BlendSearch| r.polish.as_ref().map_or(r.after, |p| p.after);
+        let (after, plain_after) = (polished_after(&closest.2), polished_after(&plain.2));
+        let (kept, held_out) = if self.split.validation.is_empty() {
+            (after < plain_after, None)
+        } else {
+            let (before, after) = (
+                self.held_out_rmse(&plain.0, &plain.1)?,
+                self.held_out_rmse(&closest.0, &closest.1)?,
+            );
+            (scale::held_out_agrees(before, after), Some((before, after)))
+        };
+        let check = scale::ContrastCheck {
+            alpha: closest.2.alpha,
+            after,
+            plain_alpha: plain.2.alpha,
+            plain_after,
+            held_out,
+            kept,
+        };
+        let held = match held_out {
+            Some((before, after)) => format!(
+                "; on the {} held-out rollouts {:.4e} / {:.4e} m (short / long) against {:.4e} / \
+                 {:.4e} m",
+                self.split.validation.len(),
+                after.0,
+                after.1,
+                before.0,
+                before.1
+            ),
+            None => String::new(),
+        };
+        self.fit.progress.note(&format!(
+            "blend search of the {name} map: {:.0} % of it (its contrast raised), polished, moves \
+             {:.4e} m from the training rollouts against {:.4e} m at {:.0} %{held} -> the run \
+             keeps {:.0} %",
+            100.0 * check.alpha,
+            check.after,
+            check.plain_after,
+            100.0 * check.plain_alpha,
+            100.0 * if kept { check.alpha } else { check.plain_alpha }
+        ));
+        let (net, physics, mut record) = if kept { closest } else { plain };
+        record.contrast = Some(check);
+        Ok((net, physics, record))
+    }
+
+    /// A blend polished at the substeps it runs at ([`scale::polish`]), the polish in its record.
+    fn polished(&self, blend: scale::Blended) -> Result<(SpringNet, Physics, scale::BlendSearch)> {
+        let job = self.fit.job;
+        let (net, polish) = scale::polish(
+            &blend.net,
+            &blend.physics,
+            job.config.model.uniform_start(),
+            &self.train_takes(),
+        )?;
+        let mut record = blend.record;
+        record.polish = Some(polish);
+        Ok((net, blend.physics, record))
     }
 
     /// The drag searched after the polish ([`scale::DragSearch`]) where the run fitted it, the

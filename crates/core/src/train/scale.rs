@@ -166,6 +166,35 @@ pub(crate) struct BlendSearch {
     /// or in a record written before the maps were weighed.
     #[serde(default)]
     pub weights: Option<MapWeights>,
+    /// Where the closest share lay past the whole map (`train.blend_contrast`), that share
+    /// against the share kept without it ([`ContrastCheck`]); `None` otherwise, or in a record
+    /// written before the check.
+    #[serde(default)]
+    pub contrast: Option<ContrastCheck>,
+}
+
+/// A share past the whole map (`train.blend_contrast`), which the training takes chose,
+/// against the share kept without it, both polished ([`polish`]; a polish can move one share
+/// much more than another): the run keeps it where the held-out training takes agree
+/// ([`held_out_agrees`]), as it keeps each search after the blend; without held-out takes,
+/// where it is still the closer to the training takes once polished.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContrastCheck {
+    /// The share past the whole map closest to the search's training takes.
+    pub alpha: f64,
+    /// Its blend's mean motion RMSE on the search's training takes once polished, m.
+    pub after: f64,
+    /// The share the search keeps without the shares past the whole map.
+    pub plain_alpha: f64,
+    /// Its blend's mean motion RMSE on the search's training takes once polished, m.
+    pub plain_after: f64,
+    /// `(short, long)` motion RMSE on the held-out training takes of the network without the
+    /// shares past the whole map, and of the one with (m), both polished; `None` where none
+    /// were held out.
+    pub held_out: Option<((f64, f64), (f64, f64))>,
+    /// Whether the run keeps the share past the whole map: where the held-out takes prefer it
+    /// ([`held_out_agrees`]), or without them, where it is the closer once polished.
+    pub kept: bool,
 }
 
 impl BlendSearch {
@@ -270,7 +299,7 @@ const BENDING_CANDIDATES: usize =
 const fn chain_candidates(wide: &Span) -> usize {
     2 * wide.candidates()
         + (ALPHAS.len() + CONTRASTS.len()) * NARROW.candidates()
-        + 2 * BENDING_CANDIDATES
+        + 3 * BENDING_CANDIDATES
 }
 /// Candidates the search considers at most (some twice, simulated once): the bar's length.
 const BLEND_CANDIDATES: usize = chain_candidates(&WIDE) + chain_candidates(&WIDE_CRITICAL);
@@ -288,19 +317,54 @@ struct Chain {
     bending_factor: f64,
     /// The candidate kept.
     best: Candidate,
+    /// Where the kept share lies past the whole map ([`CONTRASTS`]), the bending springs'
+    /// factor and the candidate the chain keeps without it.
+    plain: Option<(f64, Candidate)>,
+}
+
+impl Chain {
+    /// The chain as it ends without the shares past the whole map.
+    fn plain(&self) -> Chain {
+        match self.plain {
+            Some((bending_factor, best)) => Chain {
+                bending_factor,
+                best,
+                plain: None,
+                ..*self
+            },
+            None => *self,
+        }
+    }
+}
+
+/// A network the blend search keeps: the network, the physics it runs at and the record.
+pub(crate) struct Blended {
+    pub net: SpringNet,
+    pub physics: Physics,
+    pub record: BlendSearch,
+}
+
+/// What the blend search found: the network closest to its training takes, and, where that one's
+/// share lies past the whole map (`train.blend_contrast`), the network the search keeps
+/// without the shares past it, for the held-out training takes to judge
+/// ([`ContrastCheck`]).
+pub(crate) struct BlendFound {
+    pub closest: Blended,
+    pub plain: Option<Blended>,
 }
 
 /// Searches the best uniform network around `model`'s means on the training takes `train`, the
 /// bending springs' share on it, then the share of `model`'s map blended into it and the factors
-/// around the best, and the bending springs' share again there; returns the kept network, the
-/// physics it runs at (substeps possibly raised) and the record.
+/// around the best, and the bending springs' share again there; returns the closest network, the
+/// physics it runs at (substeps possibly raised) and the record, and where its share lies past
+/// the whole map the network kept without that ([`BlendFound`]).
 pub(crate) fn blend_search(
     model: &SpringNet,
     (k_init, b_init): (f64, f64),
     physics: &Physics,
     train: &Takes,
     contrast: bool,
-) -> Result<(SpringNet, Physics, BlendSearch)> {
+) -> Result<BlendFound> {
     let files = search_files(train);
     let (k, b) = (model.k_values(), model.b_values());
     let (k_mean, b_mean) = blend_means(&k, &b, physics.mass)?;
@@ -345,22 +409,37 @@ pub(crate) fn blend_search(
         .map(|c| c.uniform)
         .min_by(|a, b| a.4.total_cmp(&b.4))
         .expect("one chain at least");
-    let record = search.record(&kept, uniform, before);
-    let physics = Physics {
-        substeps: record.substeps,
-        ..*physics
+    let keep = |kept: &Chain| {
+        let record = search.record(kept, uniform, before);
+        let best = kept.best;
+        Blended {
+            net: search.blended(best.0, best.1, best.2, kept.bending_factor),
+            physics: Physics {
+                substeps: record.substeps,
+                ..*physics
+            },
+            record,
+        }
     };
-    let best = kept.best;
-    Ok((
-        search.blended(best.0, best.1, best.2, kept.bending_factor),
-        physics,
-        record,
-    ))
+    let closest = keep(&kept);
+    let plain = (kept.best.0 > 1.0).then(|| {
+        let plain = chains
+            .iter()
+            .map(Chain::plain)
+            .min_by(|a, b| a.best.4.total_cmp(&b.best.4))
+            .expect("one chain at least");
+        keep(&plain)
+    });
+    Ok(BlendFound { closest, plain })
 }
 
 /// `k` with its contrast within each spring family raised to the power `alpha`: each spring's
 /// `k (k / k̄_f)^(α − 1)`, rescaled so that each family keeps its mean `k̄_f` (springs at zero
-/// stay there, and the ranks within a family do not change).
+/// stay there, and the ranks within a family do not change). By family, as measured:
+/// raising within the compliance map's strain groups instead (a data mesh's sides and cut
+/// diagonals together) left three of four sets farther from their takes, and within those
+/// groups split by family (cut diagonals apart from hinge diagonals) two of two (the book's
+/// Other simulators, "The share past the whole map, checked on the held-out takes").
 fn amplified(k: &[f64], family: &[SpringFamily], alpha: f64) -> Vec<f64> {
     let mut out = k.to_vec();
     for f in [
@@ -484,6 +563,7 @@ impl Blender<'_> {
             .into_iter()
             .min_by(|a, b| a.4.total_cmp(&b.4))
             .expect("the uniform network is a candidate");
+        let plain = best;
         // Past the learned end, while each share moves closer than the last (from its factors).
         if self.contrast && best.0 == 1.0 {
             for alpha in CONTRASTS {
@@ -494,12 +574,15 @@ impl Blender<'_> {
             }
         }
         let (bending_factor, best) = self.bending_search(best, fh);
+        // The chain's end without the shares past the whole map, for the held-out takes.
+        let plain = (best.0 > 1.0).then(|| self.bending_search(plain, fh));
         Some(Chain {
             name,
             uniform,
             rows_bending_factor: fh,
             bending_factor,
             best,
+            plain,
         })
     }
 
@@ -637,6 +720,7 @@ impl Blender<'_> {
             shear_compression: None,
             maps: Vec::new(),
             weights: None,
+            contrast: None,
         }
     }
 
