@@ -1107,23 +1107,33 @@ impl AfterFit<'_> {
         let Some(plain) = found.plain else {
             return Ok(closest);
         };
-        let plain = self.polished(plain)?;
-        let polished_after =
-            |r: &scale::BlendSearch| r.polish.as_ref().map_or(r.after, |p| p.after);
-        let (after, plain_after) = (polished_after(&closest.2), polished_after(&plain.2));
-        let (kept, held_out) = if self.split.validation.is_empty() {
-            (after < plain_after, None)
+        let (plain_net, plain_physics, plain_record) = self.polished(plain)?;
+        let (closest_net, closest_physics, closest_record) = closest;
+        let (after, plain_after) = (
+            closest_record.polished_after(),
+            plain_record.polished_after(),
+        );
+        let (net, physics, kept, held_out) = if self.split.validation.is_empty() {
+            let kept = after < plain_after;
+            let (net, physics) = if kept {
+                (closest_net, closest_physics)
+            } else {
+                (plain_net, plain_physics)
+            };
+            (net, physics, kept, None)
         } else {
-            let (before, after) = (
-                self.held_out_rmse(&plain.0, &plain.1)?,
-                self.held_out_rmse(&closest.0, &closest.1)?,
-            );
-            (scale::held_out_agrees(before, after), Some((before, after)))
+            let (net, physics, verdict) = self.judge(
+                (plain_net, plain_physics),
+                (closest_net, closest_physics),
+                None,
+            )?;
+            let held_out = Some((verdict.before, verdict.after));
+            (net, physics, verdict.kept, held_out)
         };
         let check = scale::ContrastCheck {
-            alpha: closest.2.alpha,
+            alpha: closest_record.alpha,
             after,
-            plain_alpha: plain.2.alpha,
+            plain_alpha: plain_record.alpha,
             plain_after,
             held_out,
             kept,
@@ -1150,7 +1160,7 @@ impl AfterFit<'_> {
             100.0 * check.plain_alpha,
             100.0 * if kept { check.alpha } else { check.plain_alpha }
         ));
-        let (net, physics, mut record) = if kept { closest } else { plain };
+        let mut record = if kept { closest_record } else { plain_record };
         record.contrast = Some(check);
         Ok((net, physics, record))
     }
@@ -1459,7 +1469,7 @@ impl AfterFit<'_> {
                 Ok(scale::MapScore {
                     map: record.map.clone(),
                     alpha: record.alpha,
-                    after: record.polish.as_ref().map_or(record.after, |p| p.after),
+                    after: record.polished_after(),
                     held_out: if judge {
                         Some(self.held_out_rmse(net, p)?)
                     } else {

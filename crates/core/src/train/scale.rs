@@ -198,6 +198,13 @@ pub struct ContrastCheck {
 }
 
 impl BlendSearch {
+    /// Mean motion RMSE on the search's training takes of the kept blend polished at the
+    /// substeps it runs at ([`polish`]; in a record written before there was a polish, of the
+    /// blend), m.
+    pub fn polished_after(&self) -> f64 {
+        self.polish.as_ref().map_or(self.after, |p| p.after)
+    }
+
     /// Whether the search kept the uniform network: no share of the map, or no size or damping
     /// of its blend in the polish, moved as close.
     pub fn kept_uniform(&self) -> bool {
