@@ -20,11 +20,16 @@ material perturbed (`run.py --spread EPS`: `<set>-perturb-EPS/spread.json` besid
 data; the smallest EPS is shown), the column "source ±EPS" gives how far the source misses its
 own takes over the whole take, and the gain over the best uniform network a surrogate that
 close would have: where that is near 20 %, the goal asks for the source's own precision.
-Needs only the standard library.
+Where `eval.json` holds each test take's figure (`per_rollout`, springtime from 2026-12-06),
+the column "90 % interval" gives a paired bootstrap interval of each gain over the draw of the
+test takes (the takes resampled with replacement, the trained and the uniform network's
+figures of a take kept together; 5,000 draws, a fixed seed): how far the set's gain could
+move with another twelve takes from the same generator. Needs only the standard library.
 """
 import argparse
 import glob
 import json
+import random
 import re
 import sys
 from pathlib import Path
@@ -71,6 +76,8 @@ def row(run):
     except (KeyError, TypeError) as err:
         sys.exit(f"{source}: no {err} (an eval with `eval.uniform_baseline = true` writes it)")
     gains = tuple(1.0 - t / u for t, u in zip(figures["trained"], figures["uniform"]))
+    intervals = tuple(interval(trained[h].get("per_rollout"), uniform[h].get("per_rollout"))
+                      for h in ("short", "long"))
     compression = None
     blend = run / "blend.json"
     if blend.is_file():
@@ -82,11 +89,28 @@ def row(run):
         "set": run.name,
         "run": str(run),
         "gains": gains,
+        "intervals": None if None in intervals else intervals,
         "spearman": e.get("stiffness_map_corr"),
         "set_aside": e.get("learned_map_corr"),
         "compression": compression,
         **figures,
     }
+
+
+def interval(trained, uniform, draws=5000, level=0.90):
+    """The paired bootstrap interval of the gain `1 − Σ trained / Σ uniform` over the takes, or
+    None where either network's per-take figures are missing or do not pair up."""
+    if not trained or not uniform or len(trained) != len(uniform):
+        return None
+    rng = random.Random(0)
+    n = len(trained)
+    gains = []
+    for _ in range(draws):
+        picks = [rng.randrange(n) for _ in range(n)]
+        gains.append(1.0 - sum(trained[i] for i in picks) / sum(uniform[i] for i in picks))
+    gains.sort()
+    tail = (1.0 - level) / 2
+    return gains[int(tail * draws)], gains[int((1.0 - tail) * draws) - 1]
 
 
 def spread(e, source):
@@ -137,10 +161,13 @@ def main():
     rows = sorted(latest.values(), key=lambda r: (list(GOALS).index(kind(r["set"])), r["set"]))
     rank = lambda v: "—" if v is None else f"{v:.2f}"
     spreads = any(r["spread"] for r in rows)
+    intervals = any(r["intervals"] for r in rows)
     if a.markdown:
         print("| set | trained, m | best uniform, m | gain 0.8 s / take | Spearman | κ |"
-              + (" source ±EPS: take, m (its gain) |" if spreads else "") + " goals |")
-        print("|---|---|---|---|---|---|" + ("---|" if spreads else "") + "---|")
+              + (" source ±EPS: take, m (its gain) |" if spreads else "")
+              + (" 90 % interval: 0.8 s / take |" if intervals else "") + " goals |")
+        print("|---|---|---|---|---|---|" + ("---|" if spreads else "") + ("---|" if intervals else "")
+              + "---|")
     for r in rows:
         spearman = rank(r["spearman"]) + (f" ({rank(r['set_aside'])})" if r["set_aside"] is not None else "")
         cells = [
@@ -156,6 +183,10 @@ def main():
             cells.append("" if r["spread"] is None else "±{:g} %: {:.4f} ({:+.1f} %)".format(
                 100 * r["spread"][0], r["spread"][1], 100 * (1.0 - r["spread"][1] / r["uniform"][1])))
             widths.append(26)
+        if intervals:
+            cells.append("" if r["intervals"] is None else " / ".join(
+                "{:+.0f} … {:+.0f} %".format(100 * lo, 100 * hi) for lo, hi in r["intervals"]))
+            widths.append(25)
         cells.append("✓" if met(r) else "misses " + misses(r))
         widths.append(0)
         if a.markdown:

@@ -51,7 +51,7 @@ impl Default for EvalConfig {
 }
 
 /// Motion RMSE over the frames within a horizon of the start.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Horizon {
     /// The horizon, s (`eval.short_seconds` or `eval.long_seconds`).
     pub seconds: f64,
@@ -59,6 +59,11 @@ pub struct Horizon {
     pub mean: f64,
     /// Its standard deviation, m.
     pub std: f64,
+    /// Each rollout's mean over those frames, m, in the order of the files: two networks'
+    /// figures on the same takes can be compared take by take (the bench's confidence
+    /// interval of a gain). Empty in the files of a springtime before 2026-12-06.
+    #[serde(default)]
+    pub per_rollout: Vec<f64>,
 }
 
 /// Motion RMSE statistics over every frame of every test rollout (Eq. 14).
@@ -111,6 +116,7 @@ impl From<MotionRmseFile> for MotionRmse {
                 seconds: seconds.unwrap_or(default),
                 mean: mean.unwrap_or(f64::NAN),
                 std: std.unwrap_or(f64::NAN),
+                per_rollout: Vec::new(),
             };
         Self {
             mean: f.mean,
@@ -761,22 +767,36 @@ impl MotionCurves {
 
 /// Summarises per-frame curves into Table 2's statistics.
 pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> MotionRmse {
-    let stats = |limit: f64| {
-        let v: Vec<f64> = curves
+    let within = |curve: &Curve, limit: f64| -> Vec<f64> {
+        curve
             .iter()
-            .flatten()
             .filter(|(t, _)| *t <= limit + 1e-9)
             .map(|c| c.1)
-            .collect();
+            .collect()
+    };
+    let mean_std = |v: &[f64]| {
         let n = v.len().max(1) as f64;
         let mean = v.iter().sum::<f64>() / n;
         let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
         (mean, var.sqrt())
     };
+    let stats = |limit: f64| {
+        let v: Vec<f64> = curves.iter().flat_map(|c| within(c, limit)).collect();
+        mean_std(&v)
+    };
     let (mean, std) = stats(f64::INFINITY);
     let horizon = |seconds: f64| {
         let (mean, std) = stats(seconds);
-        Horizon { seconds, mean, std }
+        let per_rollout = curves
+            .iter()
+            .map(|c| mean_std(&within(c, seconds)).0)
+            .collect();
+        Horizon {
+            seconds,
+            mean,
+            std,
+            per_rollout,
+        }
     };
     let longest = curves.iter().map(Vec::len).max().unwrap_or(0);
     let times = curves
@@ -1267,6 +1287,30 @@ mod tests {
             (old.long.seconds, old.long.mean, old.long.std),
             (8.0, 0.9, 0.2)
         );
+    }
+
+    #[test]
+    fn each_rollouts_mean_within_a_horizon_is_stored_and_weighs_into_the_mean() {
+        // Two takes of equal length: the horizon's mean is the mean of their means.
+        let curves = vec![
+            vec![(0.1, 1.0), (0.2, 3.0), (0.3, 5.0)],
+            vec![(0.1, 2.0), (0.2, 2.0), (0.3, 8.0)],
+        ];
+        let m = summarize(&curves, 0.1, 0.2, 0.3);
+        assert_eq!(m.short.per_rollout, vec![2.0, 2.0]);
+        assert_eq!(m.long.per_rollout, vec![3.0, 4.0]);
+        assert_eq!(m.long.mean, 3.5);
+        // A shorter take counts only its own frames.
+        let m = summarize(&[curves[0].clone(), vec![(0.1, 4.0)]], 0.1, 0.2, 0.3);
+        assert_eq!(m.long.per_rollout, vec![3.0, 4.0]);
+        let json = serde_json::to_value(&m).unwrap();
+        assert_eq!(json["long"]["per_rollout"][1], 4.0);
+        // A file written before the key existed reads with none.
+        let mut old = json;
+        old["long"].as_object_mut().unwrap().remove("per_rollout");
+        let back: MotionRmse = serde_json::from_value(old).unwrap();
+        assert!(back.long.per_rollout.is_empty());
+        assert_eq!(back.short.per_rollout, vec![2.0, 4.0]);
     }
 
     #[test]
