@@ -780,17 +780,13 @@ pub fn summarize(curves: &[Curve], frame_dt: f64, short: f64, long: f64) -> Moti
         let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
         (mean, var.sqrt())
     };
-    let stats = |limit: f64| {
-        let v: Vec<f64> = curves.iter().flat_map(|c| within(c, limit)).collect();
-        mean_std(&v)
-    };
-    let (mean, std) = stats(f64::INFINITY);
+    let all: Vec<f64> = curves.iter().flatten().map(|c| c.1).collect();
+    let (mean, std) = mean_std(&all);
+    // Each rollout's frames within the horizon, read once for its own mean and the pooled ones.
     let horizon = |seconds: f64| {
-        let (mean, std) = stats(seconds);
-        let per_rollout = curves
-            .iter()
-            .map(|c| mean_std(&within(c, seconds)).0)
-            .collect();
+        let parts: Vec<Vec<f64>> = curves.iter().map(|c| within(c, seconds)).collect();
+        let (mean, std) = mean_std(&parts.concat());
+        let per_rollout = parts.iter().map(|v| mean_std(v).0).collect();
         Horizon {
             seconds,
             mean,

@@ -1113,7 +1113,7 @@ impl AfterFit<'_> {
             closest_record.polished_after(),
             plain_record.polished_after(),
         );
-        let (net, physics, kept, held_out) = if self.split.validation.is_empty() {
+        let (net, physics, kept, verdict) = if self.split.validation.is_empty() {
             let kept = after < plain_after;
             let (net, physics) = if kept {
                 (closest_net, closest_physics)
@@ -1127,29 +1127,19 @@ impl AfterFit<'_> {
                 (closest_net, closest_physics),
                 None,
             )?;
-            let held_out = Some((verdict.before, verdict.after));
-            (net, physics, verdict.kept, held_out)
+            (net, physics, verdict.kept, Some(verdict))
         };
         let check = scale::ContrastCheck {
             alpha: closest_record.alpha,
             after,
             plain_alpha: plain_record.alpha,
             plain_after,
-            held_out,
+            held_out: verdict.as_ref().map(|v| (v.before, v.after)),
             kept,
         };
-        let held = match held_out {
-            Some((before, after)) => format!(
-                "; on the {} held-out rollouts {:.4e} / {:.4e} m (short / long) against {:.4e} / \
-                 {:.4e} m",
-                self.split.validation.len(),
-                after.0,
-                after.1,
-                before.0,
-                before.1
-            ),
-            None => String::new(),
-        };
+        let held = verdict.map_or(String::new(), |v| {
+            format!("; {}", v.figures(self.split.validation.len()))
+        });
         self.fit.progress.note(&format!(
             "blend search of the {name} map: {:.0} % of it (its contrast raised), polished, moves \
              {:.4e} m from the training rollouts against {:.4e} m at {:.0} %{held} -> the run \
@@ -1287,8 +1277,7 @@ impl AfterFit<'_> {
         (record.kept, record.held_out) = (verdict.kept, Some((before, after)));
         progress.note(&format!(
             "{}: {} the map moves closest to the training rollouts at {} = {:.3e} s · k, k × \
-             {:.3} ({:.4e} m); on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / \
-             long) against {:.4e} / {:.4e} m as kept so far -> {}",
+             {:.3} ({:.4e} m); {} as kept so far -> {}",
             form.name(),
             if keep_drag {
                 format!("with the stated drag {drag:.4e} N·s/m")
@@ -1302,11 +1291,7 @@ impl AfterFit<'_> {
             record.beta,
             record.k_factor,
             record.after,
-            self.split.validation.len(),
-            after.0,
-            after.1,
-            before.0,
-            before.1,
+            verdict.figures(self.split.validation.len()),
             verdict.outcome()
         ));
         Ok((net, physics, Some(record)))
@@ -1371,16 +1356,11 @@ impl AfterFit<'_> {
         progress.note(&format!(
             "shear compression search: the network moves closest to the training rollouts with \
              its shear springs pushing at {} of their k when compressed, k × {:.3} ({:.4e} m); \
-             on the {} held-out rollouts it moves {:.4e} / {:.4e} m (short / long) against \
-             {:.4e} / {:.4e} m at sim.shear_compression {} -> {}",
+             {} at sim.shear_compression {} -> {}",
             record.shear_compression,
             record.k_factor,
             record.after,
-            self.split.validation.len(),
-            after.0,
-            after.1,
-            before.0,
-            before.1,
+            verdict.figures(self.split.validation.len()),
             before_kappa,
             verdict.outcome()
         ));
@@ -1701,6 +1681,15 @@ struct HeldOutVerdict {
 }
 
 impl HeldOutVerdict {
+    /// Both networks' held-out figures, for the log.
+    fn figures(&self, rollouts: usize) -> String {
+        format!(
+            "on the {rollouts} held-out rollouts it moves {:.4e} / {:.4e} m (short / long) \
+             against {:.4e} / {:.4e} m",
+            self.after.0, self.after.1, self.before.0, self.before.1
+        )
+    }
+
     /// What the run does, for the log.
     fn outcome(&self) -> &'static str {
         if self.kept {
