@@ -6,7 +6,7 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
-        [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N]
+        [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N] [--implicit-damping SWEEPS]
         [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
         [--compression-on edges|diagonals|all]] [--map source|FILE [--map-share S[,S...]]
         [--map-on sides|all]] [--diagonals-from-sides]
@@ -26,6 +26,9 @@ triangle's `kd * area * |dF/dt|^2` into its edges with the cotangent weights
 `--uniform K,B` replays one `k` and `b` on every spring instead of the run's, and
 `--damping-per-k BETA` sets each spring's `b` to `BETA * k` (stiffness-proportional damping, as
 MuJoCo's elasticity damping), `--k-scale F` multiplies every spring's `k`.
+`--implicit-damping SWEEPS` integrates the springs' `b` by backward Euler instead (each substep
+solves `(M + h C) v = M v*`, `C` the dampers along the springs' current directions, by SWEEPS
+damped Jacobi sweeps), so a `b` far past what the explicit step's substeps allow stays stable.
 
 Two terms the surrogate does not have, to measure what they would be worth before building them:
 `--bending KB` adds a quadratic bending energy on every interior edge of the data's triangles
@@ -169,10 +172,30 @@ def area_forces(pos, tri, corners, area0, ka, out):
         add_at(out, rows, 0.5 * np.cross(normal, pl - pj) * coef)
 
 
+def damping_solve(vstar, pos, springs, b, sa, sb, mass_i, h, iterations, free):
+    """The springs' damping by backward Euler: `(M + h C) v = M v*`, `C` the springs' dampers
+    `b d d^T` along their current directions, by `iterations` damped Jacobi sweeps (weight 2/3,
+    each particle's diagonal `m + h sum b` over its springs; the pinned particles keep `v*`)."""
+    batch, n, _ = vstar.shape
+    d = pos[:, springs[:, 1]] - pos[:, springs[:, 0]]
+    dhat = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    bsum = np.bincount(springs[:, 0], b, n) + np.bincount(springs[:, 1], b, n)
+    diag = (mass_i + h * bsum)[None, :, None]
+    m = mass_i[None, :, None]
+    v = vstar.copy()
+    for _ in range(iterations):
+        w = v[:, springs[:, 1]] - v[:, springs[:, 0]]
+        fd = dhat * (b[None, :, None] * (w * dhat).sum(-1, keepdims=True))
+        f = scatter(fd, sa, sb, batch * n).reshape(batch, n, 3)
+        v = v + (2.0 / 3.0) * (m * (vstar - v) + h * f) / diag * free
+    return v
+
+
 def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-            hinge=None, kb=0.0, area=None, ka=0.0, kc=None):
+            hinge=None, kb=0.0, area=None, ka=0.0, kc=None, implicit=0):
     """Free rollouts from frame 0 of `x` [B, F, N, 3] (velocities by central differences), the
-    pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1."""
+    pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1.
+    With `implicit` sweeps the springs' `b` is integrated by backward Euler (`damping_solve`)."""
     batch, frames, n, _ = x.shape
     size = batch * n
     sa, sb = batch_rows(springs[:, 0], batch, n), batch_rows(springs[:, 1], batch, n)
@@ -199,9 +222,9 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             w = vel[:, springs[:, 1]] - vel[:, springs[:, 0]]
             length = np.linalg.norm(d, axis=-1, keepdims=True)
             stiff = k[None, :, None] if kc is None else np.where(length < rest[None, :, None], kc[None, :, None], k[None, :, None])
-            coef = stiff * (1.0 - rest[None, :, None] / length) + b[None, :, None] * (
-                (w * d).sum(-1, keepdims=True) / length**2
-            )
+            coef = stiff * (1.0 - rest[None, :, None] / length)
+            if not implicit:
+                coef = coef + b[None, :, None] * ((w * d).sum(-1, keepdims=True) / length**2)
             f = scatter(d * coef, sa, sb, size).reshape(batch, n, 3)
             if nu is not None:
                 rel = (vel[:, edges[:, 1]] - vel[:, edges[:, 0]]) * nu[None, :, None]
@@ -217,6 +240,8 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
                 area_forces(pos, tri, corners, area0, ka, fl)
             acc = f * inv_w / mass + gravity[None, None] - (drag / mass) * vel
             vel = vel + h * acc
+            if implicit:
+                vel = damping_solve(vel * free + pin_v, pos, springs, b, sa, sb, weight * mass, h, implicit, free)
             pos = pos + h * vel
             pos = pos * free + (here * (1.0 - t) + nxt * t) * pin
             vel = vel * free + pin_v
@@ -291,6 +316,9 @@ def main():
                    help="each spring's b = BETA * k (stiffness-proportional damping, s)")
     p.add_argument("--k-scale", type=float, default=1.0, help="every spring's k times this")
     p.add_argument("--substeps", type=int, help="substeps per frame (default: the run's)")
+    p.add_argument("--implicit-damping", type=int, default=0, metavar="SWEEPS",
+                   help="the springs' b by backward Euler, SWEEPS damped Jacobi sweeps per substep "
+                   "(0: explicit, as springtime's step)")
     p.add_argument("--bending", default="0", help="KB[,KB...]: a quadratic hinge bending stiffness (N m) "
                    "on every interior edge of the data's triangles, one rollout each")
     p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
@@ -410,7 +438,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
            hinge, kb, area, ka, label, kc=None, compression=1.0):
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-                  hinge, kb, area, ka, kc)
+                  hinge, kb, area, ka, kc, a.implicit_damping)
     if sim is None:
         print(f"bending {kb:g}, area {ka:g}: diverged")
         return
@@ -425,6 +453,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")
         + (", diagonals from sides" if a.diagonals_from_sides else "")
+        + (f", b by backward Euler ({a.implicit_damping} sweeps)" if a.implicit_damping else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
         + " ".join(f"{w:.3f}" for w in windows)
         + f" ({time.time() - start:.0f} s)"

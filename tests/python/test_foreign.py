@@ -134,3 +134,43 @@ def test_takes_rmse_reads_a_known_offset_as_eval_does(tmp_path):
     last = out.strip().splitlines()[-1]
     # frames 1-80 lie within 0.8 s: 40 of them 3 cm off; over the take 40 of 100
     assert last.startswith("1 takes: short 0.0150 m, whole take 0.0120 m"), out
+
+
+def test_the_probes_backward_euler_damping_reaches_the_exact_solve_and_dissipates():
+    sys.path.insert(0, str(BENCH))
+    try:
+        from damping_probe import batch_rows, damping_solve
+    finally:
+        sys.path.remove(str(BENCH))
+    rng = np.random.default_rng(3)
+    n, batch, h = 5, 2, 1e-3
+    springs = np.array([[0, 1], [1, 2], [2, 3], [3, 4], [0, 2], [1, 3], [2, 4]])
+    b = rng.uniform(0.5, 5.0, len(springs))  # h b / m up to 2.5: far past the explicit step's limit
+    mass = rng.uniform(2e-3, 4e-3, n)
+    pos = rng.standard_normal((batch, n, 3))
+    vstar = rng.standard_normal((batch, n, 3))
+    free = np.ones((batch, n, 1))
+    free[:, 4] = 0.0  # a pinned particle keeps its velocity
+    sa, sb = batch_rows(springs[:, 0], batch, n), batch_rows(springs[:, 1], batch, n)
+    solved = damping_solve(vstar, pos, springs, b, sa, sb, mass, h, 300, free)
+    for c in range(batch):
+        # (M + h C) v = M v* on the free particles, C the dampers b d d^T along the springs
+        a = np.diag(np.repeat(mass, 3))
+        for s, (i, j) in enumerate(springs):
+            d = pos[c, j] - pos[c, i]
+            block = h * b[s] * np.outer(d, d) / (d @ d)
+            for p, q, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+                a[3 * p:3 * p + 3, 3 * q:3 * q + 3] += sign * block
+        rhs = (np.repeat(mass, 3)[:, None] * vstar[c].reshape(-1, 1)).ravel()
+        keep = np.arange(12)  # particles 0-3 free, particle 4's velocity given
+        rhs_free = rhs[keep] - a[np.ix_(keep, np.arange(12, 15))] @ vstar[c, 4]
+        exact = np.linalg.solve(a[np.ix_(keep, keep)], rhs_free).reshape(4, 3)
+        assert np.allclose(solved[c, :4], exact, atol=1e-10), np.abs(solved[c, :4] - exact).max()
+        assert np.array_equal(solved[c, 4], vstar[c, 4])
+    # every sweep count dissipates: the free particles' kinetic energy in the pinned one's frame
+    for sweeps in (1, 2, 4, 8):
+        v = damping_solve(vstar, pos, springs, b, sa, sb, mass, h, sweeps, free)
+        energy = lambda u: (mass[None, :, None] * (u - u[:, 4:5]) ** 2).sum()
+        assert energy(v) < energy(vstar), sweeps
+    # without damping nothing changes
+    assert np.array_equal(damping_solve(vstar, pos, springs, 0 * b, sa, sb, mass, h, 4, free), vstar)
