@@ -344,6 +344,8 @@ def main():
     config = (run / "config.toml").read_text()
     if a.substeps is not None and a.substeps < 1:
         raise SystemExit(f"--substeps: expected 1 or more, got {a.substeps}")
+    if a.implicit_damping < 0:
+        raise SystemExit(f"--implicit-damping: expected 0 (explicit) or more sweeps, got {a.implicit_damping}")
     substeps = a.substeps or int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
     drag = a.drag if a.drag is not None else float(re.search(r"^rayleigh\s*=\s*(\S+)", config, re.M).group(1))
     net = np.load(run / "springs.npz")
