@@ -36,6 +36,27 @@ pub struct ComplianceConfig {
     /// another than the mixed one is kept where it moves closer to the training takes and the
     /// held-out takes agree).
     pub keep: MapKeep,
+    /// How the positions' noise is taken out of the compliance map's mean square strains:
+    /// `"per_spring"` (each spring's own fourth differences) or `"pooled"` (one marker noise
+    /// for every spring, [`StrainNoise::Pooled`]).
+    pub noise: StrainNoise,
+}
+
+/// How the positions' noise is estimated for each spring (`train.compliance.noise`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum StrainNoise {
+    /// Each spring's strain noise from its own frames: its mean square fourth difference over
+    /// 70.
+    #[default]
+    PerSpring,
+    /// One marker noise for every spring (ours): white noise of `σ` per axis on each end adds
+    /// `2σ²/l²` to a spring's mean square strain, `l` its rest length. `σ²` is the median over
+    /// the springs of their own estimates times `l²/2`, and each spring's noise is `2σ²/l²`. A
+    /// capture's markers share one accuracy; a spring's own estimate adds its sampling error,
+    /// and on clean frames the motion the frames barely resolve (a stiff cloth's membrane
+    /// at camera rate), to its rank.
+    Pooled,
 }
 
 /// Which map's blend the run keeps (`train.compliance.keep`).
@@ -73,6 +94,8 @@ pub(crate) struct RmsStrains {
     pub rms: Vec<f64>,
     /// The noise's share of the springs' summed mean square strain before it was taken out.
     pub noise_share: f64,
+    /// The marker noise `σ` (m per axis) the springs share, where pooled ([`StrainNoise`]).
+    pub sigma: Option<f64>,
 }
 
 /// White noise's variance in a fourth difference `ε₀ − 4ε₁ + 6ε₂ − 4ε₃ + ε₄`: `1+16+36+16+1`
@@ -91,9 +114,10 @@ const NOISE_FLOOR: f64 = 0.01;
 /// spring's mean square strain and would rank the springs by their rest length instead of
 /// their stiffness. A motion the frames resolve has almost no fourth difference in time, white
 /// noise has 70 times its variance there: each spring's noise variance is its strain's mean
-/// square fourth difference inside the training clips over 70, and is subtracted (on clean
-/// simulator data it is a small share, reported in the log).
-pub(crate) fn rms_strains(clips: &ClipSet, share: Share) -> Result<RmsStrains> {
+/// square fourth difference inside the training clips over 70, or with `noise` pooled one
+/// marker noise for every spring ([`StrainNoise`]), and is subtracted (on clean simulator data
+/// it is a small share, reported in the log).
+pub(crate) fn rms_strains(clips: &ClipSet, share: Share, noise: StrainNoise) -> Result<RmsStrains> {
     let topo = &clips.topology;
     let springs = topo.num_springs();
     let mut sum = vec![0.0; springs];
@@ -136,6 +160,10 @@ pub(crate) fn rms_strains(clips: &ClipSet, share: Share) -> Result<RmsStrains> {
     if frames == 0 {
         bail!("`train.compliance`: the training rollouts hold no frame");
     }
+    let own: Vec<Option<f64>> = (0..springs)
+        .map(|s| (d4_count[s] > 0).then(|| d4_sum[s] / d4_count[s] as f64 / FOURTH_DIFFERENCE_GAIN))
+        .collect();
+    let (variances, sigma) = noise_variances(&own, &topo.rest_length, noise);
     let (mut raw_total, mut noise_total) = (0.0, 0.0);
     let rms = (0..springs)
         .map(|s| {
@@ -143,11 +171,7 @@ pub(crate) fn rms_strains(clips: &ClipSet, share: Share) -> Result<RmsStrains> {
                 return 0.0;
             }
             let ms = sum[s] / count[s] as f64;
-            let noise = if d4_count[s] > 0 {
-                d4_sum[s] / d4_count[s] as f64 / FOURTH_DIFFERENCE_GAIN
-            } else {
-                0.0
-            };
+            let noise = variances[s];
             raw_total += ms;
             noise_total += noise.min(ms);
             (ms - noise).max(NOISE_FLOOR * ms).sqrt()
@@ -160,7 +184,37 @@ pub(crate) fn rms_strains(clips: &ClipSet, share: Share) -> Result<RmsStrains> {
         } else {
             0.0
         },
+        sigma,
     })
+}
+
+/// Each spring's strain noise variance from its own estimate `own` (`None`: no fourth
+/// difference seen) and rest length `rest`, as `noise` says ([`StrainNoise`]); with the
+/// marker noise `σ` (m per axis) where pooled.
+fn noise_variances(
+    own: &[Option<f64>],
+    rest: &[f64],
+    noise: StrainNoise,
+) -> (Vec<f64>, Option<f64>) {
+    match noise {
+        StrainNoise::PerSpring => (own.iter().map(|v| v.unwrap_or(0.0)).collect(), None),
+        StrainNoise::Pooled => {
+            let mut sigma2: Vec<f64> = own
+                .iter()
+                .zip(rest)
+                .filter_map(|(v, l)| v.map(|v| v * l * l / 2.0))
+                .collect();
+            if sigma2.is_empty() {
+                return (vec![0.0; own.len()], None);
+            }
+            sigma2.sort_by(f64::total_cmp);
+            let sigma2 = sigma2[sigma2.len() / 2];
+            (
+                rest.iter().map(|l| 2.0 * sigma2 / (l * l)).collect(),
+                Some(sigma2.sqrt()),
+            )
+        }
+    }
 }
 
 /// Adds the squares of the fourth differences of `series` (those of five finite values) to
@@ -468,6 +522,37 @@ mod tests {
         let (mut sum, mut count) = (0.0, 0);
         add_fourth_differences(&gap, &mut sum, &mut count);
         assert_eq!(count, 16 - 5);
+    }
+
+    /// Pooled, every spring's strain noise is `2σ²/l²` with one `σ`: the median of the
+    /// springs' own estimates, which one spring whose frames carry much more (a vibration the
+    /// frames barely resolve) does not move and does not get; per spring each keeps its own.
+    #[test]
+    fn pooled_strain_noise_is_one_marker_noise_over_each_rest_length() {
+        let sigma: f64 = 0.002;
+        let rest = [0.05, 0.1, 0.1, 0.2, 0.07];
+        let exact: Vec<f64> = rest.iter().map(|l| 2.0 * sigma * sigma / (l * l)).collect();
+        // Each spring's own estimate off by its sampling error, the third one by far more.
+        let errors = [1.1, 0.9, 25.0, 1.05, 0.97];
+        let mut own: Vec<Option<f64>> =
+            exact.iter().zip(errors).map(|(v, e)| Some(v * e)).collect();
+        let (per_spring, none) = noise_variances(&own, &rest, StrainNoise::PerSpring);
+        assert_eq!(none, None);
+        assert_eq!(per_spring[2], own[2].unwrap());
+        let (pooled, found) = noise_variances(&own, &rest, StrainNoise::Pooled);
+        // The median's spring is the one off by 1.05.
+        let found = found.unwrap();
+        assert!((found / sigma - 1.05f64.sqrt()).abs() < 1e-12, "σ {found}");
+        for (p, e) in pooled.iter().zip(&exact) {
+            assert!((p / e - 1.05).abs() < 1e-12, "{p} against {e}");
+        }
+        // A spring with no fourth difference seen still gets the shared noise; none seen at all
+        // takes nothing out.
+        own[4] = None;
+        let (pooled, _) = noise_variances(&own, &rest, StrainNoise::Pooled);
+        assert!(pooled[4] > 0.0);
+        let (nothing, sigma) = noise_variances(&[None, None], &rest[..2], StrainNoise::Pooled);
+        assert_eq!((nothing, sigma), (vec![0.0, 0.0], None));
     }
 
     /// Within a group the map is the inverse of the strain; a spring that never stretches

@@ -1394,7 +1394,8 @@ impl AfterFit<'_> {
             let config = &job.config.train.least_squares;
             let f = least_squares::fit_share(config, clips, &job.physics, (k0, b0), stencil, half)?;
             fit.push(smooth(&f.k));
-            let rms = compliance::rms_strains(clips, half)?.rms;
+            let noise = job.config.train.compliance.noise;
+            let rms = compliance::rms_strains(clips, half, noise)?.rms;
             strains.push(smooth(&compliance::stiffness(topo, &rms, k0)));
         }
         let w = compliance::MapWeights::from_halves(
@@ -2122,14 +2123,23 @@ impl Fit<'_> {
         let (topo, device) = (self.job.topology, self.job.device);
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
-        let strains = compliance::rms_strains(self.clips, compliance::Share::All)?;
+        let noise = self.job.config.train.compliance.noise;
+        let strains = compliance::rms_strains(self.clips, compliance::Share::All, noise)?;
         let k = compliance::stiffness(topo, &strains.rms, k0);
         let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
         self.progress.note(&format!(
             "compliance map: k from the springs' RMS strains over the training frames \
-             ({:.1} % of their mean square was the positions' noise, taken out), \
+             ({:.1} % of their mean square was the positions' noise, taken out{}), \
              {lo:.4}–{k0:.4} N/m; b uniform {b0:.4e} N·s/m",
-            100.0 * strains.noise_share
+            100.0 * strains.noise_share,
+            match strains.sigma {
+                Some(sigma) => format!(
+                    "; one marker noise for every spring, {:.3} mm per axis \
+                     (`train.compliance.noise = \"pooled\"`)",
+                    1e3 * sigma
+                ),
+                None => String::new(),
+            }
         ));
         let b = vec![b0; topo.num_springs()];
         Ok(SpringNet::new(topo, &k, &b, device)
