@@ -37,8 +37,9 @@ pub struct ComplianceConfig {
     /// held-out takes agree).
     pub keep: MapKeep,
     /// How the positions' noise is taken out of the compliance map's mean square strains:
-    /// `"per_spring"` (each spring's own fourth differences) or `"pooled"` (one marker noise
-    /// for every spring, [`StrainNoise::Pooled`]).
+    /// `"per_spring"` (each spring's own fourth differences), `"pooled"` (one marker noise
+    /// for every spring, [`StrainNoise::Pooled`]) or `"stated"` (the marker noise the run
+    /// states, the fit's `train.least_squares.noise`, [`StrainNoise::Stated`]).
     pub noise: StrainNoise,
 }
 
@@ -57,6 +58,22 @@ pub enum StrainNoise {
     /// and on clean frames the motion the frames barely resolve (a stiff cloth's membrane
     /// at camera rate), to its rank.
     Pooled,
+    /// The marker noise `σ` the run states, as the least-squares fit takes it out
+    /// (`train.least_squares.noise`, whose `"auto"` is the files' `position_noise` and exact
+    /// positions where they state none): each spring's noise is `2σ²/l²`. Frames a simulator
+    /// wrote have no marker noise, and what their fourth differences hold is motion.
+    Stated,
+}
+
+impl StrainNoise {
+    /// The name the configuration gives it.
+    pub fn name(self) -> &'static str {
+        match self {
+            StrainNoise::PerSpring => "per_spring",
+            StrainNoise::Pooled => "pooled",
+            StrainNoise::Stated => "stated",
+        }
+    }
 }
 
 /// Which map's blend the run keeps (`train.compliance.keep`).
@@ -115,9 +132,14 @@ const NOISE_FLOOR: f64 = 0.01;
 /// their stiffness. A motion the frames resolve has almost no fourth difference in time, white
 /// noise has 70 times its variance there: each spring's noise variance is its strain's mean
 /// square fourth difference inside the training clips over 70, or with `noise` pooled one
-/// marker noise for every spring ([`StrainNoise`]), and is subtracted (on clean simulator data
-/// it is a small share, reported in the log).
-pub(crate) fn rms_strains(clips: &ClipSet, share: Share, noise: StrainNoise) -> Result<RmsStrains> {
+/// marker noise for every spring, or with `noise` stated the marker noise `stated` (m per axis)
+/// ([`StrainNoise`]), and is subtracted (the share taken out is reported in the log).
+pub(crate) fn rms_strains(
+    clips: &ClipSet,
+    share: Share,
+    noise: StrainNoise,
+    stated: f64,
+) -> Result<RmsStrains> {
     let topo = &clips.topology;
     let springs = topo.num_springs();
     let mut sum = vec![0.0; springs];
@@ -163,7 +185,7 @@ pub(crate) fn rms_strains(clips: &ClipSet, share: Share, noise: StrainNoise) -> 
     let own: Vec<Option<f64>> = (0..springs)
         .map(|s| (d4_count[s] > 0).then(|| d4_sum[s] / d4_count[s] as f64 / FOURTH_DIFFERENCE_GAIN))
         .collect();
-    let (variances, sigma) = noise_variances(&own, &topo.rest_length, noise);
+    let (variances, sigma) = noise_variances(&own, &topo.rest_length, noise, stated);
     let (mut raw_total, mut noise_total) = (0.0, 0.0);
     let rms = (0..springs)
         .map(|s| {
@@ -189,15 +211,21 @@ pub(crate) fn rms_strains(clips: &ClipSet, share: Share, noise: StrainNoise) -> 
 }
 
 /// Each spring's strain noise variance from its own estimate `own` (`None`: no fourth
-/// difference seen) and rest length `rest`, as `noise` says ([`StrainNoise`]); with the
-/// marker noise `σ` (m per axis) where pooled.
+/// difference seen) and rest length `rest`, as `noise` says ([`StrainNoise`], `stated` the
+/// marker noise the run states); with the marker noise `σ` (m per axis) where one is shared.
 fn noise_variances(
     own: &[Option<f64>],
     rest: &[f64],
     noise: StrainNoise,
+    stated: f64,
 ) -> (Vec<f64>, Option<f64>) {
+    let marker = |sigma: f64| {
+        let variances = rest.iter().map(|l| 2.0 * sigma * sigma / (l * l)).collect();
+        (variances, Some(sigma))
+    };
     match noise {
         StrainNoise::PerSpring => (own.iter().map(|v| v.unwrap_or(0.0)).collect(), None),
+        StrainNoise::Stated => marker(stated),
         StrainNoise::Pooled => {
             let mut sigma2: Vec<f64> = own
                 .iter()
@@ -208,11 +236,7 @@ fn noise_variances(
                 return (vec![0.0; own.len()], None);
             }
             sigma2.sort_by(f64::total_cmp);
-            let sigma2 = sigma2[sigma2.len() / 2];
-            (
-                rest.iter().map(|l| 2.0 * sigma2 / (l * l)).collect(),
-                Some(sigma2.sqrt()),
-            )
+            marker(sigma2[sigma2.len() / 2].sqrt())
         }
     }
 }
@@ -536,10 +560,10 @@ mod tests {
         let errors = [1.1, 0.9, 25.0, 1.05, 0.97];
         let mut own: Vec<Option<f64>> =
             exact.iter().zip(errors).map(|(v, e)| Some(v * e)).collect();
-        let (per_spring, none) = noise_variances(&own, &rest, StrainNoise::PerSpring);
+        let (per_spring, none) = noise_variances(&own, &rest, StrainNoise::PerSpring, sigma);
         assert_eq!(none, None);
         assert_eq!(per_spring[2], own[2].unwrap());
-        let (pooled, found) = noise_variances(&own, &rest, StrainNoise::Pooled);
+        let (pooled, found) = noise_variances(&own, &rest, StrainNoise::Pooled, 0.0);
         // The median's spring is the one off by 1.05.
         let found = found.unwrap();
         assert!((found / sigma - 1.05f64.sqrt()).abs() < 1e-12, "σ {found}");
@@ -549,10 +573,30 @@ mod tests {
         // A spring with no fourth difference seen still gets the shared noise; none seen at all
         // takes nothing out.
         own[4] = None;
-        let (pooled, _) = noise_variances(&own, &rest, StrainNoise::Pooled);
+        let (pooled, _) = noise_variances(&own, &rest, StrainNoise::Pooled, 0.0);
         assert!(pooled[4] > 0.0);
-        let (nothing, sigma) = noise_variances(&[None, None], &rest[..2], StrainNoise::Pooled);
+        let (nothing, sigma) =
+            noise_variances(&[None, None], &rest[..2], StrainNoise::Pooled, sigma);
         assert_eq!((nothing, sigma), (vec![0.0, 0.0], None));
+    }
+
+    /// Stated, every spring's strain noise is `2σ²/l²` with the `σ` the run states, whatever
+    /// the springs' own estimates hold (motion, on a simulator's frames); a run that states
+    /// none (exact positions) takes nothing out.
+    #[test]
+    fn stated_strain_noise_is_the_runs_marker_noise_over_each_rest_length() {
+        let rest = [0.05, 0.1, 0.2];
+        let own = [Some(1e-4), Some(3e-3), None];
+        let (stated, sigma) = noise_variances(&own, &rest, StrainNoise::Stated, 0.002);
+        assert_eq!(sigma, Some(0.002));
+        for (v, l) in stated.iter().zip(rest) {
+            assert!(
+                (v * l * l / (2.0 * 0.002 * 0.002) - 1.0).abs() < 1e-12,
+                "{v} at {l}"
+            );
+        }
+        let (exact, _) = noise_variances(&own, &rest, StrainNoise::Stated, 0.0);
+        assert_eq!(exact, vec![0.0; 3]);
     }
 
     /// Within a group the map is the inverse of the strain; a spring that never stretches

@@ -1395,7 +1395,8 @@ impl AfterFit<'_> {
             let f = least_squares::fit_share(config, clips, &job.physics, (k0, b0), stencil, half)?;
             fit.push(smooth(&f.k));
             let noise = job.config.train.compliance.noise;
-            let rms = compliance::rms_strains(clips, half, noise)?.rms;
+            let stated = job.config.train.least_squares.noise.value().unwrap_or(0.0);
+            let rms = compliance::rms_strains(clips, half, noise, stated)?.rms;
             strains.push(smooth(&compliance::stiffness(topo, &rms, k0)));
         }
         let w = compliance::MapWeights::from_halves(
@@ -2124,7 +2125,15 @@ impl Fit<'_> {
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
         let noise = self.job.config.train.compliance.noise;
-        let strains = compliance::rms_strains(self.clips, compliance::Share::All, noise)?;
+        let stated = self
+            .job
+            .config
+            .train
+            .least_squares
+            .noise
+            .value()
+            .unwrap_or(0.0);
+        let strains = compliance::rms_strains(self.clips, compliance::Share::All, noise, stated)?;
         let k = compliance::stiffness(topo, &strains.rms, k0);
         let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
         self.progress.note(&format!(
@@ -2135,8 +2144,9 @@ impl Fit<'_> {
             match strains.sigma {
                 Some(sigma) => format!(
                     "; one marker noise for every spring, {:.3} mm per axis \
-                     (`train.compliance.noise = \"pooled\"`)",
-                    1e3 * sigma
+                     (`train.compliance.noise = \"{}\"`)",
+                    1e3 * sigma,
+                    noise.name()
                 ),
                 None => String::new(),
             }
