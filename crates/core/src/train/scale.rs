@@ -1315,9 +1315,10 @@ pub struct CompressionSearch {
 }
 
 /// The closest softening of `model`'s shear springs in compression on the first training takes
-/// ([`CompressionSearch`]): every value of [`SHEAR_COMPRESSIONS`] (and `physics`' own) at
-/// `model`'s `k` and `b`, then the factors `2^(±1/2)` of its `k` at the closest where that is
-/// not `physics`' own. Returns the network, the physics it runs at (`physics` with the closest
+/// ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other value of
+/// [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
+/// stiffer springs, and the network was sized with `physics`' own: searched one after the other,
+/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the network, the physics it runs at (`physics` with the closest
 /// `shear_compression`) and the record (not yet judged on held-out takes); `None` where the
 /// network has no shear springs or no candidate is stable.
 pub fn shear_compression(
@@ -1356,7 +1357,7 @@ pub fn shear_compression(
     );
     let bar = train
         .progress
-        .bar(row.len() as u64 + 2, "shear compression search");
+        .bar(3 * row.len() as u64 - 2, "shear compression search");
     let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
     let consider = |kc: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
         let (net, at) = candidate(kc, fk);
@@ -1365,12 +1366,9 @@ pub fn shear_compression(
         }
         bar.inc(1);
     };
-    for &kc in &row {
-        consider(kc, 1.0, &mut candidates);
-    }
-    let (kc, _, _) = closest(&candidates)?;
-    if kc != physics.shear_compression {
-        for f in [-0.5, 0.5] {
+    consider(physics.shear_compression, 1.0, &mut candidates);
+    for &kc in &row[1..] {
+        for f in [0.0, -0.5, 0.5] {
             consider(kc, 2f64.powf(f), &mut candidates);
         }
     }
