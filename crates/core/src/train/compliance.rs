@@ -37,11 +37,9 @@ pub struct ComplianceConfig {
     /// held-out takes agree).
     pub keep: MapKeep,
     /// How the positions' noise is taken out of the compliance map's mean square strains:
-    /// `"auto"` (the marker noise the run states where it states one, else each spring's own
-    /// estimate, [`StrainNoise::Auto`]), `"per_spring"` (each spring's own fourth differences),
-    /// `"pooled"` (one marker noise for every spring, [`StrainNoise::Pooled`]) or `"stated"`
-    /// (the marker noise the run states, the fit's `train.least_squares.noise`, none where it
-    /// states none, [`StrainNoise::Stated`]).
+    /// `"per_spring"` (each spring's own fourth differences), `"pooled"` (one marker noise
+    /// for every spring, [`StrainNoise::Pooled`]) or `"stated"` (the marker noise the run
+    /// states, the fit's `train.least_squares.noise`, [`StrainNoise::Stated`]).
     pub noise: StrainNoise,
 }
 
@@ -49,12 +47,9 @@ pub struct ComplianceConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum StrainNoise {
-    /// [`StrainNoise::Stated`] where the run states a marker noise above zero (a capture's
-    /// `position_noise`, or `train.least_squares.noise`), else [`StrainNoise::PerSpring`].
-    #[default]
-    Auto,
     /// Each spring's strain noise from its own frames: its mean square fourth difference over
     /// 70.
+    #[default]
     PerSpring,
     /// One marker noise for every spring (ours): white noise of `σ` per axis on each end adds
     /// `2σ²/l²` to a spring's mean square strain, `l` its rest length. `σ²` is the median over
@@ -74,7 +69,6 @@ impl StrainNoise {
     /// The name the configuration gives it.
     pub fn name(self) -> &'static str {
         match self {
-            StrainNoise::Auto => "auto",
             StrainNoise::PerSpring => "per_spring",
             StrainNoise::Pooled => "pooled",
             StrainNoise::Stated => "stated",
@@ -230,10 +224,7 @@ fn noise_variances(
         (variances, Some(sigma))
     };
     match noise {
-        StrainNoise::Auto if stated > 0.0 => marker(stated),
-        StrainNoise::Auto | StrainNoise::PerSpring => {
-            (own.iter().map(|v| v.unwrap_or(0.0)).collect(), None)
-        }
+        StrainNoise::PerSpring => (own.iter().map(|v| v.unwrap_or(0.0)).collect(), None),
         StrainNoise::Stated => marker(stated),
         StrainNoise::Pooled => {
             let mut sigma2: Vec<f64> = own
@@ -591,8 +582,7 @@ mod tests {
 
     /// Stated, every spring's strain noise is `2σ²/l²` with the `σ` the run states, whatever
     /// the springs' own estimates hold (motion, on a simulator's frames); a run that states
-    /// none (exact positions) takes nothing out; auto is stated where a noise is stated and
-    /// per spring where none is.
+    /// none (exact positions) takes nothing out.
     #[test]
     fn stated_strain_noise_is_the_runs_marker_noise_over_each_rest_length() {
         let rest = [0.05, 0.1, 0.2];
@@ -607,11 +597,6 @@ mod tests {
         }
         let (exact, _) = noise_variances(&own, &rest, StrainNoise::Stated, 0.0);
         assert_eq!(exact, vec![0.0; 3]);
-        // Auto: the stated noise where one is stated, each spring's own estimate where none.
-        let (auto, sigma) = noise_variances(&own, &rest, StrainNoise::Auto, 0.002);
-        assert_eq!((&auto, sigma), (&stated, Some(0.002)));
-        let (auto, sigma) = noise_variances(&own, &rest, StrainNoise::Auto, 0.0);
-        assert_eq!((auto, sigma), (vec![1e-4, 3e-3, 0.0], None));
     }
 
     /// Within a group the map is the inverse of the strain; a spring that never stretches
