@@ -219,13 +219,14 @@ fn noise_variances(
     noise: StrainNoise,
     stated: f64,
 ) -> (Vec<f64>, Option<f64>) {
-    let marker = |sigma: f64| {
-        let variances = rest.iter().map(|l| 2.0 * sigma * sigma / (l * l)).collect();
-        (variances, Some(sigma))
+    // One marker noise of variance `sigma2` per axis for every spring.
+    let marker = |sigma2: f64| {
+        let variances = rest.iter().map(|l| 2.0 * sigma2 / (l * l)).collect();
+        (variances, Some(sigma2.sqrt()))
     };
     match noise {
         StrainNoise::PerSpring => (own.iter().map(|v| v.unwrap_or(0.0)).collect(), None),
-        StrainNoise::Stated => marker(stated),
+        StrainNoise::Stated => marker(stated * stated),
         StrainNoise::Pooled => {
             let mut sigma2: Vec<f64> = own
                 .iter()
@@ -236,7 +237,7 @@ fn noise_variances(
                 return (vec![0.0; own.len()], None);
             }
             sigma2.sort_by(f64::total_cmp);
-            marker(sigma2[sigma2.len() / 2].sqrt())
+            marker(sigma2[sigma2.len() / 2])
         }
     }
 }
