@@ -1394,9 +1394,7 @@ impl AfterFit<'_> {
             let config = &job.config.train.least_squares;
             let f = least_squares::fit_share(config, clips, &job.physics, (k0, b0), stencil, half)?;
             fit.push(smooth(&f.k));
-            let noise = job.config.train.compliance.noise;
-            let stated = job.config.train.least_squares.noise.value().unwrap_or(0.0);
-            let rms = compliance::rms_strains(clips, half, noise, stated)?.rms;
+            let rms = compliance_strains(job.config, clips, half)?.rms;
             strains.push(smooth(&compliance::stiffness(topo, &rms, k0)));
         }
         let w = compliance::MapWeights::from_halves(
@@ -2125,15 +2123,7 @@ impl Fit<'_> {
         let (k0, b0) = (resolution.k_init, resolution.b_init);
         let kappa = vec![self.job.config.model.curvature_init_for(k0); topo.curvature.len()];
         let noise = self.job.config.train.compliance.noise;
-        let stated = self
-            .job
-            .config
-            .train
-            .least_squares
-            .noise
-            .value()
-            .unwrap_or(0.0);
-        let strains = compliance::rms_strains(self.clips, compliance::Share::All, noise, stated)?;
+        let strains = compliance_strains(self.job.config, self.clips, compliance::Share::All)?;
         let k = compliance::stiffness(topo, &strains.rms, k0);
         let lo = k.iter().copied().fold(f64::INFINITY, f64::min);
         self.progress.note(&format!(
@@ -2830,6 +2820,18 @@ impl ModelMeta {
             .ok_or_else(|| anyhow::anyhow!("model.json of a GNN run has no `gnn_stats`"))?;
         Ok(Gnn::new(&config.model.gnn, stats, device))
     }
+}
+
+/// The springs' RMS strains over the training rollouts of `share` for the compliance map, with
+/// the positions' noise taken out as `train.compliance.noise` says; `"stated"` takes the marker
+/// noise the fit takes out (`train.least_squares.noise`, resolved; none where unresolved).
+fn compliance_strains(
+    config: &Config,
+    clips: &ClipSet,
+    share: compliance::Share,
+) -> Result<compliance::RmsStrains> {
+    let stated = config.train.least_squares.noise.value().unwrap_or(0.0);
+    compliance::rms_strains(clips, share, config.train.compliance.noise, stated)
 }
 
 #[cfg(test)]

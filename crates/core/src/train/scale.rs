@@ -1318,9 +1318,10 @@ pub struct CompressionSearch {
 /// ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other value of
 /// [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
 /// stiffer springs, and the network was sized with `physics`' own: searched one after the other,
-/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the network, the physics it runs at (`physics` with the closest
-/// `shear_compression`) and the record (not yet judged on held-out takes); `None` where the
-/// network has no shear springs or no candidate is stable.
+/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the
+/// network, the physics it runs at (`physics` with the closest `shear_compression`) and the
+/// record (not yet judged on held-out takes); `None` where the network has no shear springs or
+/// no candidate is stable.
 pub fn shear_compression(
     model: &SpringNet,
     physics: &Physics,
