@@ -1301,32 +1301,82 @@ pub struct CompressionSearch {
     /// `(shear_compression, k factor, mean motion RMSE on the training takes)` of every stable
     /// candidate, in the order tried.
     pub candidates: Vec<(f64, f64, f64)>,
-    /// The closest candidate's stiffness in compression per unit `k`.
+    /// Each softening's closest candidate on the training takes ([`finalists`]) with its
+    /// `(short, long)` motion RMSE on the held-out training takes (m), in the order tried.
+    #[serde(default)]
+    pub finalists: Vec<Finalist>,
+    /// The stiffness in compression per unit `k` of the softening the held-out takes move
+    /// closest (the closest on the training takes where they were not asked).
     pub shear_compression: f64,
-    /// The closest candidate's factor on the network's `k` (its curvature elements' too).
+    /// Its factor on the network's `k` (its curvature elements' too).
     pub k_factor: f64,
-    /// The closest candidate's mean motion RMSE on the training takes, m.
+    /// Its mean motion RMSE on the training takes, m.
     pub after: f64,
     /// `(short, long)` motion RMSE on the held-out training takes of the network kept before,
-    /// and of the closest candidate (m); `None` where the closest is the network as it was.
+    /// and of that softening (m); `None` where no softening was stable.
     pub held_out: Option<((f64, f64), (f64, f64))>,
     /// Whether the run keeps it.
     pub kept: bool,
 }
 
-/// The closest softening of `model`'s shear springs in compression on the first training takes
+/// One stiffness in compression's closest candidate on the training takes, judged on the
+/// held-out training takes ([`CompressionSearch::finalists`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Finalist {
+    /// Stiffness in compression per unit `k`.
+    pub shear_compression: f64,
+    /// Factor on the network's `k`.
+    pub k_factor: f64,
+    /// Mean motion RMSE on the training takes, m.
+    pub train: f64,
+    /// `(short, long)` motion RMSE on the held-out training takes, m.
+    pub held_out: (f64, f64),
+}
+
+/// Each stiffness in compression's closest candidate of `candidates` (`(shear_compression,
+/// k factor, RMSE)`), in the order the values first appear.
+pub fn finalists(candidates: &[(f64, f64, f64)]) -> Vec<(f64, f64, f64)> {
+    let mut out: Vec<(f64, f64, f64)> = Vec::new();
+    for &c in candidates {
+        match out.iter_mut().find(|f| f.0 == c.0) {
+            Some(f) if c.2 < f.2 => *f = c,
+            Some(_) => {}
+            None => out.push(c),
+        }
+    }
+    out
+}
+
+/// `model` with its `k` (and curvature elements) times `k_factor`, and `physics` with the shear
+/// springs' stiffness in compression `shear_compression`: a candidate of [`shear_compression`].
+pub fn compression_candidate(
+    model: &SpringNet,
+    physics: &Physics,
+    train: &Takes,
+    shear_compression: f64,
+    k_factor: f64,
+) -> (SpringNet, Physics) {
+    (
+        Sizes::of(model).scaled(train, k_factor, 1.0),
+        Physics {
+            shear_compression,
+            ..*physics
+        },
+    )
+}
+
+/// The search of `model`'s shear springs' stiffness in compression on the first training takes
 /// ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other value of
 /// [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
 /// stiffer springs, and the network was sized with `physics`' own: searched one after the other,
-/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the
-/// network, the physics it runs at (`physics` with the closest `shear_compression`) and the
-/// record (not yet judged on held-out takes); `None` where the network has no shear springs or
-/// no candidate is stable.
+/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the record
+/// with the closest candidate (not yet judged on held-out takes: the run's
+/// [`finalists`] are); `None` where the network has no shear springs or no candidate is stable.
 pub fn shear_compression(
     model: &SpringNet,
     physics: &Physics,
     train: &Takes,
-) -> Option<(SpringNet, Physics, CompressionSearch)> {
+) -> Option<CompressionSearch> {
     if !train
         .topology
         .family
@@ -1338,16 +1388,6 @@ pub fn shear_compression(
     let takes = Takes {
         files: &files,
         ..*train
-    };
-    let sizes = Sizes::of(model);
-    let candidate = |kc: f64, fk: f64| {
-        (
-            sizes.scaled(train, fk, 1.0),
-            Physics {
-                shear_compression: kc,
-                ..*physics
-            },
-        )
     };
     let mut row: Vec<f64> = vec![physics.shear_compression];
     row.extend(
@@ -1361,7 +1401,7 @@ pub fn shear_compression(
         .bar(3 * row.len() as u64 - 2, "shear compression search");
     let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
     let consider = |kc: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
-        let (net, at) = candidate(kc, fk);
+        let (net, at) = compression_candidate(model, physics, train, kc, fk);
         if let Some(r) = network_rollout_rmse(&net, &at, &takes) {
             candidates.push((kc, fk, r));
         }
@@ -1375,19 +1415,15 @@ pub fn shear_compression(
     }
     bar.finish();
     let (kc, k_factor, after) = closest(&candidates)?;
-    let (net, at) = candidate(kc, k_factor);
-    Some((
-        net,
-        at,
-        CompressionSearch {
-            candidates,
-            shear_compression: kc,
-            k_factor,
-            after,
-            held_out: None,
-            kept: false,
-        },
-    ))
+    Some(CompressionSearch {
+        candidates,
+        finalists: Vec::new(),
+        shear_compression: kc,
+        k_factor,
+        after,
+        held_out: None,
+        kept: false,
+    })
 }
 
 #[cfg(test)]
@@ -1395,12 +1431,36 @@ mod tests {
     use burn::tensor::Device;
 
     use super::{
-        MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, amplified, held_out_agrees, stable_substeps,
+        MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, amplified, finalists, held_out_agrees,
+        stable_substeps,
     };
     use crate::cloth::{GridSpec, SpringFamily, Topology};
     use crate::model::SpringNet;
     use crate::sim::Physics;
     use crate::train::init::AUTO_SUBSTEPS_TARGET;
+
+    #[test]
+    fn each_stiffness_in_compression_s_finalist_is_its_closest_candidate() {
+        let candidates = [
+            (1.0, 1.0, 0.246),
+            (0.5, 1.0, 0.2375),
+            (0.5, 0.5f64.sqrt(), 0.247),
+            (0.5, 2f64.sqrt(), 0.242),
+            (0.25, 1.0, 0.241),
+            (0.25, 2f64.sqrt(), 0.2372),
+            (0.0, 2f64.sqrt(), 0.307),
+        ];
+        assert_eq!(
+            finalists(&candidates),
+            vec![
+                (1.0, 1.0, 0.246),
+                (0.5, 1.0, 0.2375),
+                (0.25, 2f64.sqrt(), 0.2372),
+                (0.0, 2f64.sqrt(), 0.307),
+            ]
+        );
+        assert!(finalists(&[]).is_empty());
+    }
 
     #[test]
     fn a_map_s_contrast_is_raised_within_each_family_keeping_its_mean_ranks_and_zeros() {
