@@ -215,9 +215,9 @@ pub struct TrainConfig {
     pub viscosity_search: bool,
     /// Last, also search the shear springs' stiffness in compression, `sim.shear_compression`
     /// ([`scale::shear_compression`]; ours, off by default): from linear springs to springs that
-    /// pull only, as Blender's cloth's shear springs do: the training takes pick each value's
-    /// closest `k`, and the held-out training takes choose among those and the springs as they
-    /// are ([`scale::finalists`]). Needs `train.blend_search` and held-out
+    /// pull only, as Blender's cloth's shear springs do: the training takes searched pick each
+    /// value's closest `k` ([`scale::finalists`]), and the one closest to those and the held-out
+    /// ones together is kept where the held-out takes agree. Needs `train.blend_search` and held-out
     /// training takes (`data.holdout`); runs on a network with shear springs (a grid's cell
     /// diagonals, a data mesh's quad cells' diagonals).
     pub compression_search: bool,
