@@ -217,9 +217,9 @@ pub struct TrainConfig {
     /// ([`scale::shear_compression`]; ours, off by default): from linear springs to springs that
     /// pull only, as Blender's cloth's shear springs do: the training takes searched pick each
     /// value's closest `k` ([`scale::finalists`]), and the one closest to those and the held-out
-    /// ones together is kept where the held-out takes agree. Needs `train.blend_search` and held-out
-    /// training takes (`data.holdout`); runs on a network with shear springs (a grid's cell
-    /// diagonals, a data mesh's quad cells' diagonals).
+    /// ones together is kept where the held-out takes agree. Needs `train.blend_search` and
+    /// held-out training takes (`data.holdout`); runs on a network with shear springs (a grid's
+    /// cell diagonals, a data mesh's quad cells' diagonals).
     pub compression_search: bool,
     /// Where training takes are held out (`data.holdout`) and the best uniform network moves
     /// closer to them than the learned one at both horizons, keep that uniform network as the
@@ -1368,29 +1368,38 @@ impl AfterFit<'_> {
             })
             .collect::<Vec<_>>()
             .join("; ");
+        let found = format!(
+            "shear compression search: each stiffness in compression's closest k on the \
+             {searched} training rollouts searched (held out: short / long; together with the \
+             {held} held out): {rows}"
+        );
         let current = record
             .finalists
             .iter()
             .find(|f| f.shear_compression == before_kappa)
             .cloned();
+        let Some(current) = current else {
+            progress.note(&format!(
+                "{found}; the shear springs as they are (sim.shear_compression {before_kappa}) \
+                 are not stable at the run's substeps there, so no softening is weighed against \
+                 them; kept as they are"
+            ));
+            return Ok((net, physics, Some(record)));
+        };
+        // The finalists hold `current`, so there is a closest.
         let best = record
             .finalists
             .iter()
             .min_by(|a, b| a.pooled.total_cmp(&b.pooled))
-            .cloned();
-        let (Some(current), Some(best)) = (current, best) else {
-            return Ok((net, physics, Some(record)));
-        };
+            .cloned()
+            .unwrap_or_else(|| current.clone());
         record.shear_compression = best.shear_compression;
         record.k_factor = best.k_factor;
         record.after = best.train;
         if best.shear_compression == before_kappa {
             progress.note(&format!(
-                "shear compression search: each stiffness in compression's closest k on the {} \
-                 training rollouts searched (held out: short / long; together with the {held} \
-                 held out): {rows}; the shear springs as they are move closest \
-                 (sim.shear_compression {before_kappa}); kept",
-                searched
+                "{found}; the shear springs as they are move closest (sim.shear_compression \
+                 {before_kappa}); kept"
             ));
             return Ok((net, physics, Some(record)));
         }
@@ -1402,11 +1411,8 @@ impl AfterFit<'_> {
             kept: record.kept,
         };
         progress.note(&format!(
-            "shear compression search: each stiffness in compression's closest k on the {} \
-             training rollouts searched (held out: short / long; together with the {held} held \
-             out): {rows}; closest together with the shear springs pushing at {} of their k when \
+            "{found}; closest together with the shear springs pushing at {} of their k when \
              compressed, k × {:.3}; {} at sim.shear_compression {} -> {}",
-            searched,
             record.shear_compression,
             record.k_factor,
             verdict.figures(held),

@@ -1377,8 +1377,8 @@ pub fn compression_candidate(
 }
 
 /// The search of `model`'s shear springs' stiffness in compression on the training takes
-/// searched ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other value of
-/// [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
+/// searched ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other
+/// value of [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
 /// stiffer springs, and the network was sized with `physics`' own: searched one after the other,
 /// the value closest at the sized `k` need not be the closest at its best `k`. Returns the record
 /// with the closest candidate (not yet judged on held-out takes: the run judges the
