@@ -9,7 +9,7 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
         [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N] [--implicit-damping SWEEPS]
         [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
         [--compression-on edges|diagonals|all]] [--map source|FILE [--map-share S[,S...]]
-        [--map-on sides|all]] [--diagonals-from-sides]
+        [--map-on sides|all]] [--diagonals-from-sides] [--pins linear|cubic]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
 bench's takes (`DATA/*.npz`). The surrogate's damping is each spring's `b` along the spring, the
@@ -29,6 +29,9 @@ MuJoCo's elasticity damping), `--k-scale F` multiplies every spring's `k`.
 `--implicit-damping SWEEPS` integrates the springs' `b` by backward Euler instead (each substep
 solves `(M + h C) v = M v*`, `C` the dampers along the springs' current directions, by SWEEPS
 damped Jacobi sweeps), so a `b` far past what the explicit step's substeps allow stays stable.
+`--pins cubic` moves the pinned particles between two frames along the Catmull-Rom spline
+through the frames (continuous velocity, exact for constant acceleration) instead of
+springtime's straight line at constant velocity, whose velocity jumps at every frame.
 
 Two terms the surrogate does not have, to measure what they would be worth before building them:
 `--bending KB` adds a quadratic bending energy on every interior edge of the data's triangles
@@ -191,11 +194,31 @@ def damping_solve(vstar, pos, springs, b, sa, sb, mass_i, h, iterations, free):
     return v
 
 
+def pin_path(x, j, t, dt, pins="linear"):
+    """Where the frames `x` [B, F, N, 3] put a particle at `t` (0-1) of the way through frame
+    `j` (1 <= j < F - 1), and its velocity: on the straight line from frame j to j + 1 at
+    constant velocity (`linear`, as springtime's step), or on the Catmull-Rom spline through
+    frames j - 1 to j + 2 (`cubic`; frame j + 2 extrapolated past the last), exact for a
+    path of constant acceleration."""
+    here, nxt = x[:, j], x[:, j + 1]
+    if pins == "linear":
+        return here * (1.0 - t) + nxt * t, (nxt - here) / dt
+    after = x[:, j + 2] if j + 2 < x.shape[1] else 2.0 * nxt - here
+    m0, m1 = 0.5 * (nxt - x[:, j - 1]), 0.5 * (after - here)
+    position = ((2 * t**3 - 3 * t**2 + 1) * here + (t**3 - 2 * t**2 + t) * m0
+                + (3 * t**2 - 2 * t**3) * nxt + (t**3 - t**2) * m1)
+    velocity = ((6 * t**2 - 6 * t) * here + (3 * t**2 - 4 * t + 1) * m0
+                + (6 * t - 6 * t**2) * nxt + (3 * t**2 - 2 * t) * m1) / dt
+    return position, velocity
+
+
 def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-            hinge=None, kb=0.0, area=None, ka=0.0, kc=None, implicit=0):
+            hinge=None, kb=0.0, area=None, ka=0.0, kc=None, implicit=0, pins="linear"):
     """Free rollouts from frame 0 of `x` [B, F, N, 3] (velocities by central differences), the
     pinned particles on the data's path; returns the positions [B, F - 1, N, 3] from frame 1.
-    With `implicit` sweeps the springs' `b` is integrated by backward Euler (`damping_solve`)."""
+    With `implicit` sweeps the springs' `b` is integrated by backward Euler (`damping_solve`).
+    `pins`: the pinned particles between two frames on a straight line at constant velocity
+    (`linear`, as springtime's step) or on the Catmull-Rom spline through the frames (`cubic`)."""
     batch, frames, n, _ = x.shape
     size = batch * n
     sa, sb = batch_rows(springs[:, 0], batch, n), batch_rows(springs[:, 1], batch, n)
@@ -214,10 +237,10 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
     vel = (x[:, 2] - x[:, 0]) / (2.0 * dt)
     out = [pos.copy()]
     for j in range(1, frames - 1):
-        here, nxt = x[:, j], x[:, j + 1]
-        pin_v = (nxt - here) / dt * pin
         for s in range(substeps):
             t = (s + 1) / substeps
+            target, pin_v = pin_path(x, j, t, dt, pins)
+            pin_v = pin_v * pin
             d = pos[:, springs[:, 1]] - pos[:, springs[:, 0]]
             w = vel[:, springs[:, 1]] - vel[:, springs[:, 0]]
             length = np.linalg.norm(d, axis=-1, keepdims=True)
@@ -243,7 +266,7 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
             if implicit:
                 vel = damping_solve(vel * free + pin_v, pos, springs, b, sa, sb, weight * mass, h, implicit, free)
             pos = pos + h * vel
-            pos = pos * free + (here * (1.0 - t) + nxt * t) * pin
+            pos = pos * free + target * pin
             vel = vel * free + pin_v
         out.append(pos.copy())
         if not np.isfinite(pos).all():
@@ -319,6 +342,9 @@ def main():
     p.add_argument("--implicit-damping", type=int, default=0, metavar="SWEEPS",
                    help="the springs' b by backward Euler, SWEEPS damped Jacobi sweeps per substep "
                    "(0: explicit, as springtime's step)")
+    p.add_argument("--pins", choices=("linear", "cubic"), default="linear",
+                   help="the pinned particles between frames: a straight line (springtime's step) or "
+                   "the Catmull-Rom spline through the frames")
     p.add_argument("--bending", default="0", help="KB[,KB...]: a quadratic hinge bending stiffness (N m) "
                    "on every interior edge of the data's triangles, one rollout each")
     p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
@@ -440,7 +466,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
            hinge, kb, area, ka, label, kc=None, compression=1.0):
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-                  hinge, kb, area, ka, kc, a.implicit_damping)
+                  hinge, kb, area, ka, kc, a.implicit_damping, a.pins)
     if sim is None:
         print(f"bending {kb:g}, area {ka:g}: diverged")
         return
@@ -456,6 +482,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
         + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")
         + (", diagonals from sides" if a.diagonals_from_sides else "")
         + (f", b by backward Euler ({a.implicit_damping} sweeps)" if a.implicit_damping else "")
+        + (f", pins {a.pins}" if a.pins != "linear" else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
         + " ".join(f"{w:.3f}" for w in windows)
         + f" ({time.time() - start:.0f} s)"

@@ -174,3 +174,25 @@ def test_the_probes_backward_euler_damping_reaches_the_exact_solve_and_dissipate
         assert energy(v) < energy(vstar), sweeps
     # without damping nothing changes
     assert np.array_equal(damping_solve(vstar, pos, springs, 0 * b, sa, sb, mass, h, 4, free), vstar)
+
+
+def test_the_probes_spline_pin_path_is_exact_for_constant_acceleration_where_the_line_is_not():
+    sys.path.insert(0, str(BENCH))
+    try:
+        from damping_probe import pin_path
+    finally:
+        sys.path.remove(str(BENCH))
+    dt, accel = 0.02, np.array([3.0, -9.81, 1.5])
+    p0, v0 = np.array([0.1, 2.0, -0.3]), np.array([0.5, 0.0, -1.0])
+    at = lambda time: p0 + v0 * time + 0.5 * accel * time**2
+    x = np.stack([at(f * dt) for f in range(6)])[None, :, None, :]  # [B, F, N, 3]
+    for j in (1, 3):
+        for t in (0.25, 0.5, 1.0):
+            time = (j + t) * dt
+            position, velocity = pin_path(x, j, t, dt, "cubic")
+            assert np.allclose(position[0, 0], at(time), atol=1e-12)
+            assert np.allclose(velocity[0, 0], v0 + accel * time, atol=1e-9)
+            line, line_v = pin_path(x, j, t, dt, "linear")
+            # the chord lies a dt^2 t (1 - t) / 2 off the parabola and moves at its mean velocity
+            assert np.allclose(line[0, 0] - at(time), 0.5 * accel * dt**2 * t * (1.0 - t), atol=1e-12)
+            assert np.allclose(line_v[0, 0], v0 + accel * (j + 0.5) * dt, atol=1e-9)
