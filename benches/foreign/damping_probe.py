@@ -194,22 +194,26 @@ def damping_solve(vstar, pos, springs, b, sa, sb, mass_i, h, iterations, free):
     return v
 
 
-def pin_path(x, j, t, dt, pins="linear"):
-    """Where the frames `x` [B, F, N, 3] put a particle at `t` (0-1) of the way through frame
-    `j` (1 <= j < F - 1), and its velocity: on the straight line from frame j to j + 1 at
-    constant velocity (`linear`, as springtime's step), or on the Catmull-Rom spline through
-    frames j - 1 to j + 2 (`cubic`; frame j + 2 extrapolated past the last), exact for a
-    path of constant acceleration."""
+def pin_path(x, j, dt, pins="linear"):
+    """The path the frames `x` [B, F, N, 3] give a particle through frame `j` (1 <= j < F - 1):
+    a function of `t` (0-1 of the way through the frame) returning the position and velocity
+    there. `linear`: the straight line from frame j to j + 1 at constant velocity, as
+    springtime's step; `cubic`: the Catmull-Rom spline through frames j - 1 to j + 2 (frame j + 2
+    extrapolated past the last), exact for a path of constant acceleration."""
     here, nxt = x[:, j], x[:, j + 1]
     if pins == "linear":
-        return here * (1.0 - t) + nxt * t, (nxt - here) / dt
+        velocity = (nxt - here) / dt
+        return lambda t: (here * (1.0 - t) + nxt * t, velocity)
     after = x[:, j + 2] if j + 2 < x.shape[1] else 2.0 * nxt - here
     m0, m1 = 0.5 * (nxt - x[:, j - 1]), 0.5 * (after - here)
-    position = ((2 * t**3 - 3 * t**2 + 1) * here + (t**3 - 2 * t**2 + t) * m0
-                + (3 * t**2 - 2 * t**3) * nxt + (t**3 - t**2) * m1)
-    velocity = ((6 * t**2 - 6 * t) * here + (3 * t**2 - 4 * t + 1) * m0
-                + (6 * t - 6 * t**2) * nxt + (3 * t**2 - 2 * t) * m1) / dt
-    return position, velocity
+
+    def at(t):
+        position = ((2 * t**3 - 3 * t**2 + 1) * here + (t**3 - 2 * t**2 + t) * m0
+                    + (3 * t**2 - 2 * t**3) * nxt + (t**3 - t**2) * m1)
+        velocity = ((6 * t**2 - 6 * t) * here + (3 * t**2 - 4 * t + 1) * m0
+                    + (6 * t - 6 * t**2) * nxt + (3 * t**2 - 2 * t) * m1) / dt
+        return position, velocity
+    return at
 
 
 def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
@@ -237,9 +241,10 @@ def rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity,
     vel = (x[:, 2] - x[:, 0]) / (2.0 * dt)
     out = [pos.copy()]
     for j in range(1, frames - 1):
+        path = pin_path(x, j, dt, pins)
         for s in range(substeps):
             t = (s + 1) / substeps
-            target, pin_v = pin_path(x, j, t, dt, pins)
+            target, pin_v = path(t)
             pin_v = pin_v * pin
             d = pos[:, springs[:, 1]] - pos[:, springs[:, 0]]
             w = vel[:, springs[:, 1]] - vel[:, springs[:, 0]]

@@ -189,10 +189,10 @@ def test_the_probes_spline_pin_path_is_exact_for_constant_acceleration_where_the
     for j in (1, 3):
         for t in (0.25, 0.5, 1.0):
             time = (j + t) * dt
-            position, velocity = pin_path(x, j, t, dt, "cubic")
+            position, velocity = pin_path(x, j, dt, "cubic")(t)
             assert np.allclose(position[0, 0], at(time), atol=1e-12)
             assert np.allclose(velocity[0, 0], v0 + accel * time, atol=1e-9)
-            line, line_v = pin_path(x, j, t, dt, "linear")
+            line, line_v = pin_path(x, j, dt, "linear")(t)
             # the chord lies a dt^2 t (1 - t) / 2 off the parabola and moves at its mean velocity
             assert np.allclose(line[0, 0] - at(time), 0.5 * accel * dt**2 * t * (1.0 - t), atol=1e-12)
             assert np.allclose(line_v[0, 0], v0 + accel * (j + 0.5) * dt, atol=1e-9)
