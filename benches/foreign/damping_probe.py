@@ -8,7 +8,7 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
         [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N] [--implicit-damping SWEEPS]
         [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
-        [--compression-on edges|diagonals|all]] [--map source|FILE [--map-share S[,S...]]
+        [--compression-on edges|diagonals|all]] [--hinge-compression C[,C...]] [--map source|FILE [--map-share S[,S...]]
         [--map-on sides|all]] [--diagonals-from-sides] [--pins linear|cubic]
 
 RUN is a `springtime train` run directory (`springs.npz`, `config.toml`), DATA a directory of the
@@ -42,6 +42,12 @@ triangle (a membrane's resistance to changing its area, which springs carry only
 lengths). `--compression C` makes springs push back with `C k` when shorter than at rest (0:
 they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals, or
 every spring; the surrogate has it since as `sim.shear_compression` on its shear springs).
+`--hinge-compression C` splits that softening between a cell's two diagonals: the one that is no
+edge of the data's triangles (the hinge spring across the cell's triangulated diagonal) pushes
+back with `C k`, the other with the run's own `sim.shear_compression`. A triangle mesh folds
+freely along its triangles' diagonal, which shortens the cell's other diagonal, and not along
+the other, which would shorten an edge; springs on both diagonals that resist compression alike
+resist both folds alike.
 Each takes a comma-separated row and runs one rollout per value (per pair).
 
 What a stiffness map is worth to the motion: `--map source` blends the takes' own map
@@ -316,6 +322,15 @@ def diagonals_from_sides(values, springs, family):
     return out
 
 
+def hinge_compression(k, shear, mesh_springs, kappa, c):
+    """Each spring's stiffness in compression: `c k` on the shear springs (`shear`, a mask) that
+    are no edge of the data's triangles (`mesh_springs`, the spring along each edge), `kappa k`
+    on the other shear springs, `k` elsewhere."""
+    on_mesh = np.zeros(len(k), dtype=bool)
+    on_mesh[mesh_springs] = True
+    return k * np.where(shear & ~on_mesh, c, np.where(shear, kappa, 1.0))
+
+
 def with_map(k, shape, family, share, families):
     """`k` with `share` of the map `shape` blended in per family (each family's map over its own
     mean), so each family's mean stiffness stays: `k (1 - share + share m / mean m)`."""
@@ -359,6 +374,10 @@ def main():
     p.add_argument("--compression-on", choices=("edges", "diagonals", "all"), default="edges",
                    help="which springs --compression softens: the data's mesh edges, the cells' "
                    "diagonals (rest length within 5 %% of sqrt(2) times the shortest spring's), every spring")
+    p.add_argument("--hinge-compression", metavar="C[,C...]",
+                   help="each cell's diagonal that is no edge of the data's triangles pushes with C k when "
+                   "compressed, the other diagonals with the run's sim.shear_compression; one rollout each "
+                   "(instead of --compression)")
     p.add_argument("--map", metavar="source|FILE",
                    help="a stiffness map to blend into the run's k: the takes' own (tri_stiffness) or "
                    "a springs .npz's k (e.g. the run's springs.learned.npz)")
@@ -375,6 +394,8 @@ def main():
     config = (run / "config.toml").read_text()
     if a.substeps is not None and a.substeps < 1:
         raise SystemExit(f"--substeps: expected 1 or more, got {a.substeps}")
+    if a.hinge_compression is not None and a.compression != "1":
+        raise SystemExit("--hinge-compression and --compression: give one")
     if a.implicit_damping < 0:
         raise SystemExit(f"--implicit-damping: expected 0 (explicit) or more sweeps, got {a.implicit_damping}")
     substeps = a.substeps or int(re.search(r"^substeps\s*=\s*(\d+)", config, re.M).group(1))
@@ -454,6 +475,13 @@ def main():
         edges, nu, label, bb = damping(k)
         for kb in (float(v) for v in a.bending.split(",")):
             for ka in (float(v) for v in a.area.split(",")):
+                if a.hinge_compression is not None:
+                    kappa = float(re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M).group(1))
+                    for c in (float(v) for v in a.hinge_compression.split(",")):
+                        kc = hinge_compression(k, family == 1, mesh_springs, kappa, c)
+                        report(a, x, pinned, dt, substeps, springs, k, bb, rest, mass, weight, gravity, drag,
+                               edges, nu, hinge, kb, area, ka, label, kc, hinge_kappa=(kappa, c))
+                    continue
                 for c in (float(v) for v in a.compression.split(",")):
                     kc = None
                     if c != 1.0:
@@ -468,7 +496,7 @@ def main():
                            edges, nu, hinge, kb, area, ka, label, kc, c)
 
 def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-           hinge, kb, area, ka, label, kc=None, compression=1.0):
+           hinge, kb, area, ka, label, kc=None, compression=1.0, hinge_kappa=None):
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
                   hinge, kb, area, ka, kc, a.implicit_damping, a.pins)
@@ -482,6 +510,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
     print(
         f"{len(x)} takes, drag {drag:.4g}, viscosity {label}, bending {kb:g}, area {ka:g}"
         + (f", compression {compression:g}" if compression != 1.0 else "")
+        + (f", diagonals {hinge_kappa[0]:g}, hinge diagonals {hinge_kappa[1]:g} in compression" if hinge_kappa else "")
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")

@@ -196,3 +196,36 @@ def test_the_probes_spline_pin_path_is_exact_for_constant_acceleration_where_the
             # the chord lies a dt^2 t (1 - t) / 2 off the parabola and moves at its mean velocity
             assert np.allclose(line[0, 0] - at(time), 0.5 * accel * dt**2 * t * (1.0 - t), atol=1e-12)
             assert np.allclose(line_v[0, 0], v0 + accel * (j + 0.5) * dt, atol=1e-9)
+
+
+def test_the_probes_hinge_compression_softens_the_diagonal_a_fold_along_the_triangles_shortens():
+    sys.path.insert(0, str(BENCH))
+    try:
+        from damping_probe import hinge_compression, mesh_edges
+    finally:
+        sys.path.remove(str(BENCH))
+    # one unit cell cut along its main diagonal 0-2: the springs are its four sides, that diagonal
+    # and the hinge spring across it, the anti diagonal 1-3
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    springs = np.array([[0, 1], [1, 2], [2, 3], [0, 3], [0, 2], [1, 3]])
+    shear = np.array([False, False, False, False, True, True])
+    edges, _ = mesh_edges(triangles, uv)
+    index = {tuple(s): i for i, s in enumerate(springs)}
+    mesh_springs = np.array([index[(min(i, j), max(i, j))] for i, j in edges])
+    k = np.array([10.0, 20.0, 30.0, 40.0, 50.0, 60.0])
+    soft = hinge_compression(k, shear, mesh_springs, 0.5, 0.25)
+    assert np.allclose(soft, [10.0, 20.0, 30.0, 40.0, 25.0, 15.0])
+    # the premise: folding vertex 1 about the diagonal 0-2 keeps every triangle edge's length and
+    # shortens the hinge diagonal 1-3 alone
+    axis = (uv[2] - uv[0]) / np.linalg.norm(uv[2] - uv[0])
+    flat = np.c_[uv, np.zeros(4)]
+    r = flat[1] - flat[0]
+    along = (r[:2] @ axis) * np.r_[axis, 0.0]
+    angle = 0.6
+    folded = flat.copy()
+    folded[1] = flat[0] + along + np.cos(angle) * (r - along) + np.sin(angle) * np.linalg.norm(r - along) * np.array([0, 0, 1.0])
+    length = lambda x: np.linalg.norm(x[springs[:, 0]] - x[springs[:, 1]], axis=1)
+    change = length(folded) - length(flat)
+    assert np.allclose(change[mesh_springs], 0.0, atol=1e-12)
+    assert change[index[(1, 3)]] < -0.05
