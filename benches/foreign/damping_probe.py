@@ -469,34 +469,45 @@ def main():
     hinge = hinge_stencils(tri, uv)
     area = (tri, triangle_areas(tri, uv))
     diagonals = np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)
+    kappa = None
+    if a.hinge_compression is not None:
+        kappa = float(re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M).group(1))
+
+    def compressions(k):
+        """Each rollout's springs' stiffness in compression (None: as in tension) and how its line
+        names it: one per value of --hinge-compression, or of --compression."""
+        if kappa is not None:
+            return [(hinge_compression(k, family == 1, mesh_springs, kappa, c),
+                     f", diagonals {kappa:g}, hinge diagonals {c:g} in compression")
+                    for c in (float(v) for v in a.hinge_compression.split(","))]
+        rows = []
+        for c in (float(v) for v in a.compression.split(",")):
+            if c == 1.0:
+                rows.append((None, ""))
+                continue
+            kc = k.copy()
+            if a.compression_on == "edges":
+                kc[mesh_springs] *= c
+            elif a.compression_on == "diagonals":
+                kc[diagonals] *= c
+            else:
+                kc *= c
+            rows.append((kc, f", compression {c:g}"))
+        return rows
+
     for share in shares:
         k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
         a.share = share
         edges, nu, label, bb = damping(k)
+        rows = compressions(k)
         for kb in (float(v) for v in a.bending.split(",")):
             for ka in (float(v) for v in a.area.split(",")):
-                if a.hinge_compression is not None:
-                    kappa = float(re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M).group(1))
-                    for c in (float(v) for v in a.hinge_compression.split(",")):
-                        kc = hinge_compression(k, family == 1, mesh_springs, kappa, c)
-                        report(a, x, pinned, dt, substeps, springs, k, bb, rest, mass, weight, gravity, drag,
-                               edges, nu, hinge, kb, area, ka, label, kc, hinge_kappa=(kappa, c))
-                    continue
-                for c in (float(v) for v in a.compression.split(",")):
-                    kc = None
-                    if c != 1.0:
-                        kc = k.copy()
-                        if a.compression_on == "edges":
-                            kc[mesh_springs] *= c
-                        elif a.compression_on == "diagonals":
-                            kc[diagonals] *= c
-                        else:
-                            kc *= c
+                for kc, named in rows:
                     report(a, x, pinned, dt, substeps, springs, k, bb, rest, mass, weight, gravity, drag,
-                           edges, nu, hinge, kb, area, ka, label, kc, c)
+                           edges, nu, hinge, kb, area, ka, label, kc, named)
 
 def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
-           hinge, kb, area, ka, label, kc=None, compression=1.0, hinge_kappa=None):
+           hinge, kb, area, ka, label, kc=None, compression=""):
     start = time.time()
     sim = rollout(x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravity, drag, edges, nu,
                   hinge, kb, area, ka, kc, a.implicit_damping, a.pins)
@@ -509,8 +520,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
     windows = [per[:, (t > s - 1e-9) & (t <= s + 0.5 + 1e-9)].mean() for s in np.arange(0.0, t[-1], 0.5)]
     print(
         f"{len(x)} takes, drag {drag:.4g}, viscosity {label}, bending {kb:g}, area {ka:g}"
-        + (f", compression {compression:g}" if compression != 1.0 else "")
-        + (f", diagonals {hinge_kappa[0]:g}, hinge diagonals {hinge_kappa[1]:g} in compression" if hinge_kappa else "")
+        + compression
         + (f", uniform {a.uniform}" if a.uniform else "")
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")
