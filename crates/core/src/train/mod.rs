@@ -1386,13 +1386,12 @@ impl AfterFit<'_> {
             ));
             return Ok((net, physics, Some(record)));
         };
-        // The finalists hold `current`, so there is a closest.
         let best = record
             .finalists
             .iter()
             .min_by(|a, b| a.pooled.total_cmp(&b.pooled))
             .cloned()
-            .unwrap_or_else(|| current.clone());
+            .expect("the finalists hold the shear springs as they are");
         record.shear_compression = best.shear_compression;
         record.k_factor = best.k_factor;
         record.after = best.train;
