@@ -42,6 +42,8 @@ triangle (a membrane's resistance to changing its area, which springs carry only
 lengths). `--compression C` makes springs push back with `C k` when shorter than at rest (0:
 they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals, or
 every spring; the surrogate has it since as `sim.shear_compression` on its shear springs).
+Without either option the rollouts replay the run's own `sim.shear_compression` on its shear
+springs, as the run steps; `--compression` replaces it (a row's `1`: every spring as in tension).
 `--hinge-compression C` splits that softening between a cell's two diagonals: the one that is no
 edge of the data's triangles (the hinge spring across the cell's triangulated diagonal) pushes
 back with `C k`, the other with the run's own `sim.shear_compression`. A triangle mesh folds
@@ -331,6 +333,36 @@ def hinge_compression(k, shear, mesh_springs, kappa, c):
     return k * np.where(shear & ~on_mesh, c, np.where(shear, kappa, 1.0))
 
 
+def compressions(a, k, shear, mesh_springs, diagonals, kappa):
+    """Each rollout's springs' stiffness in compression (None: as in tension) and how its line
+    names it: one per value of `a.hinge_compression`, or of `a.compression` on
+    `a.compression_on`'s springs; with neither, the run's own `kappa` (`sim.shear_compression`)
+    on its shear springs (`shear`, a mask), as the run steps."""
+    if a.compression is None and a.hinge_compression is None:
+        if kappa == 1.0:
+            return [(None, "")]
+        return [(hinge_compression(k, shear, mesh_springs, kappa, kappa),
+                 f", the run's shear springs {kappa:g} in compression")]
+    if a.hinge_compression is not None:
+        return [(hinge_compression(k, shear, mesh_springs, kappa, c),
+                 f", diagonals {kappa:g}, hinge diagonals {c:g} in compression")
+                for c in (float(v) for v in a.hinge_compression.split(","))]
+    rows = []
+    for c in (float(v) for v in a.compression.split(",")):
+        if c == 1.0:
+            rows.append((None, ""))
+            continue
+        kc = k.copy()
+        if a.compression_on == "edges":
+            kc[mesh_springs] *= c
+        elif a.compression_on == "diagonals":
+            kc[diagonals] *= c
+        else:
+            kc *= c
+        rows.append((kc, f", compression {c:g}"))
+    return rows
+
+
 def with_map(k, shape, family, share, families):
     """`k` with `share` of the map `shape` blended in per family (each family's map over its own
     mean), so each family's mean stiffness stays: `k (1 - share + share m / mean m)`."""
@@ -369,8 +401,9 @@ def main():
                    "on every interior edge of the data's triangles, one rollout each")
     p.add_argument("--area", default="0", help="KA[,KA...]: an area term 1/2 KA (A - A0)^2 / A0 (N/m) "
                    "on every triangle, one rollout each (with each --bending)")
-    p.add_argument("--compression", default="1", help="C[,C...]: the springs along the data's mesh edges "
-                   "pull with k but push with C k when compressed (0: tension only), one rollout each")
+    p.add_argument("--compression", help="C[,C...]: the springs along the data's mesh edges "
+                   "pull with k but push with C k when compressed (0: tension only), one rollout each "
+                   "(default: the run's sim.shear_compression on its shear springs, as the run steps)")
     p.add_argument("--compression-on", choices=("edges", "diagonals", "all"), default="edges",
                    help="which springs --compression softens: the data's mesh edges, the cells' "
                    "diagonals (rest length within 5 %% of sqrt(2) times the shortest spring's), every spring")
@@ -394,7 +427,7 @@ def main():
     config = (run / "config.toml").read_text()
     if a.substeps is not None and a.substeps < 1:
         raise SystemExit(f"--substeps: expected 1 or more, got {a.substeps}")
-    if a.hinge_compression is not None and a.compression != "1":
+    if a.hinge_compression is not None and a.compression is not None:
         raise SystemExit("--hinge-compression and --compression: give one")
     if a.implicit_damping < 0:
         raise SystemExit(f"--implicit-damping: expected 0 (explicit) or more sweeps, got {a.implicit_damping}")
@@ -469,37 +502,15 @@ def main():
     hinge = hinge_stencils(tri, uv)
     area = (tri, triangle_areas(tri, uv))
     diagonals = np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)
-    kappa = None
-    if a.hinge_compression is not None:
-        kappa = float(re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M).group(1))
-
-    def compressions(k):
-        """Each rollout's springs' stiffness in compression (None: as in tension) and how its line
-        names it: one per value of --hinge-compression, or of --compression."""
-        if kappa is not None:
-            return [(hinge_compression(k, family == 1, mesh_springs, kappa, c),
-                     f", diagonals {kappa:g}, hinge diagonals {c:g} in compression")
-                    for c in (float(v) for v in a.hinge_compression.split(","))]
-        rows = []
-        for c in (float(v) for v in a.compression.split(",")):
-            if c == 1.0:
-                rows.append((None, ""))
-                continue
-            kc = k.copy()
-            if a.compression_on == "edges":
-                kc[mesh_springs] *= c
-            elif a.compression_on == "diagonals":
-                kc[diagonals] *= c
-            else:
-                kc *= c
-            rows.append((kc, f", compression {c:g}"))
-        return rows
+    # the run's own stiffness in compression of its shear springs (1 in a config that predates it)
+    found = re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M)
+    kappa = float(found.group(1)) if found else 1.0
 
     for share in shares:
         k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
         a.share = share
         edges, nu, label, bb = damping(k)
-        rows = compressions(k)
+        rows = compressions(a, k, family == 1, mesh_springs, diagonals, kappa)
         for kb in (float(v) for v in a.bending.split(",")):
             for ka in (float(v) for v in a.area.split(",")):
                 for kc, named in rows:
