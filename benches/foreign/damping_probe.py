@@ -40,8 +40,9 @@ angle `theta` linearised about the flat rest sheet, so the forces are linear in 
 vanish under rigid motions), and `--area KA` an area term `1/2 KA (A - A0)^2 / A0` on every
 triangle (a membrane's resistance to changing its area, which springs carry only through their
 lengths). `--compression C` makes springs push back with `C k` when shorter than at rest (0:
-they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals, or
-every spring; the surrogate has it since as `sim.shear_compression` on its shear springs).
+they pull only; `--compression-on` picks which: the data's mesh edges, the cells' diagonals (the
+run's shear springs, `springs.npz` family 1), or every spring; the surrogate has it since as
+`sim.shear_compression` on its shear springs).
 Without either option the rollouts replay the run's own `sim.shear_compression` on its shear
 springs, as the run steps; `--compression` replaces it (a row's `1`: every spring as in tension).
 `--hinge-compression C` splits that softening between a cell's two diagonals: the one that is no
@@ -333,16 +334,16 @@ def hinge_compression(k, shear, mesh_springs, kappa, c):
     return k * np.where(shear & ~on_mesh, c, np.where(shear, kappa, 1.0))
 
 
-def compressions(a, k, shear, mesh_springs, diagonals, kappa):
+def compressions(a, k, shear, mesh_springs, kappa):
     """Each rollout's springs' stiffness in compression (None: as in tension) and how its line
     names it: one per value of `a.hinge_compression`, or of `a.compression` on
-    `a.compression_on`'s springs; with neither, the run's own `kappa` (`sim.shear_compression`)
-    on its shear springs (`shear`, a mask), as the run steps."""
+    `a.compression_on`'s springs (`diagonals`: the shear springs, `shear`, a mask); with
+    neither, the run's own `kappa` (`sim.shear_compression`) on its shear springs, as the run
+    steps."""
     if a.compression is None and a.hinge_compression is None:
         if kappa == 1.0:
             return [(None, "")]
-        return [(hinge_compression(k, shear, mesh_springs, kappa, kappa),
-                 f", the run's shear springs {kappa:g} in compression")]
+        return [(k * np.where(shear, kappa, 1.0), f", the run's shear springs {kappa:g} in compression")]
     if a.hinge_compression is not None:
         return [(hinge_compression(k, shear, mesh_springs, kappa, c),
                  f", diagonals {kappa:g}, hinge diagonals {c:g} in compression")
@@ -356,7 +357,7 @@ def compressions(a, k, shear, mesh_springs, diagonals, kappa):
         if a.compression_on == "edges":
             kc[mesh_springs] *= c
         elif a.compression_on == "diagonals":
-            kc[diagonals] *= c
+            kc[shear] *= c
         else:
             kc *= c
         rows.append((kc, f", compression {c:g}"))
@@ -406,7 +407,7 @@ def main():
                    "(default: the run's sim.shear_compression on its shear springs, as the run steps)")
     p.add_argument("--compression-on", choices=("edges", "diagonals", "all"), default="edges",
                    help="which springs --compression softens: the data's mesh edges, the cells' "
-                   "diagonals (rest length within 5 %% of sqrt(2) times the shortest spring's), every spring")
+                   "diagonals (the run's shear springs, springs.npz family 1), every spring")
     p.add_argument("--hinge-compression", metavar="C[,C...]",
                    help="each cell's diagonal that is no edge of the data's triangles pushes with C k when "
                    "compressed, the other diagonals with the run's sim.shear_compression; one rollout each "
@@ -501,7 +502,6 @@ def main():
     tri, uv = first["triangles"].astype(int), first["rest_uv"].astype(np.float64)
     hinge = hinge_stencils(tri, uv)
     area = (tri, triangle_areas(tri, uv))
-    diagonals = np.abs(rest / rest.min() - np.sqrt(2.0)) < 0.05 * np.sqrt(2.0)
     # the run's own stiffness in compression of its shear springs (1 in a config that predates it)
     found = re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M)
     kappa = float(found.group(1)) if found else 1.0
@@ -510,7 +510,7 @@ def main():
         k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
         a.share = share
         edges, nu, label, bb = damping(k)
-        rows = compressions(a, k, family == 1, mesh_springs, diagonals, kappa)
+        rows = compressions(a, k, family == 1, mesh_springs, kappa)
         for kb in (float(v) for v in a.bending.split(",")):
             for ka in (float(v) for v in a.area.split(",")):
                 for kc, named in rows:

@@ -209,17 +209,16 @@ def test_the_probe_replays_the_runs_own_shear_compression_unless_told_otherwise(
     k = np.array([10.0, 20.0, 30.0, 40.0, 50.0, 60.0])
     shear = np.array([False, False, False, False, True, True])
     mesh_springs = np.array([0, 1, 2, 3, 4])
-    diagonals = shear.copy()
     told = lambda compression=None, hinge=None, on="edges": SimpleNamespace(
         compression=compression, hinge_compression=hinge, compression_on=on)
     # no option: the run's kappa on its shear springs alone, as the run steps
-    (kc, named), = compressions(told(), k, shear, mesh_springs, diagonals, 0.25)
+    (kc, named), = compressions(told(), k, shear, mesh_springs, 0.25)
     assert np.allclose(kc, [10.0, 20.0, 30.0, 40.0, 12.5, 15.0])
     assert "0.25" in named
     # a run whose shear springs push as they pull
-    assert compressions(told(), k, shear, mesh_springs, diagonals, 1.0) == [(None, "")]
+    assert compressions(told(), k, shear, mesh_springs, 1.0) == [(None, "")]
     # an explicit row replaces the run's: 1 is every spring as in tension
-    rows = compressions(told("1,0.5", on="diagonals"), k, shear, mesh_springs, diagonals, 0.25)
+    rows = compressions(told("1,0.5", on="diagonals"), k, shear, mesh_springs, 0.25)
     assert rows[0] == (None, "")
     assert np.allclose(rows[1][0], [10.0, 20.0, 30.0, 40.0, 25.0, 30.0])
 
