@@ -6,7 +6,8 @@ the frames' mean up to 0.8 s and over the take) and over half-second windows.
 
     python3 benches/foreign/damping_probe.py RUN DATA [--takes N] [--drag C]
         [--viscosity NU | --viscosity-per-k BETA | --viscosity-source SCALE] [--project]
-        [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--substeps N] [--implicit-damping SWEEPS]
+        [--uniform K,B] [--damping-per-k BETA] [--k-scale F] [--shear-scale S[,S...]]
+        [--substeps N] [--implicit-damping SWEEPS]
         [--bending KB[,KB...]] [--area KA[,KA...]] [--compression C[,C...]
         [--compression-on edges|diagonals|all]] [--hinge-compression C[,C...]] [--map source|FILE [--map-share S[,S...]]
         [--map-on sides|all]] [--diagonals-from-sides] [--pins linear|cubic]
@@ -25,7 +26,8 @@ triangle's `kd * area * |dF/dt|^2` into its edges with the cotangent weights
 `--project` applies the viscosity along the springs instead (added to the matching springs' `b`),
 `--uniform K,B` replays one `k` and `b` on every spring instead of the run's, and
 `--damping-per-k BETA` sets each spring's `b` to `BETA * k` (stiffness-proportional damping, as
-MuJoCo's elasticity damping), `--k-scale F` multiplies every spring's `k`.
+MuJoCo's elasticity damping), `--k-scale F` multiplies every spring's `k`, `--shear-scale S`
+the shear springs' (a cell's diagonals, `springs.npz` family 1; a row, one rollout per value).
 `--implicit-damping SWEEPS` integrates the springs' `b` by backward Euler instead (each substep
 solves `(M + h C) v = M v*`, `C` the dampers along the springs' current directions, by SWEEPS
 damped Jacobi sweeps), so a `b` far past what the explicit step's substeps allow stays stable.
@@ -391,6 +393,8 @@ def main():
     p.add_argument("--damping-per-k", type=float, metavar="BETA",
                    help="each spring's b = BETA * k (stiffness-proportional damping, s)")
     p.add_argument("--k-scale", type=float, default=1.0, help="every spring's k times this")
+    p.add_argument("--shear-scale", default="1", metavar="S[,S...]",
+                   help="the shear springs' k (a cell's diagonals, springs.npz family 1) times each S")
     p.add_argument("--substeps", type=int, help="substeps per frame (default: the run's)")
     p.add_argument("--implicit-damping", type=int, default=0, metavar="SWEEPS",
                    help="the springs' b by backward Euler, SWEEPS damped Jacobi sweeps per substep "
@@ -506,9 +510,10 @@ def main():
     found = re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M)
     kappa = float(found.group(1)) if found else 1.0
 
-    for share in shares:
+    for share, shear in ((s, h) for s in shares for h in (float(v) for v in a.shear_scale.split(","))):
         k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
-        a.share = share
+        k = np.where(family == 1, shear * k, k)
+        a.share, a.shear = share, shear
         edges, nu, label, bb = damping(k)
         rows = compressions(a, k, family == 1, mesh_springs, kappa)
         for kb in (float(v) for v in a.bending.split(",")):
@@ -536,6 +541,7 @@ def report(a, x, pinned, dt, substeps, springs, k, b, rest, mass, weight, gravit
         + (f", b = {a.damping_per_k:g} k" if a.damping_per_k is not None else "")
         + (f", {a.share:g} of the map {a.map} on {a.map_on}" if a.share is not None else "")
         + (", diagonals from sides" if a.diagonals_from_sides else "")
+        + (f", shear springs' k x {a.shear:g}" if a.shear != 1.0 else "")
         + (f", b by backward Euler ({a.implicit_damping} sweeps)" if a.implicit_damping else "")
         + (f", pins {a.pins}" if a.pins != "linear" else "")
         + f": short {per[:, t <= SHORT + 1e-9].mean():.4f} m, long {per.mean():.4f} m; half seconds "
