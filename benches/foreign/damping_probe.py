@@ -69,6 +69,7 @@ there). Needs numpy (any of the bench's environments:
 substeps on one core.
 """
 import argparse
+import itertools
 import re
 import time
 from pathlib import Path
@@ -510,7 +511,7 @@ def main():
     found = re.search(r"^shear_compression\s*=\s*(\S+)", config, re.M)
     kappa = float(found.group(1)) if found else 1.0
 
-    for share, shear in ((s, h) for s in shares for h in (float(v) for v in a.shear_scale.split(","))):
+    for share, shear in itertools.product(shares, (float(v) for v in a.shear_scale.split(","))):
         k = k_run if share is None else with_map(k_run, shape, family, share, map_families)
         k = np.where(family == 1, shear * k, k)
         a.share, a.shear = share, shear
