@@ -391,26 +391,38 @@ fn the_blend_search_finds_the_bending_springs_share() {
 /// blend search and its polish, which size `k` and `b` as if the springs were linear: at those
 /// sizes a half is closer to the pull-only cloth's takes than none, and only with its `k`
 /// searched at each softening, not at the closest alone, does the search find the source's 0.)
+/// The same search sizes the shear springs' share of the stiffness: takes of the cloth whose
+/// linear shear springs have half the sides' `k` (25 N/m), learned from the uniform 50 N/m,
+/// keep a share below 1 on the shear springs, closer to the held-out takes, where the uniform
+/// cloth's keep their share.
 #[test]
 fn the_compression_search_finds_shear_springs_that_pull_only() {
+    use springtime::cloth::SpringFamily;
     use springtime::source::mass_spring::SpringCloth;
-    for source_compression in [0.0, 1.0] {
+    for (source_compression, source_share) in [(0.0, 1.0), (1.0, 1.0), (1.0, 0.5)] {
         let dir = common::temp_dir("shear-compression");
         let mut source = common::source(8, &[50.0], 2.0);
         source.frame_stride = 10;
         source.save_velocities = false;
-        let cloth = SpringCloth {
+        let mut cloth = SpringCloth {
             shear_compression: source_compression,
             ..SpringCloth::from_config(&source)
         };
+        let topology = cloth.topology.clone();
+        topology.scale_family(&mut cloth.k, SpringFamily::Shear, source_share);
         save_takes(&dir, &cloth, &source, 2, true);
         let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "compression_search = true\n");
         let search = &record["shear_compression"];
-        eprintln!("source {source_compression}: {search}");
+        eprintln!("source {source_compression}, share {source_share}: {search}");
         let run = springtime::run::Run::open(&run_dir, &[], None).unwrap();
         let kept = run.config.sim.shear_compression;
-        if source_compression == 0.0 {
-            assert_eq!(kept, 0.0, "{search}");
+        let share = if search["kept"].as_bool() == Some(true) {
+            search["shear_share"].as_f64().unwrap()
+        } else {
+            1.0
+        };
+        if source_compression == 0.0 || source_share < 1.0 {
+            assert_eq!(kept, source_compression, "{search}");
             assert_eq!(search["kept"].as_bool(), Some(true), "{search}");
             let held_out = &search["held_out"];
             let (before, after) = (
@@ -420,6 +432,11 @@ fn the_compression_search_finds_shear_springs_that_pull_only() {
             assert!(after < before, "{search}");
         } else {
             assert_eq!(kept, 1.0, "{search}");
+        }
+        if source_share < 1.0 {
+            assert!(share < 1.0, "{search}");
+        } else {
+            assert_eq!(share, 1.0, "{search}");
         }
         std::fs::remove_dir_all(&dir).ok();
     }

@@ -83,7 +83,9 @@ def row(run):
     if blend.is_file():
         found = json.loads(blend.read_text()).get("shear_compression")
         if found:
-            compression = found["shear_compression"] if found["kept"] else 1.0
+            kept = found["kept"]
+            compression = (found["shear_compression"] if kept else 1.0,
+                           found.get("shear_share", 1.0) if kept else 1.0)
     return {
         "spread": spread(e, source),
         "set": run.name,
@@ -95,6 +97,15 @@ def row(run):
         "compression": compression,
         **figures,
     }
+
+
+def shear(found):
+    """The shear springs as the run keeps them: their stiffness in compression per unit k (κ) and,
+    where the search changed it, their share of their k (σ); blank without the search."""
+    if found is None:
+        return ""
+    kappa, share = found
+    return f"{kappa:g}" + ("" if share == 1.0 else f" · {share:.2f}")
 
 
 def interval(trained, uniform, draws=5000, level=0.90):
@@ -163,7 +174,7 @@ def main():
     spreads = any(r["spread"] for r in rows)
     intervals = any(r["intervals"] for r in rows)
     if a.markdown:
-        print("| set | trained, m | best uniform, m | gain 0.8 s / take | Spearman | κ |"
+        print("| set | trained, m | best uniform, m | gain 0.8 s / take | Spearman | κ · σ |"
               + (" source ±EPS: take, m (its gain) |" if spreads else "")
               + (" 90 % interval: 0.8 s / take |" if intervals else "") + " goals |")
         print("|---|---|---|---|---|---|" + ("---|" if spreads else "") + ("---|" if intervals else "")
@@ -176,9 +187,9 @@ def main():
             "{:.4f} / {:.4f}".format(*r["uniform"]),
             "{:+.1f} % / {:+.1f} %".format(*(100 * g for g in r["gains"])),
             spearman,
-            "" if r["compression"] is None else f"{r['compression']:g}",
+            shear(r["compression"]),
         ]
-        widths = [28, 17, 17, 19, 12, 5]
+        widths = [28, 17, 17, 19, 12, 9]
         if spreads:
             cells.append("" if r["spread"] is None else "±{:g} %: {:.4f} ({:+.1f} %)".format(
                 100 * r["spread"][0], r["spread"][1], 100 * (1.0 - r["spread"][1] / r["uniform"][1])))

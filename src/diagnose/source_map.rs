@@ -254,7 +254,9 @@ fn map_network(inputs: &Inputs, map: &[(usize, f64)], k: f64, b: f64, share: f64
     let n = inputs.topology.num_springs();
     let mean = map.iter().map(|m| m.1).sum::<f64>() / map.len() as f64;
     let mut ks = vec![k; n];
-    inputs.topology.scale_bending(&mut ks, share);
+    inputs
+        .topology
+        .scale_family(&mut ks, SpringFamily::Bending, share);
     for &(s, v) in map {
         ks[s] = k * v / mean;
     }

@@ -199,12 +199,13 @@ impl Topology {
         self.family.contains(&SpringFamily::Bending)
     }
 
-    /// Multiplies the bending springs' entries of the per-spring values `k` by `factor`: the
-    /// bending springs' share of a network's stiffness (ours: the hinge or stride springs, which
-    /// no other simulator has as such, are sized apart from the rest).
-    pub fn scale_bending(&self, k: &mut [f64], factor: f64) {
-        for (k, family) in k.iter_mut().zip(&self.family) {
-            if *family == SpringFamily::Bending {
+    /// Multiplies the entries of `family`'s springs in the per-spring values `k` by `factor`: a
+    /// family's share of a network's stiffness (ours: the bending springs, hinge or stride
+    /// springs which no other simulator has as such, and the shear springs, a cell's diagonals,
+    /// are sized apart from the rest).
+    pub fn scale_family(&self, k: &mut [f64], family: SpringFamily, factor: f64) {
+        for (k, f) in k.iter_mut().zip(&self.family) {
+            if *f == family {
                 *k *= factor;
             }
         }

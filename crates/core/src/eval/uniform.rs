@@ -12,7 +12,7 @@ use anyhow::Result;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::cloth::Topology;
+use crate::cloth::{SpringFamily, Topology};
 use crate::eval::{self, MotionRmse};
 use crate::model::SpringNet;
 use crate::progress::Progress;
@@ -284,7 +284,7 @@ fn bending_apart_network(
 ) -> SpringNet {
     let n = topology.num_springs();
     let mut ks = vec![k; n];
-    topology.scale_bending(&mut ks, factor);
+    topology.scale_family(&mut ks, SpringFamily::Bending, factor);
     SpringNet::new(topology, &ks, &vec![b; n], device)
 }
 

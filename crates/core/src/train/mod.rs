@@ -215,9 +215,10 @@ pub struct TrainConfig {
     pub viscosity_search: bool,
     /// Last, also search the shear springs' stiffness in compression, `sim.shear_compression`
     /// ([`scale::shear_compression`]; ours, off by default): from linear springs to springs that
-    /// pull only, as Blender's cloth's shear springs do: the training takes searched pick each
-    /// value's closest `k` ([`scale::finalists`]), and the one closest to those and the held-out
-    /// ones together is kept where the held-out takes agree. Needs `train.blend_search` and
+    /// pull only, as Blender's cloth's shear springs do; and their share of the network's
+    /// stiffness ([`scale::SHEAR_SHARES`]): the training takes searched pick each setting's
+    /// closest `k` ([`scale::finalists`]), and the one closest to those and the held-out ones
+    /// together is kept where the held-out takes agree. Needs `train.blend_search` and
     /// held-out training takes (`data.holdout`); runs on a network with shear springs (a grid's
     /// cell diagonals, a data mesh's quad cells' diagonals).
     pub compression_search: bool,
@@ -1325,15 +1326,15 @@ impl AfterFit<'_> {
         ))
     }
 
-    /// The shear springs' stiffness in compression ([`scale::shear_compression`]): the search's
-    /// training takes pick each value's closest `k` ([`scale::finalists`]); of those, the one
-    /// closest to the training takes searched and the held-out ones together
-    /// ([`scale::pooled`]) is kept where the held-out takes agree ([`scale::held_out_agrees`]).
-    /// Ties on the training takes searched are broken by the held-out ones, and a clear margin
-    /// on ten takes is not overturned by two: on tpcloth stiff at 30 fps ¼ at `k` × √2 and ½ at
-    /// `k` tie on the training takes (0.2372 against 0.2375 m) where the held-out ones do not
-    /// (0.2517 against 0.2309 m over the take). Returns the network and physics kept and the
-    /// record.
+    /// The shear springs' stiffness in compression and their share of the network's stiffness
+    /// ([`scale::shear_compression`]): the search's training takes pick each setting's closest
+    /// `k` ([`scale::finalists`]); of those, the one closest to the training takes searched and
+    /// the held-out ones together ([`scale::pooled`]) is kept where the held-out takes agree
+    /// ([`scale::held_out_agrees`]). Ties on the training takes searched are broken by the
+    /// held-out ones, and a clear margin on ten takes is not overturned by two: on tpcloth stiff
+    /// at 30 fps ¼ at `k` × √2 and ½ at `k` tie on the training takes (0.2372 against 0.2375 m)
+    /// where the held-out ones do not (0.2517 against 0.2309 m over the take). Returns the
+    /// network and physics kept and the record.
     fn shear_compression(
         &self,
         net: SpringNet,
@@ -1345,16 +1346,18 @@ impl AfterFit<'_> {
             return Ok((net, physics, None));
         };
         let before_kappa = physics.shear_compression;
+        let unchanged =
+            |s: &scale::ShearSetting| s.shear_compression == before_kappa && s.shear_share == 1.0;
         let held = self.split.validation.len();
-        for (kc, fk, train) in scale::finalists(&record.candidates) {
-            let (n, p) = scale::compression_candidate(&net, &physics, &takes, kc, fk);
+        for candidate in scale::finalists(&record.candidates) {
+            let setting = candidate.setting;
+            let (n, p) = scale::compression_candidate(&net, &physics, &takes, setting);
             let figures = self.held_out_figures(&n, &p)?;
             record.finalists.push(scale::Finalist {
-                shear_compression: kc,
-                k_factor: fk,
-                train,
+                setting,
+                train: candidate.rmse,
                 held_out: figures.horizons,
-                pooled: scale::pooled((train, searched), (figures.score, held)),
+                pooled: scale::pooled((candidate.rmse, searched), (figures.score, held)),
             });
         }
         let rows = record
@@ -1362,27 +1365,33 @@ impl AfterFit<'_> {
             .iter()
             .map(|f| {
                 format!(
-                    "{} at k × {:.3}: {:.4e} m (held out {:.4e} / {:.4e} m; together {:.4e} m)",
-                    f.shear_compression, f.k_factor, f.train, f.held_out.0, f.held_out.1, f.pooled
+                    "{} in compression, shear springs' k × {:.3}, at k × {:.3}: {:.4e} m (held \
+                     out {:.4e} / {:.4e} m; together {:.4e} m)",
+                    f.setting.shear_compression,
+                    f.setting.shear_share,
+                    f.setting.k_factor,
+                    f.train,
+                    f.held_out.0,
+                    f.held_out.1,
+                    f.pooled
                 )
             })
             .collect::<Vec<_>>()
             .join("; ");
         let found = format!(
-            "shear compression search: each stiffness in compression's closest k on the \
-             {searched} training rollouts searched (held out: short / long; together with the \
-             {held} held out): {rows}"
+            "shear springs' search: each setting's closest k on the {searched} training rollouts \
+             searched (held out: short / long; together with the {held} held out): {rows}"
         );
         let current = record
             .finalists
             .iter()
-            .find(|f| f.shear_compression == before_kappa)
+            .find(|f| unchanged(&f.setting))
             .cloned();
         let Some(current) = current else {
             progress.note(&format!(
                 "{found}; the shear springs as they are (sim.shear_compression {before_kappa}) \
-                 are not stable at the run's substeps there, so no softening is weighed against \
-                 them; kept as they are"
+                 are not stable at the run's substeps there, so no other setting is weighed \
+                 against them; kept as they are"
             ));
             return Ok((net, physics, Some(record)));
         };
@@ -1392,10 +1401,11 @@ impl AfterFit<'_> {
             .min_by(|a, b| a.pooled.total_cmp(&b.pooled))
             .cloned()
             .expect("the finalists hold the shear springs as they are");
-        record.shear_compression = best.shear_compression;
-        record.k_factor = best.k_factor;
+        record.shear_compression = best.setting.shear_compression;
+        record.shear_share = best.setting.shear_share;
+        record.k_factor = best.setting.k_factor;
         record.after = best.train;
-        if best.shear_compression == before_kappa {
+        if unchanged(&best.setting) {
             progress.note(&format!(
                 "{found}; the shear springs as they are move closest (sim.shear_compression \
                  {before_kappa}); kept"
@@ -1411,21 +1421,17 @@ impl AfterFit<'_> {
         };
         progress.note(&format!(
             "{found}; closest together with the shear springs pushing at {} of their k when \
-             compressed, k × {:.3}; {} at sim.shear_compression {} -> {}",
+             compressed and their k × {:.3}, the network's k × {:.3}; {} at sim.shear_compression \
+             {} -> {}",
             record.shear_compression,
+            record.shear_share,
             record.k_factor,
             verdict.figures(held),
             before_kappa,
             verdict.outcome()
         ));
         let (net, physics) = if record.kept {
-            scale::compression_candidate(
-                &net,
-                &physics,
-                &takes,
-                best.shear_compression,
-                best.k_factor,
-            )
+            scale::compression_candidate(&net, &physics, &takes, record.setting())
         } else {
             (net, physics)
         };

@@ -530,7 +530,9 @@ impl Blender<'_> {
                 mix(&self.b, self.b_mean, fb, alpha),
             )
         };
-        self.takes.topology.scale_bending(&mut k, fh);
+        self.takes
+            .topology
+            .scale_family(&mut k, SpringFamily::Bending, fh);
         SpringNet::new(self.takes.topology, &k, &b, self.takes.device)
             .with_kernel(self.model.graph.kernel)
             .with_curvature(&kappa)
@@ -1294,24 +1296,78 @@ fn closest(candidates: &[(f64, f64, f64)]) -> Option<(f64, f64, f64)> {
 /// springs that pull only.
 pub const SHEAR_COMPRESSIONS: [f64; 4] = [1.0, 0.5, 0.25, 0.0];
 
-/// The search of the shear springs' stiffness in compression (`sim.shear_compression`; ours;
-/// `blend.json`'s `shear_compression`).
+/// The shear springs' shares of their stiffness that [`shear_compression`] tries beside the
+/// network's own (1), half an octave apart: their `k` times each. No other search sizes a cell's
+/// diagonals apart from its sides, which keep whatever share of the sides' stiffness the map
+/// read off the frames (0.43-0.55 of it on the bench's FEM runs): on a square spring lattice
+/// that share sets the sheet's shear stiffness, and halving it moved Newton stiff, Newton soft
+/// and Warp soft 5-7 % closer over their 48 test takes (the book, "Other simulators").
+pub const SHEAR_SHARES: [f64; 3] = [
+    std::f64::consts::FRAC_1_SQRT_2,
+    0.5,
+    0.5 * std::f64::consts::FRAC_1_SQRT_2,
+];
+
+/// One setting of the shear springs searched by [`shear_compression`], with the network's `k`
+/// factor.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ShearSetting {
+    /// Stiffness in compression per unit `k` (`sim.shear_compression`).
+    pub shear_compression: f64,
+    /// Factor on the shear springs' `k` (their share of the network's stiffness), on top of
+    /// `k_factor`.
+    #[serde(default = "one")]
+    pub shear_share: f64,
+    /// Factor on the network's `k` (its curvature elements' too).
+    pub k_factor: f64,
+}
+
+impl ShearSetting {
+    /// The network as it is: its own stiffness in compression `shear_compression`.
+    fn unchanged(shear_compression: f64) -> Self {
+        Self {
+            shear_compression,
+            shear_share: 1.0,
+            k_factor: 1.0,
+        }
+    }
+
+    /// Whether `other` sets the shear springs alike (the `k` factor aside).
+    fn same_shear(&self, other: &Self) -> bool {
+        self.shear_compression == other.shear_compression && self.shear_share == other.shear_share
+    }
+}
+
+/// A stable candidate of [`shear_compression`] and its score.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ShearCandidate {
+    /// What it sets.
+    #[serde(flatten)]
+    pub setting: ShearSetting,
+    /// The searches' objective on the training takes searched, m.
+    pub rmse: f64,
+}
+
+/// The search of the shear springs' stiffness in compression (`sim.shear_compression`) and their
+/// share of the network's stiffness (ours; `blend.json`'s `shear_compression`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CompressionSearch {
-    /// `(shear_compression, k factor, mean motion RMSE on the training takes)` of every stable
-    /// candidate, in the order tried.
-    pub candidates: Vec<(f64, f64, f64)>,
-    /// Each stiffness in compression's closest candidate on the training takes ([`finalists`])
-    /// with its figures on the held-out training takes, in the order tried.
+    /// Every stable candidate, in the order tried.
+    pub candidates: Vec<ShearCandidate>,
+    /// Each setting of the shear springs' closest candidate on the training takes
+    /// ([`finalists`]) with its figures on the held-out training takes, in the order tried.
     #[serde(default)]
     pub finalists: Vec<Finalist>,
-    /// The stiffness in compression per unit `k` of the finalist closest to the training takes
-    /// searched and the held-out ones together (the closest on the training takes searched
-    /// where none was held out).
+    /// The finalist closest to the training takes searched and the held-out ones together (the
+    /// closest on the training takes searched where none was held out): its stiffness in
+    /// compression per unit `k`,
     pub shear_compression: f64,
-    /// Its factor on the network's `k` (its curvature elements' too).
+    /// its factor on the shear springs' `k`,
+    #[serde(default = "one")]
+    pub shear_share: f64,
+    /// its factor on the network's `k` (its curvature elements' too),
     pub k_factor: f64,
-    /// Its mean motion RMSE on the training takes, m.
+    /// and its mean motion RMSE on the training takes, m.
     pub after: f64,
     /// `(short, long)` motion RMSE on the held-out training takes of the network kept before,
     /// and of that finalist (m); `None` where it is the network as it was.
@@ -1320,14 +1376,24 @@ pub struct CompressionSearch {
     pub kept: bool,
 }
 
-/// One stiffness in compression's closest candidate on the training takes, judged on the
+impl CompressionSearch {
+    /// The setting of the finalist closest to the takes (kept or not).
+    pub fn setting(&self) -> ShearSetting {
+        ShearSetting {
+            shear_compression: self.shear_compression,
+            shear_share: self.shear_share,
+            k_factor: self.k_factor,
+        }
+    }
+}
+
+/// One setting of the shear springs' closest candidate on the training takes, judged on the
 /// held-out training takes too ([`CompressionSearch::finalists`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Finalist {
-    /// Stiffness in compression per unit `k`.
-    pub shear_compression: f64,
-    /// Factor on the network's `k`.
-    pub k_factor: f64,
+    /// What it sets.
+    #[serde(flatten)]
+    pub setting: ShearSetting,
     /// The searches' objective on the training takes searched (mean motion RMSE over the whole
     /// take unless `train.search_objective` says otherwise), m.
     pub train: f64,
@@ -1344,13 +1410,13 @@ pub fn pooled(a: (f64, usize), b: (f64, usize)) -> f64 {
     (a.0 * a.1 as f64 + b.0 * b.1 as f64) / (a.1 + b.1) as f64
 }
 
-/// Each stiffness in compression's closest candidate of `candidates` (`(shear_compression,
-/// k factor, RMSE)`), in the order the values first appear.
-pub fn finalists(candidates: &[(f64, f64, f64)]) -> Vec<(f64, f64, f64)> {
-    let mut out: Vec<(f64, f64, f64)> = Vec::new();
+/// Each setting of the shear springs' closest candidate of `candidates`, in the order the
+/// settings first appear.
+pub fn finalists(candidates: &[ShearCandidate]) -> Vec<ShearCandidate> {
+    let mut out: Vec<ShearCandidate> = Vec::new();
     for &c in candidates {
-        match out.iter_mut().find(|f| f.0 == c.0) {
-            Some(f) if c.2 < f.2 => *f = c,
+        match out.iter_mut().find(|f| f.setting.same_shear(&c.setting)) {
+            Some(f) if c.rmse < f.rmse => *f = c,
             Some(_) => {}
             None => out.push(c),
         }
@@ -1358,30 +1424,38 @@ pub fn finalists(candidates: &[(f64, f64, f64)]) -> Vec<(f64, f64, f64)> {
     out
 }
 
-/// `model` with its `k` (and curvature elements) times `k_factor`, and `physics` with the shear
-/// springs' stiffness in compression `shear_compression`: a candidate of [`shear_compression`].
+/// `model` with its `k` (and curvature elements) times `setting.k_factor` and its shear springs'
+/// `k` times `setting.shear_share` too, and `physics` with the shear springs' stiffness in
+/// compression `setting.shear_compression`: a candidate of [`shear_compression`].
 pub fn compression_candidate(
     model: &SpringNet,
     physics: &Physics,
     train: &Takes,
-    shear_compression: f64,
-    k_factor: f64,
+    setting: ShearSetting,
 ) -> (SpringNet, Physics) {
+    let sizes = Sizes::of(model);
+    let mut k = times(&sizes.k, setting.k_factor);
+    train
+        .topology
+        .scale_family(&mut k, SpringFamily::Shear, setting.shear_share);
     (
-        Sizes::of(model).scaled(train, k_factor, 1.0),
+        SpringNet::new(train.topology, &k, &sizes.b, train.device)
+            .with_kernel(model.graph.kernel)
+            .with_curvature(&times(&sizes.kappa, setting.k_factor)),
         Physics {
-            shear_compression,
+            shear_compression: setting.shear_compression,
             ..*physics
         },
     )
 }
 
-/// The search of `model`'s shear springs' stiffness in compression on the training takes
-/// searched ([`CompressionSearch`]): `physics`' own at `model`'s `k` and `b`, and every other
-/// value of [`SHEAR_COMPRESSIONS`] at its `k` and at the factors `2^(±1/2)` of it. A softer cloth wants
-/// stiffer springs, and the network was sized with `physics`' own: searched one after the other,
-/// the value closest at the sized `k` need not be the closest at its best `k`. Returns the record
-/// with the closest candidate (not yet judged on held-out takes: the run judges the
+/// The search of `model`'s shear springs on the training takes searched ([`CompressionSearch`]):
+/// `physics`' own stiffness in compression at `model`'s `k` and `b`, every other value of
+/// [`SHEAR_COMPRESSIONS`], and at `physics`' own each share of [`SHEAR_SHARES`], each at its `k`
+/// and at the factors `2^(±1/2)` of it. A softer cloth wants stiffer springs, and the network was
+/// sized with `physics`' own and its shear springs as they are: searched one after the other,
+/// the setting closest at the sized `k` need not be the closest at its best `k`. Returns the
+/// record with the closest candidate (not yet judged on held-out takes: the run judges the
 /// [`finalists`]) and the number of takes searched; `None` where the network has no shear
 /// springs or no candidate is stable.
 pub fn shear_compression(
@@ -1389,11 +1463,7 @@ pub fn shear_compression(
     physics: &Physics,
     train: &Takes,
 ) -> Option<(CompressionSearch, usize)> {
-    if !train
-        .topology
-        .family
-        .contains(&crate::cloth::SpringFamily::Shear)
-    {
+    if !train.topology.family.contains(&SpringFamily::Shear) {
         return None;
     }
     let files = search_files(train);
@@ -1401,38 +1471,46 @@ pub fn shear_compression(
         files: &files,
         ..*train
     };
-    let mut row: Vec<f64> = vec![physics.shear_compression];
-    row.extend(
-        SHEAR_COMPRESSIONS
-            .iter()
-            .copied()
-            .filter(|&kc| kc != physics.shear_compression),
-    );
+    let own = physics.shear_compression;
+    let settings: Vec<(f64, f64)> = SHEAR_COMPRESSIONS
+        .iter()
+        .filter(|&&kc| kc != own)
+        .map(|&kc| (kc, 1.0))
+        .chain(SHEAR_SHARES.iter().map(|&share| (own, share)))
+        .collect();
     let bar = train
         .progress
-        .bar(3 * row.len() as u64 - 2, "shear compression search");
-    let mut candidates: Vec<(f64, f64, f64)> = Vec::new();
-    let consider = |kc: f64, fk: f64, candidates: &mut Vec<(f64, f64, f64)>| {
-        let (net, at) = compression_candidate(model, physics, train, kc, fk);
-        if let Some(r) = network_rollout_rmse(&net, &at, &takes) {
-            candidates.push((kc, fk, r));
+        .bar(1 + 3 * settings.len() as u64, "shear springs' search");
+    let mut candidates: Vec<ShearCandidate> = Vec::new();
+    let mut consider = |setting: ShearSetting| {
+        let (net, at) = compression_candidate(model, physics, train, setting);
+        if let Some(rmse) = network_rollout_rmse(&net, &at, &takes) {
+            candidates.push(ShearCandidate { setting, rmse });
         }
         bar.inc(1);
     };
-    consider(physics.shear_compression, 1.0, &mut candidates);
-    for &kc in &row[1..] {
+    consider(ShearSetting::unchanged(own));
+    for &(shear_compression, shear_share) in &settings {
         for f in [0.0, -0.5, 0.5] {
-            consider(kc, 2f64.powf(f), &mut candidates);
+            consider(ShearSetting {
+                shear_compression,
+                shear_share,
+                k_factor: 2f64.powf(f),
+            });
         }
     }
     bar.finish();
-    let (kc, k_factor, after) = closest(&candidates)?;
+    let best = candidates
+        .iter()
+        .copied()
+        .min_by(|a, b| a.rmse.total_cmp(&b.rmse))?;
     let record = CompressionSearch {
         candidates,
         finalists: Vec::new(),
-        shear_compression: kc,
-        k_factor,
-        after,
+        shear_compression: best.setting.shear_compression,
+        shear_share: best.setting.shear_share,
+        k_factor: best.setting.k_factor,
+        after: best.rmse,
         held_out: None,
         kept: false,
     };
@@ -1444,35 +1522,111 @@ mod tests {
     use burn::tensor::Device;
 
     use super::{
-        MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, amplified, finalists, held_out_agrees, pooled,
-        stable_substeps,
+        MAX_SUBSTEP_FACTOR, STIFF_SUBSTEP_FACTOR, ShearCandidate, ShearSetting, amplified,
+        compression_candidate, finalists, held_out_agrees, pooled, stable_substeps,
     };
     use crate::cloth::{GridSpec, SpringFamily, Topology};
+    use crate::eval::Takes;
     use crate::model::SpringNet;
     use crate::sim::Physics;
     use crate::train::init::AUTO_SUBSTEPS_TARGET;
 
+    /// The paper's 32 × 32 cloth's step at 30 fps and 4 substeps, without drag.
+    fn grid_physics() -> Physics {
+        Physics {
+            frame_dt: 1.0 / 30.0,
+            substeps: 4,
+            mass: 0.5 / 1024.0,
+            rayleigh: 0.0,
+            gravity: [0.0, 0.0, -9.81],
+            viscosity: 0.0,
+            shear_compression: 1.0,
+        }
+    }
+
     #[test]
-    fn each_stiffness_in_compression_s_finalist_is_its_closest_candidate() {
+    fn each_shear_setting_s_finalist_is_its_closest_candidate() {
+        let c =
+            |shear_compression: f64, shear_share: f64, k_factor: f64, rmse: f64| ShearCandidate {
+                setting: ShearSetting {
+                    shear_compression,
+                    shear_share,
+                    k_factor,
+                },
+                rmse,
+            };
+        let (r2, h) = (2f64.sqrt(), 0.5f64.sqrt());
         let candidates = [
-            (1.0, 1.0, 0.246),
-            (0.5, 1.0, 0.2375),
-            (0.5, 0.5f64.sqrt(), 0.247),
-            (0.5, 2f64.sqrt(), 0.242),
-            (0.25, 1.0, 0.241),
-            (0.25, 2f64.sqrt(), 0.2372),
-            (0.0, 2f64.sqrt(), 0.307),
+            c(1.0, 1.0, 1.0, 0.246),
+            c(0.5, 1.0, 1.0, 0.2375),
+            c(0.5, 1.0, h, 0.247),
+            c(0.5, 1.0, r2, 0.242),
+            c(0.25, 1.0, 1.0, 0.241),
+            c(0.25, 1.0, r2, 0.2372),
+            c(0.0, 1.0, r2, 0.307),
+            // The shares at the network's own stiffness in compression are settings of their
+            // own, not the network as it is.
+            c(1.0, h, 1.0, 0.25),
+            c(1.0, h, r2, 0.239),
+            c(1.0, 0.5, h, 0.26),
         ];
         assert_eq!(
             finalists(&candidates),
             vec![
-                (1.0, 1.0, 0.246),
-                (0.5, 1.0, 0.2375),
-                (0.25, 2f64.sqrt(), 0.2372),
-                (0.0, 2f64.sqrt(), 0.307),
+                c(1.0, 1.0, 1.0, 0.246),
+                c(0.5, 1.0, 1.0, 0.2375),
+                c(0.25, 1.0, r2, 0.2372),
+                c(0.0, 1.0, r2, 0.307),
+                c(1.0, h, r2, 0.239),
+                c(1.0, 0.5, h, 0.26),
             ]
         );
         assert!(finalists(&[]).is_empty());
+    }
+
+    #[test]
+    fn a_shear_share_scales_the_shear_springs_alone_on_top_of_the_k_factor() {
+        let topology = Topology::grid(&GridSpec::default(), 1.0, 1.0);
+        let device = Device::flex();
+        let n = topology.num_springs();
+        let k: Vec<f64> = (0..n).map(|s| 10.0 + (s % 7) as f64).collect();
+        let b: Vec<f64> = (0..n).map(|s| 0.1 + 0.01 * (s % 5) as f64).collect();
+        let model = SpringNet::new(&topology, &k, &b, &device);
+        let physics = grid_physics();
+        let progress = crate::progress::Progress::quiet();
+        let takes = Takes {
+            topology: &topology,
+            files: &[],
+            batch: 1,
+            device: &device,
+            progress: &progress,
+            cache: None,
+            objective: crate::eval::Objective::WholeTake,
+        };
+        let setting = ShearSetting {
+            shear_compression: 0.25,
+            shear_share: 0.5,
+            k_factor: 2.0,
+        };
+        let (net, at) = compression_candidate(&model, &physics, &takes, setting);
+        assert_eq!(at.shear_compression, 0.25);
+        let shear = topology
+            .family
+            .iter()
+            .filter(|&&f| f == SpringFamily::Shear)
+            .count();
+        assert!(shear > 0 && shear < n);
+        for ((got, k), family) in net.k_values().iter().zip(&k).zip(&topology.family) {
+            let want = if *family == SpringFamily::Shear {
+                *k
+            } else {
+                2.0 * k
+            };
+            assert!((got - want).abs() < 1e-4 * want, "{got} vs {want}");
+        }
+        for (got, b) in net.b_values().iter().zip(&b) {
+            assert!((got - b).abs() < 1e-4 * b, "{got} vs {b}");
+        }
     }
 
     #[test]
@@ -1530,15 +1684,7 @@ mod tests {
     #[test]
     fn a_search_reaches_a_network_up_to_its_substep_caps_and_no_further() {
         let topo = Topology::grid(&GridSpec::default(), 2.0, 2.0);
-        let physics = Physics {
-            frame_dt: 1.0 / 30.0,
-            substeps: 4,
-            mass: 0.5 / 1024.0,
-            rayleigh: 0.0,
-            gravity: [0.0, 0.0, -9.81],
-            viscosity: 0.0,
-            shear_compression: 1.0,
-        };
+        let physics = grid_physics();
         let device = Device::flex();
         let net = |k: f64, b: f64| SpringNet::uniform(&topo, k, b, &device);
         // The substeps a uniform network needs, uncapped.
