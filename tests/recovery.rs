@@ -408,8 +408,9 @@ fn the_compression_search_finds_shear_springs_that_pull_only() {
             shear_compression: source_compression,
             ..SpringCloth::from_config(&source)
         };
-        let topology = cloth.topology.clone();
-        topology.scale_family(&mut cloth.k, SpringFamily::Shear, source_share);
+        cloth
+            .topology
+            .scale_family(&mut cloth.k, SpringFamily::Shear, source_share);
         save_takes(&dir, &cloth, &source, 2, true);
         let (run_dir, record) = blend_run_with(&dir, 50.0, 6.0, 2, "compression_search = true\n");
         let search = &record["shear_compression"];

@@ -1347,7 +1347,7 @@ impl AfterFit<'_> {
         };
         let before_kappa = physics.shear_compression;
         let unchanged =
-            |s: &scale::ShearSetting| s.shear_compression == before_kappa && s.shear_share == 1.0;
+            |s: &scale::ShearSetting| s.same_shear(&scale::ShearSetting::unchanged(before_kappa));
         let held = self.split.validation.len();
         for candidate in scale::finalists(&record.candidates) {
             let setting = candidate.setting;
@@ -1401,9 +1401,7 @@ impl AfterFit<'_> {
             .min_by(|a, b| a.pooled.total_cmp(&b.pooled))
             .cloned()
             .expect("the finalists hold the shear springs as they are");
-        record.shear_compression = best.setting.shear_compression;
-        record.shear_share = best.setting.shear_share;
-        record.k_factor = best.setting.k_factor;
+        record.setting = best.setting;
         record.after = best.train;
         if unchanged(&best.setting) {
             progress.note(&format!(
@@ -1423,15 +1421,15 @@ impl AfterFit<'_> {
             "{found}; closest together with the shear springs pushing at {} of their k when \
              compressed and their k × {:.3}, the network's k × {:.3}; {} at sim.shear_compression \
              {} -> {}",
-            record.shear_compression,
-            record.shear_share,
-            record.k_factor,
+            record.setting.shear_compression,
+            record.setting.shear_share,
+            record.setting.k_factor,
             verdict.figures(held),
             before_kappa,
             verdict.outcome()
         ));
         let (net, physics) = if record.kept {
-            scale::compression_candidate(&net, &physics, &takes, record.setting())
+            scale::compression_candidate(&net, &physics, &takes, record.setting)
         } else {
             (net, physics)
         };

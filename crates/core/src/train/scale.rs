@@ -1004,7 +1004,20 @@ impl<'a> Sizes<'a> {
 
     /// The network with every `k` and curvature element times `fk` and the damping `b`.
     fn with(&self, takes: &Takes, fk: f64, b: &[f64]) -> SpringNet {
-        SpringNet::new(takes.topology, &times(&self.k, fk), b, takes.device)
+        self.with_family(takes, fk, (SpringFamily::Shear, 1.0), b)
+    }
+
+    /// [`Self::with`] with the `k` of the springs of `family.0` times `family.1` on top of `fk`.
+    fn with_family(
+        &self,
+        takes: &Takes,
+        fk: f64,
+        family: (SpringFamily, f64),
+        b: &[f64],
+    ) -> SpringNet {
+        let mut k = times(&self.k, fk);
+        takes.topology.scale_family(&mut k, family.0, family.1);
+        SpringNet::new(takes.topology, &k, b, takes.device)
             .with_kernel(self.model.graph.kernel)
             .with_curvature(&times(&self.kappa, fk))
     }
@@ -1324,7 +1337,7 @@ pub struct ShearSetting {
 
 impl ShearSetting {
     /// The network as it is: its own stiffness in compression `shear_compression`.
-    fn unchanged(shear_compression: f64) -> Self {
+    pub fn unchanged(shear_compression: f64) -> Self {
         Self {
             shear_compression,
             shear_share: 1.0,
@@ -1333,7 +1346,7 @@ impl ShearSetting {
     }
 
     /// Whether `other` sets the shear springs alike (the `k` factor aside).
-    fn same_shear(&self, other: &Self) -> bool {
+    pub fn same_shear(&self, other: &Self) -> bool {
         self.shear_compression == other.shear_compression && self.shear_share == other.shear_share
     }
 }
@@ -1358,15 +1371,10 @@ pub struct CompressionSearch {
     /// ([`finalists`]) with its figures on the held-out training takes, in the order tried.
     #[serde(default)]
     pub finalists: Vec<Finalist>,
-    /// The finalist closest to the training takes searched and the held-out ones together (the
-    /// closest on the training takes searched where none was held out): its stiffness in
-    /// compression per unit `k`,
-    pub shear_compression: f64,
-    /// its factor on the shear springs' `k`,
-    #[serde(default = "one")]
-    pub shear_share: f64,
-    /// its factor on the network's `k` (its curvature elements' too),
-    pub k_factor: f64,
+    /// What the finalist closest to the training takes searched and the held-out ones together
+    /// sets (the closest on the training takes searched where none was held out),
+    #[serde(flatten)]
+    pub setting: ShearSetting,
     /// and its mean motion RMSE on the training takes, m.
     pub after: f64,
     /// `(short, long)` motion RMSE on the held-out training takes of the network kept before,
@@ -1374,17 +1382,6 @@ pub struct CompressionSearch {
     pub held_out: Option<((f64, f64), (f64, f64))>,
     /// Whether the run keeps it.
     pub kept: bool,
-}
-
-impl CompressionSearch {
-    /// The setting of the finalist closest to the takes (kept or not).
-    pub fn setting(&self) -> ShearSetting {
-        ShearSetting {
-            shear_compression: self.shear_compression,
-            shear_share: self.shear_share,
-            k_factor: self.k_factor,
-        }
-    }
 }
 
 /// One setting of the shear springs' closest candidate on the training takes, judged on the
@@ -1434,14 +1431,13 @@ pub fn compression_candidate(
     setting: ShearSetting,
 ) -> (SpringNet, Physics) {
     let sizes = Sizes::of(model);
-    let mut k = times(&sizes.k, setting.k_factor);
-    train
-        .topology
-        .scale_family(&mut k, SpringFamily::Shear, setting.shear_share);
     (
-        SpringNet::new(train.topology, &k, &sizes.b, train.device)
-            .with_kernel(model.graph.kernel)
-            .with_curvature(&times(&sizes.kappa, setting.k_factor)),
+        sizes.with_family(
+            train,
+            setting.k_factor,
+            (SpringFamily::Shear, setting.shear_share),
+            &sizes.b,
+        ),
         Physics {
             shear_compression: setting.shear_compression,
             ..*physics
@@ -1507,9 +1503,7 @@ pub fn shear_compression(
     let record = CompressionSearch {
         candidates,
         finalists: Vec::new(),
-        shear_compression: best.setting.shear_compression,
-        shear_share: best.setting.shear_share,
-        k_factor: best.setting.k_factor,
+        setting: best.setting,
         after: best.rmse,
         held_out: None,
         kept: false,
